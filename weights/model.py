@@ -1,0 +1,224 @@
+"""Reference PyTorch model of comma.ai's "Learning a Driving Simulator" networks.
+
+This file defines the drivesim weight format: module and parameter names here
+are the tensor names in the safetensors file, so keep them stable.
+Frames are NCHW float tensors in [-1, 1]; codes are [N, z_dim].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+CONFIG_KEY = "drivesim.config"
+DTYPES = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}
+LEAK = 0.2  # LeakyReLU slope of the encoder, as in the paper's discriminator-style encoder
+
+
+@dataclass(frozen=True)
+class Config:
+    height: int
+    width: int
+    channels: int
+    base_channels: int
+    layers: int = 4
+    kernel: int = 5
+    z_dim: int = 512
+    hidden_dim: int = 512
+    action_dim: int = 2
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if type(v) is not int or v <= 0:
+                raise ValueError(f"config {f.name} must be a positive integer, got {v!r}")
+        step = 2**self.layers
+        if self.height % step or self.width % step:
+            raise ValueError(f"height and width must be multiples of 2**layers = {step}")
+        if self.kernel % 2 == 0:
+            raise ValueError("kernel must be odd (padding is kernel // 2)")
+
+    @property
+    def top_channels(self) -> int:
+        """Channels of the smallest feature map (8b for 4 layers)."""
+        return self.base_channels * 2 ** (self.layers - 1)
+
+    @property
+    def top_shape(self) -> tuple[int, int, int]:
+        s = 2**self.layers
+        return (self.top_channels, self.height // s, self.width // s)
+
+    @property
+    def flat(self) -> int:
+        c, h, w = self.top_shape
+        return c * h * w
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> "Config":
+        d = json.loads(text)
+        names = {f.name for f in dataclasses.fields(cls)}
+        if not isinstance(d, dict) or set(d) != names:
+            raise ValueError(f"config must be a JSON object with exactly the keys {sorted(names)}")
+        return cls(**d)
+
+
+def _conv(cfg: Config, cin: int, cout: int) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, cfg.kernel, stride=2, padding=cfg.kernel // 2)
+
+
+def _deconv(cfg: Config, cin: int, cout: int) -> nn.ConvTranspose2d:
+    # output_padding=1 makes each layer exactly double the spatial size.
+    return nn.ConvTranspose2d(cin, cout, cfg.kernel, stride=2, padding=cfg.kernel // 2, output_padding=1)
+
+
+class Encoder(nn.Module):
+    """frame [N,C,H,W] -> (mean [N,z], logsigma [N,z]); logsigma is tanh-squashed."""
+
+    def __init__(self, cfg: Config):
+        super().__init__()
+        self.layers = cfg.layers
+        cin = cfg.channels
+        for i in range(cfg.layers):
+            cout = cfg.base_channels * 2**i
+            setattr(self, f"conv{i}", _conv(cfg, cin, cout))
+            if i > 0:  # no BN after the first conv
+                setattr(self, f"bn{i}", nn.BatchNorm2d(cout))
+            cin = cout
+        self.mean = nn.Linear(cfg.flat, cfg.z_dim)
+        self.logsigma = nn.Linear(cfg.flat, cfg.z_dim)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        for i in range(self.layers):
+            x = getattr(self, f"conv{i}")(x)
+            if i > 0:
+                x = getattr(self, f"bn{i}")(x)
+            x = nn.functional.leaky_relu(x, LEAK)
+        x = x.flatten(1)
+        return self.mean(x), torch.tanh(self.logsigma(x))
+
+
+class Generator(nn.Module):
+    """code [N,z] -> frame [N,C,H,W] in [-1, 1]."""
+
+    def __init__(self, cfg: Config):
+        super().__init__()
+        self.layers = cfg.layers
+        self.top_shape = cfg.top_shape
+        self.fc = nn.Linear(cfg.z_dim, cfg.flat)
+        self.bn0 = nn.BatchNorm2d(cfg.top_channels)
+        cin = cfg.top_channels
+        for i in range(1, cfg.layers + 1):
+            last = i == cfg.layers
+            cout = cfg.channels if last else cin // 2
+            setattr(self, f"deconv{i}", _deconv(cfg, cin, cout))
+            if not last:
+                setattr(self, f"bn{i}", nn.BatchNorm2d(cout))
+            cin = cout
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        x = self.fc(z).view(-1, *self.top_shape)
+        x = torch.relu(self.bn0(x))
+        for i in range(1, self.layers):
+            x = torch.relu(getattr(self, f"bn{i}")(getattr(self, f"deconv{i}")(x)))
+        return torch.tanh(getattr(self, f"deconv{self.layers}")(x))
+
+
+class Transition(nn.Module):
+    """RNN in code space: h' = tanh(W h + V z + U c + b), z' = A h' + a."""
+
+    def __init__(self, cfg: Config):
+        super().__init__()
+        hd, zd, ad = cfg.hidden_dim, cfg.z_dim, cfg.action_dim
+        self.W = nn.Parameter(torch.empty(hd, hd))
+        self.V = nn.Parameter(torch.empty(hd, zd))
+        self.U = nn.Parameter(torch.empty(hd, ad))
+        self.b = nn.Parameter(torch.zeros(hd))
+        self.A = nn.Parameter(torch.empty(zd, hd))
+        self.a = nn.Parameter(torch.zeros(zd))
+        for m in (self.W, self.V, self.U, self.A):
+            # std 1/sqrt(fan_in) keeps long rollouts from exploding or vanishing.
+            nn.init.normal_(m, std=m.shape[1] ** -0.5)
+
+    def forward(self, z: torch.Tensor, h: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step on [N,z], [N,hd], [N,action] (or unbatched 1-D) -> (z', h')."""
+        h = torch.tanh(h @ self.W.T + z @ self.V.T + c @ self.U.T + self.b)
+        return h @ self.A.T + self.a, h
+
+
+class DriveSim(nn.Module):
+    def __init__(self, cfg: Config):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = Encoder(cfg)
+        self.generator = Generator(cfg)
+        self.transition = Transition(cfg)
+
+    def rollout(self, seed_frames: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Predict codes from S seed frames [S,C,H,W] and S-1+T actions [S-1+T,action].
+
+        Starting from h = 0, step i maps frame i to frame i+1 with actions[i]. Steps
+        0..S-1 take the encoder mean of seed frame i as z input (teacher forcing);
+        later steps feed back the previous z'. Returns the T predicted codes [T,z]
+        (the z' of steps S-1 .. S-2+T), i.e. the codes of frames S .. S-1+T.
+        """
+        s = seed_frames.shape[0]
+        if s < 1 or actions.shape[0] < s - 1:
+            raise ValueError("need at least one seed frame and S-1 actions")
+        seeds, _ = self.encoder(seed_frames)
+        h = seeds.new_zeros(self.cfg.hidden_dim)
+        z = seeds[0]
+        codes = []
+        for i, c in enumerate(actions):
+            if i < s:
+                z = seeds[i]
+            z, h = self.transition(z, h, c)
+            if i >= s - 1:
+                codes.append(z)
+        return torch.stack(codes)
+
+
+def state_tensors(model: DriveSim, dtype: str | torch.dtype = "f32") -> dict[str, torch.Tensor]:
+    """The tensors of the weight file: the state_dict without BN's num_batches_tracked."""
+    dt = DTYPES.get(dtype, dtype)
+    return {
+        k: v.detach().to("cpu", dt).contiguous().clone()
+        for k, v in model.state_dict().items()
+        if not k.endswith("num_batches_tracked")
+    }
+
+
+def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | torch.dtype = "f32") -> None:
+    """Write the drivesim safetensors file; dtype is "f32", "f16", "bf16" or a torch dtype."""
+    if DTYPES.get(dtype, dtype) not in DTYPES.values():
+        raise ValueError(f"unsupported dtype {dtype!r}")
+    save_file(state_tensors(model, dtype), str(path), metadata={CONFIG_KEY: cfg.to_json()})
+
+
+def load_drivesim(path: str | Path) -> tuple[DriveSim, Config]:
+    """Read a drivesim safetensors file into a float32 model in eval mode."""
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata() or {}
+    if CONFIG_KEY not in meta:
+        raise ValueError(f"{path}: missing metadata key {CONFIG_KEY!r}")
+    cfg = Config.from_json(meta[CONFIG_KEY])
+    tensors = load_file(str(path))
+    dtypes = {t.dtype for t in tensors.values()}
+    if len(dtypes) != 1 or not dtypes <= set(DTYPES.values()):
+        raise ValueError(f"{path}: tensors must all share one of f32/f16/bf16, got {dtypes}")
+    model = DriveSim(cfg)
+    # Shape mismatches raise here; missing/unexpected names are checked below.
+    res = model.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=False)
+    missing = [k for k in res.missing_keys if not k.endswith("num_batches_tracked")]
+    if missing or res.unexpected_keys:
+        raise ValueError(f"{path}: missing tensors {missing}, unexpected tensors {res.unexpected_keys}")
+    return model.eval(), cfg
