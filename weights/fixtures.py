@@ -1,0 +1,171 @@
+"""Generate the Rust test fixtures in tests/fixtures/, or check the committed ones.
+
+    weights/tool fixtures            regenerate tests/fixtures/
+    weights/tool fixtures --check    regenerate into a temp dir and compare
+
+For each fixture NAME this writes NAME.safetensors (random weights in the
+drivesim format) and NAME.io.safetensors (float32 inputs and reference outputs,
+frames HWC). See weights/README.md for the tensor names.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
+
+from model import CONFIG_KEY, Config, DriveSim, load_drivesim, save_drivesim
+
+OUT = Path(__file__).resolve().parent.parent / "tests" / "fixtures"
+RTOL = 1e-6
+TRANSITION_STEPS = 30
+ROLLOUT_SEEDS = 3
+ROLLOUT_PREDICTIONS = 5
+
+# name: (config, dtype, seed)
+FIXTURES = {
+    "small_f32": (Config(48, 112, 3, 6, z_dim=20, hidden_dim=36, action_dim=2), "f32", 1),
+    "small_f16": (Config(48, 112, 3, 6, z_dim=20, hidden_dim=36, action_dim=2), "f16", 2),
+    "tiny_bf16": (Config(16, 32, 1, 3, z_dim=5, hidden_dim=7, action_dim=2), "bf16", 3),
+    "tall_f32": (Config(64, 32, 4, 5, z_dim=9, hidden_dim=11, action_dim=3), "f32", 4),
+}
+
+
+def randomize(model: DriveSim) -> None:
+    """Random weights whose outputs depend clearly on every layer.
+
+    PyTorch's default init shrinks the signal at each layer, so generated frames
+    would hardly depend on z; He-style scaling keeps it alive. BN and biases are
+    made non-trivial so that BN folding and bias handling are tested.
+    """
+    with torch.no_grad():
+        for m in model.modules():
+            if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear)):
+                fan_in = m.weight[0].numel()
+                m.weight.normal_(0, (2 / fan_in) ** 0.5)
+                m.bias.normal_(0, 0.1)
+            elif isinstance(m, torch.nn.ConvTranspose2d):
+                # Stride 2: each output pixel sees about a quarter of the k*k taps.
+                fan_in = m.weight.shape[0] * m.weight[0, 0].numel() / 4
+                m.weight.normal_(0, (2 / fan_in) ** 0.5)
+                m.bias.normal_(0, 0.1)
+            elif isinstance(m, torch.nn.BatchNorm2d):
+                m.weight.uniform_(0.5, 1.5)
+                m.bias.normal_(0, 0.1)
+                m.running_mean.normal_(0, 0.1)
+                m.running_var.uniform_(0.5, 1.5)
+        model.transition.b.normal_(0, 0.1)
+        model.transition.a.normal_(0, 0.1)
+
+
+def hwc(frames: torch.Tensor) -> torch.Tensor:
+    return frames.permute(0, 2, 3, 1).contiguous()
+
+
+def nchw(frames: torch.Tensor) -> torch.Tensor:
+    return frames.permute(0, 3, 1, 2)
+
+
+def frames(n: int, cfg: Config) -> torch.Tensor:
+    return torch.rand(n, cfg.height, cfg.width, cfg.channels) * 2 - 1
+
+
+@torch.no_grad()
+def reference_io(model: DriveSim, cfg: Config) -> dict[str, torch.Tensor]:
+    io = {}
+
+    io["encode.frames"] = frames(2, cfg)
+    io["encode.mean"], io["encode.logsigma"] = model.encoder(nchw(io["encode.frames"]))
+
+    io["generate.z"] = torch.randn(2, cfg.z_dim)
+    io["generate.frames"] = hwc(model.generator(io["generate.z"]))
+
+    z = io["transition.z0"] = torch.randn(cfg.z_dim)
+    h = io["transition.h0"] = torch.randn(cfg.hidden_dim) * 0.5
+    actions = io["transition.actions"] = torch.randn(TRANSITION_STEPS, cfg.action_dim)
+    zs, hs = [], []
+    for c in actions:
+        z, h = model.transition(z, h, c)
+        zs.append(z)
+        hs.append(h)
+    io["transition.z"], io["transition.h"] = torch.stack(zs), torch.stack(hs)
+    io["transition.frame"] = hwc(model.generator(zs[-1][None]))[0]
+
+    io["rollout.seed_frames"] = frames(ROLLOUT_SEEDS, cfg)
+    io["rollout.actions"] = torch.randn(ROLLOUT_SEEDS - 1 + ROLLOUT_PREDICTIONS, cfg.action_dim)
+    io["rollout.codes"] = model.rollout(nchw(io["rollout.seed_frames"]), io["rollout.actions"])
+    io["rollout.frames"] = hwc(model.generator(io["rollout.codes"]))
+
+    return {k: v.float().contiguous() for k, v in io.items()}
+
+
+def generate(out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    for name, (cfg, dtype, seed) in FIXTURES.items():
+        torch.manual_seed(seed)
+        model = DriveSim(cfg)
+        randomize(model)
+        weights = out / f"{name}.safetensors"
+        save_drivesim(model, cfg, weights, dtype)
+        # Reference outputs use the weights as stored (rounded for f16/bf16), in float32.
+        model, _ = load_drivesim(weights)
+        meta = {CONFIG_KEY: cfg.to_json(), "drivesim.frame_layout": "HWC"}
+        save_file(reference_io(model, cfg), str(out / f"{name}.io.safetensors"), metadata=meta)
+
+
+def compare(committed: Path, fresh: Path) -> list[str]:
+    """Differences between two safetensors files (metadata exactly, tensors within RTOL)."""
+    if not committed.exists():
+        return [f"{committed.name}: missing"]
+    errors = []
+    with safe_open(str(committed), "pt") as a, safe_open(str(fresh), "pt") as b:
+        if a.metadata() != b.metadata():
+            errors.append(f"{committed.name}: metadata {a.metadata()} != {b.metadata()}")
+    old, new = load_file(str(committed)), load_file(str(fresh))
+    if old.keys() != new.keys():
+        errors.append(f"{committed.name}: tensor names differ: {sorted(old.keys() ^ new.keys())}")
+    for k in sorted(old.keys() & new.keys()):
+        x, y = old[k], new[k]
+        if x.dtype != y.dtype or x.shape != y.shape:
+            errors.append(f"{committed.name}: {k}: {x.dtype}{list(x.shape)} != {y.dtype}{list(y.shape)}")
+            continue
+        x, y = x.double(), y.double()
+        err = (x - y).abs().max().item() if x.numel() else 0.0
+        # Relative to the tensor's scale: element-wise relative error is meaningless near zero.
+        if err > RTOL * max(y.abs().max().item() if y.numel() else 0.0, 1e-30):
+            errors.append(f"{committed.name}: {k}: max abs difference {err:.3g}")
+    return errors
+
+
+def check() -> int:
+    with tempfile.TemporaryDirectory() as tmp:
+        generate(Path(tmp))
+        expected = sorted(p.name for p in Path(tmp).iterdir())
+        errors = [e for name in expected for e in compare(OUT / name, Path(tmp) / name)]
+    stale = sorted({p.name for p in OUT.glob("*.safetensors")} - set(expected))
+    errors += [f"{name}: not produced by fixtures.py" for name in stale]
+    for e in errors:
+        print(e, file=sys.stderr)
+    print(f"{len(expected)} fixture files checked, {len(errors)} problems")
+    return 1 if errors else 0
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--check", action="store_true", help="compare regenerated fixtures with tests/fixtures/")
+    args = p.parse_args()
+    torch.set_num_threads(1)  # one thread: a fixed summation order, reproducible results
+    if args.check:
+        return check()
+    generate(OUT)
+    print(f"wrote {len(FIXTURES) * 2} files to {OUT}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
