@@ -215,10 +215,15 @@ def load_drivesim(path: str | Path) -> tuple[DriveSim, Config]:
     dtypes = {t.dtype for t in tensors.values()}
     if len(dtypes) != 1 or not dtypes <= set(DTYPES.values()):
         raise ValueError(f"{path}: tensors must all share one of f32/f16/bf16, got {dtypes}")
+    return from_state_dict(cfg, tensors), cfg
+
+
+def from_state_dict(cfg: Config, tensors: dict[str, torch.Tensor]) -> DriveSim:
+    """Float32 model in eval mode; every tensor must be present except num_batches_tracked."""
     model = DriveSim(cfg)
     # Shape mismatches raise here; missing/unexpected names are checked below.
     res = model.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=False)
     missing = [k for k in res.missing_keys if not k.endswith("num_batches_tracked")]
     if missing or res.unexpected_keys:
-        raise ValueError(f"{path}: missing tensors {missing}, unexpected tensors {res.unexpected_keys}")
-    return model.eval(), cfg
+        raise ValueError(f"missing tensors {missing}, unexpected tensors {res.unexpected_keys}")
+    return model.eval()

@@ -1,0 +1,106 @@
+"""Episodes file: recorded driving as one safetensors file.
+
+Tensors (see the "Episodes format" section of weights/README.md):
+  frames          uint8   [N, H, W, 3]  RGB frames, episodes back to back
+  actions         float32 [N, 2]        (speed, steering) in effect at frame i
+  episode_starts  int64   [E]           index of each episode's first frame; starts at 0, increasing
+"""
+
+import gzip
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from safetensors.numpy import load, save
+
+
+class EpisodesError(ValueError):
+    """An episodes file or array set that breaks the format."""
+
+
+@dataclass
+class Episodes:
+    frames: np.ndarray
+    actions: np.ndarray
+    episode_starts: np.ndarray
+
+    def __post_init__(self):
+        validate(self.frames, self.actions, self.episode_starts)
+
+    def __len__(self):
+        return len(self.episode_starts)
+
+    def bounds(self):
+        """(start, end) frame range of each episode."""
+        ends = list(self.episode_starts[1:]) + [len(self.frames)]
+        return [(int(s), int(e)) for s, e in zip(self.episode_starts, ends)]
+
+    def episode(self, i):
+        s, e = self.bounds()[i]
+        return self.frames[s:e], self.actions[s:e]
+
+    @staticmethod
+    def concat(parts):
+        """Join episode sets into one, shifting each part's starts."""
+        if not parts:
+            raise EpisodesError("nothing to concatenate")
+        offsets = np.cumsum([0] + [len(p.frames) for p in parts[:-1]])
+        return Episodes(
+            np.concatenate([p.frames for p in parts]),
+            np.concatenate([p.actions for p in parts]),
+            np.concatenate([p.episode_starts + o for p, o in zip(parts, offsets)]),
+        )
+
+
+def validate(frames, actions, starts):
+    def need(ok, what):
+        if not ok:
+            raise EpisodesError(what)
+
+    need(isinstance(frames, np.ndarray) and frames.dtype == np.uint8, "frames must be uint8")
+    need(frames.ndim == 4 and frames.shape[3] == 3, f"frames must be [N,H,W,3], got {frames.shape}")
+    need(len(frames) > 0, "no frames")
+    need(actions.dtype == np.float32, f"actions must be float32, got {actions.dtype}")
+    need(actions.shape == (len(frames), 2), f"actions must be [{len(frames)},2], got {actions.shape}")
+    need(np.isfinite(actions).all(), "actions hold NaN or inf")
+    need(starts.dtype == np.int64, f"episode_starts must be int64, got {starts.dtype}")
+    need(starts.ndim == 1 and len(starts) > 0, "episode_starts must be a non-empty vector")
+    need(starts[0] == 0, "episode_starts must begin at 0")
+    need(bool(np.all(np.diff(starts) > 0)), "episode_starts must be strictly increasing")
+    need(starts[-1] < len(frames), "an episode starts past the last frame")
+
+
+def write(path, episodes, metadata=None):
+    """Save episodes; a path ending in .gz is gzipped. metadata: optional str->str header dict."""
+    blob = save(
+        {
+            "frames": np.ascontiguousarray(episodes.frames),
+            "actions": np.ascontiguousarray(episodes.actions),
+            "episode_starts": np.ascontiguousarray(episodes.episode_starts),
+        },
+        metadata=metadata,
+    )
+    path = Path(path)
+    if path.suffix == ".gz":
+        blob = gzip.compress(blob, compresslevel=6)
+    path.write_bytes(blob)
+
+
+def read(path):
+    path = Path(path)
+    if not path.is_file():
+        raise EpisodesError(f"{path}: no such file")
+    blob = path.read_bytes()
+    try:
+        if path.suffix == ".gz":
+            blob = gzip.decompress(blob)
+        tensors = load(blob)
+    except Exception as e:  # safetensors raises several types for a bad header
+        raise EpisodesError(f"{path}: not a (gzipped) safetensors file ({e})") from e
+    missing = {"frames", "actions", "episode_starts"} - tensors.keys()
+    if missing:
+        raise EpisodesError(f"{path}: missing tensors {sorted(missing)}")
+    try:
+        return Episodes(tensors["frames"], tensors["actions"], tensors["episode_starts"])
+    except EpisodesError as e:
+        raise EpisodesError(f"{path}: {e}") from e

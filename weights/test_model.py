@@ -1,0 +1,81 @@
+"""Light checks of the reference model and the weight format: weights/tool -m pytest"""
+
+import json
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+from safetensors import safe_open
+from safetensors.torch import load_file, save_file
+
+from export import export_onnx
+from model import CONFIG_KEY, DTYPES, Config, DriveSim, load_drivesim, save_drivesim
+
+CFG = Config(16, 32, 2, 3, z_dim=5, hidden_dim=7, action_dim=3)
+
+
+@pytest.fixture
+def model():
+    torch.manual_seed(0)
+    return DriveSim(CFG).eval()
+
+
+def test_shapes(model):
+    frames = torch.rand(4, CFG.channels, CFG.height, CFG.width) * 2 - 1
+    mean, logsigma = model.encoder(frames)
+    assert mean.shape == logsigma.shape == (4, CFG.z_dim)
+    assert model.generator(mean).shape == frames.shape
+    z, h = model.transition(mean, torch.zeros(4, CFG.hidden_dim), torch.zeros(4, CFG.action_dim))
+    assert z.shape == (4, CFG.z_dim) and h.shape == (4, CFG.hidden_dim)
+    assert model.rollout(frames[:3], torch.zeros(7, CFG.action_dim)).shape == (5, CFG.z_dim)
+
+
+@pytest.mark.parametrize("dtype", ["f32", "f16", "bf16"])
+def test_round_trip(model, tmp_path, dtype):
+    path = tmp_path / "m.safetensors"
+    save_drivesim(model, CFG, path, dtype)
+    with safe_open(str(path), "pt") as f:
+        assert json.loads(f.metadata()[CONFIG_KEY]) == json.loads(CFG.to_json())
+        assert not any(k.endswith("num_batches_tracked") for k in f.keys())
+    loaded, cfg = load_drivesim(path)
+    assert cfg == CFG
+    for k, v in loaded.state_dict().items():
+        if not k.endswith("num_batches_tracked"):
+            assert torch.equal(v, model.state_dict()[k].to(DTYPES[dtype]).float()), k
+
+
+def test_rejects_mixed_dtypes(model, tmp_path):
+    path = tmp_path / "m.safetensors"
+    save_drivesim(model, CFG, path)
+    tensors = load_file(str(path))
+    tensors["transition.a"] = tensors["transition.a"].half()
+    save_file(tensors, str(path), metadata={CONFIG_KEY: CFG.to_json()})
+    with pytest.raises(ValueError, match="one of"):
+        load_drivesim(path)
+
+
+def test_config_requires_all_keys():
+    d = json.loads(CFG.to_json())
+    del d["kernel"]
+    with pytest.raises(ValueError):
+        Config.from_json(json.dumps(d))
+
+
+def test_onnx_matches_torch(model, tmp_path):
+    export_onnx(model, CFG, tmp_path)
+    assert not any(m.training for m in model.modules()), "export must leave the model in eval mode"
+    frame = torch.rand(1, CFG.channels, CFG.height, CFG.width) * 2 - 1
+    z, h, c = torch.randn(1, CFG.z_dim), torch.randn(1, CFG.hidden_dim), torch.randn(1, CFG.action_dim)
+    with torch.no_grad():
+        expected = {
+            "encoder": [model.encoder(frame)[0]],
+            "generator": [model.generator(z)],
+            "transition": list(model.transition(z, h, c)),
+        }
+    inputs = {"encoder": {"frame": frame}, "generator": {"z": z}, "transition": {"z": z, "h": h, "c": c}}
+    for name, feeds in inputs.items():
+        sess = ort.InferenceSession(str(tmp_path / f"{name}.onnx"))
+        got = sess.run(None, {k: v.numpy() for k, v in feeds.items()})
+        for g, e in zip(got, expected[name]):
+            np.testing.assert_allclose(g, e.numpy(), rtol=1e-5, atol=1e-5)
