@@ -1,0 +1,339 @@
+//! The numeric kernels of drivesim.
+//!
+//! This crate is the contract between the networks and the arithmetic. It defines
+//! - the data layouts the kernels read and write ([`Plane`], [`ConvShape`], [`Matrix`]),
+//! - one entry point per operation ([`conv`], [`dense`], [`rnn_step`]) that dispatches on an
+//!   [`Isa`] chosen once at run time,
+//! - the scalar reference of every operation ([`scalar`]), which is the test oracle for the
+//!   SIMD versions and the fallback on every other target,
+//! - weight packing done once at load ([`pack`]).
+//!
+//! Nothing here allocates except the packing functions; the kernels write into caller buffers.
+//! Shapes are the caller's responsibility: a kernel panics on inconsistent lengths, since the
+//! model validates every shape before it ever calls one.
+#![cfg_attr(not(feature = "std"), no_std)]
+
+extern crate alloc;
+
+mod isa;
+pub mod math;
+pub mod pack;
+pub mod scalar;
+#[cfg(target_arch = "x86_64")]
+mod x86_64;
+
+pub use half::f16;
+pub use isa::{Isa, IsaLevel};
+
+/// Output channels of packed convolution weights are padded with zeros to a multiple of this,
+/// so that every SIMD width up to 16 lanes loads whole vectors of weights.
+pub const OC_ALIGN: usize = 16;
+
+/// A feature map stored in HWC order (channels innermost) inside a border of `halo` zero pixels
+/// on every side. The border lets convolution kernels read taps that fall outside the image
+/// without bounds checks; it is zeroed once when the buffer is made and never written.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Plane {
+    pub height: usize,
+    pub width: usize,
+    pub channels: usize,
+    pub halo: usize,
+}
+
+impl Plane {
+    pub const fn new(height: usize, width: usize, channels: usize, halo: usize) -> Self {
+        Plane {
+            height,
+            width,
+            channels,
+            halo,
+        }
+    }
+
+    /// Floats in the buffer, border included.
+    #[allow(clippy::len_without_is_empty)] // a plane is never empty
+    pub const fn len(&self) -> usize {
+        (self.height + 2 * self.halo) * self.row_stride()
+    }
+
+    /// Floats from one stored row to the next.
+    pub const fn row_stride(&self) -> usize {
+        (self.width + 2 * self.halo) * self.channels
+    }
+
+    /// Index of channel 0 of interior pixel (`y`, `x`).
+    pub const fn index(&self, y: usize, x: usize) -> usize {
+        (y + self.halo) * self.row_stride() + (x + self.halo) * self.channels
+    }
+
+    /// Floats in the interior (the image without its border).
+    pub const fn interior_len(&self) -> usize {
+        self.height * self.width * self.channels
+    }
+
+    /// Copies an unpadded HWC image into the interior of `buf`.
+    pub fn write_interior(&self, buf: &mut [f32], image: &[f32]) {
+        assert_eq!(image.len(), self.interior_len());
+        assert_eq!(buf.len(), self.len());
+        let row = self.width * self.channels;
+        for (y, src) in image.chunks_exact(row.max(1)).enumerate() {
+            let start = self.index(y, 0);
+            buf[start..start + row].copy_from_slice(src);
+        }
+    }
+}
+
+/// Which of the model's two convolutions: both have stride 2 and padding `kernel / 2`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ConvKind {
+    /// `Conv2d(stride 2)`: output is half the input size.
+    Down,
+    /// `ConvTranspose2d(stride 2, output_padding 1)`: output is twice the input size.
+    /// Computed by gathering the taps that reach each output pixel, so the zeros a naive
+    /// implementation inserts between input pixels are never multiplied.
+    Up,
+}
+
+impl ConvKind {
+    /// The input coordinate that kernel tap `tap` of output coordinate `out` reads, or `None`
+    /// when it falls outside an input of length `len` (padding, or the wrong stride phase).
+    #[inline]
+    pub fn source(self, out: usize, tap: usize, pad: usize, len: usize) -> Option<usize> {
+        let i = match self {
+            ConvKind::Down => (2 * out + tap).checked_sub(pad)?,
+            // out = 2 * i - pad + tap
+            ConvKind::Up => {
+                let twice = (out + pad).checked_sub(tap)?;
+                if twice % 2 != 0 {
+                    return None;
+                }
+                twice / 2
+            }
+        };
+        (i < len).then_some(i)
+    }
+
+    /// The border an input plane needs so that every tap a kernel reads lies in the buffer.
+    pub const fn input_halo(self, kernel: usize) -> usize {
+        match self {
+            ConvKind::Down => kernel / 2,
+            ConvKind::Up => (kernel / 2).div_ceil(2),
+        }
+    }
+}
+
+/// One convolution layer: square odd `kernel`, stride 2, padding `kernel / 2`.
+///
+/// Weights are packed by [`pack::conv_weights`] as `[ky][kx][in_channel][oc_stride]`, with the
+/// output channels zero-padded to [`ConvShape::oc_stride`]; `bias` has `output.channels` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ConvShape {
+    pub kind: ConvKind,
+    pub kernel: usize,
+    pub input: Plane,
+    pub output: Plane,
+}
+
+impl ConvShape {
+    /// A layer from `input` to an output plane with `out_channels` and border `out_halo`.
+    pub const fn new(kind: ConvKind, kernel: usize, input: Plane, out_channels: usize, out_halo: usize) -> Self {
+        let (height, width) = match kind {
+            ConvKind::Down => (input.height / 2, input.width / 2),
+            ConvKind::Up => (input.height * 2, input.width * 2),
+        };
+        ConvShape {
+            kind,
+            kernel,
+            input,
+            output: Plane::new(height, width, out_channels, out_halo),
+        }
+    }
+
+    /// Stride between the weight vectors of consecutive input channels.
+    pub const fn oc_stride(&self) -> usize {
+        self.output.channels.div_ceil(OC_ALIGN) * OC_ALIGN
+    }
+
+    /// Floats in the packed weights.
+    pub const fn packed_len(&self) -> usize {
+        self.kernel * self.kernel * self.input.channels * self.oc_stride()
+    }
+
+    /// Multiply-adds per image, counting only taps that land inside the input.
+    pub fn macs(&self) -> u64 {
+        let k = self.kernel;
+        let taps = |out_len: usize, in_len: usize| -> u64 {
+            (0..out_len)
+                .map(|o| {
+                    (0..k)
+                        .filter(|&t| self.kind.source(o, t, k / 2, in_len).is_some())
+                        .count() as u64
+                })
+                .sum()
+        };
+        taps(self.output.height, self.input.height)
+            * taps(self.output.width, self.input.width)
+            * (self.input.channels * self.output.channels) as u64
+    }
+
+    fn check(&self, input: &[f32], weights: &[f32], bias: &[f32], output: &[f32]) {
+        assert!(self.kernel % 2 == 1, "odd kernels only");
+        assert!(
+            self.input.halo >= self.kind.input_halo(self.kernel),
+            "input border too small"
+        );
+        let expected = ConvShape::new(
+            self.kind,
+            self.kernel,
+            self.input,
+            self.output.channels,
+            self.output.halo,
+        );
+        assert_eq!(*self, expected, "output plane does not match the input plane");
+        assert_eq!(input.len(), self.input.len());
+        assert_eq!(weights.len(), self.packed_len());
+        assert_eq!(bias.len(), self.output.channels);
+        assert_eq!(output.len(), self.output.len());
+    }
+}
+
+/// The nonlinearity applied to a kernel's output before it is stored.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Activation {
+    Identity,
+    Relu,
+    /// `max(x, slope * x)` for `0 < slope < 1`.
+    LeakyRelu(f32),
+    Tanh,
+}
+
+impl Activation {
+    #[inline]
+    pub fn apply(self, x: f32) -> f32 {
+        match self {
+            Activation::Identity => x,
+            Activation::Relu => x.max(0.0),
+            Activation::LeakyRelu(slope) => x.max(slope * x),
+            Activation::Tanh => math::tanh(x),
+        }
+    }
+}
+
+/// The stored values of a row-major weight matrix.
+#[derive(Clone, Copy, Debug)]
+pub enum MatrixData<'a> {
+    F32(&'a [f32]),
+    /// Kept in half precision and widened inside the kernel: half the memory traffic.
+    F16(&'a [f16]),
+}
+
+/// A row-major `rows x cols` matrix: `y = W x` reads row `r` for output `r`.
+#[derive(Clone, Copy, Debug)]
+pub struct Matrix<'a> {
+    pub data: MatrixData<'a>,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+impl Matrix<'_> {
+    fn check(&self, bias: &[f32], x: &[f32], y: &[f32]) -> usize {
+        let stored = match self.data {
+            MatrixData::F32(d) => d.len(),
+            MatrixData::F16(d) => d.len(),
+        };
+        assert_eq!(stored, self.rows * self.cols);
+        assert_eq!(bias.len(), self.rows);
+        assert!(self.cols > 0 && x.len() % self.cols == 0, "input is not whole rows");
+        let batch = x.len() / self.cols;
+        assert_eq!(y.len(), batch * self.rows);
+        batch
+    }
+}
+
+/// `output[n] = act(input(conv) + bias)` for one image: see [`ConvShape`] for the layouts.
+/// Only the interior of `output` is written; its border stays as it was (zero).
+pub fn conv(
+    isa: Isa,
+    shape: &ConvShape,
+    input: &[f32],
+    weights: &[f32],
+    bias: &[f32],
+    act: Activation,
+    output: &mut [f32],
+) {
+    shape.check(input, weights, bias, output);
+    match isa.level() {
+        IsaLevel::Scalar => scalar::conv(shape, input, weights, bias, act, output),
+        #[cfg(target_arch = "x86_64")]
+        level => x86_64::conv(level, shape, input, weights, bias, act, output),
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => scalar::conv(shape, input, weights, bias, act, output),
+    }
+}
+
+/// `y[n] = act(W x[n] + bias)` for a batch of `x.len() / W.cols` inputs stored one after another.
+pub fn dense(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
+    w.check(bias, x, y);
+    match isa.level() {
+        IsaLevel::Scalar => scalar::dense(w, bias, act, x, y),
+        #[cfg(target_arch = "x86_64")]
+        level => x86_64::dense(level, w, bias, act, x, y),
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => scalar::dense(w, bias, act, x, y),
+    }
+}
+
+/// The weights of the action-conditioned tanh RNN:
+/// `h' = tanh(W h + V z + U c + b)`, `z' = A h' + a`.
+///
+/// `W`, `V` and `U` are stored side by side as one `hidden x (hidden + z + action)` matrix so that
+/// one pass over memory computes all three products.
+#[derive(Clone, Copy, Debug)]
+pub struct Rnn<'a> {
+    /// `[W | V | U]`, `hidden x (hidden + z + action)`.
+    pub input: Matrix<'a>,
+    /// `b`, `hidden`.
+    pub input_bias: &'a [f32],
+    /// `A`, `z x hidden`.
+    pub output: Matrix<'a>,
+    /// `a`, `z`.
+    pub output_bias: &'a [f32],
+}
+
+impl Rnn<'_> {
+    pub fn hidden(&self) -> usize {
+        self.input.rows
+    }
+    pub fn z_dim(&self) -> usize {
+        self.output.rows
+    }
+    pub fn action_dim(&self) -> usize {
+        self.input.cols - self.input.rows - self.output.rows
+    }
+}
+
+/// One RNN step for a batch: updates `h` in place and writes `z_next`.
+/// `concat` is scratch of `batch * (hidden + z + action)` floats.
+pub fn rnn_step(
+    isa: Isa,
+    rnn: &Rnn<'_>,
+    concat: &mut [f32],
+    h: &mut [f32],
+    z: &[f32],
+    action: &[f32],
+    z_next: &mut [f32],
+) {
+    let (hd, zd, ad) = (rnn.hidden(), rnn.z_dim(), rnn.action_dim());
+    assert!(hd > 0 && h.len() % hd == 0);
+    let batch = h.len() / hd;
+    assert_eq!(z.len(), batch * zd);
+    assert_eq!(action.len(), batch * ad);
+    assert_eq!(concat.len(), batch * rnn.input.cols);
+    for (n, row) in concat.chunks_exact_mut(rnn.input.cols).enumerate() {
+        row[..hd].copy_from_slice(&h[n * hd..][..hd]);
+        row[hd..hd + zd].copy_from_slice(&z[n * zd..][..zd]);
+        row[hd + zd..].copy_from_slice(&action[n * ad..][..ad]);
+    }
+    dense(isa, rnn.input, rnn.input_bias, Activation::Tanh, concat, h);
+    dense(isa, rnn.output, rnn.output_bias, Activation::Identity, h, z_next);
+}

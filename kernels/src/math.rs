@@ -1,0 +1,99 @@
+//! Elementary functions without libm, written so that the SIMD kernels can evaluate the very
+//! same formulas lane by lane (and so agree with the scalar path to a few ulp).
+
+/// Below this |x|, tanh is evaluated by its odd Taylor series; above, through exp.
+/// At 0.0625 the series' first dropped term is ~3e-13 relative, and the exp form's
+/// cancellation costs at most ~1e-6 relative.
+pub const TANH_SERIES_LIMIT: f32 = 0.0625;
+/// tanh(9) rounds to 1.0 in f32, so larger inputs are clamped there (keeps exp finite).
+pub const TANH_CLAMP: f32 = 9.0;
+
+/// Coefficients of the odd series tanh(x) = x (1 + c1 x^2 + c2 x^4 + c3 x^6).
+pub const TANH_SERIES: [f32; 3] = [-1.0 / 3.0, 2.0 / 15.0, -17.0 / 315.0];
+
+/// Hyperbolic tangent, accurate to about 1e-6 relative over all finite inputs.
+#[inline]
+pub fn tanh(x: f32) -> f32 {
+    let a = x.abs().min(TANH_CLAMP);
+    let t = if a < TANH_SERIES_LIMIT {
+        let a2 = a * a;
+        a * (1.0 + a2 * (TANH_SERIES[0] + a2 * (TANH_SERIES[1] + a2 * TANH_SERIES[2])))
+    } else {
+        1.0 - 2.0 / (exp(2.0 * a) + 1.0)
+    };
+    if x < 0.0 {
+        -t
+    } else {
+        t
+    }
+}
+
+/// ln 2 split in a part exact in f32 and a remainder, for exact range reduction.
+pub const LN2_HI: f32 = 0.693_145_75;
+pub const LN2_LO: f32 = 1.428_606_8e-6;
+/// Taylor coefficients 1/k! for k = 2..=6 of exp(r) on |r| <= ln2/2 (error < 2e-7 relative).
+pub const EXP_POLY: [f32; 5] = [1.0 / 2.0, 1.0 / 6.0, 1.0 / 24.0, 1.0 / 120.0, 1.0 / 720.0];
+
+/// e^x for 0 <= x <= 2 * TANH_CLAMP: x = n ln2 + r, e^x = 2^n e^r.
+#[inline]
+pub fn exp(x: f32) -> f32 {
+    let n = (x * core::f32::consts::LOG2_E + 0.5) as i32 as f32; // x >= 0: truncation rounds
+    let r = (x - n * LN2_HI) - n * LN2_LO;
+    let p = 1.0
+        + r * (1.0 + r * (EXP_POLY[0] + r * (EXP_POLY[1] + r * (EXP_POLY[2] + r * (EXP_POLY[3] + r * EXP_POLY[4])))));
+    p * f32::from_bits(((n as i32 + 127) as u32) << 23)
+}
+
+/// Square root by Newton's method in f64 (core has no sqrt without std); used only at load.
+pub fn sqrt(x: f64) -> f64 {
+    if x <= 0.0 || x.is_nan() || x.is_infinite() {
+        return if x == 0.0 || x.is_infinite() { x } else { f64::NAN };
+    }
+    // Start from halving the exponent, then Newton doubles the correct bits each step.
+    let mut y = f64::from_bits((x.to_bits() >> 1) + (1023u64 << 51));
+    for _ in 0..6 {
+        y = 0.5 * (y + x / y);
+    }
+    y
+}
+
+#[cfg(all(test, feature = "std"))]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tanh_matches_std_everywhere() {
+        let mut worst = 0.0f64;
+        let mut x = -30.0f32;
+        while x <= 30.0 {
+            let want = (x as f64).tanh();
+            let err = ((tanh(x) as f64) - want).abs() / want.abs().max(1e-30);
+            worst = worst.max(if x == 0.0 { 0.0 } else { err });
+            x += 1.0 / 4096.0;
+        }
+        assert!(worst < 2e-6, "worst relative error {worst}");
+        assert_eq!(tanh(0.0), 0.0);
+        assert_eq!(tanh(100.0), 1.0);
+        assert_eq!(tanh(-100.0), -1.0);
+        assert!(tanh(1e-30) == 1e-30);
+    }
+
+    #[test]
+    fn exp_matches_std() {
+        let mut x = 0.0f32;
+        while x <= 18.0 {
+            let want = (x as f64).exp();
+            assert!(((exp(x) as f64) - want).abs() / want < 5e-7, "exp({x})");
+            x += 1.0 / 1024.0;
+        }
+    }
+
+    #[test]
+    fn sqrt_matches_std() {
+        for &x in &[1e-12, 1e-5, 0.5, 1.0, 2.0, 1.00001, 3.7e8] {
+            assert!((sqrt(x) - x.sqrt()).abs() <= 1e-15 * x.sqrt(), "sqrt({x})");
+        }
+        assert_eq!(sqrt(0.0), 0.0);
+        assert!(sqrt(-1.0).is_nan());
+    }
+}

@@ -1,0 +1,120 @@
+//! Weight preparation done once at load: PyTorch layouts in, kernel layouts out.
+
+use crate::{math, ConvKind, ConvShape};
+use alloc::vec::Vec;
+
+/// PyTorch's BatchNorm epsilon.
+pub const BN_EPS: f64 = 1e-5;
+
+/// Eval-mode BatchNorm parameters of one layer (per channel).
+#[derive(Clone, Copy, Debug)]
+pub struct BatchNorm<'a> {
+    pub weight: &'a [f32],
+    pub bias: &'a [f32],
+    pub running_mean: &'a [f32],
+    pub running_var: &'a [f32],
+}
+
+impl BatchNorm<'_> {
+    /// `bn(x) = scale * x + shift` per channel, computed in f64.
+    pub fn affine(&self) -> Vec<(f64, f64)> {
+        (0..self.weight.len())
+            .map(|c| {
+                let scale = self.weight[c] as f64 / math::sqrt(self.running_var[c] as f64 + BN_EPS);
+                (scale, self.bias[c] as f64 - scale * self.running_mean[c] as f64)
+            })
+            .collect()
+    }
+}
+
+/// Packs PyTorch convolution weights into `[ky][kx][in][oc_stride]` (see [`ConvShape`]),
+/// folding an optional BatchNorm that follows the layer into weights and bias.
+///
+/// `torch_weight` is `[out, in, k, k]` for [`ConvKind::Down`] (`Conv2d`) and `[in, out, k, k]`
+/// for [`ConvKind::Up`] (`ConvTranspose2d`). Returns `(packed weights, bias)`.
+pub fn conv_weights(
+    shape: &ConvShape,
+    torch_weight: &[f32],
+    bias: &[f32],
+    bn: Option<BatchNorm<'_>>,
+) -> (Vec<f32>, Vec<f32>) {
+    let (k, ic, oc, stride) = (
+        shape.kernel,
+        shape.input.channels,
+        shape.output.channels,
+        shape.oc_stride(),
+    );
+    assert_eq!(torch_weight.len(), oc * ic * k * k);
+    assert_eq!(bias.len(), oc);
+    let affine = bn.map(|bn| bn.affine()).unwrap_or_else(|| alloc::vec![(1.0, 0.0); oc]);
+    assert_eq!(affine.len(), oc);
+    let mut packed = alloc::vec![0.0f32; shape.packed_len()];
+    for o in 0..oc {
+        for i in 0..ic {
+            for ky in 0..k {
+                for kx in 0..k {
+                    let src = match shape.kind {
+                        ConvKind::Down => ((o * ic + i) * k + ky) * k + kx,
+                        ConvKind::Up => ((i * oc + o) * k + ky) * k + kx,
+                    };
+                    packed[((ky * k + kx) * ic + i) * stride + o] = (torch_weight[src] as f64 * affine[o].0) as f32;
+                }
+            }
+        }
+    }
+    let bias = bias
+        .iter()
+        .zip(&affine)
+        .map(|(&b, &(s, t))| (b as f64 * s + t) as f32)
+        .collect();
+    (packed, bias)
+}
+
+/// Maps an index of a flattened `[channels, height, width]` (PyTorch NCHW flatten) tensor to
+/// the index of the same value in `[height, width, channels]` order (the kernels' layout).
+pub fn chw_to_hwc(index: usize, channels: usize, height: usize, width: usize) -> usize {
+    let (c, rest) = (index / (height * width), index % (height * width));
+    rest * channels + c
+}
+
+/// Reorders the columns of a row-major `rows x (c*h*w)` matrix from CHW to HWC order, so a
+/// dense layer reads an HWC feature map as PyTorch reads the NCHW flatten.
+pub fn permute_cols_chw_to_hwc<T: Copy + Default>(w: &[T], rows: usize, c: usize, h: usize, wd: usize) -> Vec<T> {
+    let cols = c * h * wd;
+    assert_eq!(w.len(), rows * cols);
+    let mut out = alloc::vec![T::default(); w.len()];
+    for (src_row, dst_row) in w.chunks_exact(cols).zip(out.chunks_exact_mut(cols)) {
+        for (i, &v) in src_row.iter().enumerate() {
+            dst_row[chw_to_hwc(i, c, h, wd)] = v;
+        }
+    }
+    out
+}
+
+/// Reorders the rows of a `(c*h*w) x cols` matrix and its bias from CHW to HWC order, folding
+/// a per-channel BatchNorm that follows the reshape. Returns `(weights, bias)`.
+pub fn permute_rows_chw_to_hwc(
+    w: &[f32],
+    bias: &[f32],
+    cols: usize,
+    c: usize,
+    h: usize,
+    wd: usize,
+    bn: Option<BatchNorm<'_>>,
+) -> (Vec<f32>, Vec<f32>) {
+    let rows = c * h * wd;
+    assert_eq!(w.len(), rows * cols);
+    assert_eq!(bias.len(), rows);
+    let affine = bn.map(|bn| bn.affine()).unwrap_or_else(|| alloc::vec![(1.0, 0.0); c]);
+    let mut out_w = alloc::vec![0.0f32; w.len()];
+    let mut out_b = alloc::vec![0.0f32; rows];
+    for (r, src) in w.chunks_exact(cols).enumerate() {
+        let (scale, shift) = affine[r / (h * wd)];
+        let dst = chw_to_hwc(r, c, h, wd);
+        for (d, &s) in out_w[dst * cols..][..cols].iter_mut().zip(src) {
+            *d = (s as f64 * scale) as f32;
+        }
+        out_b[dst] = (bias[r] as f64 * scale + shift) as f32;
+    }
+    (out_w, out_b)
+}

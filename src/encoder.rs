@@ -1,0 +1,99 @@
+//! The encoder: a frame to the VAE's mean and log-sigma.
+
+use crate::layers::{ConvLayer, DenseLayer, DenseWeights};
+use crate::weights::{Init, Tensor, TensorSource};
+use crate::{Config, Result};
+use alloc::format;
+use alloc::vec::Vec;
+use drivesim_kernels::pack::permute_cols_chw_to_hwc;
+use drivesim_kernels::{Activation, ConvKind, ConvShape, Isa, Plane};
+
+/// `LeakyReLU(0.2)` after every encoder convolution.
+const LEAKY_SLOPE: f32 = 0.2;
+
+pub(crate) struct Encoder {
+    convs: Vec<ConvLayer>,
+    mean: DenseLayer,
+    logsigma: DenseLayer,
+}
+
+/// Per-simulator scratch of the encoder, sized once.
+pub(crate) struct EncoderBuffers {
+    /// The padded input plane of every convolution.
+    planes: Vec<Vec<f32>>,
+    /// The last convolution's output for each frame of a batch: the dense heads' input.
+    flat: Vec<f32>,
+}
+impl Encoder {
+    pub fn load(config: &Config, src: &mut dyn TensorSource) -> Result<Self> {
+        let (k, b) = (config.kernel, config.base_channels);
+        let halo = ConvKind::Down.input_halo(k);
+        let mut input = Plane::new(config.height, config.width, config.channels, halo);
+        let mut convs = Vec::with_capacity(config.layers);
+        for i in 0..config.layers {
+            let last = i + 1 == config.layers;
+            // The last output feeds the dense heads, which need no border.
+            let shape = ConvShape::new(ConvKind::Down, k, input, b << i, if last { 0 } else { halo });
+            let bn = (i > 0).then(|| format!("encoder.bn{i}"));
+            convs.push(ConvLayer::load(
+                src,
+                &format!("encoder.conv{i}"),
+                bn.as_deref(),
+                shape,
+                Activation::LeakyRelu(LEAKY_SLOPE),
+            )?);
+            input = shape.output;
+        }
+        let (flat, z) = (config.flat_len(), config.z_dim);
+        let (c, (h, w)) = (config.top_channels(), config.top_size());
+        let mut head = |name: &str, act| -> Result<DenseLayer> {
+            // PyTorch flattens CHW; the convolutions leave HWC: permute the columns once.
+            let weights = match src.tensor(&format!("encoder.{name}.weight"), &[z, flat], Init::FanIn(flat))? {
+                Tensor::F32(v) => DenseWeights::F32(permute_cols_chw_to_hwc(&v, z, c, h, w)),
+                Tensor::F16(v) => DenseWeights::F16(permute_cols_chw_to_hwc(&v, z, c, h, w)),
+            };
+            let bias = src.f32(&format!("encoder.{name}.bias"), &[z], Init::FanIn(flat))?;
+            Ok(DenseLayer::new(weights, bias, z, flat, act))
+        };
+        let mean = head("mean", Activation::Identity)?;
+        let logsigma = head("logsigma", Activation::Tanh)?;
+        Ok(Encoder { convs, mean, logsigma })
+    }
+
+    pub fn buffers(&self, max_batch: usize) -> EncoderBuffers {
+        EncoderBuffers {
+            planes: self
+                .convs
+                .iter()
+                .map(|c| alloc::vec![0.0; c.shape.input.len()])
+                .collect(),
+            flat: alloc::vec![0.0; max_batch * self.mean.cols],
+        }
+    }
+
+    /// Encodes `frames` (whole HWC frames, at most the planned batch, already validated).
+    pub fn forward(
+        &self,
+        isa: Isa,
+        buf: &mut EncoderBuffers,
+        frames: &[f32],
+        mean: &mut [f32],
+        logsigma: Option<&mut [f32]>,
+    ) {
+        let frame_len = self.convs[0].shape.input.interior_len();
+        let flat_len = self.mean.cols;
+        for (frame, flat) in frames.chunks_exact(frame_len).zip(buf.flat.chunks_exact_mut(flat_len)) {
+            self.convs[0].shape.input.write_interior(&mut buf.planes[0], frame);
+            for (i, conv) in self.convs.iter().enumerate() {
+                let (done, rest) = buf.planes.split_at_mut(i + 1);
+                let output = rest.first_mut().map_or(&mut *flat, |next| next.as_mut_slice());
+                conv.run(isa, &done[i], output);
+            }
+        }
+        let flat = &buf.flat[..frames.len() / frame_len * flat_len];
+        self.mean.run(isa, flat, mean);
+        if let Some(logsigma) = logsigma {
+            self.logsigma.run(isa, flat, logsigma);
+        }
+    }
+}

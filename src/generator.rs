@@ -1,0 +1,86 @@
+//! The generator: a latent code to a frame.
+
+use crate::layers::{read_batch_norm, ConvLayer, DenseLayer, DenseWeights};
+use crate::weights::{Init, TensorSource};
+use crate::{Config, Result};
+use alloc::format;
+use alloc::vec::Vec;
+use drivesim_kernels::pack::permute_rows_chw_to_hwc;
+use drivesim_kernels::{Activation, ConvKind, ConvShape, Isa, Plane};
+
+pub(crate) struct Generator {
+    /// `fc` with `bn0` folded in and ReLU fused; rows permuted to HWC order.
+    fc: DenseLayer,
+    deconvs: Vec<ConvLayer>,
+}
+
+/// Per-simulator scratch of the generator, sized once.
+pub(crate) struct GeneratorBuffers {
+    /// `fc`'s output for each code of a batch.
+    flat: Vec<f32>,
+    /// The padded input plane of every transposed convolution.
+    planes: Vec<Vec<f32>>,
+}
+
+impl Generator {
+    pub fn load(config: &Config, src: &mut dyn TensorSource) -> Result<Self> {
+        let (k, z, flat) = (config.kernel, config.z_dim, config.flat_len());
+        let (c, (h, w)) = (config.top_channels(), config.top_size());
+        // fc is followed by a reshape to CHW and bn0: fold bn0 in, reorder rows to HWC. The
+        // fold changes the values, so this matrix is kept in f32 whatever the file stores.
+        let weight = src.f32("generator.fc.weight", &[flat, z], Init::FanIn(z))?;
+        let bias = src.f32("generator.fc.bias", &[flat], Init::FanIn(z))?;
+        let bn0 = read_batch_norm(src, "generator.bn0", c)?;
+        let (weight, bias) = permute_rows_chw_to_hwc(&weight, &bias, z, c, h, w, Some(bn0.view()));
+        let fc = DenseLayer::new(DenseWeights::F32(weight), bias, flat, z, Activation::Relu);
+
+        let halo = ConvKind::Up.input_halo(k);
+        let mut input = Plane::new(h, w, c, halo);
+        let mut deconvs = Vec::with_capacity(config.layers);
+        for i in 1..=config.layers {
+            let last = i == config.layers;
+            let (out_channels, out_halo, act) = if last {
+                (config.channels, 0, Activation::Tanh)
+            } else {
+                (c >> i, halo, Activation::Relu)
+            };
+            let shape = ConvShape::new(ConvKind::Up, k, input, out_channels, out_halo);
+            let bn = (!last).then(|| format!("generator.bn{i}"));
+            deconvs.push(ConvLayer::load(
+                src,
+                &format!("generator.deconv{i}"),
+                bn.as_deref(),
+                shape,
+                act,
+            )?);
+            input = shape.output;
+        }
+        Ok(Generator { fc, deconvs })
+    }
+
+    pub fn buffers(&self, max_batch: usize) -> GeneratorBuffers {
+        GeneratorBuffers {
+            flat: alloc::vec![0.0; max_batch * self.fc.rows],
+            planes: self
+                .deconvs
+                .iter()
+                .map(|d| alloc::vec![0.0; d.shape.input.len()])
+                .collect(),
+        }
+    }
+
+    /// Generates one frame per code of `z` (at most the planned batch, already validated).
+    pub fn forward(&self, isa: Isa, buf: &mut GeneratorBuffers, z: &[f32], frames: &mut [f32]) {
+        let flat = &mut buf.flat[..z.len() / self.fc.cols * self.fc.rows];
+        self.fc.run(isa, z, flat);
+        let frame_len = self.deconvs.last().map_or(0, |d| d.shape.output.len());
+        for (features, frame) in flat.chunks_exact(self.fc.rows).zip(frames.chunks_exact_mut(frame_len)) {
+            self.deconvs[0].shape.input.write_interior(&mut buf.planes[0], features);
+            for (i, deconv) in self.deconvs.iter().enumerate() {
+                let (done, rest) = buf.planes.split_at_mut(i + 1);
+                let output = rest.first_mut().map_or(&mut *frame, |next| next.as_mut_slice());
+                deconv.run(isa, &done[i], output);
+            }
+        }
+    }
+}

@@ -1,0 +1,124 @@
+//! The two kinds of layer the networks are made of, loaded and packed once.
+
+use crate::weights::{Init, Tensor, TensorSource};
+use crate::Result;
+use alloc::format;
+use alloc::vec::Vec;
+use drivesim_kernels::pack::{self, BatchNorm};
+use drivesim_kernels::{f16, Activation, ConvShape, Isa, Matrix, MatrixData};
+
+/// A convolution with its BatchNorm folded in and its activation fused.
+pub(crate) struct ConvLayer {
+    pub shape: ConvShape,
+    weights: Vec<f32>,
+    bias: Vec<f32>,
+    act: Activation,
+}
+
+impl ConvLayer {
+    /// Reads `{name}.weight` / `{name}.bias` (and `{bn}.*` when given) and packs them.
+    pub fn load(
+        src: &mut dyn TensorSource,
+        name: &str,
+        bn: Option<&str>,
+        shape: ConvShape,
+        act: Activation,
+    ) -> Result<Self> {
+        let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
+        let (torch_shape, fan_in) = match shape.kind {
+            drivesim_kernels::ConvKind::Down => ([oc, ic, k, k], ic * k * k),
+            drivesim_kernels::ConvKind::Up => ([ic, oc, k, k], oc * k * k),
+        };
+        let weight = src.f32(&format!("{name}.weight"), &torch_shape, Init::FanIn(fan_in))?;
+        let bias = src.f32(&format!("{name}.bias"), &[oc], Init::FanIn(fan_in))?;
+        let bn = bn.map(|bn| read_batch_norm(src, bn, oc)).transpose()?;
+        let (weights, bias) = pack::conv_weights(&shape, &weight, &bias, bn.as_ref().map(|p| p.view()));
+        Ok(ConvLayer {
+            shape,
+            weights,
+            bias,
+            act,
+        })
+    }
+
+    pub fn run(&self, isa: Isa, input: &[f32], output: &mut [f32]) {
+        drivesim_kernels::conv(isa, &self.shape, input, &self.weights, &self.bias, self.act, output);
+    }
+}
+
+/// BatchNorm parameters as read from a source.
+pub(crate) struct BatchNormParams([Vec<f32>; 4]);
+
+impl BatchNormParams {
+    pub fn view(&self) -> BatchNorm<'_> {
+        let [weight, bias, running_mean, running_var] = &self.0;
+        BatchNorm {
+            weight,
+            bias,
+            running_mean,
+            running_var,
+        }
+    }
+}
+
+pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: usize) -> Result<BatchNormParams> {
+    let mut read = |part: &str, init| src.f32(&format!("{name}.{part}"), &[channels], init);
+    Ok(BatchNormParams([
+        read("weight", Init::Ones)?,
+        read("bias", Init::Zeros)?,
+        read("running_mean", Init::Zeros)?,
+        read("running_var", Init::Ones)?,
+    ]))
+}
+
+/// Weights of a dense layer as kept in memory.
+pub(crate) enum DenseWeights {
+    F32(Vec<f32>),
+    F16(Vec<f16>),
+}
+
+impl From<Tensor> for DenseWeights {
+    fn from(t: Tensor) -> Self {
+        match t {
+            Tensor::F32(v) => DenseWeights::F32(v),
+            Tensor::F16(v) => DenseWeights::F16(v),
+        }
+    }
+}
+
+/// `y = act(W x + b)` with `W` row-major `rows x cols`.
+pub(crate) struct DenseLayer {
+    weights: DenseWeights,
+    pub bias: Vec<f32>,
+    pub rows: usize,
+    pub cols: usize,
+    act: Activation,
+}
+
+impl DenseLayer {
+    pub fn new(weights: DenseWeights, bias: Vec<f32>, rows: usize, cols: usize, act: Activation) -> Self {
+        DenseLayer {
+            weights,
+            bias,
+            rows,
+            cols,
+            act,
+        }
+    }
+
+    pub fn matrix(&self) -> Matrix<'_> {
+        let data = match &self.weights {
+            DenseWeights::F32(w) => MatrixData::F32(w),
+            DenseWeights::F16(w) => MatrixData::F16(w),
+        };
+        Matrix {
+            data,
+            rows: self.rows,
+            cols: self.cols,
+        }
+    }
+
+    pub fn run(&self, isa: Isa, x: &[f32], y: &mut [f32]) {
+        drivesim_kernels::dense(isa, self.matrix(), &self.bias, self.act, x, y);
+    }
+}

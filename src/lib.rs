@@ -1,0 +1,62 @@
+//! # drivesim
+//!
+//! comma.ai's learned driving simulator ("Learning a Driving Simulator", Santana & Hotz, 2016)
+//! on the CPU: an **encoder** (frame to latent code), an action-conditioned tanh-RNN
+//! **transition** model in latent space, and a **generator** (code to frame). Seeding the
+//! transition with encoded frames and feeding its predictions back hallucinates video that a
+//! controller can drive.
+//!
+//! - [`Model`] loads weights exported from PyTorch as safetensors (`weights/README.md` gives
+//!   the format) and packs them for the kernels once.
+//! - [`Simulator`] allocates every buffer up front; encoding, stepping and generating
+//!   allocate nothing.
+//! - The arithmetic lives in the `drivesim-kernels` crate: scalar reference kernels and
+//!   AVX2/AVX-512 versions, chosen at run time (cap with `DRIVESIM_ISA=scalar|avx2|avx512`).
+//!
+//! BatchNorm uses PyTorch eval semantics (running statistics). The paper's Keras code used
+//! batch statistics even at test time (`BN(mode=2)`), which makes outputs depend on the batch;
+//! here a frame's code never depends on what else is in the batch.
+//!
+//! ```
+//! use drivesim::{Config, Model, Simulator, WeightDtype};
+//!
+//! # fn main() -> Result<(), drivesim::Error> {
+//! // A small config with seeded random weights; real use: `Model::load("weights/default.safetensors")`.
+//! let config = Config { height: 32, width: 64, base_channels: 4, z_dim: 16, hidden_dim: 16, ..Config::COMMA };
+//! let model = Model::random(&config, 7, WeightDtype::F32)?;
+//! let mut sim = Simulator::new(&model);
+//!
+//! let frame = vec![0.0f32; config.frame_len()]; // HWC, values in [-1, 1]
+//! let mut z = vec![0.0; config.z_dim];
+//! sim.encode(&frame, &mut z)?;
+//!
+//! let mut h = vec![0.0; config.hidden_dim];
+//! let mut z_next = vec![0.0; config.z_dim];
+//! sim.transition(&z, &mut h, &[10.0, -0.1], &mut z_next)?; // (speed, steering)
+//!
+//! let mut predicted = vec![0.0; config.frame_len()];
+//! sim.generate(&z_next, &mut predicted)?;
+//! assert!(predicted.iter().all(|v| (-1.0..=1.0).contains(v)));
+//! # Ok(())
+//! # }
+//! ```
+#![cfg_attr(not(feature = "std"), no_std)]
+
+extern crate alloc;
+
+mod config;
+mod encoder;
+mod error;
+mod generator;
+mod layers;
+mod model;
+mod simulator;
+mod transition;
+mod weights;
+
+pub use config::Config;
+pub use drivesim_kernels::{Isa, IsaLevel};
+pub use error::{Error, Result};
+pub use model::Model;
+pub use simulator::Simulator;
+pub use weights::WeightDtype;

@@ -1,0 +1,59 @@
+//! A loaded model: the three networks with weights packed for the kernels.
+
+use crate::encoder::Encoder;
+use crate::generator::Generator;
+use crate::transition::Transition;
+use crate::weights::{RandomSource, SafetensorsSource, TensorSource, WeightDtype};
+use crate::{Config, Result};
+
+/// The encoder, transition and generator of "Learning a Driving Simulator", ready to run.
+///
+/// Loading validates every tensor against the config, folds BatchNorm (PyTorch eval semantics:
+/// running statistics, eps 1e-5) into the neighbouring layers and repacks weights into the
+/// kernels' layouts, once. A `Model` is immutable; run it through a [`crate::Simulator`].
+pub struct Model {
+    config: Config,
+    pub(crate) encoder: Encoder,
+    pub(crate) generator: Generator,
+    pub(crate) transition: Transition,
+}
+
+impl Model {
+    /// Reads a drivesim safetensors weight file (format: `weights/README.md`).
+    #[cfg(feature = "std")]
+    pub fn load(path: impl AsRef<std::path::Path>) -> Result<Model> {
+        let path = path.as_ref();
+        let bytes = std::fs::read(path).map_err(|source| crate::Error::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Model::from_bytes(&bytes)
+    }
+
+    /// Builds a model from the bytes of a weight file. The bytes need no particular alignment,
+    /// so `include_bytes!` works on targets without a file system.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Model> {
+        let (config, mut src) = SafetensorsSource::parse(bytes)?;
+        Model::build(config, &mut src)
+    }
+
+    /// A model with seeded pseudo-random weights (for tests and benchmarks): the same seed and
+    /// config give the same model on every platform.
+    pub fn random(config: &Config, seed: u64, dtype: WeightDtype) -> Result<Model> {
+        config.validate()?;
+        Model::build(*config, &mut RandomSource::new(seed, dtype))
+    }
+
+    fn build(config: Config, src: &mut dyn TensorSource) -> Result<Model> {
+        Ok(Model {
+            encoder: Encoder::load(&config, src)?,
+            generator: Generator::load(&config, src)?,
+            transition: Transition::load(&config, src)?,
+            config,
+        })
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.config
+    }
+}

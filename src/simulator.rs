@@ -1,0 +1,213 @@
+//! Running the networks in buffers planned once.
+
+use crate::encoder::EncoderBuffers;
+use crate::error::{expect_finite, expect_len};
+use crate::generator::GeneratorBuffers;
+use crate::{Config, Error, Model, Result};
+use alloc::vec::Vec;
+use drivesim_kernels::Isa;
+
+/// Runs a [`Model`]: encodes frames, steps the transition model, generates frames, and rolls
+/// the three together into a hallucinated drive.
+///
+/// Every buffer is allocated by [`Simulator::new`] / [`Simulator::with_batch`]; after that no
+/// method allocates. Frames are `&[f32]` of `height * width * channels` values in HWC order
+/// (pixel-interleaved RGB) scaled to [-1, 1]; codes are `z_dim` values; actions are
+/// `action_dim` values, (speed, steering) for the comma config. Methods that take several
+/// frames, codes or actions take them back to back in one slice, up to the planned batch.
+pub struct Simulator<'m> {
+    model: &'m Model,
+    isa: Isa,
+    max_batch: usize,
+    encoder: EncoderBuffers,
+    generator: GeneratorBuffers,
+    /// The transition's `[h | z | c]` input for each element of a batch.
+    concat: Vec<f32>,
+    /// Hidden state and codes of a rollout.
+    rollout_h: Vec<f32>,
+    rollout_z: [Vec<f32>; 2],
+}
+
+impl<'m> Simulator<'m> {
+    /// A simulator for one frame or code per call.
+    pub fn new(model: &'m Model) -> Self {
+        Simulator::with_batch(model, 1)
+    }
+
+    /// A simulator for up to `max_batch` frames or codes per call (at least 1). Batches
+    /// share each pass over the dense layers' weights, which dominate at batch 1.
+    pub fn with_batch(model: &'m Model, max_batch: usize) -> Self {
+        let max_batch = max_batch.max(1);
+        let c = model.config();
+        Simulator {
+            model,
+            isa: Isa::best(),
+            max_batch,
+            encoder: model.encoder.buffers(max_batch),
+            generator: model.generator.buffers(max_batch),
+            concat: alloc::vec![0.0; max_batch * model.transition.concat_len()],
+            rollout_h: alloc::vec![0.0; c.hidden_dim],
+            rollout_z: [alloc::vec![0.0; c.z_dim], alloc::vec![0.0; c.z_dim]],
+        }
+    }
+
+    /// Uses the kernels of `isa` instead of the best this CPU has (e.g. to compare paths).
+    pub fn with_isa(mut self, isa: Isa) -> Self {
+        self.isa = isa;
+        self
+    }
+
+    /// The instruction set the kernels run with.
+    pub fn isa(&self) -> Isa {
+        self.isa
+    }
+
+    pub fn config(&self) -> &Config {
+        self.model.config()
+    }
+
+    /// The largest batch one call takes.
+    pub fn max_batch(&self) -> usize {
+        self.max_batch
+    }
+
+    /// How many items of `item_len` values `data` holds: a whole, non-zero number, at most the batch.
+    fn batch_of(&self, buffer: &'static str, data: &[f32], item_len: usize) -> Result<usize> {
+        if data.is_empty() || data.len() % item_len != 0 {
+            return Err(Error::NotWholeItems {
+                buffer,
+                item_len,
+                found: data.len(),
+            });
+        }
+        let n = data.len() / item_len;
+        if n > self.max_batch {
+            return Err(Error::BatchTooLarge {
+                max: self.max_batch,
+                found: n,
+            });
+        }
+        Ok(n)
+    }
+
+    /// Encodes frames to the VAE mean (the code used for simulation): one `z_dim` code per frame.
+    pub fn encode(&mut self, frames: &[f32], z: &mut [f32]) -> Result<()> {
+        self.encode_inner(frames, z, None)
+    }
+
+    /// Like [`Simulator::encode`], and also writes log-sigma (`tanh`-bounded) for each frame,
+    /// for sampling `z = mean + exp(logsigma) * noise`.
+    pub fn encode_with_logsigma(&mut self, frames: &[f32], mean: &mut [f32], logsigma: &mut [f32]) -> Result<()> {
+        let n = self.batch_of("frames", frames, self.config().frame_len())?;
+        expect_len("logsigma", logsigma, n * self.config().z_dim)?;
+        self.encode_inner(frames, mean, Some(logsigma))
+    }
+
+    fn encode_inner(&mut self, frames: &[f32], z: &mut [f32], logsigma: Option<&mut [f32]>) -> Result<()> {
+        let n = self.batch_of("frames", frames, self.config().frame_len())?;
+        expect_len("z", z, n * self.config().z_dim)?;
+        expect_finite("frames", frames)?;
+        self.model
+            .encoder
+            .forward(self.isa, &mut self.encoder, frames, z, logsigma);
+        Ok(())
+    }
+
+    /// Generates one frame per code, with values in [-1, 1].
+    pub fn generate(&mut self, z: &[f32], frames: &mut [f32]) -> Result<()> {
+        let n = self.batch_of("z", z, self.config().z_dim)?;
+        expect_len("frames", frames, n * self.config().frame_len())?;
+        expect_finite("z", z)?;
+        self.model.generator.forward(self.isa, &mut self.generator, z, frames);
+        Ok(())
+    }
+
+    /// One transition step per code: updates the hidden states `h` in place and writes the
+    /// predicted next codes to `z_next`. Start a sequence with `h` all zeros.
+    pub fn transition(&mut self, z: &[f32], h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
+        let c = *self.config();
+        let n = self.batch_of("z", z, c.z_dim)?;
+        expect_len("h", h, n * c.hidden_dim)?;
+        expect_len("action", action, n * c.action_dim)?;
+        expect_len("z_next", z_next, n * c.z_dim)?;
+        expect_finite("z", z)?;
+        expect_finite("h", h)?;
+        expect_finite("action", action)?;
+        self.model
+            .transition
+            .step(self.isa, &mut self.concat, h, z, action, z_next);
+        Ok(())
+    }
+
+    /// Hallucinates a drive: seeds the transition model with real frames, then feeds its own
+    /// predictions back.
+    ///
+    /// There is one action per transition: step `i` maps frame `i` to frame `i + 1` with
+    /// `actions[i]`. With `S` seed frames and `S - 1 + T` actions, the first `S - 1` steps are
+    /// teacher-forced (their input is the encoded seed frame), step `S - 1` starts from the
+    /// last seed frame's code, and every later step from the previous prediction. The `T`
+    /// predicted codes (frames `S .. S + T`) go to `codes`; if `frames` is given, the generated
+    /// frames go there too. The hidden state starts at zero.
+    pub fn rollout(
+        &mut self,
+        seed_frames: &[f32],
+        actions: &[f32],
+        codes: &mut [f32],
+        mut frames: Option<&mut [f32]>,
+    ) -> Result<()> {
+        let c = *self.config();
+        if seed_frames.is_empty() || seed_frames.len() % c.frame_len() != 0 {
+            return Err(Error::NotWholeItems {
+                buffer: "seed_frames",
+                item_len: c.frame_len(),
+                found: seed_frames.len(),
+            });
+        }
+        if actions.len() % c.action_dim != 0 {
+            return Err(Error::NotWholeItems {
+                buffer: "actions",
+                item_len: c.action_dim,
+                found: actions.len(),
+            });
+        }
+        let seeds = seed_frames.len() / c.frame_len();
+        let steps = actions.len() / c.action_dim;
+        let predicted = steps
+            .checked_sub(seeds - 1)
+            .filter(|&t| t > 0)
+            .ok_or(Error::BufferLength {
+                buffer: "actions",
+                expected: seeds * c.action_dim,
+                found: actions.len(),
+            })?;
+        expect_len("codes", codes, predicted * c.z_dim)?;
+        if let Some(frames) = frames.as_deref() {
+            expect_len("frames", frames, predicted * c.frame_len())?;
+        }
+        expect_finite("seed_frames", seed_frames)?;
+        expect_finite("actions", actions)?;
+
+        let isa = self.isa;
+        self.rollout_h.fill(0.0);
+        let [z, z_next] = &mut self.rollout_z;
+        for (step, action) in actions.chunks_exact(c.action_dim).enumerate() {
+            if step < seeds {
+                let frame = &seed_frames[step * c.frame_len()..][..c.frame_len()];
+                self.model.encoder.forward(isa, &mut self.encoder, frame, z, None);
+            } else {
+                core::mem::swap(z, z_next);
+            }
+            self.model
+                .transition
+                .step(isa, &mut self.concat, &mut self.rollout_h, z, action, z_next);
+            if let Some(t) = (step + 1).checked_sub(seeds) {
+                codes[t * c.z_dim..][..c.z_dim].copy_from_slice(z_next);
+                if let Some(frames) = frames.as_deref_mut() {
+                    let frame = &mut frames[t * c.frame_len()..][..c.frame_len()];
+                    self.model.generator.forward(isa, &mut self.generator, z_next, frame);
+                }
+            }
+        }
+        Ok(())
+    }
+}

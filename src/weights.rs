@@ -1,0 +1,156 @@
+//! Where the network builders get their tensors: a safetensors file, or a seeded random draw.
+//! Both hand out tensors in PyTorch layout; the networks pack them for the kernels.
+
+use crate::{Config, Error, Result};
+use alloc::format;
+use alloc::string::ToString;
+use alloc::vec::Vec;
+use drivesim_kernels::f16;
+use safetensors::{Dtype, SafeTensors};
+
+/// Tensor values as loaded: F16 stays F16 (dense layers may keep it), BF16 and F32 become F32.
+pub(crate) enum Tensor {
+    F32(Vec<f32>),
+    F16(Vec<f16>),
+}
+
+impl Tensor {
+    pub(crate) fn into_f32(self) -> Vec<f32> {
+        match self {
+            Tensor::F32(v) => v,
+            Tensor::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+        }
+    }
+}
+
+/// How a random source draws a tensor (PyTorch's default initialisation, roughly).
+#[derive(Clone, Copy)]
+pub(crate) enum Init {
+    /// Uniform in `±1/sqrt(fan_in)`.
+    FanIn(usize),
+    Zeros,
+    Ones,
+}
+
+/// A provider of named tensors in PyTorch layout with a known shape.
+pub(crate) trait TensorSource {
+    fn tensor(&mut self, name: &str, shape: &[usize], init: Init) -> Result<Tensor>;
+
+    fn f32(&mut self, name: &str, shape: &[usize], init: Init) -> Result<Vec<f32>> {
+        Ok(self.tensor(name, shape, init)?.into_f32())
+    }
+}
+
+/// A parsed safetensors weight file, borrowing its bytes.
+pub(crate) struct SafetensorsSource<'a> {
+    file: SafeTensors<'a>,
+}
+
+impl<'a> SafetensorsSource<'a> {
+    /// Parses the header and the config; tensors are read on demand.
+    pub(crate) fn parse(bytes: &'a [u8]) -> Result<(Config, Self)> {
+        let malformed = |e: safetensors::SafeTensorError| Error::Malformed {
+            reason: format!("{e:?}"),
+        };
+        let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
+        let json = metadata
+            .metadata()
+            .as_ref()
+            .and_then(|m| m.get(Config::METADATA_KEY))
+            .ok_or_else(|| Error::Metadata {
+                reason: format!("no `{}` key in the file's metadata", Config::METADATA_KEY),
+            })?;
+        let config = Config::from_json(json)?;
+        let file = SafeTensors::deserialize(bytes).map_err(malformed)?;
+        Ok((config, SafetensorsSource { file }))
+    }
+}
+
+impl TensorSource for SafetensorsSource<'_> {
+    fn tensor(&mut self, name: &str, shape: &[usize], _init: Init) -> Result<Tensor> {
+        let view = self
+            .file
+            .tensor(name)
+            .map_err(|_| Error::MissingTensor { name: name.to_string() })?;
+        if view.shape() != shape {
+            return Err(Error::Shape {
+                name: name.to_string(),
+                expected: shape.to_vec(),
+                found: view.shape().to_vec(),
+            });
+        }
+        // The bytes carry no alignment guarantee: decode little-endian values one by one.
+        let data = view.data();
+        Ok(match view.dtype() {
+            Dtype::F32 => Tensor::F32(
+                data.chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .collect(),
+            ),
+            Dtype::F16 => Tensor::F16(
+                data.chunks_exact(2)
+                    .map(|b| f16::from_bits(u16::from_le_bytes([b[0], b[1]])))
+                    .collect(),
+            ),
+            Dtype::BF16 => Tensor::F32(
+                data.chunks_exact(2)
+                    .map(|b| half::bf16::from_bits(u16::from_le_bytes([b[0], b[1]])).to_f32())
+                    .collect(),
+            ),
+            other => {
+                return Err(Error::Dtype {
+                    name: name.to_string(),
+                    found: format!("{other:?}"),
+                })
+            }
+        })
+    }
+}
+
+/// The dtype a random model stores its weights in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WeightDtype {
+    F32,
+    /// Values rounded to f16; dense layers keep them as f16 in memory, as for an F16 file.
+    F16,
+}
+
+/// Seeded pseudo-random weights, for tests and benchmarks (SplitMix64: tiny and portable).
+pub(crate) struct RandomSource {
+    state: u64,
+    dtype: WeightDtype,
+}
+
+impl RandomSource {
+    pub(crate) fn new(seed: u64, dtype: WeightDtype) -> Self {
+        RandomSource { state: seed, dtype }
+    }
+
+    /// Uniform in [-1, 1).
+    fn next_signed(&mut self) -> f32 {
+        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        ((z >> 40) as f32 / (1u64 << 23) as f32) - 1.0
+    }
+}
+
+impl TensorSource for RandomSource {
+    fn tensor(&mut self, _name: &str, shape: &[usize], init: Init) -> Result<Tensor> {
+        let len = shape.iter().product();
+        let values: Vec<f32> = match init {
+            Init::Zeros => alloc::vec![0.0; len],
+            Init::Ones => alloc::vec![1.0; len],
+            Init::FanIn(fan_in) => {
+                let bound = (1.0 / drivesim_kernels::math::sqrt(fan_in.max(1) as f64)) as f32;
+                (0..len).map(|_| bound * self.next_signed()).collect()
+            }
+        };
+        Ok(match self.dtype {
+            WeightDtype::F32 => Tensor::F32(values),
+            WeightDtype::F16 => Tensor::F16(values.iter().map(|&v| f16::from_f32(v)).collect()),
+        })
+    }
+}
