@@ -1,19 +1,7 @@
-//! x86-64 SIMD kernels. Until the AVX2 and AVX-512 bodies land, every level runs the scalar one.
+//! x86-64 SIMD kernels, one file per operation; each has an AVX2+FMA and an AVX-512 body.
 
-use crate::{scalar, Activation, ConvShape, IsaLevel, Matrix};
+mod conv;
+mod dense;
 
-pub(crate) fn conv(
-    _level: IsaLevel,
-    shape: &ConvShape,
-    input: &[f32],
-    weights: &[f32],
-    bias: &[f32],
-    act: Activation,
-    output: &mut [f32],
-) {
-    scalar::conv(shape, input, weights, bias, act, output)
-}
-
-pub(crate) fn dense(_level: IsaLevel, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
-    scalar::dense(w, bias, act, x, y)
-}
+pub(crate) use conv::conv;
+pub(crate) use dense::dense;
