@@ -34,7 +34,15 @@ fn allocations_during(f: impl FnOnce()) -> usize {
 
 #[test]
 fn hot_paths_allocate_nothing() {
-    let config = Config { height: 32, width: 48, channels: 3, base_channels: 4, z_dim: 12, hidden_dim: 10, ..Config::COMMA };
+    let config = Config {
+        height: 32,
+        width: 48,
+        channels: 3,
+        base_channels: 4,
+        z_dim: 12,
+        hidden_dim: 10,
+        ..Config::COMMA
+    };
     for dtype in [WeightDtype::F32, WeightDtype::F16] {
         let model = Model::random(&config, 3, dtype).unwrap();
         for isa in drivesim::Isa::supported() {
@@ -53,13 +61,26 @@ fn hot_paths_allocate_nothing() {
 
             let n = allocations_during(|| {
                 sim.encode(&frames, &mut z).unwrap();
-                sim.encode(&frames[..config.frame_len()], &mut z[..config.z_dim]).unwrap();
-                sim.encode_with_logsigma(&frames, &mut z, &mut logsigma).unwrap();
-                sim.transition(&z, &mut h, &actions[..3 * config.action_dim], &mut z_next).unwrap();
-                sim.generate(&z_next, &mut out).unwrap();
-                sim.rollout(&frames, &actions[..(3 - 1 + 4) * config.action_dim], &mut codes, Some(&mut rollout_frames))
+                sim.encode(&frames[..config.frame_len()], &mut z[..config.z_dim])
                     .unwrap();
-                sim.rollout(&frames[..config.frame_len()], &actions[..4 * config.action_dim], &mut codes, None).unwrap();
+                sim.encode_with_logsigma(&frames, &mut z, &mut logsigma).unwrap();
+                sim.transition(&z, &mut h, &actions[..3 * config.action_dim], &mut z_next)
+                    .unwrap();
+                sim.generate(&z_next, &mut out).unwrap();
+                sim.rollout(
+                    &frames,
+                    &actions[..(3 - 1 + 4) * config.action_dim],
+                    &mut codes,
+                    Some(&mut rollout_frames),
+                )
+                .unwrap();
+                sim.rollout(
+                    &frames[..config.frame_len()],
+                    &actions[..4 * config.action_dim],
+                    &mut codes,
+                    None,
+                )
+                .unwrap();
                 // Rejected calls report without allocating either.
                 assert!(sim.generate(&bad, &mut out).is_err());
                 bad[0] = f32::NAN;

@@ -9,7 +9,11 @@ use drivesim::{Isa, Model, Simulator};
 fn check(what: &str, name: &str, isa: Isa, found: &[f32], expected: &[f32]) {
     let err = relative_error(found, expected);
     println!("{name:10} {:7} {what:16} relative error {err:.2e}", isa.level().name());
-    assert!(err <= tolerance(name), "{name} {what} on {isa:?}: relative error {err:e} > {}", tolerance(name));
+    assert!(
+        err <= tolerance(name),
+        "{name} {what} on {isa:?}: relative error {err:e} > {}",
+        tolerance(name)
+    );
 }
 
 /// Runs `f` for every fixture on every instruction set this CPU has.
@@ -31,11 +35,23 @@ fn encode_matches_pytorch() {
         let (mut mean, mut logsigma) = (vec![0.0; 2 * z], vec![0.0; 2 * z]);
         sim.encode_with_logsigma(&frames, &mut mean, &mut logsigma).unwrap();
         check("encode mean", name, sim.isa(), &mean, &io.values("encode.mean"));
-        check("encode logsigma", name, sim.isa(), &logsigma, &io.values("encode.logsigma"));
+        check(
+            "encode logsigma",
+            name,
+            sim.isa(),
+            &logsigma,
+            &io.values("encode.logsigma"),
+        );
         // One frame at a time gives the same codes as the batch.
         let mut single = vec![0.0; z];
         sim.encode(&frames[frames.len() / 2..], &mut single).unwrap();
-        check("encode single", name, sim.isa(), &single, &io.values("encode.mean")[z..]);
+        check(
+            "encode single",
+            name,
+            sim.isa(),
+            &single,
+            &io.values("encode.mean")[z..],
+        );
     });
 }
 
@@ -66,7 +82,13 @@ fn thirty_step_transition_matches_pytorch() {
         check("transition h", name, sim.isa(), &hs, &io.values("transition.h"));
         let mut frame = vec![0.0; c.frame_len()];
         sim.generate(&z, &mut frame).unwrap();
-        check("frame after 30", name, sim.isa(), &frame, &io.values("transition.frame"));
+        check(
+            "frame after 30",
+            name,
+            sim.isa(),
+            &frame,
+            &io.values("transition.frame"),
+        );
     });
 }
 
