@@ -106,5 +106,16 @@ fn rollout_matches_pytorch() {
         let mut again = vec![0.0; codes.len()];
         sim.rollout(&seeds, &actions, &mut again, None).unwrap();
         assert_eq!(again, codes);
+        // Seeding with the encoded seed frames is the same rollout.
+        let z = model.config().z_dim;
+        let mut seed_codes = vec![0.0; seeds.len() / model.config().frame_len() * z];
+        for (frame, code) in seeds
+            .chunks_exact(model.config().frame_len())
+            .zip(seed_codes.chunks_exact_mut(z))
+        {
+            sim.encode(frame, code).unwrap();
+        }
+        sim.rollout_from_codes(&seed_codes, &actions, &mut again, None).unwrap();
+        assert_eq!(again, codes);
     });
 }
