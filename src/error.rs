@@ -43,6 +43,14 @@ pub enum Error {
     },
     /// More items in one call than the simulator was planned for.
     BatchTooLarge { max: usize, found: usize },
+    /// An episodes file whose episode boundaries are inconsistent.
+    Episodes { reason: String },
+    /// An index past the end (an episode or frame number).
+    OutOfRange {
+        what: &'static str,
+        index: usize,
+        len: usize,
+    },
     /// An input holds NaN or an infinity.
     NonFinite {
         buffer: &'static str,
@@ -95,6 +103,8 @@ impl fmt::Display for Error {
                     "batch of {found}: the simulator was planned for at most {max} (see Simulator::with_batch)"
                 )
             }
+            Error::Episodes { reason } => write!(f, "bad episodes file: {reason}"),
+            Error::OutOfRange { what, index, len } => write!(f, "{what} {index} does not exist: there are {len}"),
             Error::NonFinite { buffer, index, value } => {
                 write!(f, "`{buffer}`[{index}] is {value}: expected a finite number")
             }

@@ -46,6 +46,7 @@ extern crate alloc;
 
 mod config;
 mod encoder;
+mod episodes;
 mod error;
 mod generator;
 mod layers;
@@ -56,6 +57,7 @@ mod weights;
 
 pub use config::Config;
 pub use drivesim_kernels::{Isa, IsaLevel};
+pub use episodes::{Episode, Episodes};
 pub use error::{Error, Result};
 pub use model::Model;
 pub use simulator::Simulator;

@@ -98,14 +98,16 @@ impl<'m> Simulator<'m> {
     /// Like [`Simulator::encode`], and also writes log-sigma (`tanh`-bounded) for each frame,
     /// for sampling `z = mean + exp(logsigma) * noise`.
     pub fn encode_with_logsigma(&mut self, frames: &[f32], mean: &mut [f32], logsigma: &mut [f32]) -> Result<()> {
-        let n = self.batch_of("frames", frames, self.config().frame_len())?;
-        expect_len("logsigma", logsigma, n * self.config().z_dim)?;
         self.encode_inner(frames, mean, Some(logsigma))
     }
 
     fn encode_inner(&mut self, frames: &[f32], z: &mut [f32], logsigma: Option<&mut [f32]>) -> Result<()> {
         let n = self.batch_of("frames", frames, self.config().frame_len())?;
-        expect_len("z", z, n * self.config().z_dim)?;
+        let codes_len = n * self.config().z_dim;
+        expect_len("z", z, codes_len)?;
+        if let Some(logsigma) = logsigma.as_deref() {
+            expect_len("logsigma", logsigma, codes_len)?;
+        }
         expect_finite("frames", frames)?;
         self.model
             .encoder
@@ -153,14 +155,40 @@ impl<'m> Simulator<'m> {
         seed_frames: &[f32],
         actions: &[f32],
         codes: &mut [f32],
+        frames: Option<&mut [f32]>,
+    ) -> Result<()> {
+        self.run_rollout(Seeds::Frames(seed_frames), actions, codes, frames)
+    }
+
+    /// [`Simulator::rollout`] seeded with codes instead of frames, e.g. codes sampled from the
+    /// encoder's `mean + exp(logsigma) * noise`.
+    pub fn rollout_from_codes(
+        &mut self,
+        seed_codes: &[f32],
+        actions: &[f32],
+        codes: &mut [f32],
+        frames: Option<&mut [f32]>,
+    ) -> Result<()> {
+        self.run_rollout(Seeds::Codes(seed_codes), actions, codes, frames)
+    }
+
+    fn run_rollout(
+        &mut self,
+        seeds: Seeds<'_>,
+        actions: &[f32],
+        codes: &mut [f32],
         mut frames: Option<&mut [f32]>,
     ) -> Result<()> {
         let c = *self.config();
-        if seed_frames.is_empty() || seed_frames.len() % c.frame_len() != 0 {
+        let (buffer, data, item_len) = match seeds {
+            Seeds::Frames(f) => ("seed_frames", f, c.frame_len()),
+            Seeds::Codes(z) => ("seed_codes", z, c.z_dim),
+        };
+        if data.is_empty() || data.len() % item_len != 0 {
             return Err(Error::NotWholeItems {
-                buffer: "seed_frames",
-                item_len: c.frame_len(),
-                found: seed_frames.len(),
+                buffer,
+                item_len,
+                found: data.len(),
             });
         }
         if actions.len() % c.action_dim != 0 {
@@ -170,37 +198,40 @@ impl<'m> Simulator<'m> {
                 found: actions.len(),
             });
         }
-        let seeds = seed_frames.len() / c.frame_len();
+        let seed_count = data.len() / item_len;
         let steps = actions.len() / c.action_dim;
         let predicted = steps
-            .checked_sub(seeds - 1)
+            .checked_sub(seed_count - 1)
             .filter(|&t| t > 0)
             .ok_or(Error::BufferLength {
                 buffer: "actions",
-                expected: seeds * c.action_dim,
+                expected: seed_count * c.action_dim,
                 found: actions.len(),
             })?;
         expect_len("codes", codes, predicted * c.z_dim)?;
         if let Some(frames) = frames.as_deref() {
             expect_len("frames", frames, predicted * c.frame_len())?;
         }
-        expect_finite("seed_frames", seed_frames)?;
+        expect_finite(buffer, data)?;
         expect_finite("actions", actions)?;
 
         let isa = self.isa;
         self.rollout_h.fill(0.0);
         let [z, z_next] = &mut self.rollout_z;
         for (step, action) in actions.chunks_exact(c.action_dim).enumerate() {
-            if step < seeds {
-                let frame = &seed_frames[step * c.frame_len()..][..c.frame_len()];
-                self.model.encoder.forward(isa, &mut self.encoder, frame, z, None);
-            } else {
-                core::mem::swap(z, z_next);
+            match seeds {
+                _ if step >= seed_count => core::mem::swap(z, z_next),
+                Seeds::Frames(f) => {
+                    self.model
+                        .encoder
+                        .forward(isa, &mut self.encoder, &f[step * item_len..][..item_len], z, None)
+                }
+                Seeds::Codes(codes) => z.copy_from_slice(&codes[step * item_len..][..item_len]),
             }
             self.model
                 .transition
                 .step(isa, &mut self.concat, &mut self.rollout_h, z, action, z_next);
-            if let Some(t) = (step + 1).checked_sub(seeds) {
+            if let Some(t) = (step + 1).checked_sub(seed_count) {
                 codes[t * c.z_dim..][..c.z_dim].copy_from_slice(z_next);
                 if let Some(frames) = frames.as_deref_mut() {
                     let frame = &mut frames[t * c.frame_len()..][..c.frame_len()];
@@ -210,4 +241,11 @@ impl<'m> Simulator<'m> {
         }
         Ok(())
     }
+}
+
+/// What a rollout is seeded with.
+#[derive(Clone, Copy)]
+enum Seeds<'a> {
+    Frames(&'a [f32]),
+    Codes(&'a [f32]),
 }

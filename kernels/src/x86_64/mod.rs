@@ -1,5 +1,6 @@
 //! x86-64 SIMD kernels, one file per operation; each has an AVX2+FMA and an AVX-512 body.
 
+pub(crate) mod act;
 mod conv;
 mod dense;
 

@@ -1,0 +1,85 @@
+//! Speed of the convolution kernels on the comma.ai model's layers (80x160x3 frames), one image
+//! per call, single-threaded: `cargo run --release -p drivesim-kernels --example conv_speed`.
+//! Set `DRIVESIM_ISA` to cap the level (scalar, avx2, avx512).
+
+use drivesim_kernels::{conv, Activation, ConvKind, ConvShape, Isa, Plane};
+use std::time::Instant;
+
+fn main() {
+    let isa = Isa::best();
+    let leaky = Activation::LeakyRelu(0.2);
+    let layers = [
+        ("enc conv0 3->64", ConvKind::Down, (80, 160, 3), 64, leaky),
+        ("enc conv1 64->128", ConvKind::Down, (40, 80, 64), 128, leaky),
+        ("enc conv2 128->256", ConvKind::Down, (20, 40, 128), 256, leaky),
+        ("enc conv3 256->512", ConvKind::Down, (10, 20, 256), 512, leaky),
+        (
+            "gen deconv0 512->256",
+            ConvKind::Up,
+            (5, 10, 512),
+            256,
+            Activation::Relu,
+        ),
+        (
+            "gen deconv1 256->128",
+            ConvKind::Up,
+            (10, 20, 256),
+            128,
+            Activation::Relu,
+        ),
+        ("gen deconv2 128->64", ConvKind::Up, (20, 40, 128), 64, Activation::Relu),
+        ("gen deconv3 64->3", ConvKind::Up, (40, 80, 64), 3, Activation::Tanh),
+    ];
+    println!("level {}", isa.level().name());
+    let mut totals = [(0.0f64, 0.0f64); 2];
+    for (name, kind, (h, w, c), oc, act) in layers {
+        let input_plane = Plane::new(h, w, c, kind.input_halo(5));
+        let shape = ConvShape::new(kind, 5, input_plane, oc, 2);
+        let input: Vec<f32> = (0..input_plane.len())
+            .map(|i| ((i * 7919) % 101) as f32 / 101.0 - 0.5)
+            .collect();
+        let weights: Vec<f32> = (0..shape.packed_len())
+            .map(|i| ((i * 104729) % 97) as f32 / 970.0 - 0.05)
+            .collect();
+        let bias = vec![0.01; oc];
+        let mut output = vec![0.0; shape.output.len()];
+        let flops = 2.0 * shape.macs() as f64;
+        // Calibrate to ~0.3 s per layer, then take the best of 5 runs.
+        let mut reps = 1;
+        loop {
+            let t = Instant::now();
+            for _ in 0..reps {
+                conv(isa, &shape, &input, &weights, &bias, act, &mut output);
+            }
+            if t.elapsed().as_secs_f64() > 0.05 {
+                break;
+            }
+            reps *= 2;
+        }
+        let mut best = f64::INFINITY;
+        for _ in 0..5 {
+            let t = Instant::now();
+            for _ in 0..reps {
+                conv(isa, &shape, &input, &weights, &bias, act, &mut output);
+            }
+            best = best.min(t.elapsed().as_secs_f64() / reps as f64);
+        }
+        let net = (kind == ConvKind::Up) as usize;
+        totals[net].0 += best;
+        totals[net].1 += flops;
+        println!(
+            "{name:24} {:7.3} ms  {:6.1} MFLOP  {:6.1} GFLOP/s",
+            best * 1e3,
+            flops / 1e6,
+            flops / best / 1e9
+        );
+    }
+    for (net, (t, f)) in ["encoder convs", "generator convs"].iter().zip(totals) {
+        println!(
+            "{net:24} {:7.3} ms  {:6.1} MFLOP  {:6.1} GFLOP/s",
+            t * 1e3,
+            f / 1e6,
+            f / t / 1e9
+        );
+    }
+}

@@ -1,0 +1,179 @@
+//! Recorded driving, as written by `weights/record.py` and `weights/convert_comma.py`
+//! (format: `weights/README.md`, "Episodes format"): seed frames for rollouts and data for
+//! training.
+
+use crate::{Error, Result};
+use alloc::format;
+use alloc::string::ToString;
+use alloc::vec::Vec;
+use safetensors::{Dtype, SafeTensors};
+
+/// Frames and the actions in effect at each, grouped into contiguous episodes.
+pub struct Episodes {
+    height: usize,
+    width: usize,
+    /// `[N, H, W, 3]` RGB.
+    frames: Vec<u8>,
+    /// `[N, 2]`: (speed, steering) at frame i.
+    actions: Vec<f32>,
+    /// First frame of each episode, increasing from 0.
+    starts: Vec<usize>,
+}
+
+/// One episode's frames and actions, borrowed from [`Episodes`].
+#[derive(Clone, Copy, Debug)]
+pub struct Episode<'a> {
+    pub height: usize,
+    pub width: usize,
+    /// `len() * height * width * 3` bytes, HWC RGB frames back to back.
+    pub frames: &'a [u8],
+    /// `len() * 2` values: (speed, steering) in effect at each frame.
+    pub actions: &'a [f32],
+}
+
+impl Episode<'_> {
+    pub fn len(&self) -> usize {
+        self.actions.len() / Episodes::ACTION_DIM
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.actions.is_empty()
+    }
+
+    /// Frame `i` scaled to the model's [-1, 1] range, into `out` (`height * width * 3` values).
+    pub fn frame_f32(&self, i: usize, out: &mut [f32]) -> Result<()> {
+        let len = self.height * self.width * Episodes::CHANNELS;
+        crate::error::expect_len("out", out, len)?;
+        let frame = self.frames.get(i * len..(i + 1) * len).ok_or(Error::OutOfRange {
+            what: "frame",
+            index: i,
+            len: self.len(),
+        })?;
+        for (o, &p) in out.iter_mut().zip(frame) {
+            *o = p as f32 / 127.5 - 1.0;
+        }
+        Ok(())
+    }
+}
+
+impl Episodes {
+    pub const CHANNELS: usize = 3;
+    pub const ACTION_DIM: usize = 2;
+
+    #[cfg(feature = "std")]
+    pub fn load(path: impl AsRef<std::path::Path>) -> Result<Episodes> {
+        let path = path.as_ref();
+        let bytes = std::fs::read(path).map_err(|source| Error::Io {
+            path: path.display().to_string(),
+            source,
+        })?;
+        Episodes::from_bytes(&bytes)
+    }
+
+    pub fn from_bytes(bytes: &[u8]) -> Result<Episodes> {
+        let file = SafeTensors::deserialize(bytes).map_err(|e| Error::Malformed {
+            reason: format!("{e:?}"),
+        })?;
+        let get = |name: &str, dtype: Dtype, rank: usize| {
+            let view = file
+                .tensor(name)
+                .map_err(|_| Error::MissingTensor { name: name.to_string() })?;
+            if view.dtype() != dtype {
+                return Err(Error::Dtype {
+                    name: name.to_string(),
+                    found: format!("{:?} (expected {dtype:?})", view.dtype()),
+                });
+            }
+            if view.shape().len() != rank {
+                let expected = alloc::vec![0; rank];
+                return Err(Error::Shape {
+                    name: name.to_string(),
+                    expected,
+                    found: view.shape().to_vec(),
+                });
+            }
+            Ok(view)
+        };
+        let frames = get("frames", Dtype::U8, 4)?;
+        let actions = get("actions", Dtype::F32, 2)?;
+        let starts = get("episode_starts", Dtype::I64, 1)?;
+        let &[n, height, width, channels] = frames.shape() else {
+            unreachable!("rank checked")
+        };
+        if channels != Episodes::CHANNELS || n == 0 {
+            let expected = alloc::vec![n.max(1), height, width, Episodes::CHANNELS];
+            return Err(Error::Shape {
+                name: "frames".into(),
+                expected,
+                found: frames.shape().to_vec(),
+            });
+        }
+        if actions.shape() != [n, Episodes::ACTION_DIM] {
+            let expected = alloc::vec![n, Episodes::ACTION_DIM];
+            return Err(Error::Shape {
+                name: "actions".into(),
+                expected,
+                found: actions.shape().to_vec(),
+            });
+        }
+        let starts: Vec<i64> = starts
+            .data()
+            .chunks_exact(8)
+            .map(|b| i64::from_le_bytes(b.try_into().expect("8 bytes")))
+            .collect();
+        let increasing = starts.windows(2).all(|w| w[0] < w[1]);
+        if starts.first() != Some(&0) || !increasing || starts.last().is_some_and(|&s| s as u64 >= n as u64) {
+            return Err(Error::Episodes {
+                reason: format!("episode_starts must start at 0 and increase below {n} frames, found {starts:?}"),
+            });
+        }
+        let actions: Vec<f32> = actions
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
+            .collect();
+        crate::error::expect_finite("actions", &actions)?;
+        Ok(Episodes {
+            height,
+            width,
+            frames: frames.data().to_vec(),
+            actions,
+            starts: starts.into_iter().map(|s| s as usize).collect(),
+        })
+    }
+
+    /// Number of episodes.
+    pub fn len(&self) -> usize {
+        self.starts.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.starts.is_empty()
+    }
+
+    /// `(height, width)` of every frame.
+    pub fn frame_size(&self) -> (usize, usize) {
+        (self.height, self.width)
+    }
+
+    /// Episode `i`.
+    pub fn episode(&self, i: usize) -> Result<Episode<'_>> {
+        let start = *self.starts.get(i).ok_or(Error::OutOfRange {
+            what: "episode",
+            index: i,
+            len: self.len(),
+        })?;
+        let end = self
+            .starts
+            .get(i + 1)
+            .copied()
+            .unwrap_or(self.actions.len() / Episodes::ACTION_DIM);
+        let frame_len = self.height * self.width * Episodes::CHANNELS;
+        Ok(Episode {
+            height: self.height,
+            width: self.width,
+            frames: &self.frames[start * frame_len..end * frame_len],
+            actions: &self.actions[start * Episodes::ACTION_DIM..end * Episodes::ACTION_DIM],
+        })
+    }
+}

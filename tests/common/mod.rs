@@ -1,0 +1,62 @@
+//! Shared by the integration tests: reading the PyTorch fixtures and comparing outputs.
+#![allow(dead_code)] // each test binary uses a different part
+
+use safetensors::{Dtype, SafeTensors};
+use std::path::PathBuf;
+
+pub const FIXTURES: [&str; 4] = ["small_f32", "small_f16", "tiny_bf16", "tall_f32"];
+
+pub fn fixture_path(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name)
+}
+
+/// Relative tolerance against PyTorch: 1e-4 for f32 weights, 1e-3 for half-precision files.
+pub fn tolerance(name: &str) -> f32 {
+    if name.ends_with("f32") {
+        1e-4
+    } else {
+        1e-3
+    }
+}
+
+/// The float32 tensors of `NAME.io.safetensors`, written by `weights/fixtures.py`.
+pub struct Io {
+    bytes: Vec<u8>,
+}
+
+impl Io {
+    pub fn load(name: &str) -> Io {
+        Io {
+            bytes: std::fs::read(fixture_path(&format!("{name}.io.safetensors"))).expect("fixture file"),
+        }
+    }
+
+    pub fn get(&self, tensor: &str) -> (Vec<usize>, Vec<f32>) {
+        let file = SafeTensors::deserialize(&self.bytes).expect("fixture parses");
+        let view = file.tensor(tensor).unwrap_or_else(|_| panic!("fixture lacks {tensor}"));
+        assert_eq!(view.dtype(), Dtype::F32);
+        let values = view
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+            .collect();
+        (view.shape().to_vec(), values)
+    }
+
+    pub fn values(&self, tensor: &str) -> Vec<f32> {
+        self.get(tensor).1
+    }
+}
+
+/// max |found - expected| / max |expected|: the error relative to the tensor's scale.
+pub fn relative_error(found: &[f32], expected: &[f32]) -> f32 {
+    assert_eq!(found.len(), expected.len());
+    let scale = expected.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-12);
+    found
+        .iter()
+        .zip(expected)
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()))
+        / scale
+}

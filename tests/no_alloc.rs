@@ -1,0 +1,93 @@
+//! After `Simulator::new`, encoding, stepping, generating and rolling out allocate nothing.
+
+use drivesim::{Config, Model, Simulator, WeightDtype};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// Counts every allocation and reallocation made by this test binary.
+struct Counting;
+
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
+        System.alloc(layout)
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        System.dealloc(ptr, layout)
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
+        System.realloc(ptr, layout, new_size)
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn allocations_during(f: impl FnOnce()) -> usize {
+    let before = ALLOCATIONS.load(Ordering::SeqCst);
+    f();
+    ALLOCATIONS.load(Ordering::SeqCst) - before
+}
+
+#[test]
+fn hot_paths_allocate_nothing() {
+    let config = Config {
+        height: 32,
+        width: 48,
+        channels: 3,
+        base_channels: 4,
+        z_dim: 12,
+        hidden_dim: 10,
+        ..Config::COMMA
+    };
+    for dtype in [WeightDtype::F32, WeightDtype::F16] {
+        let model = Model::random(&config, 3, dtype).unwrap();
+        for isa in drivesim::Isa::supported() {
+            let mut sim = Simulator::with_batch(&model, 3).with_isa(isa);
+            // Every caller buffer is made before counting starts.
+            let frames = vec![0.25f32; 3 * config.frame_len()];
+            let actions = vec![0.5f32; 6 * config.action_dim];
+            let mut z = vec![0.0; 3 * config.z_dim];
+            let mut logsigma = vec![0.0; 3 * config.z_dim];
+            let mut h = vec![0.0; 3 * config.hidden_dim];
+            let mut z_next = vec![0.0; 3 * config.z_dim];
+            let mut out = vec![0.0; 3 * config.frame_len()];
+            let mut codes = vec![0.0; 4 * config.z_dim];
+            let mut rollout_frames = vec![0.0; 4 * config.frame_len()];
+            let mut bad = vec![0.0; 1];
+
+            let n = allocations_during(|| {
+                sim.encode(&frames, &mut z).unwrap();
+                sim.encode(&frames[..config.frame_len()], &mut z[..config.z_dim])
+                    .unwrap();
+                sim.encode_with_logsigma(&frames, &mut z, &mut logsigma).unwrap();
+                sim.transition(&z, &mut h, &actions[..3 * config.action_dim], &mut z_next)
+                    .unwrap();
+                sim.generate(&z_next, &mut out).unwrap();
+                sim.rollout(
+                    &frames,
+                    &actions[..(3 - 1 + 4) * config.action_dim],
+                    &mut codes,
+                    Some(&mut rollout_frames),
+                )
+                .unwrap();
+                sim.rollout(
+                    &frames[..config.frame_len()],
+                    &actions[..4 * config.action_dim],
+                    &mut codes,
+                    None,
+                )
+                .unwrap();
+                // Rejected calls report without allocating either.
+                assert!(sim.generate(&bad, &mut out).is_err());
+                bad[0] = f32::NAN;
+                assert!(sim.encode(&frames[..config.frame_len()], &mut bad).is_err());
+            });
+            assert_eq!(n, 0, "{n} allocations with {dtype:?} weights on {isa:?}");
+            assert!(out.iter().all(|v| v.is_finite()) && rollout_frames.iter().any(|&v| v != 0.0));
+        }
+    }
+}
