@@ -1,7 +1,8 @@
 //! Dense (matrix times batch of vectors) kernels for AVX2 and AVX-512.
 //!
-//! One generic body ([`dense_body`]) is instantiated per vector width through the small
-//! [`Simd`] trait; only the `#[target_feature]` entry points differ.
+//! One generic body ([`dense_body`]) is instantiated per vector width (`__m256`, `__m512`)
+//! through the activations' [`Simd`] trait and its small extension [`Dot`]; only the
+//! `#[target_feature]` entry points differ. The Tanh/ReLU epilogue is [`act::apply`].
 //!
 //! Layout of the work: `y[n][r] = act(W[r] . x[n] + b[r])`. The rows are taken four at a time
 //! and the batch `B` at a time (a register tile of `4 x B` vector accumulators, each a partial
@@ -10,8 +11,10 @@
 //! with two accumulators per row (enough independent FMA chains to keep up with memory).
 //! With several tiles of the batch, the columns are cut into panels so that the 4 rows of a
 //! panel stay in L1 while every batch tile reads them: the weights still come from memory once.
-//! Columns that do not fill a vector are read through a zero-padded copy on the stack.
+//! Columns that do not fill a vector are read with masked loads (inputs) or through a
+//! zero-padded copy on the stack (weights, which may be f16).
 
+use super::act::{self, Simd};
 use crate::{f16, Activation, IsaLevel, Matrix, MatrixData};
 use core::arch::x86_64::*;
 
@@ -40,11 +43,11 @@ unsafe fn dense_avx2<T: Weight>(
     y: &mut [f32],
 ) {
     // 16 registers: 4 x 2 accumulators, 4 weight vectors, 1 input vector.
-    dense_body::<Avx2, T, 2>(w, rows, cols, b, act, x, y)
+    dense_body::<__m256, T, 2>(w, rows, cols, b, act, x, y)
 }
 
 #[target_feature(enable = "avx512f,avx2,fma,f16c")]
-#[clippy::msrv = "1.89"]
+#[allow(clippy::incompatible_msrv)] // AVX-512 target features are stable since Rust 1.89
 unsafe fn dense_avx512<T: Weight>(
     w: &[T],
     rows: usize,
@@ -55,7 +58,7 @@ unsafe fn dense_avx512<T: Weight>(
     y: &mut [f32],
 ) {
     // 32 registers: 4 x 4 accumulators, 4 weight vectors, 1 input vector.
-    dense_body::<Avx512, T, 4>(w, rows, cols, b, act, x, y)
+    dense_body::<__m512, T, 4>(w, rows, cols, b, act, x, y)
 }
 
 /// Rows of the register tile.
@@ -65,131 +68,63 @@ const PANEL: usize = 1024;
 /// Widest vector, in lanes (for the stack buffers of partial vectors).
 const MAX_LANES: usize = 16;
 
-/// What the generic kernel needs from one vector width. Every method is `inline(always)` so
-/// that it compiles inside the caller's `#[target_feature]` function.
-trait Simd {
-    const LANES: usize;
-    type V: Copy;
-    unsafe fn zero() -> Self::V;
-    unsafe fn load(p: *const f32) -> Self::V;
+/// What the dense kernel needs on top of [`Simd`]: widening halves and a horizontal sum.
+/// Methods are `inline(always)`, to compile inside the caller's `#[target_feature]` function.
+trait Dot: Simd {
     /// Loads `LANES` halves and widens them.
-    unsafe fn load_f16(p: *const f16) -> Self::V;
-    unsafe fn store(p: *mut f32, v: Self::V);
-    /// `a * b + c`.
-    unsafe fn fma(a: Self::V, b: Self::V, c: Self::V) -> Self::V;
-    unsafe fn add(a: Self::V, b: Self::V) -> Self::V;
+    unsafe fn load_f16(p: *const f16) -> Self;
     /// Sum of the lanes.
-    unsafe fn sum(v: Self::V) -> f32;
-    /// The activation, lane by lane. Until the vectorised activations land: the scalar one.
-    #[inline(always)]
-    unsafe fn act(act: Activation, v: Self::V) -> Self::V {
-        let mut buf = [0.0f32; MAX_LANES];
-        Self::store(buf.as_mut_ptr(), v);
-        for b in &mut buf[..Self::LANES] {
-            *b = act.apply(*b);
-        }
-        Self::load(buf.as_ptr())
-    }
+    unsafe fn sum(self) -> f32;
 }
 
-#[derive(Clone, Copy)]
-struct Avx2;
-
-impl Simd for Avx2 {
-    const LANES: usize = 8;
-    type V = __m256;
-    #[inline(always)]
-    unsafe fn zero() -> __m256 {
-        _mm256_setzero_ps()
-    }
-    #[inline(always)]
-    unsafe fn load(p: *const f32) -> __m256 {
-        _mm256_loadu_ps(p)
-    }
+impl Dot for __m256 {
     #[inline(always)]
     unsafe fn load_f16(p: *const f16) -> __m256 {
         _mm256_cvtph_ps(_mm_loadu_si128(p.cast()))
     }
     #[inline(always)]
-    unsafe fn store(p: *mut f32, v: __m256) {
-        _mm256_storeu_ps(p, v)
-    }
-    #[inline(always)]
-    unsafe fn fma(a: __m256, b: __m256, c: __m256) -> __m256 {
-        _mm256_fmadd_ps(a, b, c)
-    }
-    #[inline(always)]
-    unsafe fn add(a: __m256, b: __m256) -> __m256 {
-        _mm256_add_ps(a, b)
-    }
-    #[inline(always)]
-    unsafe fn sum(v: __m256) -> f32 {
-        let s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+    unsafe fn sum(self) -> f32 {
+        let s = _mm_add_ps(_mm256_castps256_ps128(self), _mm256_extractf128_ps::<1>(self));
         let s = _mm_add_ps(s, _mm_movehl_ps(s, s));
         _mm_cvtss_f32(_mm_add_ss(s, _mm_movehdup_ps(s)))
     }
 }
 
-#[derive(Clone, Copy)]
-struct Avx512;
-
-// The AVX-512 intrinsics are stable since Rust 1.89: the workspace's `rust-version` must follow.
-#[clippy::msrv = "1.89"]
-impl Simd for Avx512 {
-    const LANES: usize = 16;
-    type V = __m512;
-    #[inline(always)]
-    unsafe fn zero() -> __m512 {
-        _mm512_setzero_ps()
-    }
-    #[inline(always)]
-    unsafe fn load(p: *const f32) -> __m512 {
-        _mm512_loadu_ps(p)
-    }
+// The AVX-512 intrinsics are stable since Rust 1.89, above the workspace's rust-version.
+#[allow(clippy::incompatible_msrv)]
+impl Dot for __m512 {
     #[inline(always)]
     unsafe fn load_f16(p: *const f16) -> __m512 {
         _mm512_cvtph_ps(_mm256_loadu_si256(p.cast()))
     }
     #[inline(always)]
-    unsafe fn store(p: *mut f32, v: __m512) {
-        _mm512_storeu_ps(p, v)
-    }
-    #[inline(always)]
-    unsafe fn fma(a: __m512, b: __m512, c: __m512) -> __m512 {
-        _mm512_fmadd_ps(a, b, c)
-    }
-    #[inline(always)]
-    unsafe fn add(a: __m512, b: __m512) -> __m512 {
-        _mm512_add_ps(a, b)
-    }
-    #[inline(always)]
-    unsafe fn sum(v: __m512) -> f32 {
-        _mm512_reduce_add_ps(v)
+    unsafe fn sum(self) -> f32 {
+        _mm512_reduce_add_ps(self)
     }
 }
 
 /// A stored weight type: loads `LANES` of them as f32 lanes.
 trait Weight: Copy + Default {
-    unsafe fn load<S: Simd>(p: *const Self) -> S::V;
+    unsafe fn load<S: Dot>(p: *const Self) -> S;
 }
 
 impl Weight for f32 {
     #[inline(always)]
-    unsafe fn load<S: Simd>(p: *const f32) -> S::V {
+    unsafe fn load<S: Dot>(p: *const f32) -> S {
         S::load(p)
     }
 }
 
 impl Weight for f16 {
     #[inline(always)]
-    unsafe fn load<S: Simd>(p: *const f16) -> S::V {
+    unsafe fn load<S: Dot>(p: *const f16) -> S {
         S::load_f16(p)
     }
 }
 
 /// Loads the `n < LANES` values at `p`, the other lanes zero.
 #[inline(always)]
-unsafe fn load_partial<S: Simd, T: Weight>(p: *const T, n: usize) -> S::V {
+unsafe fn load_partial<S: Dot, T: Weight>(p: *const T, n: usize) -> S {
     let mut buf = [T::default(); MAX_LANES];
     core::ptr::copy_nonoverlapping(p, buf.as_mut_ptr(), n);
     T::load::<S>(buf.as_ptr())
@@ -198,20 +133,20 @@ unsafe fn load_partial<S: Simd, T: Weight>(p: *const T, n: usize) -> S::V {
 /// One vector of columns: `wl(r)` loads the weights of row `r`, `xl(b)` the input of item `b`,
 /// and their products go to accumulator `u`.
 #[inline(always)]
-unsafe fn step<S: Simd, const R: usize, const B: usize, const U: usize>(
-    acc: &mut [[[S::V; U]; B]; R],
+unsafe fn step<S: Dot, const R: usize, const B: usize, const U: usize>(
+    acc: &mut [[[S; U]; B]; R],
     u: usize,
-    wl: impl Fn(usize) -> S::V,
-    xl: impl Fn(usize) -> S::V,
+    wl: impl Fn(usize) -> S,
+    xl: impl Fn(usize) -> S,
 ) {
-    let mut wv = [S::zero(); R];
+    let mut wv = [S::splat(0.0); R];
     for (r, v) in wv.iter_mut().enumerate() {
         *v = wl(r);
     }
     for b in 0..B {
         let xv = xl(b);
         for (acc, &wv) in acc.iter_mut().zip(&wv) {
-            acc[b][u] = S::fma(wv, xv, acc[b][u]);
+            acc[b][u] = wv.mul_add(xv, acc[b][u]);
         }
     }
 }
@@ -219,14 +154,14 @@ unsafe fn step<S: Simd, const R: usize, const B: usize, const U: usize>(
 /// The dot products of `R` weight rows (`w`, `w + ldw`, ...) with `B` inputs (`x`, `x + ldx`,
 /// ...) over `len` columns, each accumulated in `U` vectors.
 #[inline(always)]
-unsafe fn tile<S: Simd, T: Weight, const R: usize, const B: usize, const U: usize>(
+unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize>(
     w: *const T,
     ldw: usize,
     x: *const f32,
     ldx: usize,
     len: usize,
 ) -> [[f32; B]; R] {
-    let mut acc = [[[S::zero(); U]; B]; R];
+    let mut acc = [[[S::splat(0.0); U]; B]; R];
     let mut k = 0;
     while k + U * S::LANES <= len {
         for u in 0..U {
@@ -255,7 +190,7 @@ unsafe fn tile<S: Simd, T: Weight, const R: usize, const B: usize, const U: usiz
             &mut acc,
             0,
             |r| load_partial::<S, T>(w.add(r * ldw + k), n),
-            |b| load_partial::<S, f32>(x.add(b * ldx + k), n),
+            |b| S::load_partial(x.add(b * ldx + k), n),
         );
     }
     let mut sums = [[0.0; B]; R];
@@ -263,9 +198,9 @@ unsafe fn tile<S: Simd, T: Weight, const R: usize, const B: usize, const U: usiz
         for (sum, acc) in sums.iter_mut().zip(acc) {
             let mut v = acc[0];
             for &a in &acc[1..] {
-                v = S::add(v, a);
+                v = v.add(a);
             }
-            *sum = S::sum(v);
+            *sum = v.sum();
         }
     }
     sums
@@ -274,7 +209,7 @@ unsafe fn tile<S: Simd, T: Weight, const R: usize, const B: usize, const U: usiz
 /// Adds the dot products of rows `r0 .. r0 + R` with every input over the columns
 /// `k0 .. k0 + len` into `y` (or writes them plus the bias when `first`).
 #[inline(always)]
-unsafe fn row_block<S: Simd, T: Weight, const R: usize, const BT: usize>(
+unsafe fn row_block<S: Dot, T: Weight, const R: usize, const BT: usize>(
     w: &[T],
     cols: usize,
     (r0, k0, len): (usize, usize, usize),
@@ -317,7 +252,7 @@ unsafe fn row_block<S: Simd, T: Weight, const R: usize, const BT: usize>(
 
 /// See [`crate::dense`]; `BT` is the batch width of the register tile (at most 4).
 #[inline(always)]
-unsafe fn dense_body<S: Simd, T: Weight, const BT: usize>(
+unsafe fn dense_body<S: Dot, T: Weight, const BT: usize>(
     w: &[T],
     rows: usize,
     cols: usize,
@@ -350,13 +285,10 @@ unsafe fn dense_body<S: Simd, T: Weight, const BT: usize>(
     }
     let mut chunks = y.chunks_exact_mut(S::LANES);
     for c in &mut chunks {
-        S::store(c.as_mut_ptr(), S::act(act, S::load(c.as_ptr())));
+        act::apply(act, S::load(c.as_ptr())).store(c.as_mut_ptr());
     }
     let rest = chunks.into_remainder();
     if !rest.is_empty() {
-        let mut buf = [0.0f32; MAX_LANES];
-        buf[..rest.len()].copy_from_slice(rest);
-        S::store(buf.as_mut_ptr(), S::act(act, S::load(buf.as_ptr())));
-        rest.copy_from_slice(&buf[..rest.len()]);
+        act::apply(act, S::load_partial(rest.as_ptr(), rest.len())).store_partial(rest.as_mut_ptr(), rest.len());
     }
 }
