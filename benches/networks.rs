@@ -1,1 +1,146 @@
-fn main() {}
+//! Criterion benchmarks of the comma config: whole networks (encode, generate, one transition
+//! step) and their layers, at z = hidden = 512 and 2048, batch 1 and 16. Throughput is in
+//! floating-point operations (see `common::conv_flops`), so criterion's "elem/s" is FLOP/s.
+//!
+//! `cargo bench --bench networks [-- FILTER]`; `DRIVESIM_ISA=avx2|scalar` caps the kernels.
+
+mod common;
+
+use common::*;
+use criterion::{criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput};
+use drivesim::{Model, Simulator, WeightDtype};
+use drivesim_kernels::{conv, dense, f16, Activation, ConvShape, Isa, Matrix, MatrixData};
+use std::hint::black_box;
+use std::time::Duration;
+
+const SEED: u64 = 2016;
+const BATCHES: [usize; 2] = [1, 16];
+
+fn group<'a>(c: &'a mut Criterion, name: &str) -> BenchmarkGroup<'a, criterion::measurement::WallTime> {
+    let mut g = c.benchmark_group(name);
+    g.sample_size(10)
+        .warm_up_time(Duration::from_millis(500))
+        .measurement_time(Duration::from_secs(2));
+    g
+}
+
+/// Encode, generate and one transition step through the public API.
+fn networks(c: &mut Criterion) {
+    let mut g = group(c, "network");
+    for z in [512, 2048] {
+        let cfg = comma(z);
+        let dtypes: &[WeightDtype] = if z == 2048 {
+            &[WeightDtype::F32, WeightDtype::F16]
+        } else {
+            &[WeightDtype::F32]
+        };
+        for &dtype in dtypes {
+            let model = Model::random(&cfg, SEED, dtype).expect("valid config");
+            let tag = format!("z{z}_{}", if dtype == WeightDtype::F16 { "f16" } else { "f32" });
+            for batch in BATCHES {
+                let mut sim = Simulator::with_batch(&model, batch);
+                let frames = values(1, batch * cfg.frame_len(), 1.0);
+                let codes = values(2, batch * z, 1.0);
+                let actions = values(3, batch * cfg.action_dim, 1.0);
+                let mut out_frames = vec![0.0; batch * cfg.frame_len()];
+                let mut out_codes = vec![0.0; batch * z];
+                let mut h = vec![0.0; batch * z];
+                // The convolutional networks have no f16 path: time them once, in f32.
+                if dtype == WeightDtype::F32 {
+                    g.throughput(Throughput::Elements(batch as u64 * encode_flops(&cfg)));
+                    g.bench_function(format!("encode/{tag}/batch{batch}"), |b| {
+                        b.iter(|| sim.encode(black_box(&frames), &mut out_codes).unwrap())
+                    });
+                    g.throughput(Throughput::Elements(batch as u64 * generate_flops(&cfg)));
+                    g.bench_function(format!("generate/{tag}/batch{batch}"), |b| {
+                        b.iter(|| sim.generate(black_box(&codes), &mut out_frames).unwrap())
+                    });
+                }
+                g.throughput(Throughput::Elements(batch as u64 * transition_flops(&cfg)));
+                g.bench_function(format!("transition/{tag}/batch{batch}"), |b| {
+                    b.iter(|| {
+                        h.fill(0.0);
+                        sim.transition(black_box(&codes), &mut h, &actions, &mut out_codes)
+                            .unwrap()
+                    })
+                });
+            }
+        }
+    }
+    g.finish();
+}
+
+/// Every convolution of the encoder and generator, one image, through the kernels crate.
+fn conv_layers(c: &mut Criterion) {
+    let isa = Isa::best();
+    let cfg = comma(512);
+    let mut g = group(c, "conv");
+    let layers = encoder_convs(&cfg)
+        .into_iter()
+        .enumerate()
+        .map(|(i, s)| (format!("encoder.conv{i}"), s, Activation::LeakyRelu(0.2)))
+        .chain(generator_convs(&cfg).into_iter().enumerate().map(|(i, s)| {
+            let act = if i + 1 == cfg.layers {
+                Activation::Tanh
+            } else {
+                Activation::Relu
+            };
+            (format!("generator.deconv{}", i + 1), s, act)
+        }));
+    for (name, shape, act) in layers {
+        let ConvShape { input, output, .. } = shape;
+        let mut x = vec![0.0; input.len()];
+        input.write_interior(&mut x, &values(4, input.interior_len(), 1.0));
+        let w = values(5, shape.packed_len(), 0.05);
+        let bias = values(6, output.channels, 0.1);
+        let mut y = vec![0.0; output.len()];
+        g.throughput(Throughput::Elements(conv_flops(&shape)));
+        g.bench_function(name, |b| {
+            b.iter(|| conv(isa, &shape, black_box(&x), &w, &bias, act, &mut y))
+        });
+    }
+    g.finish();
+}
+
+/// The dense layers of both sizes through the kernels crate; f16 weights for z = 2048.
+fn dense_layers(c: &mut Criterion) {
+    let isa = Isa::best();
+    let mut g = group(c, "dense");
+    for z in [512, 2048] {
+        let cfg = comma(z);
+        let flat = cfg.flat_len();
+        let layers = [
+            ("encoder.mean", z, flat, Activation::Identity),
+            ("generator.fc", flat, z, Activation::Relu),
+            ("transition.WVU", z, 2 * z + cfg.action_dim, Activation::Tanh),
+            ("transition.A", z, z, Activation::Identity),
+        ];
+        for (name, rows, cols, act) in layers {
+            let w32 = values(7, rows * cols, 1.0 / (cols as f32).sqrt());
+            let w16: Vec<f16> = w32.iter().map(|&v| f16::from_f32(v)).collect();
+            let bias = values(8, rows, 0.1);
+            let halves: &[bool] = if z == 2048 { &[false, true] } else { &[false] };
+            for &half in halves {
+                let data = if half {
+                    MatrixData::F16(&w16)
+                } else {
+                    MatrixData::F32(&w32)
+                };
+                let m = Matrix { data, rows, cols };
+                for batch in BATCHES {
+                    let x = values(9, batch * cols, 1.0);
+                    let mut y = vec![0.0; batch * rows];
+                    let dtype = if half { "f16" } else { "f32" };
+                    g.throughput(Throughput::Elements(batch as u64 * dense_flops(rows, cols)));
+                    g.bench_function(format!("{name}/{rows}x{cols}/{dtype}/batch{batch}"), |b| {
+                        b.iter(|| dense(isa, m, &bias, act, black_box(&x), &mut y))
+                    });
+                }
+            }
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, dense_layers, networks, conv_layers);
+criterion_main!(benches);

@@ -65,6 +65,8 @@ unsafe fn dense_avx512<T: Weight>(
 const ROWS: usize = 4;
 /// Columns per panel when the batch takes several tiles: 4 rows of f32 fill 16 KiB of L1.
 const PANEL: usize = 1024;
+/// Bytes ahead of the current weights to prefetch.
+const PREFETCH: usize = 1024;
 /// Widest vector, in lanes (for the stack buffers of partial vectors).
 const MAX_LANES: usize = 16;
 
@@ -164,6 +166,11 @@ unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize
     let mut acc = [[[S::splat(0.0); U]; B]; R];
     let mut k = 0;
     while k + U * S::LANES <= len {
+        if PREFETCH > 0 {
+            for r in 0..R {
+                _mm_prefetch::<_MM_HINT_T0>(w.add(r * ldw + k).cast::<i8>().wrapping_add(PREFETCH));
+            }
+        }
         for u in 0..U {
             let at = k + u * S::LANES;
             step::<S, R, B, U>(

@@ -1,0 +1,99 @@
+//! Shapes and operation counts shared by the criterion benches and `examples/bench_report.rs`
+//! (included there with `#[path]`).
+#![allow(dead_code)] // each includer uses part of it
+
+use drivesim::Config;
+use drivesim_kernels::{ConvKind, ConvShape, Plane};
+
+/// The comma config with `z_dim = hidden_dim = z`.
+pub fn comma(z: usize) -> Config {
+    Config {
+        z_dim: z,
+        hidden_dim: z,
+        ..Config::COMMA
+    }
+}
+
+/// The encoder's convolutions, built as the model builds them.
+pub fn encoder_convs(c: &Config) -> Vec<ConvShape> {
+    let halo = ConvKind::Down.input_halo(c.kernel);
+    let mut input = Plane::new(c.height, c.width, c.channels, halo);
+    (0..c.layers)
+        .map(|i| {
+            let last = i + 1 == c.layers;
+            let shape = ConvShape::new(
+                ConvKind::Down,
+                c.kernel,
+                input,
+                c.base_channels << i,
+                if last { 0 } else { halo },
+            );
+            input = shape.output;
+            shape
+        })
+        .collect()
+}
+
+/// The generator's transposed convolutions, built as the model builds them.
+pub fn generator_convs(c: &Config) -> Vec<ConvShape> {
+    let halo = ConvKind::Up.input_halo(c.kernel);
+    let (h, w) = c.top_size();
+    let mut input = Plane::new(h, w, c.top_channels(), halo);
+    (1..=c.layers)
+        .map(|i| {
+            let last = i == c.layers;
+            let (oc, out_halo) = if last {
+                (c.channels, 0)
+            } else {
+                (c.top_channels() >> i, halo)
+            };
+            let shape = ConvShape::new(ConvKind::Up, c.kernel, input, oc, out_halo);
+            input = shape.output;
+            shape
+        })
+        .collect()
+}
+
+/// Floating-point operations of a convolution counting every kernel tap (padding included):
+/// `2 k^2 ic oc` per output pixel of a convolution, per input pixel of a transposed one (the
+/// count PyTorch and ONNX profilers use). [`ConvShape::macs`] counts only in-image taps.
+pub fn conv_flops(s: &ConvShape) -> u64 {
+    let pixels = match s.kind {
+        ConvKind::Down => s.output.height * s.output.width,
+        ConvKind::Up => s.input.height * s.input.width,
+    };
+    (2 * pixels * s.kernel * s.kernel * s.input.channels * s.output.channels) as u64
+}
+
+/// Floating-point operations of `rows x cols` times one vector.
+pub fn dense_flops(rows: usize, cols: usize) -> u64 {
+    2 * (rows * cols) as u64
+}
+
+/// Per frame: the convolutions and the mean head.
+pub fn encode_flops(c: &Config) -> u64 {
+    encoder_convs(c).iter().map(conv_flops).sum::<u64>() + dense_flops(c.z_dim, c.flat_len())
+}
+
+/// Per frame: the dense layer and the transposed convolutions.
+pub fn generate_flops(c: &Config) -> u64 {
+    generator_convs(c).iter().map(conv_flops).sum::<u64>() + dense_flops(c.flat_len(), c.z_dim)
+}
+
+/// Per step: `[W|V|U] [h;z;c]` and `A h`.
+pub fn transition_flops(c: &Config) -> u64 {
+    dense_flops(c.hidden_dim, c.hidden_dim + c.z_dim + c.action_dim) + dense_flops(c.z_dim, c.hidden_dim)
+}
+
+/// Deterministic values in [-scale, scale).
+pub fn values(seed: u64, n: usize, scale: f32) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..n)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            ((s >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * scale
+        })
+        .collect()
+}

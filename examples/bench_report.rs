@@ -1,0 +1,169 @@
+//! Times encode, generate and one transition step on one thread and prints one
+//! machine-readable line per measurement (read by `weights/compare.py`), plus the FMA peak
+//! of this core per vector width.
+//!
+//! ```text
+//! cargo run --release --example bench_report -- [--weights FILE | --z N] [--dtype f32|f16]
+//!     [--batch 1,16] [--seconds S]
+//! ```
+//! Lines: `isa level=avx2`, `peak width=256 gflops=…`, and
+//! `result network=encode batch=1 threads=1 median_ms=… gflop=…` (GFLOP per call, all taps).
+
+#[path = "../benches/common/mod.rs"]
+mod common;
+
+use common::*;
+use drivesim::{Isa, IsaLevel, Model, Simulator, WeightDtype};
+use std::hint::black_box;
+use std::time::{Duration, Instant};
+
+fn arg<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .map(String::as_str)
+}
+
+/// Median wall time of `f` in ms: at least 5 runs and about `budget` in total.
+fn median_ms(budget: Duration, mut f: impl FnMut()) -> f64 {
+    f(); // warm-up: caches, page faults
+    let start = Instant::now();
+    let mut times = Vec::new();
+    while times.len() < 5 || (start.elapsed() < budget && times.len() < 1000) {
+        let t = Instant::now();
+        f();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(f64::total_cmp);
+    times[times.len() / 2]
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let batches: Vec<usize> = arg(&args, "--batch")
+        .unwrap_or("1,16")
+        .split(',')
+        .map(|b| b.parse().expect("--batch: comma-separated integers"))
+        .collect();
+    let budget = Duration::from_secs_f64(arg(&args, "--seconds").map_or(2.0, |s| s.parse().expect("--seconds")));
+    let dtype = match arg(&args, "--dtype").unwrap_or("f32") {
+        "f16" => WeightDtype::F16,
+        _ => WeightDtype::F32,
+    };
+    let model = match arg(&args, "--weights") {
+        Some(path) => Model::load(path).expect("loading the weights"),
+        None => {
+            let z = arg(&args, "--z").map_or(512, |z| z.parse().expect("--z"));
+            Model::random(&comma(z), 2016, dtype).expect("valid config")
+        }
+    };
+    let cfg = *model.config();
+    let isa = Isa::best();
+    println!("isa level={}", isa.level().name());
+    for (width, gflops) in fma_peak() {
+        println!("peak width={width} gflops={gflops:.2}");
+    }
+    for &batch in &batches {
+        let mut sim = Simulator::with_batch(&model, batch);
+        let frames = values(1, batch * cfg.frame_len(), 1.0);
+        let codes = values(2, batch * cfg.z_dim, 1.0);
+        let actions = values(3, batch * cfg.action_dim, 1.0);
+        let mut out_frames = vec![0.0; batch * cfg.frame_len()];
+        let mut out_codes = vec![0.0; batch * cfg.z_dim];
+        let mut h = vec![0.0; batch * cfg.hidden_dim];
+        for network in ["encode", "generate", "transition"] {
+            let (flops, ms) = match network {
+                "encode" => (
+                    encode_flops(&cfg),
+                    median_ms(budget, || sim.encode(black_box(&frames), &mut out_codes).unwrap()),
+                ),
+                "generate" => (
+                    generate_flops(&cfg),
+                    median_ms(budget, || sim.generate(black_box(&codes), &mut out_frames).unwrap()),
+                ),
+                _ => (
+                    transition_flops(&cfg),
+                    median_ms(budget, || {
+                        h.fill(0.0);
+                        sim.transition(black_box(&codes), &mut h, &actions, &mut out_codes)
+                            .unwrap()
+                    }),
+                ),
+            };
+            let gflop = (batch as u64 * flops) as f64 / 1e9;
+            println!("result network={network} batch={batch} threads=1 median_ms={ms:.4} gflop={gflop:.6}");
+        }
+    }
+}
+
+/// Peak single-core FMA throughput in GFLOP/s for each vector width this CPU has.
+fn fma_peak() -> Vec<(usize, f64)> {
+    let mut out = Vec::new();
+    #[cfg(target_arch = "x86_64")]
+    for (level, width) in [(IsaLevel::Avx2, 256), (IsaLevel::Avx512, 512)] {
+        if Isa::new(level).is_none() {
+            continue;
+        }
+        let iters = 20_000_000u64;
+        let mut best = f64::INFINITY;
+        for _ in 0..3 {
+            let t = Instant::now();
+            // SAFETY: `Isa::new` checked that the CPU has the features.
+            black_box(unsafe { peak::fma_loop(width, iters) });
+            best = best.min(t.elapsed().as_secs_f64());
+        }
+        // 12 accumulators, one FMA (2 FLOP per lane) each per iteration.
+        out.push((width, (iters * 12 * 2 * (width as u64 / 32)) as f64 / best / 1e9));
+    }
+    out
+}
+
+#[cfg(target_arch = "x86_64")]
+mod peak {
+    use std::arch::x86_64::*;
+
+    /// `iters` rounds of 12 independent FMA chains (enough to cover 2 ports x 4-6 cycles).
+    pub unsafe fn fma_loop(width: usize, iters: u64) -> f32 {
+        if width == 512 {
+            fma512(iters)
+        } else {
+            fma256(iters)
+        }
+    }
+
+    macro_rules! fma_kernel {
+        ($name:ident, $features:literal, $v:ty, $set1:ident, $fma:ident, $add:ident, $first:ident) => {
+            #[target_feature(enable = $features)]
+            #[allow(clippy::incompatible_msrv)] // AVX-512 intrinsics are stable since Rust 1.89
+            unsafe fn $name(iters: u64) -> f32 {
+                let (a, b) = ($set1(0.999_999), $set1(1e-7));
+                let mut acc: [$v; 12] = [$set1(1.0); 12];
+                for _ in 0..std::hint::black_box(iters) {
+                    for v in acc.iter_mut() {
+                        *v = $fma(*v, a, b);
+                    }
+                }
+                let s = acc.iter().fold($set1(0.0), |s, &v| $add(s, v));
+                $first(s)
+            }
+        };
+    }
+    fma_kernel!(
+        fma256,
+        "avx2,fma",
+        __m256,
+        _mm256_set1_ps,
+        _mm256_fmadd_ps,
+        _mm256_add_ps,
+        _mm256_cvtss_f32
+    );
+    fma_kernel!(
+        fma512,
+        "avx512f",
+        __m512,
+        _mm512_set1_ps,
+        _mm512_fmadd_ps,
+        _mm512_add_ps,
+        _mm512_cvtss_f32
+    );
+}
