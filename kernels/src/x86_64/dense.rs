@@ -4,11 +4,12 @@
 //! through the activations' [`Simd`] trait and its small extension [`Dot`]; only the
 //! `#[target_feature]` entry points differ. The Tanh/ReLU epilogue is [`act::apply`].
 //!
-//! Layout of the work: `y[n][r] = act(W[r] . x[n] + b[r])`. The rows are taken four at a time
-//! and the batch `B` at a time (a register tile of `4 x B` vector accumulators, each a partial
-//! dot product summed horizontally at the end), so each weight vector loaded from memory feeds
-//! `B` multiply-adds and each input vector `4`. At batch 1 the kernel streams every weight once
-//! with two accumulators per row (enough independent FMA chains to keep up with memory).
+//! Layout of the work: `y[n][r] = act(W[r] . x[n] + b[r])`. A batch is taken `RT` rows by `BT`
+//! inputs at a time (a register tile of `RT x BT` vector accumulators, each a partial dot
+//! product summed horizontally at the end: 3 x 4 for AVX2, 4 x 4 for AVX-512), so each weight
+//! vector loaded feeds `BT` multiply-adds and each input vector `RT`. A single input streams
+//! every weight once, 4 rows at a time with two accumulators per row and a software prefetch
+//! (single-core DRAM streaming is latency-bound without it).
 //! With several tiles of the batch, the columns are cut into panels so that the 4 rows of a
 //! panel stay in L1 while every batch tile reads them: the weights still come from memory once.
 //! Columns that do not fill a vector are read with masked loads (inputs) or through a
@@ -42,8 +43,8 @@ unsafe fn dense_avx2<T: Weight>(
     x: &[f32],
     y: &mut [f32],
 ) {
-    // 16 registers: 4 x 2 accumulators, 4 weight vectors, 1 input vector.
-    dense_body::<__m256, T, 2>(w, rows, cols, b, act, x, y)
+    // 16 registers: 3 x 4 accumulators, 3 weight vectors, 1 input vector.
+    dense_body::<__m256, T, 3, 4>(w, rows, cols, b, act, x, y)
 }
 
 #[target_feature(enable = "avx512f,avx2,fma,f16c")]
@@ -58,10 +59,10 @@ unsafe fn dense_avx512<T: Weight>(
     y: &mut [f32],
 ) {
     // 32 registers: 4 x 4 accumulators, 4 weight vectors, 1 input vector.
-    dense_body::<__m512, T, 4>(w, rows, cols, b, act, x, y)
+    dense_body::<__m512, T, 4, 4>(w, rows, cols, b, act, x, y)
 }
 
-/// Rows of the register tile.
+/// Rows of the register tile for a single input.
 const ROWS: usize = 4;
 /// Columns per panel when the batch takes several tiles: 4 rows of f32 fill 16 KiB of L1.
 const PANEL: usize = 1024;
@@ -166,7 +167,8 @@ unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize
     let mut acc = [[[S::splat(0.0); U]; B]; R];
     let mut k = 0;
     while k + U * S::LANES <= len {
-        if PREFETCH > 0 {
+        // Only a single input streams the weights from memory; batch tiles reuse them from L1.
+        if B == 1 {
             for r in 0..R {
                 _mm_prefetch::<_MM_HINT_T0>(w.add(r * ldw + k).cast::<i8>().wrapping_add(PREFETCH));
             }
@@ -257,9 +259,32 @@ unsafe fn row_block<S: Dot, T: Weight, const R: usize, const BT: usize>(
     }
 }
 
-/// See [`crate::dense`]; `BT` is the batch width of the register tile (at most 4).
+/// Every row block over the columns `k0 .. k0 + len`: `R` rows at a time, then one at a time.
 #[inline(always)]
-unsafe fn dense_body<S: Dot, T: Weight, const BT: usize>(
+unsafe fn row_blocks<S: Dot, T: Weight, const R: usize, const BT: usize>(
+    w: &[T],
+    rows: usize,
+    cols: usize,
+    (k0, len): (usize, usize),
+    bias: &[f32],
+    x: &[f32],
+    y: &mut [f32],
+) {
+    let mut r0 = 0;
+    while r0 + R <= rows {
+        row_block::<S, T, R, BT>(w, cols, (r0, k0, len), bias, x, y, k0 == 0);
+        r0 += R;
+    }
+    while r0 < rows {
+        row_block::<S, T, 1, BT>(w, cols, (r0, k0, len), bias, x, y, k0 == 0);
+        r0 += 1;
+    }
+}
+
+/// See [`crate::dense`]. Batches use a register tile of `RT` rows by `BT` inputs (`BT` at most
+/// 4); a single input uses [`ROWS`] rows with two accumulators each.
+#[inline(always)]
+unsafe fn dense_body<S: Dot, T: Weight, const RT: usize, const BT: usize>(
     w: &[T],
     rows: usize,
     cols: usize,
@@ -276,14 +301,10 @@ unsafe fn dense_body<S: Dot, T: Weight, const BT: usize>(
     let mut k0 = 0;
     while k0 < cols {
         let len = panel.min(cols - k0);
-        let mut r0 = 0;
-        while r0 + ROWS <= rows {
-            row_block::<S, T, ROWS, BT>(w, cols, (r0, k0, len), bias, x, y, k0 == 0);
-            r0 += ROWS;
-        }
-        while r0 < rows {
-            row_block::<S, T, 1, BT>(w, cols, (r0, k0, len), bias, x, y, k0 == 0);
-            r0 += 1;
+        if batch == 1 {
+            row_blocks::<S, T, ROWS, BT>(w, rows, cols, (k0, len), bias, x, y);
+        } else {
+            row_blocks::<S, T, RT, BT>(w, rows, cols, (k0, len), bias, x, y);
         }
         k0 += len;
     }
