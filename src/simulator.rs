@@ -98,14 +98,16 @@ impl<'m> Simulator<'m> {
     /// Like [`Simulator::encode`], and also writes log-sigma (`tanh`-bounded) for each frame,
     /// for sampling `z = mean + exp(logsigma) * noise`.
     pub fn encode_with_logsigma(&mut self, frames: &[f32], mean: &mut [f32], logsigma: &mut [f32]) -> Result<()> {
-        let n = self.batch_of("frames", frames, self.config().frame_len())?;
-        expect_len("logsigma", logsigma, n * self.config().z_dim)?;
         self.encode_inner(frames, mean, Some(logsigma))
     }
 
     fn encode_inner(&mut self, frames: &[f32], z: &mut [f32], logsigma: Option<&mut [f32]>) -> Result<()> {
         let n = self.batch_of("frames", frames, self.config().frame_len())?;
-        expect_len("z", z, n * self.config().z_dim)?;
+        let codes_len = n * self.config().z_dim;
+        expect_len("z", z, codes_len)?;
+        if let Some(logsigma) = logsigma.as_deref() {
+            expect_len("logsigma", logsigma, codes_len)?;
+        }
         expect_finite("frames", frames)?;
         self.model
             .encoder

@@ -29,7 +29,7 @@ HEIGHT, WIDTH = 80, 160
 # This 2:1 crop keeps the car and 450 px of road ahead; it shrinks exactly 6.25x to 160x80.
 CROP = (0, 150, 1000, 650)
 WARMUP_STEPS = 60  # the env zooms in during its first second; skip it
-GAIN = 2.0
+GAIN = 1.5  # steering per radian between heading and aim point
 HALF_ROAD = car_racing.TRACK_WIDTH  # centre line to edge, world units
 
 
@@ -75,7 +75,7 @@ class Driver:
         self.heading = np.unwrap(np.arctan2(tangent[:, 1], tangent[:, 0]))
         self.rng = rng
         self.offset = OU(rng, theta=0.02, sigma=0.08)
-        self.steer_noise = OU(rng, theta=0.15, sigma=0.08)
+        self.steer_noise = OU(rng, theta=0.15, sigma=0.06)
         self.target_speed = rng.uniform(25, 60)
         self.i = None
 
@@ -106,7 +106,7 @@ class Driver:
         # Slow down before bends: heading change over the next 40 units of track.
         j = self.ahead(i, 40.0)
         bend = abs(math.remainder(self.heading[j] - self.heading[i], 2 * math.pi))
-        target_speed = min(self.target_speed, 70.0 / (1.0 + 3.0 * bend))
+        target_speed = min(self.target_speed, 60.0 / (1.0 + 3.0 * bend))
 
         # Pure pursuit on a point ahead, shifted sideways by the drifting offset.
         lookahead = 6.0 + 0.35 * speed

@@ -5,8 +5,8 @@
 /// At 0.0625 the series' first dropped term is ~3e-13 relative, and the exp form's
 /// cancellation costs at most ~1e-6 relative.
 pub const TANH_SERIES_LIMIT: f32 = 0.0625;
-/// tanh(9) rounds to 1.0 in f32, so larger inputs are clamped there (keeps exp finite).
-pub const TANH_CLAMP: f32 = 9.0;
+/// 1 - 2/(e^20 + 1) rounds to 1.0 in f32, so larger inputs are clamped to 10 (keeps exp finite).
+pub const TANH_CLAMP: f32 = 10.0;
 
 /// Coefficients of the odd series tanh(x) = x (1 + c1 x^2 + c2 x^4 + c3 x^6).
 pub const TANH_SERIES: [f32; 3] = [-1.0 / 3.0, 2.0 / 15.0, -17.0 / 315.0];

@@ -1,0 +1,159 @@
+//! The SIMD dense kernels and `rnn_step` against the scalar reference, on awkward shapes.
+
+use drivesim_kernels::{dense, f16, rnn_step, Activation, Isa, IsaLevel, Matrix, MatrixData, Rnn};
+
+const ROWS: [usize; 9] = [1, 2, 3, 5, 7, 8, 9, 17, 33];
+const COLS: [usize; 13] = [1, 2, 3, 7, 8, 9, 15, 16, 17, 31, 33, 100, 1000];
+const BATCHES: [usize; 6] = [1, 2, 3, 5, 16, 17];
+const ACTS: [Activation; 4] = [
+    Activation::Identity,
+    Activation::Relu,
+    Activation::LeakyRelu(0.2),
+    Activation::Tanh,
+];
+const TOLERANCE: f32 = 1e-5;
+
+/// Deterministic values in [-scale, scale).
+fn values(seed: u64, n: usize, scale: f32) -> Vec<f32> {
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..n)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            ((s >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * scale
+        })
+        .collect()
+}
+
+/// The SIMD levels this CPU has; fails when `DRIVESIM_REQUIRE_ISA` names one it lacks.
+fn simd_levels() -> Vec<Isa> {
+    let supported: Vec<Isa> = Isa::supported().filter(|i| i.level() != IsaLevel::Scalar).collect();
+    for level in [IsaLevel::Avx2, IsaLevel::Avx512] {
+        if !supported.iter().any(|i| i.level() == level) {
+            eprintln!("skipping {}: not supported by this CPU", level.name());
+        }
+    }
+    if let Ok(required) = std::env::var("DRIVESIM_REQUIRE_ISA") {
+        let level = IsaLevel::from_name(&required).unwrap_or_else(|| panic!("unknown DRIVESIM_REQUIRE_ISA={required}"));
+        assert!(
+            level == IsaLevel::Scalar || supported.iter().any(|i| i.level() == level),
+            "DRIVESIM_REQUIRE_ISA={required} but this CPU lacks it"
+        );
+    }
+    supported
+}
+
+/// max|got - want| / max(|want|_inf, 1e-6).
+fn relative_error(got: &[f32], want: &[f32]) -> f32 {
+    let scale = want.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+    let diff = got.iter().zip(want).fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
+    assert!(got.iter().all(|v| v.is_finite()), "non-finite output");
+    diff / scale
+}
+
+fn halves(v: &[f32]) -> Vec<f16> {
+    v.iter().map(|&x| f16::from_f32(x)).collect()
+}
+
+#[test]
+fn dense_matches_scalar() {
+    let levels = simd_levels();
+    let mut checked = 0;
+    for &rows in &ROWS {
+        for &cols in &COLS {
+            let seed = (rows * 1000 + cols) as u64;
+            let w32 = values(seed, rows * cols, 1.0 / (cols as f32).sqrt());
+            let w16 = halves(&w32);
+            let bias = values(seed + 1, rows, 0.5);
+            for &batch in &BATCHES {
+                let x = values(seed + 2 + batch as u64, batch * cols, 2.0);
+                for data in [MatrixData::F32(&w32), MatrixData::F16(&w16)] {
+                    let w = Matrix { data, rows, cols };
+                    for act in ACTS {
+                        let mut want = vec![0.0; batch * rows];
+                        dense(Isa::SCALAR, w, &bias, act, &x, &mut want);
+                        for &isa in &levels {
+                            let mut got = vec![f32::NAN; batch * rows];
+                            dense(isa, w, &bias, act, &x, &mut got);
+                            let err = relative_error(&got, &want);
+                            assert!(
+                                err <= TOLERANCE,
+                                "{:?} rows {rows} cols {cols} batch {batch} {:?} {act:?}: error {err}",
+                                isa.level(),
+                                matches!(data, MatrixData::F16(_)).then_some("f16").unwrap_or("f32"),
+                            );
+                            checked += 1;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    eprintln!("{checked} SIMD dense cases checked");
+}
+
+#[test]
+fn rnn_step_matches_scalar() {
+    let levels = simd_levels();
+    // (hidden, z, action): tiny, odd, and one that crosses the column panels.
+    for (hd, zd, ad) in [
+        (1, 1, 1),
+        (3, 5, 2),
+        (17, 9, 2),
+        (33, 16, 3),
+        (64, 32, 2),
+        (40, 1000, 2),
+    ] {
+        let cols = hd + zd + ad;
+        let seed = (hd * 7 + zd) as u64;
+        let wvu = values(seed, hd * cols, 1.0 / (cols as f32).sqrt());
+        let a = values(seed + 1, zd * hd, 1.0 / (hd as f32).sqrt());
+        let (wvu16, a16) = (halves(&wvu), halves(&a));
+        let b = values(seed + 2, hd, 0.1);
+        let small_a = values(seed + 3, zd, 0.1);
+        for batch in [1, 2, 5, 16, 17] {
+            let h0 = values(seed + 4, batch * hd, 0.9);
+            let z = values(seed + 5, batch * zd, 1.0);
+            let action = values(seed + 6, batch * ad, 1.0);
+            for half in [false, true] {
+                let (input, output) = if half {
+                    (MatrixData::F16(&wvu16), MatrixData::F16(&a16))
+                } else {
+                    (MatrixData::F32(&wvu), MatrixData::F32(&a))
+                };
+                let rnn = Rnn {
+                    input: Matrix {
+                        data: input,
+                        rows: hd,
+                        cols,
+                    },
+                    input_bias: &b,
+                    output: Matrix {
+                        data: output,
+                        rows: zd,
+                        cols: hd,
+                    },
+                    output_bias: &small_a,
+                };
+                let run = |isa: Isa| {
+                    let mut concat = vec![0.0; batch * cols];
+                    let mut h = h0.clone();
+                    let mut z_next = vec![f32::NAN; batch * zd];
+                    rnn_step(isa, &rnn, &mut concat, &mut h, &z, &action, &mut z_next);
+                    (h, z_next)
+                };
+                let (want_h, want_z) = run(Isa::SCALAR);
+                for &isa in &levels {
+                    let (h, z_next) = run(isa);
+                    let (eh, ez) = (relative_error(&h, &want_h), relative_error(&z_next, &want_z));
+                    assert!(
+                        eh <= TOLERANCE && ez <= TOLERANCE,
+                        "{:?} hd {hd} z {zd} a {ad} batch {batch} f16 {half}: h error {eh}, z error {ez}",
+                        isa.level()
+                    );
+                }
+            }
+        }
+    }
+}
