@@ -12,8 +12,6 @@
 // `apply_avx2`/`apply_avx512` are the entry points for kernels that are not generic over `Simd`;
 // not every kernel uses every helper yet.
 #![allow(dead_code)]
-// The AVX-512 intrinsics are stable since Rust 1.89, above the workspace's rust-version (1.80).
-#![allow(clippy::incompatible_msrv)]
 
 use crate::math::{EXP_POLY, LN2_HI, LN2_LO, TANH_CLAMP, TANH_SERIES, TANH_SERIES_LIMIT};
 use crate::Activation;

@@ -112,12 +112,7 @@ macro_rules! entry {
 }
 
 entry!(conv_avx2, "avx2,fma", __m256);
-entry!(
-    #[allow(clippy::incompatible_msrv)] // AVX-512 target features are stable since Rust 1.89
-    conv_avx512,
-    "avx512f,avx2,fma",
-    __m512
-);
+entry!(conv_avx512, "avx512f,avx2,fma", __m512);
 
 /// One pass over the output: input channels `first..first + len` of a block of output channels.
 #[derive(Clone, Copy)]
