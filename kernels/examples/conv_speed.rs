@@ -1,11 +1,27 @@
 //! Speed of the convolution kernels on the comma.ai model's layers (80x160x3 frames), one image
 //! per call, single-threaded: `cargo run --release -p drivesim-kernels --example conv_speed`.
 //! Set `DRIVESIM_ISA` to cap the level (scalar, avx2, avx512).
+//!
+//! Times are this thread's CPU time (from `/proc/thread-self/schedstat` where it exists, else
+//! wall time), so that other processes sharing the cores do not inflate them.
 
 use drivesim_kernels::{conv, Activation, ConvKind, ConvShape, Isa, Plane};
 use std::time::Instant;
 
+/// Nanoseconds this thread has run on a CPU, or wall time when the kernel does not say.
+/// `DRIVESIM_SPEED_CLOCK=wall` measures wall time (on an idle machine, where the scheduler's
+/// clock may be coarse).
+fn now_ns(start: Instant) -> u64 {
+    let wall = std::env::var("DRIVESIM_SPEED_CLOCK").is_ok_and(|v| v == "wall");
+    (!wall)
+        .then(|| std::fs::read_to_string("/proc/thread-self/schedstat").ok())
+        .flatten()
+        .and_then(|s| s.split_whitespace().next()?.parse().ok())
+        .unwrap_or_else(|| start.elapsed().as_nanos() as u64)
+}
+
 fn main() {
+    let epoch = Instant::now();
     let isa = Isa::best();
     let leaky = Activation::LeakyRelu(0.2);
     let layers = [
@@ -38,31 +54,40 @@ fn main() {
         let input: Vec<f32> = (0..input_plane.len())
             .map(|i| ((i * 7919) % 101) as f32 / 101.0 - 0.5)
             .collect();
-        let weights: Vec<f32> = (0..shape.packed_len())
-            .map(|i| ((i * 104729) % 97) as f32 / 970.0 - 0.05)
-            .collect();
+        // `DRIVESIM_SPEED_ALIGN=64` places the weights on a 64-byte boundary (else where the
+        // allocator puts them).
+        let align = std::env::var("DRIVESIM_SPEED_ALIGN")
+            .ok()
+            .and_then(|v| v.parse::<usize>().ok());
+        let mut store: Vec<f32> = vec![0.0; shape.packed_len() + 16];
+        let skip = align.map_or(0, |a| store.as_ptr().align_offset(a));
+        let weights = &mut store[skip..skip + shape.packed_len()];
+        for (i, w) in weights.iter_mut().enumerate() {
+            *w = ((i * 104729) % 97) as f32 / 970.0 - 0.05;
+        }
+        let weights = &*weights;
         let bias = vec![0.01; oc];
         let mut output = vec![0.0; shape.output.len()];
         let flops = 2.0 * shape.macs() as f64;
-        // Calibrate to ~0.3 s per layer, then take the best of 5 runs.
+        // Calibrate to ~250 ms per measurement (the clock may tick coarsely), then take the best of 3.
         let mut reps = 1;
         loop {
-            let t = Instant::now();
+            let t = now_ns(epoch);
             for _ in 0..reps {
-                conv(isa, &shape, &input, &weights, &bias, act, &mut output);
+                conv(isa, &shape, &input, weights, &bias, act, &mut output);
             }
-            if t.elapsed().as_secs_f64() > 0.05 {
+            if now_ns(epoch) - t > 250_000_000 {
                 break;
             }
             reps *= 2;
         }
         let mut best = f64::INFINITY;
-        for _ in 0..5 {
-            let t = Instant::now();
+        for _ in 0..3 {
+            let t = now_ns(epoch);
             for _ in 0..reps {
-                conv(isa, &shape, &input, &weights, &bias, act, &mut output);
+                conv(isa, &shape, &input, weights, &bias, act, &mut output);
             }
-            best = best.min(t.elapsed().as_secs_f64() / reps as f64);
+            best = best.min((now_ns(epoch) - t) as f64 * 1e-9 / reps as f64);
         }
         let net = (kind == ConvKind::Up) as usize;
         totals[net].0 += best;

@@ -145,6 +145,12 @@ fn every_activation_and_wide_rows() {
         check(&mut rng, &levels, ConvKind::Up, 3, (1, 1), (7, 5), 0, act);
         // Large pre-activations exercise the exp branch and the clamp of tanh.
         check(&mut rng, &levels, ConvKind::Down, 3, (4, 30), (64, 3), 0, act);
+        // Few output channels with input channels a multiple of the lanes take the path that
+        // vectorises over input channels (the generator's last layer is 64 -> 3).
+        check(&mut rng, &levels, ConvKind::Up, 5, (5, 13), (64, 3), 0, act);
+        check(&mut rng, &levels, ConvKind::Up, 5, (3, 7), (32, 4), 1, act);
+        check(&mut rng, &levels, ConvKind::Down, 5, (6, 14), (16, 1), 0, act);
+        check(&mut rng, &levels, ConvKind::Up, 3, (2, 9), (48, 2), 0, act);
     }
 }
 

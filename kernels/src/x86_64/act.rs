@@ -12,8 +12,6 @@
 // `apply_avx2`/`apply_avx512` are the entry points for kernels that are not generic over `Simd`;
 // not every kernel uses every helper yet.
 #![allow(dead_code)]
-// The AVX-512 intrinsics are stable since Rust 1.89, above the workspace's rust-version (1.80).
-#![allow(clippy::incompatible_msrv)]
 
 use crate::math::{EXP_POLY, LN2_HI, LN2_LO, TANH_CLAMP, TANH_SERIES, TANH_SERIES_LIMIT};
 use crate::Activation;
@@ -49,6 +47,8 @@ pub(crate) trait Simd: Copy {
     unsafe fn trunc(self) -> Self;
     /// Per lane `2^n` for integral `n` in the normal exponent range.
     unsafe fn pow2(self) -> Self;
+    /// The sum of the lanes.
+    unsafe fn reduce_add(self) -> f32;
 }
 
 /// Mask of the first `n` of 8 lanes (all bits set in those lanes).
@@ -128,6 +128,12 @@ impl Simd for __m256 {
     unsafe fn pow2(self) -> Self {
         let n = _mm256_add_epi32(_mm256_cvttps_epi32(self), _mm256_set1_epi32(127));
         _mm256_castsi256_ps(_mm256_slli_epi32::<23>(n))
+    }
+    #[inline(always)]
+    unsafe fn reduce_add(self) -> f32 {
+        let x = _mm_add_ps(_mm256_castps256_ps128(self), _mm256_extractf128_ps::<1>(self));
+        let x = _mm_add_ps(x, _mm_movehl_ps(x, x));
+        _mm_cvtss_f32(_mm_add_ss(x, _mm_movehdup_ps(x)))
     }
 }
 
@@ -209,6 +215,10 @@ impl Simd for __m512 {
     unsafe fn pow2(self) -> Self {
         let n = _mm512_add_epi32(_mm512_cvttps_epi32(self), _mm512_set1_epi32(127));
         _mm512_castsi512_ps(_mm512_slli_epi32::<23>(n))
+    }
+    #[inline(always)]
+    unsafe fn reduce_add(self) -> f32 {
+        _mm512_reduce_add_ps(self)
     }
 }
 

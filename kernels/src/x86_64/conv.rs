@@ -10,6 +10,11 @@
 //!   output row; consecutive outputs read consecutive input pixels, and only the taps of that
 //!   phase apply (the inserted zeros are never multiplied).
 //!
+//! Deep layers are computed in *passes* over chunks of input channels, small enough that the
+//! weights of one chunk and one block of output channels stay in the L1 cache while every output
+//! pixel uses them; the partial sums wait in the output buffer between passes, and the last pass
+//! applies the activation.
+//!
 //! Each row is a list of *segments* (an input offset, a weight offset and a length in channels)
 //! and the microkernel computes a tile of `T` pixels of a row times `NV` vectors of output
 //! channels: per segment step it loads `NV` weight vectors, broadcasts one input value per pixel
@@ -20,8 +25,14 @@ use super::act::{self, Simd};
 use crate::{scalar, Activation, ConvKind, ConvShape, IsaLevel};
 use core::arch::x86_64::{__m256, __m512};
 
-/// The most segments one row can have: `k` for `Down`, `ceil(k / 2)^2` for `Up`.
-const MAX_SEGS: usize = 64;
+/// The most segments one row can have: `k * k` for `Down`, `ceil(k / 2)^2` for `Up`.
+const MAX_SEGS: usize = 128;
+/// Bytes of weights one pass over the output may use, so that they stay in the L1 cache.
+const WEIGHT_BUDGET: usize = 24 * 1024;
+/// Layers with at most this many output channels vectorise over input channels instead (see
+/// [`small`]), when their weights fit in `SMALL_WEIGHTS` floats.
+const SMALL_OC: usize = 4;
+const SMALL_WEIGHTS: usize = 8192;
 /// The most output pixels of a tile.
 const MAX_TILE: usize = 12;
 
@@ -66,7 +77,7 @@ pub(crate) fn conv(
     act: Activation,
     output: &mut [f32],
 ) {
-    if shape.kernel.div_ceil(2).pow(2) > MAX_SEGS {
+    if shape.kernel * shape.kernel > MAX_SEGS {
         return scalar::conv(shape, input, weights, bias, act, output);
     }
     match level {
@@ -80,37 +91,41 @@ pub(crate) fn conv(
     }
 }
 
-/// # Safety
-/// The CPU must have AVX2 and FMA, and the buffers must match `shape` (see `crate::conv`).
-#[target_feature(enable = "avx2,fma")]
-unsafe fn conv_avx2(
-    shape: &ConvShape,
-    input: &[f32],
-    weights: &[f32],
-    bias: &[f32],
-    act: Activation,
-    output: &mut [f32],
-) {
-    body::<__m256>(shape, input, weights, bias, act, output)
+/// The generic body compiled for one instruction set.
+macro_rules! entry {
+    ($(#[$attr:meta])* $name:ident, $features:literal, $vector:ty) => {
+        /// # Safety
+        #[doc = concat!("The CPU must have ", $features, ", and the buffers must match `shape` (see `crate::conv`).")]
+        $(#[$attr])*
+        #[target_feature(enable = $features)]
+        unsafe fn $name(
+            shape: &ConvShape,
+            input: &[f32],
+            weights: &[f32],
+            bias: &[f32],
+            act: Activation,
+            output: &mut [f32],
+        ) {
+            body::<$vector>(shape, input, weights, bias, act, output)
+        }
+    };
 }
 
-/// # Safety
-/// The CPU must have AVX-512F, AVX2 and FMA, and the buffers must match `shape`.
-#[target_feature(enable = "avx512f,avx2,fma")]
-#[allow(clippy::incompatible_msrv)] // AVX-512 target features are stable since Rust 1.89
-unsafe fn conv_avx512(
-    shape: &ConvShape,
-    input: &[f32],
-    weights: &[f32],
-    bias: &[f32],
-    act: Activation,
-    output: &mut [f32],
-) {
-    body::<__m512>(shape, input, weights, bias, act, output)
+entry!(conv_avx2, "avx2,fma", __m256);
+entry!(conv_avx512, "avx512f,avx2,fma", __m512);
+
+/// One pass over the output: input channels `first..first + len` of a block of output channels.
+#[derive(Clone, Copy)]
+struct Pass {
+    first: usize,
+    len: usize,
+    /// Starts from the bias (else from the partial sums in the output).
+    start: bool,
+    /// Applies the activation (else stores partial sums).
+    finish: bool,
 }
 
-/// Walks the output channel blocks, and within each the rows, so that the weights of one block
-/// (`k * k * C * NV * LANES` floats) stay in cache while every pixel uses them.
+/// Walks the output channel blocks, and within each the passes over input channel chunks.
 #[inline(always)]
 unsafe fn body<V: Simd>(
     shape: &ConvShape,
@@ -120,7 +135,15 @@ unsafe fn body<V: Simd>(
     act: Activation,
     output: &mut [f32],
 ) {
-    let oc = shape.output.channels;
+    let (c, oc) = (shape.input.channels, shape.output.channels);
+    if oc <= SMALL_OC && c % V::LANES == 0 && oc * shape.kernel * shape.kernel * c <= SMALL_WEIGHTS {
+        return match oc {
+            1 => small::<V, 1>(shape, input, weights, bias, act, output),
+            2 => small::<V, 2>(shape, input, weights, bias, act, output),
+            3 => small::<V, 3>(shape, input, weights, bias, act, output),
+            _ => small::<V, 4>(shape, input, weights, bias, act, output),
+        };
+    }
     let mut first = 0;
     while first < oc {
         let left = oc - first;
@@ -128,13 +151,71 @@ unsafe fn body<V: Simd>(
         // channels, so the second vector's weights exist whenever `left > LANES`.
         if left > V::LANES {
             let block = block::<V, 2>(weights, bias, first, left);
-            for_rows(shape, input, output, &block, act);
+            passes(shape, input, output, &block, act);
             first += 2 * V::LANES;
         } else {
             let block = block::<V, 1>(weights, bias, first, left);
-            for_rows(shape, input, output, &block, act);
+            passes(shape, input, output, &block, act);
             first += V::LANES;
         }
+    }
+}
+
+#[inline(always)]
+unsafe fn passes<V: Simd, const NV: usize>(
+    shape: &ConvShape,
+    input: &[f32],
+    output: &mut [f32],
+    block: &Block<V, NV>,
+    act: Activation,
+) {
+    let c = shape.input.channels;
+    let per_channel = shape.kernel * shape.kernel * NV * V::LANES * core::mem::size_of::<f32>();
+    let chunk = (WEIGHT_BUDGET / per_channel).max(1);
+    // Equal chunks: as few passes as the budget allows.
+    let passes = c.div_ceil(chunk);
+    let mut first = 0;
+    for i in 0..passes {
+        let end = c * (i + 1) / passes;
+        let pass = Pass {
+            first,
+            len: end - first,
+            start: i == 0,
+            finish: i + 1 == passes,
+        };
+        for_rows(
+            shape,
+            input,
+            output,
+            pass,
+            &Blocked {
+                block,
+                pass,
+                ocs: shape.oc_stride(),
+                act,
+            },
+        );
+        first = end;
+    }
+}
+
+#[inline(always)]
+unsafe fn load_n<V: Simd>(p: *const f32, n: usize) -> V {
+    if n >= V::LANES {
+        V::load(p)
+    } else if n > 0 {
+        V::load_partial(p, n)
+    } else {
+        V::splat(0.0)
+    }
+}
+
+#[inline(always)]
+unsafe fn store_n<V: Simd>(v: V, p: *mut f32, n: usize) {
+    if n >= V::LANES {
+        v.store(p)
+    } else if n > 0 {
+        v.store_partial(p, n)
     }
 }
 
@@ -142,15 +223,10 @@ unsafe fn body<V: Simd>(
 unsafe fn block<V: Simd, const NV: usize>(weights: &[f32], bias: &[f32], first: usize, left: usize) -> Block<V, NV> {
     let mut b = [V::splat(0.0); NV];
     for (v, b) in b.iter_mut().enumerate() {
-        let n = left.saturating_sub(v * V::LANES);
-        let p = bias.as_ptr().add(first + v * V::LANES);
-        *b = if n >= V::LANES {
-            V::load(p)
-        } else if n > 0 {
-            V::load_partial(p, n)
-        } else {
-            V::splat(0.0)
-        };
+        *b = load_n(
+            bias.as_ptr().add(first + v * V::LANES),
+            left.saturating_sub(v * V::LANES),
+        );
     }
     Block {
         weights: weights.as_ptr().add(first),
@@ -160,86 +236,95 @@ unsafe fn block<V: Simd, const NV: usize>(weights: &[f32], bias: &[f32], first: 
     }
 }
 
-/// Runs `block` over every row of the output (see the module comment). No closures here: they
-/// would not inherit the caller's target features.
+/// Runs `f` over every row of the output for the input channels of `pass` (see the module
+/// comment).
 #[inline(always)]
-unsafe fn for_rows<V: Simd, const NV: usize>(
-    shape: &ConvShape,
-    input: &[f32],
-    output: &mut [f32],
-    block: &Block<V, NV>,
-    act: Activation,
-) {
+unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: &mut [f32], pass: Pass, f: &impl RowKernel) {
     let (k, ip, op) = (shape.kernel, shape.input, shape.output);
     let pad = k / 2;
     let (c, ocs) = (ip.channels, shape.oc_stride());
     let in0 = input.as_ptr().add(ip.index(0, 0));
     let irs = ip.row_stride() as isize;
     let mut segs = [Seg::default(); MAX_SEGS];
+    // Tap (`ky`, `kx`) of input row `iy` for pixel steps `dx` from the row's input base.
+    let seg = |ky: usize, iy: isize, kx: usize, dx: isize, len: usize| Seg {
+        input: iy * irs + dx * c as isize + pass.first as isize,
+        weight: ((ky * k + kx) * c + pass.first) * ocs,
+        len,
+    };
     for oy in 0..op.height {
         let rows = (0..k).filter_map(|ky| Some((ky, shape.kind.source(oy, ky, pad, ip.height)? as isize)));
-        match shape.kind {
-            ConvKind::Down => {
-                let mut n = 0;
-                for (ky, iy) in rows {
-                    segs[n] = Seg {
-                        input: iy * irs - (pad * c) as isize,
-                        weight: ky * k * c * ocs,
-                        len: k * c,
-                    };
-                    n += 1;
-                }
-                run_row(
-                    &Row {
-                        segs: &segs[..n],
-                        input: in0,
-                        in_step: 2 * c,
-                        output: output.as_mut_ptr().add(op.index(oy, 0)),
-                        out_step: op.channels,
-                        count: op.width,
-                    },
-                    block,
-                    ocs,
-                    act,
-                );
-            }
-            ConvKind::Up => {
-                for px in 0..2 {
-                    let mut n = 0;
-                    for (ky, iy) in rows.clone() {
-                        // Output 2j + px reads input j + (px + pad - kx) / 2 for even differences.
-                        for kx in (0..k).filter(|kx| kx % 2 == (px + pad) % 2) {
-                            let dx = (px + pad) as isize - kx as isize;
-                            segs[n] = Seg {
-                                input: iy * irs + dx / 2 * c as isize,
-                                weight: (ky * k + kx) * c * ocs,
-                                len: c,
-                            };
+        // Stride-2 outputs of `Down`, or the two stride phases of `Up`.
+        let (phases, in_step, out_step, count) = match shape.kind {
+            ConvKind::Down => (1, 2 * c, op.channels, op.width),
+            ConvKind::Up => (2, c, 2 * op.channels, ip.width),
+        };
+        for px in 0..phases {
+            let mut n = 0;
+            for (ky, iy) in rows.clone() {
+                match shape.kind {
+                    // All channels: the taps of one `ky` are one contiguous run.
+                    ConvKind::Down if pass.len == c => {
+                        segs[n] = seg(ky, iy, 0, -(pad as isize), k * c);
+                        n += 1;
+                    }
+                    ConvKind::Down => {
+                        for kx in 0..k {
+                            segs[n] = seg(ky, iy, kx, kx as isize - pad as isize, pass.len);
                             n += 1;
                         }
                     }
-                    run_row(
-                        &Row {
-                            segs: &segs[..n],
-                            input: in0,
-                            in_step: c,
-                            output: output.as_mut_ptr().add(op.index(oy, px)),
-                            out_step: 2 * op.channels,
-                            count: ip.width,
-                        },
-                        block,
-                        ocs,
-                        act,
-                    );
+                    // Output 2j + px reads input j + (px + pad - kx) / 2 for even differences.
+                    ConvKind::Up => {
+                        for kx in (0..k).filter(|kx| kx % 2 == (px + pad) % 2) {
+                            segs[n] = seg(ky, iy, kx, ((px + pad) as isize - kx as isize) / 2, pass.len);
+                            n += 1;
+                        }
+                    }
                 }
             }
+            f.run(&Row {
+                segs: &segs[..n],
+                input: in0,
+                in_step,
+                output: output.as_mut_ptr().add(op.index(oy, px)),
+                out_step,
+                count,
+            });
         }
+    }
+}
+
+/// What computes the output of a row (a trait, not a closure: closures would not inherit the
+/// caller's target features).
+trait RowKernel {
+    unsafe fn run(&self, row: &Row<'_>);
+}
+
+/// One pass of a block of output channels (the path of every layer but the narrowest).
+struct Blocked<'a, V, const NV: usize> {
+    block: &'a Block<V, NV>,
+    pass: Pass,
+    ocs: usize,
+    act: Activation,
+}
+
+impl<V: Simd, const NV: usize> RowKernel for Blocked<'_, V, NV> {
+    #[inline(always)]
+    unsafe fn run(&self, row: &Row<'_>) {
+        run_row(row, self.block, self.pass, self.ocs, self.act)
     }
 }
 
 /// Cuts a row into tiles of nearly equal size, at most `MAX_TILE / NV` pixels each.
 #[inline(always)]
-unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Block<V, NV>, ocs: usize, act: Activation) {
+unsafe fn run_row<V: Simd, const NV: usize>(
+    row: &Row<'_>,
+    block: &Block<V, NV>,
+    pass: Pass,
+    ocs: usize,
+    act: Activation,
+) {
     let max = MAX_TILE / NV;
     let tiles = row.count.div_ceil(max);
     let mut start = 0;
@@ -248,7 +333,7 @@ unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Block<V, NV>,
         macro_rules! tile_of {
             ($($t:literal)+) => {
                 match end - start {
-                    $($t => tile::<V, $t, NV>(row, start, block, ocs, act),)+
+                    $($t => tile::<V, $t, NV>(row, start, block, pass, ocs, act),)+
                     _ => unreachable!(),
                 }
             };
@@ -268,10 +353,20 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
     row: &Row<'_>,
     first: usize,
     block: &Block<V, NV>,
+    pass: Pass,
     ocs: usize,
     act: Activation,
 ) {
+    let out = row.output.add(first * row.out_step + block.first);
     let mut acc = [block.bias; T];
+    if !pass.start {
+        for (t, acc) in acc.iter_mut().enumerate() {
+            for (v, a) in acc.iter_mut().enumerate() {
+                let n = block.valid.saturating_sub(v * V::LANES);
+                *a = load_n(out.add(t * row.out_step + v * V::LANES), n);
+            }
+        }
+    }
     let input = row.input.add(first * row.in_step);
     let step = row.in_step;
     for seg in row.segs {
@@ -292,16 +387,115 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
             w = w.add(ocs);
         }
     }
-    let out = row.output.add(first * row.out_step + block.first);
     for (t, acc) in acc.iter().enumerate() {
         for (v, &a) in acc.iter().enumerate() {
-            let p = out.add(t * row.out_step + v * V::LANES);
-            let y = act::apply(act, a);
+            let y = if pass.finish { act::apply(act, a) } else { a };
             let n = block.valid.saturating_sub(v * V::LANES);
-            if n >= V::LANES {
-                y.store(p);
-            } else if n > 0 {
-                y.store_partial(p, n);
+            store_n(y, out.add(t * row.out_step + v * V::LANES), n);
+        }
+    }
+}
+
+/// Layers with very few output channels (the generator's last, 3 channels): vectors over output
+/// channels would be mostly padding, so each output channel of each pixel gets its own
+/// accumulator vector over input channels, summed across lanes at the end. The weights are first
+/// transposed on the stack to `[oc][ky][kx][ic]` so that input channels are contiguous.
+#[inline(always)]
+unsafe fn small<V: Simd, const OCN: usize>(
+    shape: &ConvShape,
+    input: &[f32],
+    weights: &[f32],
+    bias: &[f32],
+    act: Activation,
+    output: &mut [f32],
+) {
+    let (ocs, rows) = (shape.oc_stride(), shape.kernel * shape.kernel * shape.input.channels);
+    let mut wt = [0.0f32; SMALL_WEIGHTS];
+    for (r, w) in weights.chunks_exact(ocs).enumerate() {
+        for (o, &w) in w[..OCN].iter().enumerate() {
+            wt[o * rows + r] = w;
+        }
+    }
+    let mut b = [0.0; OCN];
+    b.copy_from_slice(bias);
+    let pass = Pass {
+        first: 0,
+        len: shape.input.channels,
+        start: true,
+        finish: true,
+    };
+    let f = Small::<V, OCN> {
+        weights: wt.as_ptr(),
+        rows,
+        bias: b,
+        ocs,
+        act,
+        lanes: core::marker::PhantomData,
+    };
+    for_rows(shape, input, output, pass, &f);
+}
+
+struct Small<V, const OCN: usize> {
+    /// `[oc][row]` with `rows` rows, a row being one (tap, input channel).
+    weights: *const f32,
+    rows: usize,
+    bias: [f32; OCN],
+    ocs: usize,
+    act: Activation,
+    lanes: core::marker::PhantomData<V>,
+}
+
+impl<V: Simd, const OCN: usize> RowKernel for Small<V, OCN> {
+    #[inline(always)]
+    unsafe fn run(&self, row: &Row<'_>) {
+        // As many pixels as keep 12 accumulators busy; single pixels for the rest.
+        let max = MAX_TILE / OCN;
+        let whole = row.count / max * max;
+        let mut p = 0;
+        while p < whole {
+            macro_rules! tile_of {
+                ($($n:literal)+) => {
+                    match max {
+                        $($n => self.tile::<$n>(row, p),)+
+                        _ => unreachable!(),
+                    }
+                };
+            }
+            tile_of!(3 4 6 12);
+            p += max;
+        }
+        for p in whole..row.count {
+            self.tile::<1>(row, p);
+        }
+    }
+}
+
+impl<V: Simd, const OCN: usize> Small<V, OCN> {
+    #[inline(always)]
+    unsafe fn tile<const T: usize>(&self, row: &Row<'_>, first: usize) {
+        let mut acc = [[V::splat(0.0); OCN]; T];
+        let input = row.input.add(first * row.in_step);
+        for seg in row.segs {
+            let x = input.offset(seg.input);
+            let w = self.weights.add(seg.weight / self.ocs);
+            // `seg.len` is a multiple of the lanes: input channels are.
+            for i in (0..seg.len).step_by(V::LANES) {
+                let mut wv = [V::splat(0.0); OCN];
+                for (o, wv) in wv.iter_mut().enumerate() {
+                    *wv = V::load(w.add(o * self.rows + i));
+                }
+                for (t, acc) in acc.iter_mut().enumerate() {
+                    let xv = V::load(x.add(t * row.in_step + i));
+                    for (a, &wv) in acc.iter_mut().zip(&wv) {
+                        *a = xv.mul_add(wv, *a);
+                    }
+                }
+            }
+        }
+        for (t, acc) in acc.iter().enumerate() {
+            let out = row.output.add((first + t) * row.out_step);
+            for (o, a) in acc.iter().enumerate() {
+                *out.add(o) = self.act.apply(a.reduce_add() + self.bias[o]);
             }
         }
     }

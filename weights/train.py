@@ -1,0 +1,375 @@
+"""Train the drivesim networks as in the paper, and evaluate a weight file.
+
+  weights/tool train fit --data train.safetensors.gz --out default.safetensors [--device cuda]
+  weights/tool train eval --weights default.safetensors --data eval.safetensors.gz --figures figures/
+
+fit: (1) VAE-GAN (Larsen et al.): encoder, generator and a discriminator. The encoder
+minimises the KL prior plus the reconstruction error, measured on the discriminator's 3rd
+conv features and in pixels; the generator minimises the same reconstruction error and
+fools the discriminator with both reconstructions and prior samples; the GAN gradient never
+reaches the encoder. (2) The transition RNN on encoded 15-frame sequences: 5 frames teacher
+forced, then 10 with its own output fed back, gradient stopped. Adam throughout. The action
+normalisation used in training is folded into U and b, so the exported model takes raw
+(speed, steering). Writes the f16 drivesim file and a JSON log beside it.
+
+eval: reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
+a contact sheet of a 100-step rollout, all from frames the model never saw.
+"""
+
+import argparse
+import contextlib
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from torch import nn
+from torch.nn import functional as F
+
+import episodes
+from model import LEAK, Config, DriveSim, _conv, load_drivesim, save_drivesim
+
+SEQ, TEACHER = 15, 5  # transition sequences: 15 frames, the first 5 from the encoder
+STEER = 0.6  # constant steering of the steering-response test, well inside the recorded range
+
+
+class Discriminator(nn.Module):
+    """Mirror of the encoder: 4 strided convs (BN on all but the first) and a logit.
+    Also returns the 3rd conv's output before BN, the features of the reconstruction loss."""
+
+    def __init__(self, cfg):
+        super().__init__()
+        chans = [cfg.channels] + [cfg.base_channels * 2**i for i in range(cfg.layers)]
+        self.convs = nn.ModuleList(_conv(cfg, a, b) for a, b in zip(chans, chans[1:]))
+        self.bns = nn.ModuleList(nn.BatchNorm2d(c) if i else nn.Identity() for i, c in enumerate(chans[1:]))
+        self.out = nn.Linear(cfg.flat, 1)
+
+    def forward(self, x):
+        for i, (conv, bn) in enumerate(zip(self.convs, self.bns)):
+            x = conv(x)
+            if i == 2:
+                features = x
+            x = F.leaky_relu(bn(x), LEAK)
+        return self.out(x.flatten(1)).squeeze(1), features
+
+
+@contextlib.contextmanager
+def frozen_bn_stats(module):
+    """Batch-norm layers normalise with batch statistics but leave their running averages
+    alone. Prior samples go through the generator this way, so the running statistics
+    exported for inference describe encoder codes only."""
+    bns = [m for m in module.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    saved = [m.momentum for m in bns]
+    for m in bns:
+        m.momentum = 0.0
+    try:
+        yield
+    finally:
+        for m, mom in zip(bns, saved):
+            m.momentum = mom
+
+
+def to_input(frames_u8):
+    """uint8 NHWC -> float NCHW in [-1, 1]."""
+    return frames_u8.permute(0, 3, 1, 2).float() / 127.5 - 1.0
+
+
+def to_image(x):
+    """float NCHW in [-1, 1] -> uint8 NHWC numpy."""
+    return ((x.clamp(-1, 1) + 1) * 127.5).round().byte().permute(0, 2, 3, 1).cpu().numpy()
+
+
+def kl_prior(mu, logsigma):
+    """KL(N(mu, sigma) || N(0, 1)), mean over batch and code dimensions."""
+    return 0.5 * (mu.square() + torch.exp(2 * logsigma) - 1 - 2 * logsigma).mean()
+
+
+def bce(logits, real):
+    return F.binary_cross_entropy_with_logits(logits, torch.full_like(logits, float(real)))
+
+
+def train_vae_gan(model, frames, args, log):
+    dev = frames.device
+    enc, gen = model.encoder, model.generator
+    dis = Discriminator(model.cfg).to(dev)
+    adam = dict(lr=args.lr, betas=(0.5, 0.999))
+    opt_e, opt_g, opt_d = (torch.optim.Adam(m.parameters(), **adam) for m in (enc, gen, dis))
+    amp = torch.autocast("cuda", torch.bfloat16) if dev.type == "cuda" else contextlib.nullcontext()
+    gen_rng = torch.Generator(dev).manual_seed(args.seed)
+    model.train()
+    start, deadline = time.time(), time.time() + 60 * args.max_minutes
+    for step in range(1, args.vae_steps + 1):
+        idx = torch.randint(len(frames), (args.batch,), device=dev, generator=gen_rng)
+        x = to_input(frames[idx])
+        with amp:
+            mu, logsigma = enc(x)
+            xr = gen(mu + torch.randn_like(mu) * logsigma.exp())  # reparametrisation trick
+            with frozen_bn_stats(gen):
+                xp = gen(torch.randn_like(mu))
+
+            # Discriminator: real frames against reconstructions and prior samples.
+            d_real, _ = dis(x)
+            d_fake, _ = dis(torch.cat([xr, xp]).detach())
+            loss_d = bce(d_real, 1) + bce(d_fake, 0)
+        opt_d.zero_grad(set_to_none=True)
+        loss_d.backward()
+        opt_d.step()
+
+        # Encoder and generator; the discriminator is a fixed cost function here.
+        with amp:
+            with torch.no_grad():
+                _, f_real = dis(x)
+            d_gen, f_gen = dis(torch.cat([xr, xp]))
+            f_rec = f_gen[: len(x)]
+            # Feature error relative to the features' spread: its scale stays fixed while
+            # the discriminator's features grow or shrink.
+            llike = (f_rec.float() - f_real.float()).square().mean() / f_real.float().var().clamp_min(1e-6)
+            pixel = (xr.float() - x).abs().mean()
+            kl = kl_prior(mu.float(), logsigma.float())
+            gan = bce(d_gen.float(), 1)
+        recon = args.w_feature * llike + args.w_pixel * pixel
+        loss_e = args.w_kl * kl + recon
+        loss_g = recon + args.w_gan * gan  # only the generator sees the GAN term
+        grads_e = torch.autograd.grad(loss_e, list(enc.parameters()), retain_graph=True)
+        grads_g = torch.autograd.grad(loss_g, list(gen.parameters()))
+        for params, grads, opt in ((enc.parameters(), grads_e, opt_e), (gen.parameters(), grads_g, opt_g)):
+            for p, g in zip(params, grads):
+                p.grad = g
+            opt.step()
+
+        if step % args.log_every == 0 or step == args.vae_steps:
+            entry = dict(phase="vae_gan", step=step, seconds=round(time.time() - start, 1),
+                         d=loss_d.item(), gan=gan.item(), feature=llike.item(), pixel_l1=pixel.item(),
+                         kl=kl.item(), psnr_batch=psnr(xr.detach().float(), x))
+            log.append(entry)
+            print(json.dumps(entry), flush=True)
+        if time.time() > deadline:
+            log.append(dict(phase="vae_gan", stopped_early_at=step, reason="--max-minutes"))
+            print(f"VAE-GAN stopped at step {step}: --max-minutes reached", flush=True)
+            break
+    model.eval()
+
+
+def psnr(x, y):
+    """Mean PSNR in dB of frames in [-1, 1], on the 0-255 scale."""
+    mse = ((x.clamp(-1, 1) - y) * 127.5).square().flatten(1).mean(1)
+    return float((10 * torch.log10(255.0**2 / mse.clamp_min(1e-10))).mean())
+
+
+@torch.no_grad()
+def encode(model, frames, batch=512):
+    return torch.cat([model.encoder(to_input(frames[i:i + batch]))[0] for i in range(0, len(frames), batch)])
+
+
+def windows(data, length):
+    """Start indices of every run of `length` frames inside one episode."""
+    return np.concatenate([np.arange(s, e - length + 1) for s, e in data.bounds() if e - s >= length])
+
+
+def predict(transition, z, c, teacher):
+    """Run the transition over z [B,T,z] and c [B,T-1,a]: the first `teacher` inputs are the
+    true codes, later ones the model's previous output, detached. Returns codes 1..T-1."""
+    h = z.new_zeros(len(z), transition.W.shape[0])
+    out = []
+    for t in range(z.shape[1] - 1):
+        if t < teacher:
+            zin = z[:, t]
+        zin, h = transition(zin, h, c[:, t])
+        out.append(zin)
+        zin = zin.detach()  # no gradient through fed-back outputs
+    return torch.stack(out, 1)
+
+
+def train_transition(model, codes, actions, starts, args, log):
+    dev = codes.device
+    mean, std = actions.mean(0), actions.std(0).clamp_min(1e-6)
+    norm = (actions - mean) / std
+    tr = model.transition
+    opt = torch.optim.Adam(tr.parameters(), lr=args.transition_lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.transition_steps)
+    rng = np.random.default_rng(args.seed)
+    offsets = torch.arange(SEQ, device=dev)
+    start = time.time()
+    for step in range(1, args.transition_steps + 1):
+        idx = torch.as_tensor(rng.choice(starts, args.transition_batch), device=dev)[:, None] + offsets
+        z, c = codes[idx], norm[idx[:, :-1]]
+        loss = F.mse_loss(predict(tr, z, c, TEACHER), z[:, 1:])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(tr.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        if step % args.log_every == 0 or step == args.transition_steps:
+            entry = dict(phase="transition", step=step, seconds=round(time.time() - start, 1), mse=loss.item())
+            log.append(entry)
+            print(json.dumps(entry), flush=True)
+    # U c_norm + b = (U / std) c + (b - U mean / std): the exported model takes raw actions.
+    with torch.no_grad():
+        tr.U /= std
+        tr.b -= tr.U @ mean
+    return dict(action_mean=mean.tolist(), action_std=std.tolist())
+
+
+def fit(args):
+    torch.manual_seed(args.seed)
+    np.random.seed(args.seed)
+    dev = torch.device(args.device)
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
+    data = episodes.read(args.data)
+    cfg = Config(height=data.frames.shape[1], width=data.frames.shape[2], channels=3,
+                 base_channels=args.base_channels, z_dim=args.z_dim, hidden_dim=args.hidden_dim, action_dim=2)
+    frames = torch.from_numpy(data.frames).to(dev)
+    print(f"{len(data)} episodes, {len(frames)} frames, config {cfg}", flush=True)
+    model = DriveSim(cfg).to(dev)
+    log = [dict(args={k: str(v) for k, v in vars(args).items()}, config=json.loads(cfg.to_json()),
+                episodes=len(data), frames=len(frames))]
+    t0 = time.time()
+    train_vae_gan(model, frames, args, log)
+    t1 = time.time()
+    codes = encode(model, frames)
+    actions = torch.from_numpy(data.actions).to(dev)
+    norm = train_transition(model, codes, actions, windows(data, SEQ), args, log)
+    t2 = time.time()
+    log.append(dict(vae_gan_seconds=round(t1 - t0, 1), transition_seconds=round(t2 - t1, 1), **norm))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_drivesim(model.cpu(), cfg, out, "f16")
+    out.with_suffix(".log.json").write_text(json.dumps(log, indent=1))
+    print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB) in {t2 - t0:.0f} s", flush=True)
+
+
+# ---------------------------------------------------------------- evaluation
+
+def sheet(rows, gap=2):
+    """Grid of uint8 HWC frames (a list of rows of frames) on a white background."""
+    h, w, _ = rows[0][0].shape
+    cols = max(len(r) for r in rows)
+    out = np.full((len(rows) * (h + gap) - gap, cols * (w + gap) - gap, 3), 255, np.uint8)
+    for i, row in enumerate(rows):
+        for j, f in enumerate(row):
+            out[i * (h + gap):i * (h + gap) + h, j * (w + gap):j * (w + gap) + w] = f
+    return Image.fromarray(out)
+
+
+@torch.no_grad()
+def rollout(model, seed_codes, actions):
+    """Codes of the frames after the seeds: seed_codes [S,z], actions [S-1+T,2] -> [T,z].
+    Batched twin of DriveSim.rollout that starts from codes."""
+    z = torch.cat([seed_codes, seed_codes.new_zeros(len(actions) + 1 - len(seed_codes), seed_codes.shape[1])])
+    return predict(model.transition, z[None], actions[None], len(seed_codes))[0, len(seed_codes) - 1:]
+
+
+@torch.no_grad()
+def evaluate(args):
+    model, cfg = load_drivesim(args.weights)
+    data = episodes.read(args.data)
+    figs = Path(args.figures)
+    figs.mkdir(parents=True, exist_ok=True)
+    frames = torch.from_numpy(data.frames)
+    actions = torch.from_numpy(data.actions)
+    decode = lambda z: to_image(model.generator(z))  # noqa: E731
+    result = dict(weights=str(args.weights), data=str(args.data), episodes=len(data), frames=len(frames))
+
+    # Reconstruction: encoder mean -> generator.
+    codes = encode(model, frames, 256)
+    recon = torch.cat([model.generator(codes[i:i + 256]) for i in range(0, len(codes), 256)])
+    result["reconstruction_psnr_db"] = psnr(recon, to_input(frames))
+    pick = np.linspace(0, len(frames) - 1, 8).astype(int)
+    sheet([list(data.frames[pick]), list(to_image(recon[pick]))]).save(figs / "reconstruction.png")
+
+    # Latent prediction: 5 true codes, then 10 steps fed back, from windows 5 frames apart.
+    starts = windows(data, SEQ)[::5]
+    idx = torch.as_tensor(starts)[:, None] + torch.arange(SEQ)
+    z, c = codes[idx], actions[idx[:, :-1]]
+    pred = predict(model.transition, z, c, TEACHER)  # pred[:, t] is the code of frame t+1
+    first, last = TEACHER - 1, SEQ - 2
+    mse = lambda a, b: float((a - b).square().mean())  # noqa: E731
+    result["latent"] = dict(
+        windows=len(starts),
+        mse_1_step=mse(pred[:, first], z[:, first + 1]),
+        mse_10_step=mse(pred[:, last], z[:, last + 1]),
+        copy_last_1_step=mse(z[:, first], z[:, first + 1]),  # baseline: nothing moves
+        copy_last_10_step=mse(z[:, first], z[:, last + 1]),
+        code_variance=float(codes.var(0).mean()),  # baseline: predict the mean code
+    )
+
+    # Steering response: same seed frames, constant actions, 30 steps.
+    s0, _ = data.bounds()[0]
+    seed_codes = codes[s0:s0 + TEACHER]
+    speed = float(actions[s0:s0 + 30, 0].mean())
+    steps = 30
+
+    def constant(steer):
+        return rollout(model, seed_codes, torch.tensor([[speed, steer]]).repeat(TEACHER - 1 + steps, 1))
+
+    left, right, left_again = constant(-STEER), constant(STEER), constant(-STEER)
+    img = {k: decode(v).astype(np.float32) for k, v in (("l", left), ("r", right), ("l2", left_again))}
+    result["steering"] = dict(
+        speed=speed, steps=steps, steering=[-STEER, STEER],
+        left_vs_right_pixel_mad=float(np.abs(img["l"] - img["r"]).mean()),
+        left_vs_right_latent_mse=mse(left, right),
+        identical_actions_pixel_mad=float(np.abs(img["l"] - img["l2"]).mean()),
+        identical_actions_latent_mse=mse(left, left_again),
+    )
+    every = list(range(2, steps, 3))
+    sheet([list(img["l"][every].astype(np.uint8)), list(img["r"][every].astype(np.uint8))]).save(figs / "steering.png")
+
+    # Contact sheet: 5 seed frames, then every 10th frame of a 100-step rollout driven by
+    # the recorded actions; the row below shows the recorded frames at the same steps.
+    n = 100
+    if data.bounds()[0][1] - s0 >= TEACHER + n:
+        pred = rollout(model, seed_codes, actions[s0:s0 + TEACHER - 1 + n])
+        shown = list(range(9, n, 10))
+        top = list(data.frames[s0:s0 + TEACHER]) + list(decode(pred[shown]))
+        bottom = list(data.frames[s0:s0 + TEACHER]) + list(data.frames[[s0 + TEACHER + i for i in shown]])
+        sheet([top, bottom]).save(figs / "contact_sheet.png")
+
+    if args.seed_clip:
+        clip = episodes.Episodes(data.frames[s0:s0 + 8].copy(), data.actions[s0:s0 + 8].copy(),
+                                 np.zeros(1, dtype=np.int64))
+        episodes.write(args.seed_clip, clip, {"source": f"first 8 frames of {args.data}"})
+    (figs / "eval.json").write_text(json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1))
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="mode", required=True)
+    f = sub.add_parser("fit", help="train a model from an episodes file")
+    f.add_argument("--data", required=True, help="training episodes file")
+    f.add_argument("--out", required=True, help="drivesim weight file to write (f16)")
+    f.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--base-channels", type=int, default=32)
+    f.add_argument("--z-dim", type=int, default=128)
+    f.add_argument("--hidden-dim", type=int, default=256)
+    f.add_argument("--vae-steps", type=int, default=14000)
+    f.add_argument("--batch", type=int, default=64)
+    f.add_argument("--lr", type=float, default=2e-4)
+    f.add_argument("--w-pixel", type=float, default=1.0, help="weight of the pixel L1 term")
+    f.add_argument("--w-feature", type=float, default=0.1, help="weight of the discriminator-feature term")
+    f.add_argument("--w-kl", type=float, default=1e-3, help="weight of the KL prior")
+    f.add_argument("--w-gan", type=float, default=0.01, help="weight of the generator's GAN term")
+    f.add_argument("--max-minutes", type=float, default=math.inf, help="stop the VAE-GAN early after this")
+    f.add_argument("--transition-steps", type=int, default=8000)
+    f.add_argument("--transition-batch", type=int, default=256)
+    f.add_argument("--transition-lr", type=float, default=1e-3)
+    f.add_argument("--log-every", type=int, default=1000)
+    e = sub.add_parser("eval", help="evaluate a weight file on held-out episodes")
+    e.add_argument("--weights", required=True)
+    e.add_argument("--data", required=True, help="held-out episodes file")
+    e.add_argument("--figures", required=True, help="folder for the PNGs and eval.json")
+    e.add_argument("--seed-clip", help="also write the first 8 frames of the first episode here")
+    args = p.parse_args(argv)
+    try:
+        fit(args) if args.mode == "fit" else evaluate(args)
+    except episodes.EpisodesError as err:
+        sys.exit(f"train: {err}")
+
+
+if __name__ == "__main__":
+    main()
