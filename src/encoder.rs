@@ -1,12 +1,13 @@
 //! The encoder: a frame to the VAE's mean and log-sigma.
 
 use crate::layers::{ConvLayer, DenseLayer, DenseWeights};
+use crate::pool::Exec;
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::{Config, Result};
 use alloc::format;
 use alloc::vec::Vec;
 use drivesim_kernels::pack::permute_cols_chw_to_hwc;
-use drivesim_kernels::{Activation, ConvKind, ConvShape, Isa, Plane};
+use drivesim_kernels::{Activation, ConvKind, ConvShape, Plane};
 
 /// `LeakyReLU(0.2)` after every encoder convolution.
 const LEAKY_SLOPE: f32 = 0.2;
@@ -74,7 +75,7 @@ impl Encoder {
     /// Encodes `frames` (whole HWC frames, at most the planned batch, already validated).
     pub fn forward(
         &self,
-        isa: Isa,
+        exec: Exec<'_>,
         buf: &mut EncoderBuffers,
         frames: &[f32],
         mean: &mut [f32],
@@ -87,13 +88,13 @@ impl Encoder {
             for (i, conv) in self.convs.iter().enumerate() {
                 let (done, rest) = buf.planes.split_at_mut(i + 1);
                 let output = rest.first_mut().map_or(&mut *flat, |next| next.as_mut_slice());
-                conv.run(isa, &done[i], output);
+                conv.run(exec, &done[i], output);
             }
         }
         let flat = &buf.flat[..frames.len() / frame_len * flat_len];
-        self.mean.run(isa, flat, mean);
+        self.mean.run(exec, flat, mean);
         if let Some(logsigma) = logsigma {
-            self.logsigma.run(isa, flat, logsigma);
+            self.logsigma.run(exec, flat, logsigma);
         }
     }
 }

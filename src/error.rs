@@ -60,6 +60,9 @@ pub enum Error {
     /// The weight file could not be read.
     #[cfg(feature = "std")]
     Io { path: String, source: std::io::Error },
+    /// The operating system would not start the requested worker threads.
+    #[cfg(feature = "std")]
+    Threads { requested: usize, source: std::io::Error },
 }
 
 /// `Result` with [`Error`].
@@ -110,6 +113,8 @@ impl fmt::Display for Error {
             }
             #[cfg(feature = "std")]
             Error::Io { path, source } => write!(f, "cannot read `{path}`: {source}"),
+            #[cfg(feature = "std")]
+            Error::Threads { requested, source } => write!(f, "cannot start {requested} threads: {source}"),
         }
     }
 }
@@ -118,7 +123,7 @@ impl core::error::Error for Error {
     fn source(&self) -> Option<&(dyn core::error::Error + 'static)> {
         match self {
             #[cfg(feature = "std")]
-            Error::Io { source, .. } => Some(source),
+            Error::Io { source, .. } | Error::Threads { source, .. } => Some(source),
             _ => None,
         }
     }

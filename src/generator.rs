@@ -1,12 +1,13 @@
 //! The generator: a latent code to a frame.
 
 use crate::layers::{read_batch_norm, ConvLayer, DenseLayer, DenseWeights};
+use crate::pool::Exec;
 use crate::weights::{Init, TensorSource};
 use crate::{Config, Result};
 use alloc::format;
 use alloc::vec::Vec;
 use drivesim_kernels::pack::permute_rows_chw_to_hwc;
-use drivesim_kernels::{Activation, ConvKind, ConvShape, Isa, Plane};
+use drivesim_kernels::{Activation, ConvKind, ConvShape, Plane};
 
 pub(crate) struct Generator {
     /// `fc` with `bn0` folded in and ReLU fused; rows permuted to HWC order.
@@ -70,16 +71,16 @@ impl Generator {
     }
 
     /// Generates one frame per code of `z` (at most the planned batch, already validated).
-    pub fn forward(&self, isa: Isa, buf: &mut GeneratorBuffers, z: &[f32], frames: &mut [f32]) {
+    pub fn forward(&self, exec: Exec<'_>, buf: &mut GeneratorBuffers, z: &[f32], frames: &mut [f32]) {
         let flat = &mut buf.flat[..z.len() / self.fc.cols * self.fc.rows];
-        self.fc.run(isa, z, flat);
+        self.fc.run(exec, z, flat);
         let frame_len = self.deconvs.last().map_or(0, |d| d.shape.output.len());
         for (features, frame) in flat.chunks_exact(self.fc.rows).zip(frames.chunks_exact_mut(frame_len)) {
             self.deconvs[0].shape.input.write_interior(&mut buf.planes[0], features);
             for (i, deconv) in self.deconvs.iter().enumerate() {
                 let (done, rest) = buf.planes.split_at_mut(i + 1);
                 let output = rest.first_mut().map_or(&mut *frame, |next| next.as_mut_slice());
-                deconv.run(isa, &done[i], output);
+                deconv.run(exec, &done[i], output);
             }
         }
     }

@@ -1,11 +1,12 @@
 //! The two kinds of layer the networks are made of, loaded and packed once.
 
+use crate::pool::{share, Disjoint, Exec};
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::Result;
 use alloc::format;
 use alloc::vec::Vec;
 use drivesim_kernels::pack::{self, BatchNorm};
-use drivesim_kernels::{f16, Activation, ConvShape, Isa, Matrix, MatrixData};
+use drivesim_kernels::{f16, Activation, ConvShape, Matrix, MatrixData};
 
 /// A convolution with its BatchNorm folded in and its activation fused.
 pub(crate) struct ConvLayer {
@@ -41,8 +42,16 @@ impl ConvLayer {
         })
     }
 
-    pub fn run(&self, isa: Isa, input: &[f32], output: &mut [f32]) {
-        drivesim_kernels::conv(isa, &self.shape, input, &self.weights, &self.bias, self.act, output);
+    pub fn run(&self, exec: Exec<'_>, input: &[f32], output: &mut [f32]) {
+        drivesim_kernels::conv(
+            exec.isa,
+            &self.shape,
+            input,
+            &self.weights,
+            &self.bias,
+            self.act,
+            output,
+        );
     }
 }
 
@@ -70,6 +79,10 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
         read("running_var", Init::Ones)?,
     ]))
 }
+
+/// Below this many weights a dense layer is not worth waking other threads for (the
+/// transition's matrices at z = 512 take a few microseconds).
+const PARALLEL_MIN_WEIGHTS: usize = 1 << 20;
 
 /// Weights of a dense layer as kept in memory.
 pub(crate) enum DenseWeights {
@@ -118,7 +131,34 @@ impl DenseLayer {
         }
     }
 
-    pub fn run(&self, isa: Isa, x: &[f32], y: &mut [f32]) {
-        drivesim_kernels::dense(isa, self.matrix(), &self.bias, self.act, x, y);
+    /// `y = act(W x + b)` for a batch; with threads, each takes a share of the rows (batch 1)
+    /// or of the batch.
+    pub fn run(&self, exec: Exec<'_>, x: &[f32], y: &mut [f32]) {
+        let (isa, threads, batch) = (exec.isa, exec.threads(), x.len() / self.cols);
+        if threads == 1 || self.rows * self.cols < PARALLEL_MIN_WEIGHTS {
+            return drivesim_kernels::dense(isa, self.matrix(), &self.bias, self.act, x, y);
+        }
+        let out = Disjoint::new(y);
+        exec.run(&|t| {
+            if batch == 1 {
+                let rows = share(self.rows, threads, t);
+                // SAFETY: the threads' row ranges are disjoint.
+                let y = unsafe { out.range(rows.clone()) };
+                drivesim_kernels::dense(
+                    isa,
+                    self.matrix().row_range(rows.clone()),
+                    &self.bias[rows],
+                    self.act,
+                    x,
+                    y,
+                );
+            } else {
+                let items = share(batch, threads, t);
+                // SAFETY: the threads' item ranges are disjoint.
+                let y = unsafe { out.range(items.start * self.rows..items.end * self.rows) };
+                let x = &x[items.start * self.cols..items.end * self.cols];
+                drivesim_kernels::dense(isa, self.matrix(), &self.bias, self.act, x, y);
+            }
+        });
     }
 }

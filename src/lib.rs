@@ -51,6 +51,7 @@ mod error;
 mod generator;
 mod layers;
 mod model;
+mod pool;
 mod simulator;
 mod transition;
 mod weights;

@@ -3,6 +3,7 @@
 use crate::encoder::EncoderBuffers;
 use crate::error::{expect_finite, expect_len};
 use crate::generator::GeneratorBuffers;
+use crate::pool::{Exec, Pool};
 use crate::{Config, Error, Model, Result};
 use alloc::vec::Vec;
 use drivesim_kernels::Isa;
@@ -18,6 +19,8 @@ use drivesim_kernels::Isa;
 pub struct Simulator<'m> {
     model: &'m Model,
     isa: Isa,
+    /// Threads that share each convolution and large dense layer (none: the caller's alone).
+    pool: Option<Pool>,
     max_batch: usize,
     encoder: EncoderBuffers,
     generator: GeneratorBuffers,
@@ -42,6 +45,7 @@ impl<'m> Simulator<'m> {
         Simulator {
             model,
             isa: Isa::best(),
+            pool: None,
             max_batch,
             encoder: model.encoder.buffers(max_batch),
             generator: model.generator.buffers(max_batch),
@@ -55,6 +59,23 @@ impl<'m> Simulator<'m> {
     pub fn with_isa(mut self, isa: Isa) -> Self {
         self.isa = isa;
         self
+    }
+
+    /// Shares the work of each frame among `threads` threads (the caller's included), started
+    /// here once and kept until the simulator is dropped. Calls still allocate nothing.
+    /// The transition step stays on the caller's thread: it takes microseconds.
+    #[cfg(feature = "std")]
+    pub fn with_threads(mut self, threads: usize) -> Result<Self> {
+        self.pool = match threads {
+            0 | 1 => None,
+            n => Some(Pool::new(n).map_err(|source| Error::Threads { requested: n, source })?),
+        };
+        Ok(self)
+    }
+
+    /// Threads that share each frame's work, the caller's included.
+    pub fn threads(&self) -> usize {
+        self.pool.as_ref().map_or(1, Pool::threads)
     }
 
     /// The instruction set the kernels run with.
@@ -73,7 +94,7 @@ impl<'m> Simulator<'m> {
 
     /// How many items of `item_len` values `data` holds: a whole, non-zero number, at most the batch.
     fn batch_of(&self, buffer: &'static str, data: &[f32], item_len: usize) -> Result<usize> {
-        if data.is_empty() || data.len() % item_len != 0 {
+        if data.is_empty() || !data.len().is_multiple_of(item_len) {
             return Err(Error::NotWholeItems {
                 buffer,
                 item_len,
@@ -109,9 +130,11 @@ impl<'m> Simulator<'m> {
             expect_len("logsigma", logsigma, codes_len)?;
         }
         expect_finite("frames", frames)?;
-        self.model
-            .encoder
-            .forward(self.isa, &mut self.encoder, frames, z, logsigma);
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
+        self.model.encoder.forward(exec, &mut self.encoder, frames, z, logsigma);
         Ok(())
     }
 
@@ -120,7 +143,11 @@ impl<'m> Simulator<'m> {
         let n = self.batch_of("z", z, self.config().z_dim)?;
         expect_len("frames", frames, n * self.config().frame_len())?;
         expect_finite("z", z)?;
-        self.model.generator.forward(self.isa, &mut self.generator, z, frames);
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
+        self.model.generator.forward(exec, &mut self.generator, z, frames);
         Ok(())
     }
 
@@ -191,7 +218,7 @@ impl<'m> Simulator<'m> {
                 found: data.len(),
             });
         }
-        if actions.len() % c.action_dim != 0 {
+        if !actions.len().is_multiple_of(c.action_dim) {
             return Err(Error::NotWholeItems {
                 buffer: "actions",
                 item_len: c.action_dim,
@@ -215,7 +242,10 @@ impl<'m> Simulator<'m> {
         expect_finite(buffer, data)?;
         expect_finite("actions", actions)?;
 
-        let isa = self.isa;
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
         self.rollout_h.fill(0.0);
         let [z, z_next] = &mut self.rollout_z;
         for (step, action) in actions.chunks_exact(c.action_dim).enumerate() {
@@ -224,18 +254,18 @@ impl<'m> Simulator<'m> {
                 Seeds::Frames(f) => {
                     self.model
                         .encoder
-                        .forward(isa, &mut self.encoder, &f[step * item_len..][..item_len], z, None)
+                        .forward(exec, &mut self.encoder, &f[step * item_len..][..item_len], z, None)
                 }
                 Seeds::Codes(codes) => z.copy_from_slice(&codes[step * item_len..][..item_len]),
             }
             self.model
                 .transition
-                .step(isa, &mut self.concat, &mut self.rollout_h, z, action, z_next);
+                .step(self.isa, &mut self.concat, &mut self.rollout_h, z, action, z_next);
             if let Some(t) = (step + 1).checked_sub(seed_count) {
                 codes[t * c.z_dim..][..c.z_dim].copy_from_slice(z_next);
                 if let Some(frames) = frames.as_deref_mut() {
                     let frame = &mut frames[t * c.frame_len()..][..c.frame_len()];
-                    self.model.generator.forward(isa, &mut self.generator, z_next, frame);
+                    self.model.generator.forward(exec, &mut self.generator, z_next, frame);
                 }
             }
         }

@@ -46,7 +46,8 @@ fn hot_paths_allocate_nothing() {
     for dtype in [WeightDtype::F32, WeightDtype::F16] {
         let model = Model::random(&config, 3, dtype).unwrap();
         for isa in drivesim::Isa::supported() {
-            let mut sim = Simulator::with_batch(&model, 3).with_isa(isa);
+            // Worker threads are started here, before counting; dispatching to them is free.
+            let mut sim = Simulator::with_batch(&model, 3).with_isa(isa).with_threads(2).unwrap();
             // Every caller buffer is made before counting starts.
             let frames = vec![0.25f32; 3 * config.frame_len()];
             let actions = vec![0.5f32; 6 * config.action_dim];

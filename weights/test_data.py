@@ -120,3 +120,52 @@ def test_record_short_episode():
     assert actions.shape == (5, 2) and np.all(np.abs(actions[:, 1]) <= 1)
     assert 0 <= on_road <= 1
     assert record.parse_seeds("0-2,7") == [0, 1, 2, 7]
+
+
+def test_fit_and_eval_tiny(tmp_path):
+    """A few steps of both training phases and the evaluation, on a tiny model and data set."""
+    pytest.importorskip("torch")
+    import train
+    from model import load_drivesim
+
+    rng = np.random.default_rng(1)
+    data = episodes.Episodes(
+        rng.integers(0, 256, (240, 32, 64, 3), dtype=np.uint8),
+        np.stack([rng.uniform(10, 40, 240), rng.uniform(-1, 1, 240)], 1).astype(np.float32),
+        np.array([0, 120], dtype=np.int64),
+    )
+    episodes.write(tmp_path / "d.safetensors", data)
+    train.main(["fit", "--data", str(tmp_path / "d.safetensors"), "--out", str(tmp_path / "m.safetensors"),
+                "--device", "cpu", "--base-channels", "4", "--z-dim", "8", "--hidden-dim", "8",
+                "--vae-steps", "2", "--transition-steps", "2", "--batch", "4", "--transition-batch", "4"])
+    model, cfg = load_drivesim(tmp_path / "m.safetensors")
+    assert (cfg.height, cfg.width, cfg.z_dim) == (32, 64, 8)
+    train.main(["eval", "--weights", str(tmp_path / "m.safetensors"), "--data", str(tmp_path / "d.safetensors"),
+                "--figures", str(tmp_path / "fig"), "--seed-clip", str(tmp_path / "clip.safetensors")])
+    for name in ("eval.json", "reconstruction.png", "steering.png", "contact_sheet.png"):
+        assert (tmp_path / "fig" / name).is_file()
+    assert episodes.read(tmp_path / "clip.safetensors").frames.shape == (8, 32, 64, 3)
+
+
+def test_action_normalisation_is_folded_into_u_and_b():
+    """After training, the transition on raw actions equals the trained one on normalised actions."""
+    torch = pytest.importorskip("torch")
+    import argparse
+    import train
+    from model import Config, DriveSim
+
+    torch.manual_seed(0)
+    cfg = Config(height=16, width=16, channels=3, base_channels=2, z_dim=4, hidden_dim=6)
+    model = DriveSim(cfg)
+    codes = torch.randn(40, 4)
+    actions = torch.stack([torch.rand(40) * 30 + 5, torch.rand(40) * 2 - 1], 1)
+    args = argparse.Namespace(transition_lr=1e-3, transition_steps=1, transition_batch=4, seed=0, log_every=1)
+    norm = train.train_transition(model, codes, actions, np.arange(0, 40 - train.SEQ + 1), args, [])
+    mean, std = torch.tensor(norm["action_mean"]), torch.tensor(norm["action_std"])
+    tr = model.transition
+    z, h, c = torch.randn(3, 4), torch.randn(3, 6), actions[:3]
+    with torch.no_grad():
+        folded = tr(z, h, c)
+        u, b = tr.U * std, tr.b + (tr.U * std) @ (mean / std)  # undo the fold
+        h_ref = torch.tanh(h @ tr.W.T + z @ tr.V.T + ((c - mean) / std) @ u.T + b)
+    torch.testing.assert_close(folded[1], h_ref)

@@ -19,7 +19,8 @@ mod isa;
 pub mod math;
 pub mod pack;
 pub mod scalar;
-#[cfg(target_arch = "x86_64")]
+// Soft-float x86-64 targets (x86_64-unknown-none) cannot compile vector code: scalar only.
+#[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
 mod x86_64;
 
 pub use half::f16;
@@ -235,7 +236,21 @@ pub struct Matrix<'a> {
     pub cols: usize,
 }
 
-impl Matrix<'_> {
+impl<'a> Matrix<'a> {
+    /// Rows `rows` of this matrix.
+    pub fn row_range(&self, rows: core::ops::Range<usize>) -> Matrix<'a> {
+        let span = rows.start * self.cols..rows.end * self.cols;
+        let data = match self.data {
+            MatrixData::F32(d) => MatrixData::F32(&d[span]),
+            MatrixData::F16(d) => MatrixData::F16(&d[span]),
+        };
+        Matrix {
+            data,
+            rows: rows.len(),
+            cols: self.cols,
+        }
+    }
+
     fn check(&self, bias: &[f32], x: &[f32], y: &[f32]) -> usize {
         let stored = match self.data {
             MatrixData::F32(d) => d.len(),
@@ -243,7 +258,10 @@ impl Matrix<'_> {
         };
         assert_eq!(stored, self.rows * self.cols);
         assert_eq!(bias.len(), self.rows);
-        assert!(self.cols > 0 && x.len() % self.cols == 0, "input is not whole rows");
+        assert!(
+            self.cols > 0 && x.len().is_multiple_of(self.cols),
+            "input is not whole rows"
+        );
         let batch = x.len() / self.cols;
         assert_eq!(y.len(), batch * self.rows);
         batch
@@ -264,9 +282,9 @@ pub fn conv(
     shape.check(input, weights, bias, output);
     match isa.level() {
         IsaLevel::Scalar => scalar::conv(shape, input, weights, bias, act, output),
-        #[cfg(target_arch = "x86_64")]
+        #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
         level => x86_64::conv(level, shape, input, weights, bias, act, output),
-        #[cfg(not(target_arch = "x86_64"))]
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
         _ => scalar::conv(shape, input, weights, bias, act, output),
     }
 }
@@ -276,9 +294,9 @@ pub fn dense(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], 
     w.check(bias, x, y);
     match isa.level() {
         IsaLevel::Scalar => scalar::dense(w, bias, act, x, y),
-        #[cfg(target_arch = "x86_64")]
+        #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
         level => x86_64::dense(level, w, bias, act, x, y),
-        #[cfg(not(target_arch = "x86_64"))]
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
         _ => scalar::dense(w, bias, act, x, y),
     }
 }
@@ -324,7 +342,7 @@ pub fn rnn_step(
     z_next: &mut [f32],
 ) {
     let (hd, zd, ad) = (rnn.hidden(), rnn.z_dim(), rnn.action_dim());
-    assert!(hd > 0 && h.len() % hd == 0);
+    assert!(hd > 0 && h.len().is_multiple_of(hd));
     let batch = h.len() / hd;
     assert_eq!(z.len(), batch * zd);
     assert_eq!(action.len(), batch * ad);

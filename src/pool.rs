@@ -1,0 +1,238 @@
+//! A fixed set of worker threads, started when a simulator is planned, that run one borrowed
+//! closure at a time. Dispatching allocates nothing: the closure stays on the caller's stack and
+//! the workers only ever see a pointer to it while the caller waits for them.
+
+use drivesim_kernels::Isa;
+
+/// How a network runs: the kernels' instruction set and, optionally, threads to share it.
+#[derive(Clone, Copy)]
+pub(crate) struct Exec<'a> {
+    pub isa: Isa,
+    pub pool: Option<&'a Pool>,
+}
+
+impl Exec<'_> {
+    pub fn threads(&self) -> usize {
+        self.pool.map_or(1, Pool::threads)
+    }
+
+    /// Runs `task(i)` on every thread `i`, or `task(0)` alone without a pool.
+    pub fn run(&self, task: &(dyn Fn(usize) + Sync)) {
+        match self.pool {
+            Some(pool) => pool.run(task),
+            None => task(0),
+        }
+    }
+}
+
+#[cfg(feature = "std")]
+pub(crate) use workers::Pool;
+
+/// Without std there are no threads: no pool can be made.
+#[cfg(not(feature = "std"))]
+pub(crate) enum Pool {}
+
+#[cfg(not(feature = "std"))]
+impl Pool {
+    pub fn threads(&self) -> usize {
+        match *self {}
+    }
+    pub fn run(&self, _task: &(dyn Fn(usize) + Sync)) {
+        match *self {}
+    }
+}
+
+#[cfg(feature = "std")]
+mod workers {
+    use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+    use std::thread::JoinHandle;
+
+    /// A closure every thread runs with its index (`0` is the caller).
+    type Task<'a> = dyn Fn(usize) + Sync + 'a;
+
+    pub(crate) struct Pool {
+        shared: Arc<Shared>,
+        workers: Vec<JoinHandle<()>>,
+    }
+
+    struct Shared {
+        state: Mutex<State>,
+        /// Signals workers that a new task (or shutdown) was posted.
+        posted: Condvar,
+        /// Signals the caller that the last worker finished.
+        finished: Condvar,
+    }
+
+    struct State {
+        /// Incremented for every task, so a worker runs each task once.
+        generation: u64,
+        /// The current task, erased to `'static`: it lives on the stack of [`Pool::run`], which
+        /// does not return before every worker is done with it.
+        task: Option<*const Task<'static>>,
+        /// Workers still running the current task.
+        running: usize,
+        /// Workers that have started and wait for tasks.
+        ready: usize,
+        /// A worker's task panicked; the caller re-raises it.
+        panicked: bool,
+        shutdown: bool,
+    }
+
+    // SAFETY: the task pointer is only dereferenced while `Pool::run` keeps the closure alive, and
+    // the closure is `Sync`.
+    unsafe impl Send for State {}
+
+    impl Pool {
+        /// A pool in which `threads` threads (the caller included) share each task.
+        pub fn new(threads: usize) -> std::io::Result<Pool> {
+            let shared = Arc::new(Shared {
+                state: Mutex::new(State {
+                    generation: 0,
+                    task: None,
+                    running: 0,
+                    ready: 0,
+                    panicked: false,
+                    shutdown: false,
+                }),
+                posted: Condvar::new(),
+                finished: Condvar::new(),
+            });
+            let workers = (1..threads.max(1))
+                .map(|index| {
+                    let shared = Arc::clone(&shared);
+                    std::thread::Builder::new()
+                        .name(format!("drivesim-{index}"))
+                        .spawn(move || worker(&shared, index))
+                })
+                .collect::<std::io::Result<Vec<_>>>()?;
+            // Wait until every worker is parked: a thread's start-up allocates, and it must not
+            // do so during the simulator's first call.
+            let mut state = lock(&shared.state);
+            while state.ready < workers.len() {
+                state = shared.finished.wait(state).unwrap_or_else(|e| e.into_inner());
+            }
+            drop(state);
+            Ok(Pool { shared, workers })
+        }
+
+        /// Threads that share a task, the caller included.
+        pub fn threads(&self) -> usize {
+            self.workers.len() + 1
+        }
+
+        /// Runs `task(i)` for every thread index `i` at once, and returns when all are done.
+        pub fn run(&self, task: &Task<'_>) {
+            if self.workers.is_empty() {
+                return task(0);
+            }
+            {
+                let mut state = lock(&self.shared.state);
+                // SAFETY: only the lifetime is erased; this function waits below until every
+                // worker has finished with the task before `task` can go out of scope.
+                let erased: *const Task<'static> = unsafe { core::mem::transmute(task as *const Task<'_>) };
+                state.task = Some(erased);
+                state.generation += 1;
+                state.running = self.workers.len();
+            }
+            self.shared.posted.notify_all();
+            // Waits for the workers even if `task(0)` panics, so none outlives the closure.
+            let wait = WaitForWorkers(&self.shared);
+            task(0);
+            drop(wait);
+            if core::mem::take(&mut lock(&self.shared.state).panicked) {
+                panic!("a drivesim worker thread panicked");
+            }
+        }
+    }
+
+    struct WaitForWorkers<'a>(&'a Shared);
+
+    impl Drop for WaitForWorkers<'_> {
+        fn drop(&mut self) {
+            let mut state = lock(&self.0.state);
+            while state.running > 0 {
+                state = self.0.finished.wait(state).unwrap_or_else(|e| e.into_inner());
+            }
+            state.task = None;
+        }
+    }
+
+    impl Drop for Pool {
+        fn drop(&mut self) {
+            lock(&self.shared.state).shutdown = true;
+            self.shared.posted.notify_all();
+            for worker in self.workers.drain(..) {
+                let _ = worker.join();
+            }
+        }
+    }
+
+    fn worker(shared: &Shared, index: usize) {
+        let mut seen = 0;
+        lock(&shared.state).ready += 1;
+        shared.finished.notify_all();
+        loop {
+            let task = {
+                let mut state = lock(&shared.state);
+                while !state.shutdown && state.generation == seen {
+                    state = shared.posted.wait(state).unwrap_or_else(|e| e.into_inner());
+                }
+                if state.shutdown {
+                    return;
+                }
+                seen = state.generation;
+                state.task.expect("a posted task")
+            };
+            // SAFETY: `Pool::run` keeps the closure alive until `running` drops to zero below.
+            let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| unsafe { (*task)(index) }));
+            let mut state = lock(&shared.state);
+            state.panicked |= result.is_err();
+            state.running -= 1;
+            if state.running == 0 {
+                shared.finished.notify_one();
+            }
+        }
+    }
+
+    /// A poisoned lock only means another thread panicked mid-task; the state is still consistent.
+    fn lock(m: &Mutex<State>) -> MutexGuard<'_, State> {
+        m.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// The part of `0..len` that thread `index` of `threads` takes: contiguous, sizes within one.
+pub(crate) fn share(len: usize, threads: usize, index: usize) -> core::ops::Range<usize> {
+    (len * index / threads)..(len * (index + 1) / threads)
+}
+
+/// A mutable slice that the threads of one task write at disjoint ranges.
+pub(crate) struct Disjoint<'a> {
+    ptr: *mut f32,
+    len: usize,
+    _borrow: core::marker::PhantomData<&'a mut [f32]>,
+}
+
+// SAFETY: threads only reach the data through `Disjoint::range`, whose callers keep the ranges
+// of concurrent threads apart.
+unsafe impl Send for Disjoint<'_> {}
+unsafe impl Sync for Disjoint<'_> {}
+
+impl<'a> Disjoint<'a> {
+    pub fn new(data: &'a mut [f32]) -> Self {
+        Disjoint {
+            ptr: data.as_mut_ptr(),
+            len: data.len(),
+            _borrow: core::marker::PhantomData,
+        }
+    }
+
+    /// The values in `range`.
+    ///
+    /// # Safety
+    /// No other live reference from this `Disjoint` may overlap `range`.
+    #[allow(clippy::mut_from_ref)] // the point of the type; callers keep ranges apart
+    pub unsafe fn range(&self, range: core::ops::Range<usize>) -> &mut [f32] {
+        assert!(range.start <= range.end && range.end <= self.len);
+        core::slice::from_raw_parts_mut(self.ptr.add(range.start), range.len())
+    }
+}
