@@ -33,6 +33,8 @@ const WEIGHT_BUDGET: usize = 24 * 1024;
 /// [`small`]), when their weights fit in `SMALL_WEIGHTS` floats.
 const SMALL_OC: usize = 4;
 const SMALL_WEIGHTS: usize = 8192;
+/// Accumulators of that path's microkernel (a multiple of 1 to `SMALL_OC`).
+const SMALL_ACC: usize = 12;
 /// The most output pixels of a tile.
 const MAX_TILE: usize = 12;
 
@@ -448,8 +450,8 @@ struct Small<V, const OCN: usize> {
 impl<V: Simd, const OCN: usize> RowKernel for Small<V, OCN> {
     #[inline(always)]
     unsafe fn run(&self, row: &Row<'_>) {
-        // As many pixels as keep 12 accumulators busy; single pixels for the rest.
-        let max = MAX_TILE / OCN;
+        // As many pixels as keep `SMALL_ACC` accumulators busy; single pixels for the rest.
+        let max = SMALL_ACC / OCN;
         let whole = row.count / max * max;
         let mut p = 0;
         while p < whole {
