@@ -2,8 +2,12 @@
 //! (included there with `#[path]`).
 #![allow(dead_code)] // each includer uses part of it
 
+#[path = "../../kernels/tests/common/mod.rs"]
+mod values;
+
 use drivesim::Config;
 use drivesim_kernels::{ConvKind, ConvShape, Plane};
+pub use values::values;
 
 /// The comma config with `z_dim = hidden_dim = z`.
 pub fn comma(z: usize) -> Config {
@@ -83,17 +87,4 @@ pub fn generate_flops(c: &Config) -> u64 {
 /// Per step: `[W|V|U] [h;z;c]` and `A h`.
 pub fn transition_flops(c: &Config) -> u64 {
     dense_flops(c.hidden_dim, c.hidden_dim + c.z_dim + c.action_dim) + dense_flops(c.z_dim, c.hidden_dim)
-}
-
-/// Deterministic values in [-scale, scale).
-pub fn values(seed: u64, n: usize, scale: f32) -> Vec<f32> {
-    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    (0..n)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            ((s >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * scale
-        })
-        .collect()
 }

@@ -1,5 +1,8 @@
 //! The SIMD dense kernels and `rnn_step` against the scalar reference, on awkward shapes.
 
+mod common;
+
+use common::values;
 use drivesim_kernels::{dense, f16, rnn_step, Activation, Isa, IsaLevel, Matrix, MatrixData, Rnn};
 
 const ROWS: [usize; 9] = [1, 2, 3, 5, 7, 8, 9, 17, 33];
@@ -12,19 +15,6 @@ const ACTS: [Activation; 4] = [
     Activation::Tanh,
 ];
 const TOLERANCE: f32 = 1e-5;
-
-/// Deterministic values in [-scale, scale).
-fn values(seed: u64, n: usize, scale: f32) -> Vec<f32> {
-    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    (0..n)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            ((s >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0) * scale
-        })
-        .collect()
-}
 
 /// The SIMD levels this CPU has; fails when `DRIVESIM_REQUIRE_ISA` names one it lacks.
 fn simd_levels() -> Vec<Isa> {

@@ -20,46 +20,48 @@ use crate::{f16, Activation, IsaLevel, Matrix, MatrixData};
 use core::arch::x86_64::*;
 
 pub(crate) fn dense(level: IsaLevel, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
+    let args = Args {
+        rows: w.rows,
+        cols: w.cols,
+        bias,
+        act,
+        x,
+        y,
+    };
     // SAFETY: an `IsaLevel` other than `Scalar` reaches here only from an `Isa`, which proves
     // that the CPU has the features each entry point enables; `crate::dense` checked the lengths.
     unsafe {
         match (level, w.data) {
-            (IsaLevel::Avx512, MatrixData::F32(d)) => dense_avx512(d, w.rows, w.cols, bias, act, x, y),
-            (IsaLevel::Avx512, MatrixData::F16(d)) => dense_avx512(d, w.rows, w.cols, bias, act, x, y),
-            (IsaLevel::Avx2, MatrixData::F32(d)) => dense_avx2(d, w.rows, w.cols, bias, act, x, y),
-            (IsaLevel::Avx2, MatrixData::F16(d)) => dense_avx2(d, w.rows, w.cols, bias, act, x, y),
-            (IsaLevel::Scalar, _) => crate::scalar::dense(w, bias, act, x, y),
+            (IsaLevel::Avx512, MatrixData::F32(d)) => dense_avx512(d, args),
+            (IsaLevel::Avx512, MatrixData::F16(d)) => dense_avx512(d, args),
+            (IsaLevel::Avx2, MatrixData::F32(d)) => dense_avx2(d, args),
+            (IsaLevel::Avx2, MatrixData::F16(d)) => dense_avx2(d, args),
+            (IsaLevel::Scalar, _) => crate::scalar::dense(w, args.bias, args.act, args.x, args.y),
         }
     }
 }
 
-#[target_feature(enable = "avx2,fma,f16c")]
-unsafe fn dense_avx2<T: Weight>(
-    w: &[T],
+/// The arguments of one call besides the weights.
+struct Args<'a> {
     rows: usize,
     cols: usize,
-    b: &[f32],
+    bias: &'a [f32],
     act: Activation,
-    x: &[f32],
-    y: &mut [f32],
-) {
+    x: &'a [f32],
+    y: &'a mut [f32],
+}
+
+#[target_feature(enable = "avx2,fma,f16c")]
+unsafe fn dense_avx2<T: Weight>(w: &[T], args: Args<'_>) {
     // 16 registers: 3 x 4 accumulators, 3 weight vectors, 1 input vector.
-    dense_body::<__m256, T, 3, 4>(w, rows, cols, b, act, x, y)
+    dense_body::<__m256, T, 3, 4>(w, args)
 }
 
 #[target_feature(enable = "avx512f,avx2,fma,f16c")]
 #[allow(clippy::incompatible_msrv)] // AVX-512 target features are stable since Rust 1.89
-unsafe fn dense_avx512<T: Weight>(
-    w: &[T],
-    rows: usize,
-    cols: usize,
-    b: &[f32],
-    act: Activation,
-    x: &[f32],
-    y: &mut [f32],
-) {
+unsafe fn dense_avx512<T: Weight>(w: &[T], args: Args<'_>) {
     // 32 registers: 4 x 4 accumulators, 4 weight vectors, 1 input vector.
-    dense_body::<__m512, T, 4, 4>(w, rows, cols, b, act, x, y)
+    dense_body::<__m512, T, 4, 4>(w, args)
 }
 
 /// Rows of the register tile for a single input.
@@ -284,15 +286,15 @@ unsafe fn row_blocks<S: Dot, T: Weight, const R: usize, const BT: usize>(
 /// See [`crate::dense`]. Batches use a register tile of `RT` rows by `BT` inputs (`BT` at most
 /// 4); a single input uses [`ROWS`] rows with two accumulators each.
 #[inline(always)]
-unsafe fn dense_body<S: Dot, T: Weight, const RT: usize, const BT: usize>(
-    w: &[T],
-    rows: usize,
-    cols: usize,
-    bias: &[f32],
-    act: Activation,
-    x: &[f32],
-    y: &mut [f32],
-) {
+unsafe fn dense_body<S: Dot, T: Weight, const RT: usize, const BT: usize>(w: &[T], args: Args<'_>) {
+    let Args {
+        rows,
+        cols,
+        bias,
+        act,
+        x,
+        y,
+    } = args;
     debug_assert!(BT <= 4 && S::LANES <= MAX_LANES);
     let batch = x.len() / cols;
     // Panels only pay when several batch tiles reuse them.
