@@ -317,7 +317,11 @@ pub unsafe fn conv_channels(
     channels: core::ops::Range<usize>,
 ) {
     shape.check(input, weights, bias);
-    assert!(channels.start % OC_ALIGN == 0 && channels.start <= channels.end && channels.end <= shape.output.channels);
+    assert!(
+        channels.start.is_multiple_of(OC_ALIGN)
+            && channels.start <= channels.end
+            && channels.end <= shape.output.channels
+    );
     match isa.level() {
         IsaLevel::Scalar => scalar::conv_channels(shape, input, weights, bias, act, output, channels),
         #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
