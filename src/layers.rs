@@ -6,7 +6,7 @@ use crate::Result;
 use alloc::format;
 use alloc::vec::Vec;
 use drivesim_kernels::pack::{self, BatchNorm};
-use drivesim_kernels::{f16, Activation, ConvShape, Matrix, MatrixData};
+use drivesim_kernels::{f16, Activation, ConvShape, Matrix, MatrixData, OC_ALIGN};
 
 /// A convolution with its BatchNorm folded in and its activation fused.
 pub(crate) struct ConvLayer {
@@ -42,16 +42,26 @@ impl ConvLayer {
         })
     }
 
+    /// Runs the layer; with threads, each takes a share of the output channel panels (and so
+    /// reads only its share of the weights).
     pub fn run(&self, exec: Exec<'_>, input: &[f32], output: &mut [f32]) {
-        drivesim_kernels::conv(
-            exec.isa,
-            &self.shape,
-            input,
-            &self.weights,
-            &self.bias,
-            self.act,
-            output,
-        );
+        let (isa, threads, channels) = (exec.isa, exec.threads(), self.shape.output.channels);
+        let (w, b) = (&self.weights, &self.bias);
+        let panels = channels.div_ceil(OC_ALIGN);
+        if threads == 1 || panels < 2 {
+            return drivesim_kernels::conv(isa, &self.shape, input, w, b, self.act, output);
+        }
+        assert_eq!(output.len(), self.shape.output.len());
+        let out = Disjoint::new(output);
+        exec.run(&|t| {
+            let mine = share(panels, threads, t);
+            let mine = mine.start * OC_ALIGN..(mine.end * OC_ALIGN).min(channels);
+            // SAFETY: `out` is the whole output plane, borrowed mutably, and the threads' channel
+            // ranges are disjoint.
+            unsafe {
+                drivesim_kernels::conv_channels(isa, &self.shape, input, w, b, self.act, out.as_mut_ptr(), mine);
+            }
+        });
     }
 }
 

@@ -226,6 +226,11 @@ impl<'a> Disjoint<'a> {
         }
     }
 
+    /// The start of the data, for kernels that write their share through a pointer.
+    pub fn as_mut_ptr(&self) -> *mut f32 {
+        self.ptr
+    }
+
     /// The values in `range`.
     ///
     /// # Safety

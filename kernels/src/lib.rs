@@ -26,8 +26,9 @@ mod x86_64;
 pub use half::f16;
 pub use isa::{Isa, IsaLevel};
 
-/// Output channels of packed convolution weights are padded with zeros to a multiple of this,
-/// so that every SIMD width up to 16 lanes loads whole vectors of weights.
+/// Packed convolution weights come in panels of this many output channels (the last panel
+/// zero-padded), so that every SIMD width up to 16 lanes loads whole vectors of weights and one
+/// block of output channels streams through contiguous memory.
 pub const OC_ALIGN: usize = 16;
 
 /// A feature map stored in HWC order (channels innermost) inside a border of `halo` zero pixels
@@ -125,8 +126,9 @@ impl ConvKind {
 
 /// One convolution layer: square odd `kernel`, stride 2, padding `kernel / 2`.
 ///
-/// Weights are packed by [`pack::conv_weights`] as `[ky][kx][in_channel][oc_stride]`, with the
-/// output channels zero-padded to [`ConvShape::oc_stride`]; `bias` has `output.channels` values.
+/// Weights are packed by [`pack::conv_weights`] in panels of [`OC_ALIGN`] output channels:
+/// `[out_channel / 16][ky][kx][in_channel][out_channel % 16]`, the last panel zero-padded (see
+/// [`ConvShape::packed_index`]); `bias` has `output.channels` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ConvShape {
     pub kind: ConvKind,
@@ -160,6 +162,18 @@ impl ConvShape {
         self.kernel * self.kernel * self.input.channels * self.oc_stride()
     }
 
+    /// Floats in one panel of [`OC_ALIGN`] output channels of the packed weights.
+    pub const fn panel_len(&self) -> usize {
+        self.kernel * self.kernel * self.input.channels * OC_ALIGN
+    }
+
+    /// Where the weight of tap `(ky, kx)` from input channel `ic` to output channel `oc` is
+    /// packed. Consecutive input channels of one tap are `OC_ALIGN` floats apart.
+    pub const fn packed_index(&self, ky: usize, kx: usize, ic: usize, oc: usize) -> usize {
+        let tap = ky * self.kernel + kx;
+        (oc / OC_ALIGN) * self.panel_len() + (tap * self.input.channels + ic) * OC_ALIGN + oc % OC_ALIGN
+    }
+
     /// Multiply-adds per image, counting only taps that land inside the input.
     pub fn macs(&self) -> u64 {
         let k = self.kernel;
@@ -177,7 +191,7 @@ impl ConvShape {
             * (self.input.channels * self.output.channels) as u64
     }
 
-    fn check(&self, input: &[f32], weights: &[f32], bias: &[f32], output: &[f32]) {
+    fn check(&self, input: &[f32], weights: &[f32], bias: &[f32]) {
         assert!(self.kernel % 2 == 1, "odd kernels only");
         assert!(
             self.input.halo >= self.kind.input_halo(self.kernel),
@@ -194,7 +208,6 @@ impl ConvShape {
         assert_eq!(input.len(), self.input.len());
         assert_eq!(weights.len(), self.packed_len());
         assert_eq!(bias.len(), self.output.channels);
-        assert_eq!(output.len(), self.output.len());
     }
 }
 
@@ -268,7 +281,7 @@ impl<'a> Matrix<'a> {
     }
 }
 
-/// `output[n] = act(input(conv) + bias)` for one image: see [`ConvShape`] for the layouts.
+/// `output = act(conv(input) + bias)` for one image: see [`ConvShape`] for the layouts.
 /// Only the interior of `output` is written; its border stays as it was (zero).
 pub fn conv(
     isa: Isa,
@@ -279,13 +292,42 @@ pub fn conv(
     act: Activation,
     output: &mut [f32],
 ) {
-    shape.check(input, weights, bias, output);
+    assert_eq!(output.len(), shape.output.len());
+    let all = 0..shape.output.channels;
+    // SAFETY: `output` holds the whole output plane and is borrowed mutably for the call.
+    unsafe { conv_channels(isa, shape, input, weights, bias, act, output.as_mut_ptr(), all) }
+}
+
+/// [`conv`] for the output channels `channels` only, written through a pointer so that
+/// threads can fill disjoint channel ranges of one output plane at once. `channels.start` must
+/// be a multiple of [`OC_ALIGN`]: each thread then reads only its own panels of weights.
+///
+/// # Safety
+/// `output` must point to `shape.output.len()` floats, valid for writes, and no other thread
+/// may read or write channels `channels` of its interior during the call.
+#[allow(clippy::too_many_arguments)] // conv's arguments plus the share of the work
+pub unsafe fn conv_channels(
+    isa: Isa,
+    shape: &ConvShape,
+    input: &[f32],
+    weights: &[f32],
+    bias: &[f32],
+    act: Activation,
+    output: *mut f32,
+    channels: core::ops::Range<usize>,
+) {
+    shape.check(input, weights, bias);
+    assert!(
+        channels.start.is_multiple_of(OC_ALIGN)
+            && channels.start <= channels.end
+            && channels.end <= shape.output.channels
+    );
     match isa.level() {
-        IsaLevel::Scalar => scalar::conv(shape, input, weights, bias, act, output),
+        IsaLevel::Scalar => scalar::conv_channels(shape, input, weights, bias, act, output, channels),
         #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
-        level => x86_64::conv(level, shape, input, weights, bias, act, output),
+        level => x86_64::conv(level, shape, input, weights, bias, act, output, channels),
         #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        _ => scalar::conv(shape, input, weights, bias, act, output),
+        _ => scalar::conv_channels(shape, input, weights, bias, act, output, channels),
     }
 }
 

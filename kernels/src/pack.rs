@@ -27,7 +27,7 @@ impl BatchNorm<'_> {
     }
 }
 
-/// Packs PyTorch convolution weights into `[ky][kx][in][oc_stride]` (see [`ConvShape`]),
+/// Packs PyTorch convolution weights into panels of output channels (see [`ConvShape`]),
 /// folding an optional BatchNorm that follows the layer into weights and bias.
 ///
 /// `torch_weight` is `[out, in, k, k]` for [`ConvKind::Down`] (`Conv2d`) and `[in, out, k, k]`
@@ -38,12 +38,7 @@ pub fn conv_weights(
     bias: &[f32],
     bn: Option<BatchNorm<'_>>,
 ) -> (Vec<f32>, Vec<f32>) {
-    let (k, ic, oc, stride) = (
-        shape.kernel,
-        shape.input.channels,
-        shape.output.channels,
-        shape.oc_stride(),
-    );
+    let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
     assert_eq!(torch_weight.len(), oc * ic * k * k);
     assert_eq!(bias.len(), oc);
     let affine = bn.map(|bn| bn.affine()).unwrap_or_else(|| alloc::vec![(1.0, 0.0); oc]);
@@ -57,7 +52,7 @@ pub fn conv_weights(
                         ConvKind::Down => ((o * ic + i) * k + ky) * k + kx,
                         ConvKind::Up => ((i * oc + o) * k + ky) * k + kx,
                     };
-                    packed[((ky * k + kx) * ic + i) * stride + o] = (torch_weight[src] as f64 * affine[o].0) as f32;
+                    packed[shape.packed_index(ky, kx, i, o)] = (torch_weight[src] as f64 * affine[o].0) as f32;
                 }
             }
         }

@@ -2,9 +2,38 @@
 //! relying on the zero border, so they check the SIMD kernels' use of it too.
 
 use crate::{Activation, ConvShape, Matrix, MatrixData};
+use core::ops::Range;
 
 /// See [`crate::conv`].
 pub fn conv(shape: &ConvShape, input: &[f32], weights: &[f32], bias: &[f32], act: Activation, output: &mut [f32]) {
+    assert_eq!(output.len(), shape.output.len());
+    // SAFETY: `output` holds the whole output plane and is borrowed mutably for the call.
+    unsafe {
+        conv_channels(
+            shape,
+            input,
+            weights,
+            bias,
+            act,
+            output.as_mut_ptr(),
+            0..shape.output.channels,
+        )
+    }
+}
+
+/// See [`crate::conv_channels`].
+///
+/// # Safety
+/// As for [`crate::conv_channels`].
+pub unsafe fn conv_channels(
+    shape: &ConvShape,
+    input: &[f32],
+    weights: &[f32],
+    bias: &[f32],
+    act: Activation,
+    output: *mut f32,
+    channels: Range<usize>,
+) {
     let ConvShape {
         kind,
         kernel: k,
@@ -12,11 +41,11 @@ pub fn conv(shape: &ConvShape, input: &[f32], weights: &[f32], bias: &[f32], act
         output: op,
     } = *shape;
     let pad = k / 2;
-    let oc_stride = shape.oc_stride();
     for oy in 0..op.height {
         for ox in 0..op.width {
-            let out = &mut output[op.index(oy, ox)..][..op.channels];
-            out.copy_from_slice(bias);
+            // SAFETY: the caller gives us these channels of every output pixel.
+            let out = core::slice::from_raw_parts_mut(output.add(op.index(oy, ox) + channels.start), channels.len());
+            out.copy_from_slice(&bias[channels.clone()]);
             for ky in 0..k {
                 let Some(iy) = kind.source(oy, ky, pad, ip.height) else {
                     continue;
@@ -26,10 +55,9 @@ pub fn conv(shape: &ConvShape, input: &[f32], weights: &[f32], bias: &[f32], act
                         continue;
                     };
                     let pixel = &input[ip.index(iy, ix)..][..ip.channels];
-                    let taps = &weights[(ky * k + kx) * ip.channels * oc_stride..];
-                    for (&v, w) in pixel.iter().zip(taps.chunks_exact(oc_stride)) {
-                        for (o, &w) in out.iter_mut().zip(w) {
-                            *o += v * w;
+                    for (ic, &v) in pixel.iter().enumerate() {
+                        for (o, out) in channels.clone().zip(out.iter_mut()) {
+                            *out += v * weights[shape.packed_index(ky, kx, ic, o)];
                         }
                     }
                 }

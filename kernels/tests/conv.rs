@@ -1,7 +1,7 @@
 //! The SIMD convolution kernels against the scalar reference, on awkward shapes, at every
 //! instruction-set level this CPU supports.
 
-use drivesim_kernels::{conv, scalar, Activation, ConvKind, ConvShape, Isa, IsaLevel, Plane};
+use drivesim_kernels::{conv, scalar, Activation, ConvKind, ConvShape, Isa, IsaLevel, Plane, OC_ALIGN};
 
 /// A small xorshift generator: uniform floats in [-1, 1).
 struct Rng(u64);
@@ -55,7 +55,7 @@ fn check(
     // Packed weights with zero padding channels, as `pack::conv_weights` makes them.
     let mut weights = rng.fill(shape.packed_len());
     for (i, w) in weights.iter_mut().enumerate() {
-        if i % shape.oc_stride() >= oc {
+        if i / shape.panel_len() * OC_ALIGN + i % OC_ALIGN >= oc {
             *w = 0.0;
         }
     }

@@ -9,10 +9,6 @@
 //! meant to be used inside a `#[target_feature]` function that enables the features of the type
 //! (`avx2,fma` for `__m256`, `avx512f` for `__m512`), where they inline into plain instructions.
 
-// `apply_avx2`/`apply_avx512` are the entry points for kernels that are not generic over `Simd`;
-// not every kernel uses every helper yet.
-#![allow(dead_code)]
-
 use crate::math::{EXP_POLY, LN2_HI, LN2_LO, TANH_CLAMP, TANH_SERIES, TANH_SERIES_LIMIT};
 use crate::Activation;
 use core::arch::x86_64::*;
@@ -260,30 +256,30 @@ pub(crate) unsafe fn apply<V: Simd>(act: Activation, v: V) -> V {
     }
 }
 
-/// [`Activation::apply`] on 8 lanes.
-///
-/// # Safety
-/// The CPU must support AVX2 and FMA.
-#[inline]
-#[target_feature(enable = "avx2,fma")]
-pub(crate) unsafe fn apply_avx2(act: Activation, v: __m256) -> __m256 {
-    apply(act, v)
-}
-
-/// [`Activation::apply`] on 16 lanes.
-///
-/// # Safety
-/// The CPU must support AVX-512F.
-#[inline]
-#[target_feature(enable = "avx512f,avx2,fma")]
-pub(crate) unsafe fn apply_avx512(act: Activation, v: __m512) -> __m512 {
-    apply(act, v)
-}
-
 #[cfg(all(test, feature = "std"))]
 mod tests {
     use super::*;
     use crate::{Isa, IsaLevel};
+
+    /// [`Activation::apply`] on 8 lanes.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2 and FMA.
+    #[inline]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn apply_avx2(act: Activation, v: __m256) -> __m256 {
+        apply(act, v)
+    }
+
+    /// [`Activation::apply`] on 16 lanes.
+    ///
+    /// # Safety
+    /// The CPU must support AVX-512F.
+    #[inline]
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    unsafe fn apply_avx512(act: Activation, v: __m512) -> __m512 {
+        apply(act, v)
+    }
 
     const ACTS: [Activation; 4] = [
         Activation::Identity,

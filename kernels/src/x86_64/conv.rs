@@ -5,7 +5,7 @@
 //! output pixels in one image row whose inputs are evenly spaced and which use the same taps.
 //! - `Down` (stride 2): a row is a whole output row; consecutive outputs read input pixels two
 //!   apart, and for one `ky` the taps `kx` and the input channels form one contiguous run in both
-//!   the input (`kx * C + ic`) and the packed weights (`(kx * C + ic) * oc_stride`).
+//!   the input (`kx * C + ic`) and the packed weights (`(kx * C + ic) * OC_ALIGN` in a panel).
 //! - `Up` (transposed, computed by gathering): a row is one stride phase (even or odd `ox`) of an
 //!   output row; consecutive outputs read consecutive input pixels, and only the taps of that
 //!   phase apply (the inserted zeros are never multiplied).
@@ -22,8 +22,9 @@
 //! image horizontally read the zero border; rows of taps outside the image are skipped.
 
 use super::act::{self, Simd};
-use crate::{scalar, Activation, ConvKind, ConvShape, IsaLevel};
+use crate::{scalar, Activation, ConvKind, ConvShape, IsaLevel, OC_ALIGN};
 use core::arch::x86_64::{__m256, __m512};
+use core::ops::Range;
 
 /// The most segments one row can have: `k * k` for `Down`, `ceil(k / 2)^2` for `Up`.
 const MAX_SEGS: usize = 128;
@@ -38,12 +39,12 @@ const SMALL_ACC: usize = 12;
 /// The most output pixels of a tile.
 const MAX_TILE: usize = 12;
 
-/// A run of `len` consecutive input floats times `len` weight rows `oc_stride` apart.
+/// A run of `len` consecutive input floats times `len` weight rows `OC_ALIGN` apart.
 #[derive(Clone, Copy, Default)]
 struct Seg {
     /// Floats from the row's input base (pixel 0, channel 0) to the first input value.
     input: isize,
-    /// Floats from the start of the packed weights to the first weight row.
+    /// Floats from the start of a panel of packed weights to the first weight row.
     weight: usize,
     len: usize,
 }
@@ -62,34 +63,40 @@ struct Row<'a> {
 /// One block of output channels: `NV` vectors from channel `first`, of which `valid` are real.
 #[derive(Clone, Copy)]
 struct Block<V, const NV: usize> {
-    /// The packed weights advanced to channel `first`.
-    weights: *const f32,
+    /// For each vector, its channels' lane in their panel of the packed weights.
+    weights: [*const f32; NV],
     bias: [V; NV],
     /// Channel offset within an output pixel.
     first: usize,
     valid: usize,
 }
 
-pub(crate) fn conv(
+/// See [`crate::conv_channels`].
+///
+/// # Safety
+/// As for [`crate::conv_channels`]; `level` must come from an `Isa`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) unsafe fn conv(
     level: IsaLevel,
     shape: &ConvShape,
     input: &[f32],
     weights: &[f32],
     bias: &[f32],
     act: Activation,
-    output: &mut [f32],
+    output: *mut f32,
+    channels: Range<usize>,
 ) {
     if shape.kernel * shape.kernel > MAX_SEGS {
-        return scalar::conv(shape, input, weights, bias, act, output);
+        return scalar::conv_channels(shape, input, weights, bias, act, output, channels);
     }
     match level {
         // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and FMA;
-        // `crate::conv` checked the buffer lengths against `shape`.
-        IsaLevel::Avx512 => unsafe { conv_avx512(shape, input, weights, bias, act, output) },
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA; `crate::conv`
-        // checked the buffer lengths against `shape`.
-        IsaLevel::Avx2 => unsafe { conv_avx2(shape, input, weights, bias, act, output) },
-        IsaLevel::Scalar => scalar::conv(shape, input, weights, bias, act, output),
+        // `crate::conv_channels` checked the buffer lengths against `shape`.
+        IsaLevel::Avx512 => conv_avx512(shape, input, weights, bias, act, output, channels),
+        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA;
+        // `crate::conv_channels` checked the buffer lengths against `shape`.
+        IsaLevel::Avx2 => conv_avx2(shape, input, weights, bias, act, output, channels),
+        IsaLevel::Scalar => scalar::conv_channels(shape, input, weights, bias, act, output, channels),
     }
 }
 
@@ -100,15 +107,17 @@ macro_rules! entry {
         #[doc = concat!("The CPU must have ", $features, ", and the buffers must match `shape` (see `crate::conv`).")]
         $(#[$attr])*
         #[target_feature(enable = $features)]
+        #[allow(clippy::too_many_arguments)]
         unsafe fn $name(
             shape: &ConvShape,
             input: &[f32],
             weights: &[f32],
             bias: &[f32],
             act: Activation,
-            output: &mut [f32],
+            output: *mut f32,
+            channels: Range<usize>,
         ) {
-            body::<$vector>(shape, input, weights, bias, act, output)
+            body::<$vector>(shape, input, weights, bias, act, output, channels)
         }
     };
 }
@@ -135,10 +144,12 @@ unsafe fn body<V: Simd>(
     weights: &[f32],
     bias: &[f32],
     act: Activation,
-    output: &mut [f32],
+    output: *mut f32,
+    channels: Range<usize>,
 ) {
     let (c, oc) = (shape.input.channels, shape.output.channels);
-    if oc <= SMALL_OC && c % V::LANES == 0 && oc * shape.kernel * shape.kernel * c <= SMALL_WEIGHTS {
+    let all = channels == (0..oc);
+    if all && oc <= SMALL_OC && c % V::LANES == 0 && oc * shape.kernel * shape.kernel * c <= SMALL_WEIGHTS {
         return match oc {
             1 => small::<V, 1>(shape, input, weights, bias, act, output),
             2 => small::<V, 2>(shape, input, weights, bias, act, output),
@@ -146,17 +157,17 @@ unsafe fn body<V: Simd>(
             _ => small::<V, 4>(shape, input, weights, bias, act, output),
         };
     }
-    let mut first = 0;
-    while first < oc {
-        let left = oc - first;
-        // Two vectors while more than one is needed: the packed weights are padded to 16
-        // channels, so the second vector's weights exist whenever `left > LANES`.
+    let mut first = channels.start;
+    while first < channels.end {
+        let left = channels.end - first;
+        // Two vectors while more than one is needed: the packed weights are padded to whole
+        // panels, so the second vector's weights exist whenever `left > LANES`.
         if left > V::LANES {
-            let block = block::<V, 2>(weights, bias, first, left);
+            let block = block::<V, 2>(shape, weights, bias, first, left);
             passes(shape, input, output, &block, act);
             first += 2 * V::LANES;
         } else {
-            let block = block::<V, 1>(weights, bias, first, left);
+            let block = block::<V, 1>(shape, weights, bias, first, left);
             passes(shape, input, output, &block, act);
             first += V::LANES;
         }
@@ -167,7 +178,7 @@ unsafe fn body<V: Simd>(
 unsafe fn passes<V: Simd, const NV: usize>(
     shape: &ConvShape,
     input: &[f32],
-    output: &mut [f32],
+    output: *mut f32,
     block: &Block<V, NV>,
     act: Activation,
 ) {
@@ -185,18 +196,7 @@ unsafe fn passes<V: Simd, const NV: usize>(
             start: i == 0,
             finish: i + 1 == passes,
         };
-        for_rows(
-            shape,
-            input,
-            output,
-            pass,
-            &Blocked {
-                block,
-                pass,
-                ocs: shape.oc_stride(),
-                act,
-            },
-        );
+        for_rows(shape, input, output, pass, &Blocked { block, pass, act });
         first = end;
     }
 }
@@ -222,16 +222,22 @@ unsafe fn store_n<V: Simd>(v: V, p: *mut f32, n: usize) {
 }
 
 #[inline(always)]
-unsafe fn block<V: Simd, const NV: usize>(weights: &[f32], bias: &[f32], first: usize, left: usize) -> Block<V, NV> {
+unsafe fn block<V: Simd, const NV: usize>(
+    shape: &ConvShape,
+    weights: &[f32],
+    bias: &[f32],
+    first: usize,
+    left: usize,
+) -> Block<V, NV> {
     let mut b = [V::splat(0.0); NV];
-    for (v, b) in b.iter_mut().enumerate() {
-        *b = load_n(
-            bias.as_ptr().add(first + v * V::LANES),
-            left.saturating_sub(v * V::LANES),
-        );
+    let mut w = [weights.as_ptr(); NV];
+    for (v, (b, w)) in b.iter_mut().zip(&mut w).enumerate() {
+        let channel = first + v * V::LANES;
+        *b = load_n(bias.as_ptr().add(channel), left.saturating_sub(v * V::LANES));
+        *w = w.add(shape.packed_index(0, 0, 0, channel));
     }
     Block {
-        weights: weights.as_ptr().add(first),
+        weights: w,
         bias: b,
         first,
         valid: left.min(NV * V::LANES),
@@ -241,17 +247,17 @@ unsafe fn block<V: Simd, const NV: usize>(weights: &[f32], bias: &[f32], first: 
 /// Runs `f` over every row of the output for the input channels of `pass` (see the module
 /// comment).
 #[inline(always)]
-unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: &mut [f32], pass: Pass, f: &impl RowKernel) {
+unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, pass: Pass, f: &impl RowKernel) {
     let (k, ip, op) = (shape.kernel, shape.input, shape.output);
     let pad = k / 2;
-    let (c, ocs) = (ip.channels, shape.oc_stride());
+    let c = ip.channels;
     let in0 = input.as_ptr().add(ip.index(0, 0));
     let irs = ip.row_stride() as isize;
     let mut segs = [Seg::default(); MAX_SEGS];
     // Tap (`ky`, `kx`) of input row `iy` for pixel steps `dx` from the row's input base.
     let seg = |ky: usize, iy: isize, kx: usize, dx: isize, len: usize| Seg {
         input: iy * irs + dx * c as isize + pass.first as isize,
-        weight: ((ky * k + kx) * c + pass.first) * ocs,
+        weight: ((ky * k + kx) * c + pass.first) * OC_ALIGN,
         len,
     };
     for oy in 0..op.height {
@@ -289,7 +295,7 @@ unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: &mut [f32], pass: P
                 segs: &segs[..n],
                 input: in0,
                 in_step,
-                output: output.as_mut_ptr().add(op.index(oy, px)),
+                output: output.add(op.index(oy, px)),
                 out_step,
                 count,
             });
@@ -307,26 +313,19 @@ trait RowKernel {
 struct Blocked<'a, V, const NV: usize> {
     block: &'a Block<V, NV>,
     pass: Pass,
-    ocs: usize,
     act: Activation,
 }
 
 impl<V: Simd, const NV: usize> RowKernel for Blocked<'_, V, NV> {
     #[inline(always)]
     unsafe fn run(&self, row: &Row<'_>) {
-        run_row(row, self.block, self.pass, self.ocs, self.act)
+        run_row(row, self.block, self.pass, self.act)
     }
 }
 
 /// Cuts a row into tiles of nearly equal size, at most `MAX_TILE / NV` pixels each.
 #[inline(always)]
-unsafe fn run_row<V: Simd, const NV: usize>(
-    row: &Row<'_>,
-    block: &Block<V, NV>,
-    pass: Pass,
-    ocs: usize,
-    act: Activation,
-) {
+unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Block<V, NV>, pass: Pass, act: Activation) {
     let max = MAX_TILE / NV;
     let tiles = row.count.div_ceil(max);
     let mut start = 0;
@@ -335,7 +334,7 @@ unsafe fn run_row<V: Simd, const NV: usize>(
         macro_rules! tile_of {
             ($($t:literal)+) => {
                 match end - start {
-                    $($t => tile::<V, $t, NV>(row, start, block, pass, ocs, act),)+
+                    $($t => tile::<V, $t, NV>(row, start, block, pass, act),)+
                     _ => unreachable!(),
                 }
             };
@@ -356,7 +355,6 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
     first: usize,
     block: &Block<V, NV>,
     pass: Pass,
-    ocs: usize,
     act: Activation,
 ) {
     let out = row.output.add(first * row.out_step + block.first);
@@ -373,11 +371,11 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
     let step = row.in_step;
     for seg in row.segs {
         let mut x = input.offset(seg.input);
-        let mut w = block.weights.add(seg.weight);
+        let mut w = seg.weight;
         for _ in 0..seg.len {
             let mut wv = [V::splat(0.0); NV];
-            for (v, wv) in wv.iter_mut().enumerate() {
-                *wv = V::load(w.add(v * V::LANES));
+            for (wv, panel) in wv.iter_mut().zip(&block.weights) {
+                *wv = V::load(panel.add(w));
             }
             for (t, acc) in acc.iter_mut().enumerate() {
                 let b = V::splat(*x.add(t * step));
@@ -386,7 +384,7 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
                 }
             }
             x = x.add(1);
-            w = w.add(ocs);
+            w += OC_ALIGN;
         }
     }
     for (t, acc) in acc.iter().enumerate() {
@@ -409,11 +407,12 @@ unsafe fn small<V: Simd, const OCN: usize>(
     weights: &[f32],
     bias: &[f32],
     act: Activation,
-    output: &mut [f32],
+    output: *mut f32,
 ) {
-    let (ocs, rows) = (shape.oc_stride(), shape.kernel * shape.kernel * shape.input.channels);
+    // At most `SMALL_OC` channels: the weights are one panel, a row per (tap, input channel).
+    let rows = shape.kernel * shape.kernel * shape.input.channels;
     let mut wt = [0.0f32; SMALL_WEIGHTS];
-    for (r, w) in weights.chunks_exact(ocs).enumerate() {
+    for (r, w) in weights.chunks_exact(OC_ALIGN).enumerate() {
         for (o, &w) in w[..OCN].iter().enumerate() {
             wt[o * rows + r] = w;
         }
@@ -430,7 +429,6 @@ unsafe fn small<V: Simd, const OCN: usize>(
         weights: wt.as_ptr(),
         rows,
         bias: b,
-        ocs,
         act,
         lanes: core::marker::PhantomData,
     };
@@ -442,7 +440,6 @@ struct Small<V, const OCN: usize> {
     weights: *const f32,
     rows: usize,
     bias: [f32; OCN],
-    ocs: usize,
     act: Activation,
     lanes: core::marker::PhantomData<V>,
 }
@@ -479,7 +476,7 @@ impl<V: Simd, const OCN: usize> Small<V, OCN> {
         let input = row.input.add(first * row.in_step);
         for seg in row.segs {
             let x = input.offset(seg.input);
-            let w = self.weights.add(seg.weight / self.ocs);
+            let w = self.weights.add(seg.weight / OC_ALIGN);
             // `seg.len` is a multiple of the lanes: input channels are.
             for i in (0..seg.len).step_by(V::LANES) {
                 let mut wv = [V::splat(0.0); OCN];
