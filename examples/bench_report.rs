@@ -1,13 +1,14 @@
-//! Times encode, generate and one transition step on one thread and prints one
+//! Times encode, generate and one transition step and prints one
 //! machine-readable line per measurement (read by `weights/compare.py`), plus the FMA peak
 //! of this core per vector width.
 //!
 //! ```text
 //! cargo run --release --example bench_report -- [--weights FILE | --z N] [--dtype f32|f16]
-//!     [--batch 1,16] [--seconds S]
+//!     [--batch 1,16] [--threads 1,2] [--seconds S]
 //! ```
 //! Lines: `isa level=avx2`, `peak width=256 gflops=…`, and
 //! `result network=encode batch=1 threads=1 median_ms=… gflop=…` (GFLOP per call, all taps).
+//! `--threads N` plans the simulator with `Simulator::with_threads(N)`.
 
 #[path = "../benches/common/mod.rs"]
 mod common;
@@ -45,6 +46,11 @@ fn main() {
         .split(',')
         .map(|b| b.parse().expect("--batch: comma-separated integers"))
         .collect();
+    let thread_counts: Vec<usize> = arg(&args, "--threads")
+        .unwrap_or("1")
+        .split(',')
+        .map(|t| t.parse().expect("--threads: comma-separated integers"))
+        .collect();
     let budget = Duration::from_secs_f64(arg(&args, "--seconds").map_or(2.0, |s| s.parse().expect("--seconds")));
     let dtype = match arg(&args, "--dtype").unwrap_or("f32") {
         "f16" => WeightDtype::F16,
@@ -63,8 +69,10 @@ fn main() {
     for (width, gflops) in fma_peak() {
         println!("peak width={width} gflops={gflops:.2}");
     }
-    for &batch in &batches {
-        let mut sim = Simulator::with_batch(&model, batch);
+    for (&threads, &batch) in thread_counts.iter().flat_map(|t| batches.iter().map(move |b| (t, b))) {
+        let mut sim = Simulator::with_batch(&model, batch)
+            .with_threads(threads)
+            .expect("threads start");
         let frames = values(1, batch * cfg.frame_len(), 1.0);
         let codes = values(2, batch * cfg.z_dim, 1.0);
         let actions = values(3, batch * cfg.action_dim, 1.0);
@@ -91,7 +99,7 @@ fn main() {
                 ),
             };
             let gflop = (batch as u64 * flops) as f64 / 1e9;
-            println!("result network={network} batch={batch} threads=1 median_ms={ms:.4} gflop={gflop:.6}");
+            println!("result network={network} batch={batch} threads={threads} median_ms={ms:.4} gflop={gflop:.6}");
         }
     }
 }

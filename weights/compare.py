@@ -5,13 +5,15 @@
 Builds the comma config with seeded random weights, writes them as a drivesim safetensors
 file and as ONNX graphs with a dynamic batch (encoder mean head, generator, transition step),
 times ONNX Runtime and PyTorch eager with their intra-op threads pinned to each --threads
-value, runs drivesim's `examples/bench_report` (one thread) on the same weights file, and
+value, runs drivesim's `examples/bench_report` with the same thread counts on the same weights
+file, and
 prints the CPU, the FMA peak per vector width and a markdown table of median times.
 
 FLOPs count every kernel tap (`benches/common/mod.rs`): about 1.04 GFLOP per frame for the
 encoder and the generator at the comma config. "of peak" is GFLOP/s over the measured
 single-core FMA peak of the widest vector times the thread count. "peer/drivesim" is the
-peer's median time over drivesim's (above 1: drivesim is faster).
+peer's median time over drivesim's at the same batch and thread count (above 1: drivesim is
+faster).
 """
 
 from __future__ import annotations
@@ -144,11 +146,12 @@ def time_torch(model, cfg, batches, threads, seconds):
     return rows
 
 
-def time_drivesim(weights: Path, batches, seconds):
+def time_drivesim(weights: Path, batches, threads, seconds):
     """Runs the bench_report example; returns (rows, gflop per (net, batch), isa, peaks)."""
     cmd = [
         "cargo", "run", "--quiet", "--release", "--example", "bench_report", "--",
-        "--weights", str(weights), "--batch", ",".join(map(str, batches)), "--seconds", str(seconds),
+        "--weights", str(weights), "--batch", ",".join(map(str, batches)),
+        "--threads", ",".join(map(str, threads)), "--seconds", str(seconds),
     ]
     print("$", " ".join(cmd), file=sys.stderr)
     text = subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, text=True).stdout
@@ -197,7 +200,7 @@ def main() -> int:
     save_drivesim(model, cfg, weights)
     paths = export_onnx(model, cfg, out)
 
-    ds_rows, gflop, isa, peaks = time_drivesim(weights, batches, a.seconds)
+    ds_rows, gflop, isa, peaks = time_drivesim(weights, batches, threads, a.seconds)
     rows = ds_rows + time_ort(paths, cfg, batches, threads, a.seconds) + time_torch(model, cfg, batches, threads, a.seconds)
 
     import onnxruntime
@@ -208,7 +211,7 @@ def main() -> int:
     print("FMA peak, one core: " + ", ".join(f"{w}-bit {g:.1f} GFLOP/s" for w, g in sorted(peaks.items())))
     print(f"config: comma 80x160, b=64, z=hidden={a.z}; f32 weights; seed {a.seed}\n")
     peak = max(peaks.values()) if peaks else float("nan")
-    ds = {(net, b): ms for (_, net, b, _, ms) in ds_rows}
+    ds = {(net, b, t): ms for (_, net, b, t, ms) in ds_rows}
     print("| network | batch | runtime | threads | median ms | GFLOP/s | of peak | peer/drivesim |")
     print("|---|---:|---|---:|---:|---:|---:|---:|")
     for net in NETWORKS:
@@ -217,7 +220,7 @@ def main() -> int:
                 if n != net or bb != b:
                     continue
                 gf = gflop.get((net, b), float("nan")) / (ms / 1e3)
-                ratio = "" if rt == "drivesim" else f"{ms / ds[(net, b)]:.2f}"
+                ratio = "" if rt == "drivesim" else f"{ms / ds[(net, b, t)]:.2f}"
                 print(f"| {net} | {b} | {rt} | {t} | {ms:.3f} | {gf:.1f} | {gf / (peak * t):.0%} | {ratio} |")
     return 0
 

@@ -167,12 +167,20 @@ unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize
     len: usize,
 ) -> [[f32; B]; R] {
     let mut acc = [[[S::splat(0.0); U]; B]; R];
+    // Long rows prefetch further along the same row; short rows (a tall, narrow matrix such as
+    // the generator's fc) would run off its end, so they prefetch the next block of rows.
+    let row_bytes = ldw * core::mem::size_of::<T>();
+    let ahead = if row_bytes >= 4 * PREFETCH {
+        PREFETCH
+    } else {
+        R * row_bytes
+    };
     let mut k = 0;
     while k + U * S::LANES <= len {
         // Only a single input streams the weights from memory; batch tiles reuse them from L1.
         if B == 1 {
             for r in 0..R {
-                _mm_prefetch::<_MM_HINT_T0>(w.add(r * ldw + k).cast::<i8>().wrapping_add(PREFETCH));
+                _mm_prefetch::<_MM_HINT_T0>(w.add(r * ldw + k).cast::<i8>().wrapping_add(ahead));
             }
         }
         for u in 0..U {
@@ -218,12 +226,13 @@ unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize
 }
 
 /// Adds the dot products of rows `r0 .. r0 + R` with every input over the columns
-/// `k0 .. k0 + len` into `y` (or writes them plus the bias when `first`).
+/// `k0 .. k0 + len` into `y` (or writes them plus the bias when `first`). The tile's rows are
+/// `r0, r0 + step, r0 + 2 * step, ...`.
 #[inline(always)]
 unsafe fn row_block<S: Dot, T: Weight, const R: usize, const BT: usize>(
     w: &[T],
     cols: usize,
-    (r0, k0, len): (usize, usize, usize),
+    (r0, step, k0, len): (usize, usize, usize, usize),
     bias: &[f32],
     x: &[f32],
     y: &mut [f32],
@@ -232,36 +241,43 @@ unsafe fn row_block<S: Dot, T: Weight, const R: usize, const BT: usize>(
     let rows = bias.len();
     let batch = x.len() / cols;
     let wp = w.as_ptr().add(r0 * cols + k0);
+    let ldw = step * cols;
     let mut emit = |n0: usize, sums: &[f32], nb: usize| {
         for r in 0..R {
+            let row = r0 + r * step;
             for b in 0..nb {
-                let out = &mut y[(n0 + b) * rows + r0 + r];
+                let out = &mut y[(n0 + b) * rows + row];
                 let s = sums[r * nb + b];
-                *out = if first { s + bias[r0 + r] } else { *out + s };
+                *out = if first { s + bias[row] } else { *out + s };
             }
         }
     };
     let xp = |n0: usize| x.as_ptr().add(n0 * cols + k0);
     let mut n0 = 0;
     if batch == 1 {
-        let s = tile::<S, T, R, 1, 2>(wp, cols, xp(0), cols, len);
+        let s = tile::<S, T, R, 1, 2>(wp, ldw, xp(0), cols, len);
         emit(0, s.as_flattened(), 1);
         return;
     }
     while n0 + BT <= batch {
-        let s = tile::<S, T, R, BT, 1>(wp, cols, xp(n0), cols, len);
+        let s = tile::<S, T, R, BT, 1>(wp, ldw, xp(n0), cols, len);
         emit(n0, s.as_flattened(), BT);
         n0 += BT;
     }
     match batch - n0 {
         0 => {}
-        1 => emit(n0, tile::<S, T, R, 1, 1>(wp, cols, xp(n0), cols, len).as_flattened(), 1),
-        2 => emit(n0, tile::<S, T, R, 2, 1>(wp, cols, xp(n0), cols, len).as_flattened(), 2),
-        _ => emit(n0, tile::<S, T, R, 3, 1>(wp, cols, xp(n0), cols, len).as_flattened(), 3),
+        1 => emit(n0, tile::<S, T, R, 1, 1>(wp, ldw, xp(n0), cols, len).as_flattened(), 1),
+        2 => emit(n0, tile::<S, T, R, 2, 1>(wp, ldw, xp(n0), cols, len).as_flattened(), 2),
+        _ => emit(n0, tile::<S, T, R, 3, 1>(wp, ldw, xp(n0), cols, len).as_flattened(), 3),
     }
 }
 
 /// Every row block over the columns `k0 .. k0 + len`: `R` rows at a time, then one at a time.
+///
+/// With `spread`, a block's rows are `rows / R` apart instead of adjacent, so that the weights
+/// stream from memory as `R` long sequential runs even when rows are short (the generator's
+/// 25600 x 512 fc): adjacent short rows would restart the prefetchers every few cache lines.
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 unsafe fn row_blocks<S: Dot, T: Weight, const R: usize, const BT: usize>(
     w: &[T],
@@ -271,15 +287,17 @@ unsafe fn row_blocks<S: Dot, T: Weight, const R: usize, const BT: usize>(
     bias: &[f32],
     x: &[f32],
     y: &mut [f32],
+    spread: bool,
 ) {
-    let mut r0 = 0;
-    while r0 + R <= rows {
-        row_block::<S, T, R, BT>(w, cols, (r0, k0, len), bias, x, y, k0 == 0);
-        r0 += R;
+    let first = k0 == 0;
+    let blocks = rows / R;
+    let (count, step) = if spread { (blocks, blocks) } else { (blocks, R) };
+    for i in 0..count {
+        let (r0, row_step) = if spread { (i, step) } else { (i * step, 1) };
+        row_block::<S, T, R, BT>(w, cols, (r0, row_step, k0, len), bias, x, y, first);
     }
-    while r0 < rows {
-        row_block::<S, T, 1, BT>(w, cols, (r0, k0, len), bias, x, y, k0 == 0);
-        r0 += 1;
+    for r0 in blocks * R..rows {
+        row_block::<S, T, 1, BT>(w, cols, (r0, 1, k0, len), bias, x, y, first);
     }
 }
 
@@ -304,9 +322,9 @@ unsafe fn dense_body<S: Dot, T: Weight, const RT: usize, const BT: usize>(w: &[T
     while k0 < cols {
         let len = panel.min(cols - k0);
         if batch == 1 {
-            row_blocks::<S, T, ROWS, BT>(w, rows, cols, (k0, len), bias, x, y);
+            row_blocks::<S, T, ROWS, BT>(w, rows, cols, (k0, len), bias, x, y, true);
         } else {
-            row_blocks::<S, T, RT, BT>(w, rows, cols, (k0, len), bias, x, y);
+            row_blocks::<S, T, RT, BT>(w, rows, cols, (k0, len), bias, x, y, false);
         }
         k0 += len;
     }
