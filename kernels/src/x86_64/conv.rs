@@ -10,10 +10,8 @@
 //!   output row; consecutive outputs read consecutive input pixels, and only the taps of that
 //!   phase apply (the inserted zeros are never multiplied).
 //!
-//! Deep layers are computed in *passes* over chunks of input channels, small enough that the
-//! weights of one chunk and one block of output channels stay in the L1 cache while every output
-//! pixel uses them; the partial sums wait in the output buffer between passes, and the last pass
-//! applies the activation.
+//! The packed weights of one block of output channels are one contiguous panel, so they stream
+//! from L2 while every output pixel of the layer uses them.
 //!
 //! Each row is a list of *segments* (an input offset, a weight offset and a length in channels)
 //! and the microkernel computes a tile of `T` pixels of a row times `NV` vectors of output
@@ -28,8 +26,6 @@ use core::ops::Range;
 
 /// The most segments one row can have: `k * k` for `Down`, `ceil(k / 2)^2` for `Up`.
 const MAX_SEGS: usize = 128;
-/// Bytes of weights one pass over the output may use, so that they stay in the L1 cache.
-const WEIGHT_BUDGET: usize = 24 * 1024;
 /// Layers with at most this many output channels vectorise over input channels instead (see
 /// [`small`]), when their weights fit in `SMALL_WEIGHTS` floats.
 const SMALL_OC: usize = 4;
@@ -125,18 +121,7 @@ macro_rules! entry {
 entry!(conv_avx2, "avx2,fma", __m256);
 entry!(conv_avx512, "avx512f,avx2,fma", __m512);
 
-/// One pass over the output: input channels `first..first + len` of a block of output channels.
-#[derive(Clone, Copy)]
-struct Pass {
-    first: usize,
-    len: usize,
-    /// Starts from the bias (else from the partial sums in the output).
-    start: bool,
-    /// Applies the activation (else stores partial sums).
-    finish: bool,
-}
-
-/// Walks the output channel blocks, and within each the passes over input channel chunks.
+/// Walks the blocks of output channels.
 #[inline(always)]
 unsafe fn body<V: Simd>(
     shape: &ConvShape,
@@ -164,40 +149,13 @@ unsafe fn body<V: Simd>(
         // panels, so the second vector's weights exist whenever `left > LANES`.
         if left > V::LANES {
             let block = block::<V, 2>(shape, weights, bias, first, left);
-            passes(shape, input, output, &block, act);
+            for_rows(shape, input, output, &Blocked { block: &block, act });
             first += 2 * V::LANES;
         } else {
             let block = block::<V, 1>(shape, weights, bias, first, left);
-            passes(shape, input, output, &block, act);
+            for_rows(shape, input, output, &Blocked { block: &block, act });
             first += V::LANES;
         }
-    }
-}
-
-#[inline(always)]
-unsafe fn passes<V: Simd, const NV: usize>(
-    shape: &ConvShape,
-    input: &[f32],
-    output: *mut f32,
-    block: &Block<V, NV>,
-    act: Activation,
-) {
-    let c = shape.input.channels;
-    let per_channel = shape.kernel * shape.kernel * NV * V::LANES * core::mem::size_of::<f32>();
-    let chunk = (WEIGHT_BUDGET / per_channel).max(1);
-    // Equal chunks: as few passes as the budget allows.
-    let passes = c.div_ceil(chunk);
-    let mut first = 0;
-    for i in 0..passes {
-        let end = c * (i + 1) / passes;
-        let pass = Pass {
-            first,
-            len: end - first,
-            start: i == 0,
-            finish: i + 1 == passes,
-        };
-        for_rows(shape, input, output, pass, &Blocked { block, pass, act });
-        first = end;
     }
 }
 
@@ -244,10 +202,9 @@ unsafe fn block<V: Simd, const NV: usize>(
     }
 }
 
-/// Runs `f` over every row of the output for the input channels of `pass` (see the module
-/// comment).
+/// Runs `f` over every row of the output (see the module comment).
 #[inline(always)]
-unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, pass: Pass, f: &impl RowKernel) {
+unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, f: &impl RowKernel) {
     let (k, ip, op) = (shape.kernel, shape.input, shape.output);
     let pad = k / 2;
     let c = ip.channels;
@@ -256,8 +213,8 @@ unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, pass: Pas
     let mut segs = [Seg::default(); MAX_SEGS];
     // Tap (`ky`, `kx`) of input row `iy` for pixel steps `dx` from the row's input base.
     let seg = |ky: usize, iy: isize, kx: usize, dx: isize, len: usize| Seg {
-        input: iy * irs + dx * c as isize + pass.first as isize,
-        weight: ((ky * k + kx) * c + pass.first) * OC_ALIGN,
+        input: iy * irs + dx * c as isize,
+        weight: (ky * k + kx) * c * OC_ALIGN,
         len,
     };
     for oy in 0..op.height {
@@ -271,21 +228,15 @@ unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, pass: Pas
             let mut n = 0;
             for (ky, iy) in rows.clone() {
                 match shape.kind {
-                    // All channels: the taps of one `ky` are one contiguous run.
-                    ConvKind::Down if pass.len == c => {
+                    // The taps of one `ky` and all their channels are one contiguous run.
+                    ConvKind::Down => {
                         segs[n] = seg(ky, iy, 0, -(pad as isize), k * c);
                         n += 1;
-                    }
-                    ConvKind::Down => {
-                        for kx in 0..k {
-                            segs[n] = seg(ky, iy, kx, kx as isize - pad as isize, pass.len);
-                            n += 1;
-                        }
                     }
                     // Output 2j + px reads input j + (px + pad - kx) / 2 for even differences.
                     ConvKind::Up => {
                         for kx in (0..k).filter(|kx| kx % 2 == (px + pad) % 2) {
-                            segs[n] = seg(ky, iy, kx, ((px + pad) as isize - kx as isize) / 2, pass.len);
+                            segs[n] = seg(ky, iy, kx, ((px + pad) as isize - kx as isize) / 2, c);
                             n += 1;
                         }
                     }
@@ -312,20 +263,19 @@ trait RowKernel {
 /// One pass of a block of output channels (the path of every layer but the narrowest).
 struct Blocked<'a, V, const NV: usize> {
     block: &'a Block<V, NV>,
-    pass: Pass,
     act: Activation,
 }
 
 impl<V: Simd, const NV: usize> RowKernel for Blocked<'_, V, NV> {
     #[inline(always)]
     unsafe fn run(&self, row: &Row<'_>) {
-        run_row(row, self.block, self.pass, self.act)
+        run_row(row, self.block, self.act)
     }
 }
 
 /// Cuts a row into tiles of nearly equal size, at most `MAX_TILE / NV` pixels each.
 #[inline(always)]
-unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Block<V, NV>, pass: Pass, act: Activation) {
+unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Block<V, NV>, act: Activation) {
     let max = MAX_TILE / NV;
     let tiles = row.count.div_ceil(max);
     let mut start = 0;
@@ -334,7 +284,7 @@ unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Block<V, NV>,
         macro_rules! tile_of {
             ($($t:literal)+) => {
                 match end - start {
-                    $($t => tile::<V, $t, NV>(row, start, block, pass, act),)+
+                    $($t => tile::<V, $t, NV>(row, start, block, act),)+
                     _ => unreachable!(),
                 }
             };
@@ -354,19 +304,10 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
     row: &Row<'_>,
     first: usize,
     block: &Block<V, NV>,
-    pass: Pass,
     act: Activation,
 ) {
     let out = row.output.add(first * row.out_step + block.first);
     let mut acc = [block.bias; T];
-    if !pass.start {
-        for (t, acc) in acc.iter_mut().enumerate() {
-            for (v, a) in acc.iter_mut().enumerate() {
-                let n = block.valid.saturating_sub(v * V::LANES);
-                *a = load_n(out.add(t * row.out_step + v * V::LANES), n);
-            }
-        }
-    }
     let input = row.input.add(first * row.in_step);
     let step = row.in_step;
     for seg in row.segs {
@@ -389,9 +330,8 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
     }
     for (t, acc) in acc.iter().enumerate() {
         for (v, &a) in acc.iter().enumerate() {
-            let y = if pass.finish { act::apply(act, a) } else { a };
             let n = block.valid.saturating_sub(v * V::LANES);
-            store_n(y, out.add(t * row.out_step + v * V::LANES), n);
+            store_n(act::apply(act, a), out.add(t * row.out_step + v * V::LANES), n);
         }
     }
 }
@@ -419,12 +359,6 @@ unsafe fn small<V: Simd, const OCN: usize>(
     }
     let mut b = [0.0; OCN];
     b.copy_from_slice(bias);
-    let pass = Pass {
-        first: 0,
-        len: shape.input.channels,
-        start: true,
-        finish: true,
-    };
     let f = Small::<V, OCN> {
         weights: wt.as_ptr(),
         rows,
@@ -432,7 +366,7 @@ unsafe fn small<V: Simd, const OCN: usize>(
         act,
         lanes: core::marker::PhantomData,
     };
-    for_rows(shape, input, output, pass, &f);
+    for_rows(shape, input, output, &f);
 }
 
 struct Small<V, const OCN: usize> {
