@@ -146,10 +146,11 @@ def time_torch(model, cfg, batches, threads, seconds):
     return rows
 
 
-def time_drivesim(weights: Path, batches, threads, seconds):
-    """Runs the bench_report example; returns (rows, gflop per (net, batch), isa, peaks)."""
-    cmd = [
-        "cargo", "run", "--quiet", "--release", "--example", "bench_report", "--",
+def time_drivesim(weights: Path, batches, threads, seconds, binary: Path | None):
+    """Runs the bench_report example (built by cargo, or a prebuilt `binary` on a machine
+    without Rust); returns (rows, gflop per (net, batch), isa, peaks)."""
+    run = [str(binary)] if binary else ["cargo", "run", "--quiet", "--release", "--example", "bench_report", "--"]
+    cmd = run + [
         "--weights", str(weights), "--batch", ",".join(map(str, batches)),
         "--threads", ",".join(map(str, threads)), "--seconds", str(seconds),
     ]
@@ -188,6 +189,7 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=2.0, help="time budget per measurement")
     p.add_argument("--seed", type=int, default=2016)
     p.add_argument("--out", type=Path, help="where to write the weights and graphs (default: a temp dir)")
+    p.add_argument("--bench-report", type=Path, help="a prebuilt examples/bench_report binary to run instead of cargo")
     a = p.parse_args()
     batches = [int(b) for b in a.batch.split(",")]
     threads = [int(t) for t in a.threads.split(",")]
@@ -200,7 +202,7 @@ def main() -> int:
     save_drivesim(model, cfg, weights)
     paths = export_onnx(model, cfg, out)
 
-    ds_rows, gflop, isa, peaks = time_drivesim(weights, batches, threads, a.seconds)
+    ds_rows, gflop, isa, peaks = time_drivesim(weights, batches, threads, a.seconds, a.bench_report)
     rows = ds_rows + time_ort(paths, cfg, batches, threads, a.seconds) + time_torch(model, cfg, batches, threads, a.seconds)
 
     import onnxruntime
