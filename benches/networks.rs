@@ -9,7 +9,7 @@ mod common;
 use common::*;
 use criterion::{criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput};
 use drivesim::{Model, Simulator, WeightDtype};
-use drivesim_kernels::{conv, dense, f16, Activation, ConvShape, Isa, Matrix, MatrixData};
+use drivesim_kernels::{conv, dense, f16, Activation, ConvParams, ConvShape, Isa, Matrix, MatrixData};
 use std::hint::black_box;
 use std::time::Duration;
 
@@ -95,9 +95,13 @@ fn conv_layers(c: &mut Criterion) {
         let bias = values(6, output.channels, 0.1);
         let mut y = vec![0.0; output.len()];
         g.throughput(Throughput::Elements(conv_flops(&shape)));
-        g.bench_function(name, |b| {
-            b.iter(|| conv(isa, &shape, black_box(&x), &w, &bias, act, &mut y))
-        });
+        let layer = ConvParams {
+            shape,
+            weights: &w,
+            bias: &bias,
+            act,
+        };
+        g.bench_function(name, |b| b.iter(|| conv(isa, layer, black_box(&x), &mut y)));
     }
     g.finish();
 }

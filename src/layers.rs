@@ -6,7 +6,7 @@ use crate::Result;
 use alloc::format;
 use alloc::vec::Vec;
 use drivesim_kernels::pack::{self, BatchNorm};
-use drivesim_kernels::{f16, Activation, ConvShape, Matrix, MatrixData, OC_ALIGN};
+use drivesim_kernels::{f16, Activation, ConvParams, ConvShape, Matrix, MatrixData, OC_ALIGN};
 
 /// A convolution with its BatchNorm folded in and its activation fused.
 pub(crate) struct ConvLayer {
@@ -46,10 +46,15 @@ impl ConvLayer {
     /// reads only its share of the weights).
     pub fn run(&self, exec: Exec<'_>, input: &[f32], output: &mut [f32]) {
         let (isa, threads, channels) = (exec.isa, exec.threads(), self.shape.output.channels);
-        let (w, b) = (&self.weights, &self.bias);
+        let layer = ConvParams {
+            shape: self.shape,
+            weights: &self.weights,
+            bias: &self.bias,
+            act: self.act,
+        };
         let panels = channels.div_ceil(OC_ALIGN);
         if threads == 1 || panels < 2 {
-            return drivesim_kernels::conv(isa, &self.shape, input, w, b, self.act, output);
+            return drivesim_kernels::conv(isa, layer, input, output);
         }
         assert_eq!(output.len(), self.shape.output.len());
         let out = Disjoint::new(output);
@@ -58,9 +63,7 @@ impl ConvLayer {
             let mine = mine.start * OC_ALIGN..(mine.end * OC_ALIGN).min(channels);
             // SAFETY: `out` is the whole output plane, borrowed mutably, and the threads' channel
             // ranges are disjoint.
-            unsafe {
-                drivesim_kernels::conv_channels(isa, &self.shape, input, w, b, self.act, out.as_mut_ptr(), mine);
-            }
+            unsafe { drivesim_kernels::conv_channels(isa, layer, input, out.as_mut_ptr(), mine) }
         });
     }
 }

@@ -5,7 +5,7 @@
 //! Times are this thread's CPU time (from `/proc/thread-self/schedstat` where it exists, else
 //! wall time), so that other processes sharing the cores do not inflate them.
 
-use drivesim_kernels::{conv, Activation, ConvKind, ConvShape, Isa, Plane};
+use drivesim_kernels::{conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Plane};
 use std::time::Instant;
 
 /// Nanoseconds this thread has run on a CPU, or wall time when the kernel does not say.
@@ -68,13 +68,19 @@ fn main() {
         let weights = &*weights;
         let bias = vec![0.01; oc];
         let mut output = vec![0.0; shape.output.len()];
+        let layer = ConvParams {
+            shape,
+            weights,
+            bias: &bias,
+            act,
+        };
         let flops = 2.0 * shape.macs() as f64;
         // Calibrate to ~250 ms per measurement (the clock may tick coarsely), then take the best of 3.
         let mut reps = 1;
         loop {
             let t = now_ns(epoch);
             for _ in 0..reps {
-                conv(isa, &shape, &input, weights, &bias, act, &mut output);
+                conv(isa, layer, &input, &mut output);
             }
             if now_ns(epoch) - t > 250_000_000 {
                 break;
@@ -85,7 +91,7 @@ fn main() {
         for _ in 0..3 {
             let t = now_ns(epoch);
             for _ in 0..reps {
-                conv(isa, &shape, &input, weights, &bias, act, &mut output);
+                conv(isa, layer, &input, &mut output);
             }
             best = best.min((now_ns(epoch) - t) as f64 * 1e-9 / reps as f64);
         }

@@ -281,21 +281,23 @@ impl<'a> Matrix<'a> {
     }
 }
 
+/// A convolution layer as the kernels take it: its shape, packed weights (see [`ConvShape`]),
+/// bias and the activation fused into the store.
+#[derive(Clone, Copy, Debug)]
+pub struct ConvParams<'a> {
+    pub shape: ConvShape,
+    pub weights: &'a [f32],
+    pub bias: &'a [f32],
+    pub act: Activation,
+}
+
 /// `output = act(conv(input) + bias)` for one image: see [`ConvShape`] for the layouts.
 /// Only the interior of `output` is written; its border stays as it was (zero).
-pub fn conv(
-    isa: Isa,
-    shape: &ConvShape,
-    input: &[f32],
-    weights: &[f32],
-    bias: &[f32],
-    act: Activation,
-    output: &mut [f32],
-) {
-    assert_eq!(output.len(), shape.output.len());
-    let all = 0..shape.output.channels;
+pub fn conv(isa: Isa, layer: ConvParams<'_>, input: &[f32], output: &mut [f32]) {
+    assert_eq!(output.len(), layer.shape.output.len());
+    let all = 0..layer.shape.output.channels;
     // SAFETY: `output` holds the whole output plane and is borrowed mutably for the call.
-    unsafe { conv_channels(isa, shape, input, weights, bias, act, output.as_mut_ptr(), all) }
+    unsafe { conv_channels(isa, layer, input, output.as_mut_ptr(), all) }
 }
 
 /// [`conv`] for the output channels `channels` only, written through a pointer so that
@@ -305,29 +307,25 @@ pub fn conv(
 /// # Safety
 /// `output` must point to `shape.output.len()` floats, valid for writes, and no other thread
 /// may read or write channels `channels` of its interior during the call.
-#[allow(clippy::too_many_arguments)] // conv's arguments plus the share of the work
 pub unsafe fn conv_channels(
     isa: Isa,
-    shape: &ConvShape,
+    layer: ConvParams<'_>,
     input: &[f32],
-    weights: &[f32],
-    bias: &[f32],
-    act: Activation,
     output: *mut f32,
     channels: core::ops::Range<usize>,
 ) {
-    shape.check(input, weights, bias);
+    layer.shape.check(input, layer.weights, layer.bias);
     assert!(
         channels.start.is_multiple_of(OC_ALIGN)
             && channels.start <= channels.end
-            && channels.end <= shape.output.channels
+            && channels.end <= layer.shape.output.channels
     );
     match isa.level() {
-        IsaLevel::Scalar => scalar::conv_channels(shape, input, weights, bias, act, output, channels),
+        IsaLevel::Scalar => scalar::conv_channels(layer, input, output, channels),
         #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
-        level => x86_64::conv(level, shape, input, weights, bias, act, output, channels),
+        level => x86_64::conv(level, layer, input, output, channels),
         #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        _ => scalar::conv_channels(shape, input, weights, bias, act, output, channels),
+        _ => scalar::conv_channels(layer, input, output, channels),
     }
 }
 

@@ -1,45 +1,33 @@
 //! Reference kernels: written straight from the definitions, with explicit bounds instead of
 //! relying on the zero border, so they check the SIMD kernels' use of it too.
 
-use crate::{Activation, ConvShape, Matrix, MatrixData};
+use crate::{Activation, ConvParams, ConvShape, Matrix, MatrixData};
 use core::ops::Range;
 
 /// See [`crate::conv`].
-pub fn conv(shape: &ConvShape, input: &[f32], weights: &[f32], bias: &[f32], act: Activation, output: &mut [f32]) {
-    assert_eq!(output.len(), shape.output.len());
+pub fn conv(layer: ConvParams<'_>, input: &[f32], output: &mut [f32]) {
+    assert_eq!(output.len(), layer.shape.output.len());
     // SAFETY: `output` holds the whole output plane and is borrowed mutably for the call.
-    unsafe {
-        conv_channels(
-            shape,
-            input,
-            weights,
-            bias,
-            act,
-            output.as_mut_ptr(),
-            0..shape.output.channels,
-        )
-    }
+    unsafe { conv_channels(layer, input, output.as_mut_ptr(), 0..layer.shape.output.channels) }
 }
 
 /// See [`crate::conv_channels`].
 ///
 /// # Safety
 /// As for [`crate::conv_channels`].
-pub unsafe fn conv_channels(
-    shape: &ConvShape,
-    input: &[f32],
-    weights: &[f32],
-    bias: &[f32],
-    act: Activation,
-    output: *mut f32,
-    channels: Range<usize>,
-) {
+pub unsafe fn conv_channels(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
+    let ConvParams {
+        shape,
+        weights,
+        bias,
+        act,
+    } = layer;
     let ConvShape {
         kind,
         kernel: k,
         input: ip,
         output: op,
-    } = *shape;
+    } = shape;
     let pad = k / 2;
     for oy in 0..op.height {
         for ox in 0..op.width {

@@ -1,7 +1,7 @@
 //! The SIMD convolution kernels against the scalar reference, on awkward shapes, at every
 //! instruction-set level this CPU supports.
 
-use drivesim_kernels::{conv, scalar, Activation, ConvKind, ConvShape, Isa, IsaLevel, Plane, OC_ALIGN};
+use drivesim_kernels::{conv, scalar, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, Plane, OC_ALIGN};
 
 /// A small xorshift generator: uniform floats in [-1, 1).
 struct Rng(u64);
@@ -61,11 +61,17 @@ fn check(
     }
     let bias = rng.fill(oc);
     let mut want = vec![0.0; shape.output.len()];
-    scalar::conv(&shape, &input, &weights, &bias, act, &mut want);
+    let layer = ConvParams {
+        shape,
+        weights: &weights,
+        bias: &bias,
+        act,
+    };
+    scalar::conv(layer, &input, &mut want);
     let scale = want.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
     for &isa in levels {
         let mut got = vec![0.0; shape.output.len()];
-        conv(isa, &shape, &input, &weights, &bias, act, &mut got);
+        conv(isa, layer, &input, &mut got);
         let worst = got.iter().zip(&want).fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
         assert!(
             worst / scale <= 1e-5,

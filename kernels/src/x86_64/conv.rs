@@ -20,7 +20,7 @@
 //! image horizontally read the zero border; rows of taps outside the image are skipped.
 
 use super::act::{self, Simd};
-use crate::{scalar, Activation, ConvKind, ConvShape, IsaLevel, OC_ALIGN};
+use crate::{scalar, Activation, ConvKind, ConvParams, ConvShape, IsaLevel, OC_ALIGN};
 use core::arch::x86_64::{__m256, __m512};
 use core::ops::Range;
 
@@ -71,28 +71,24 @@ struct Block<V, const NV: usize> {
 ///
 /// # Safety
 /// As for [`crate::conv_channels`]; `level` must come from an `Isa`.
-#[allow(clippy::too_many_arguments)]
 pub(crate) unsafe fn conv(
     level: IsaLevel,
-    shape: &ConvShape,
+    layer: ConvParams<'_>,
     input: &[f32],
-    weights: &[f32],
-    bias: &[f32],
-    act: Activation,
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    if shape.kernel * shape.kernel > MAX_SEGS {
-        return scalar::conv_channels(shape, input, weights, bias, act, output, channels);
+    if layer.shape.kernel * layer.shape.kernel > MAX_SEGS {
+        return scalar::conv_channels(layer, input, output, channels);
     }
     match level {
         // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and FMA;
         // `crate::conv_channels` checked the buffer lengths against `shape`.
-        IsaLevel::Avx512 => conv_avx512(shape, input, weights, bias, act, output, channels),
+        IsaLevel::Avx512 => conv_avx512(layer, input, output, channels),
         // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA;
         // `crate::conv_channels` checked the buffer lengths against `shape`.
-        IsaLevel::Avx2 => conv_avx2(shape, input, weights, bias, act, output, channels),
-        IsaLevel::Scalar => scalar::conv_channels(shape, input, weights, bias, act, output, channels),
+        IsaLevel::Avx2 => conv_avx2(layer, input, output, channels),
+        IsaLevel::Scalar => scalar::conv_channels(layer, input, output, channels),
     }
 }
 
@@ -103,17 +99,8 @@ macro_rules! entry {
         #[doc = concat!("The CPU must have ", $features, ", and the buffers must match `shape` (see `crate::conv`).")]
         $(#[$attr])*
         #[target_feature(enable = $features)]
-        #[allow(clippy::too_many_arguments)]
-        unsafe fn $name(
-            shape: &ConvShape,
-            input: &[f32],
-            weights: &[f32],
-            bias: &[f32],
-            act: Activation,
-            output: *mut f32,
-            channels: Range<usize>,
-        ) {
-            body::<$vector>(shape, input, weights, bias, act, output, channels)
+        unsafe fn $name(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
+            body::<$vector>(layer, input, output, channels)
         }
     };
 }
@@ -123,15 +110,14 @@ entry!(conv_avx512, "avx512f,avx2,fma", __m512);
 
 /// Walks the blocks of output channels.
 #[inline(always)]
-unsafe fn body<V: Simd>(
-    shape: &ConvShape,
-    input: &[f32],
-    weights: &[f32],
-    bias: &[f32],
-    act: Activation,
-    output: *mut f32,
-    channels: Range<usize>,
-) {
+unsafe fn body<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
+    let ConvParams {
+        shape,
+        weights,
+        bias,
+        act,
+    } = layer;
+    let shape = &shape;
     let (c, oc) = (shape.input.channels, shape.output.channels);
     let all = channels == (0..oc);
     if all && oc <= SMALL_OC && c % V::LANES == 0 && oc * shape.kernel * shape.kernel * c <= SMALL_WEIGHTS {
