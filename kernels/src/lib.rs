@@ -31,6 +31,11 @@ pub use isa::{Isa, IsaLevel};
 /// block of output channels streams through contiguous memory.
 pub const OC_ALIGN: usize = 16;
 
+/// Layers with at most this many output channels pack their weights input-channel-major
+/// (`[out_channel][ky][kx][in_channel]`, see [`ConvShape::packed_index`]): vectors over output
+/// channels would be mostly padding, so their kernels vectorise over input channels instead.
+pub const NARROW_OC: usize = 4;
+
 /// A feature map stored in HWC order (channels innermost) inside a border of `halo` zero pixels
 /// on every side. The border lets convolution kernels read taps that fall outside the image
 /// without bounds checks; it is zeroed once when the buffer is made and never written.
@@ -127,7 +132,8 @@ impl ConvKind {
 /// One convolution layer: square odd `kernel`, stride 2, padding `kernel / 2`.
 ///
 /// Weights are packed by [`pack::conv_weights`] in panels of [`OC_ALIGN`] output channels:
-/// `[out_channel / 16][ky][kx][in_channel][out_channel % 16]`, the last panel zero-padded (see
+/// `[out_channel / 16][ky][kx][in_channel][out_channel % 16]`, the last panel zero-padded, or
+/// for at most [`NARROW_OC`] output channels as `[out_channel][ky][kx][in_channel]` (see
 /// [`ConvShape::packed_index`]); `bias` has `output.channels` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ConvShape {
@@ -157,9 +163,20 @@ impl ConvShape {
         self.output.channels.div_ceil(OC_ALIGN) * OC_ALIGN
     }
 
+    /// Whether the weights use the narrow layout (at most [`NARROW_OC`] output channels).
+    pub const fn is_narrow(&self) -> bool {
+        self.output.channels <= NARROW_OC
+    }
+
     /// Floats in the packed weights.
     pub const fn packed_len(&self) -> usize {
-        self.kernel * self.kernel * self.input.channels * self.oc_stride()
+        let per_output = self.kernel * self.kernel * self.input.channels;
+        per_output
+            * if self.is_narrow() {
+                self.output.channels
+            } else {
+                self.oc_stride()
+            }
     }
 
     /// Floats in one panel of [`OC_ALIGN`] output channels of the packed weights.
@@ -168,10 +185,15 @@ impl ConvShape {
     }
 
     /// Where the weight of tap `(ky, kx)` from input channel `ic` to output channel `oc` is
-    /// packed. Consecutive input channels of one tap are `OC_ALIGN` floats apart.
+    /// packed. In panels, consecutive input channels of one tap are `OC_ALIGN` floats apart; in
+    /// the narrow layout they are adjacent.
     pub const fn packed_index(&self, ky: usize, kx: usize, ic: usize, oc: usize) -> usize {
-        let tap = ky * self.kernel + kx;
-        (oc / OC_ALIGN) * self.panel_len() + (tap * self.input.channels + ic) * OC_ALIGN + oc % OC_ALIGN
+        let row = (ky * self.kernel + kx) * self.input.channels + ic;
+        if self.is_narrow() {
+            oc * self.kernel * self.kernel * self.input.channels + row
+        } else {
+            (oc / OC_ALIGN) * self.panel_len() + row * OC_ALIGN + oc % OC_ALIGN
+        }
     }
 
     /// Multiply-adds per image, counting only taps that land inside the input.

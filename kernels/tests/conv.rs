@@ -1,7 +1,7 @@
 //! The SIMD convolution kernels against the scalar reference, on awkward shapes, at every
 //! instruction-set level this CPU supports.
 
-use drivesim_kernels::{conv, scalar, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, Plane, OC_ALIGN};
+use drivesim_kernels::{conv, pack, scalar, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, Plane};
 
 /// A small xorshift generator: uniform floats in [-1, 1).
 struct Rng(u64);
@@ -52,14 +52,8 @@ fn check(
     let shape = ConvShape::new(kind, k, ip, oc, extra_halo);
     let mut input = vec![0.0; ip.len()];
     ip.write_interior(&mut input, &rng.fill(ip.interior_len()));
-    // Packed weights with zero padding channels, as `pack::conv_weights` makes them.
-    let mut weights = rng.fill(shape.packed_len());
-    for (i, w) in weights.iter_mut().enumerate() {
-        if i / shape.panel_len() * OC_ALIGN + i % OC_ALIGN >= oc {
-            *w = 0.0;
-        }
-    }
-    let bias = rng.fill(oc);
+    // Random PyTorch-layout weights, packed as the model packs them.
+    let (weights, bias) = pack::conv_weights(&shape, &rng.fill(ic * oc * k * k), &rng.fill(oc), None);
     let mut want = vec![0.0; shape.output.len()];
     let layer = ConvParams {
         shape,

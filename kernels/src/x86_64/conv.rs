@@ -26,11 +26,7 @@ use core::ops::Range;
 
 /// The most segments one row can have: `k * k` for `Down`, `ceil(k / 2)^2` for `Up`.
 const MAX_SEGS: usize = 128;
-/// Layers with at most this many output channels vectorise over input channels instead (see
-/// [`small`]), when their weights fit in `SMALL_WEIGHTS` floats.
-const SMALL_OC: usize = 4;
-const SMALL_WEIGHTS: usize = 8192;
-/// Accumulators of that path's microkernel (a multiple of 1 to `SMALL_OC`).
+/// Accumulators of the narrow layers' microkernel (a multiple of 1 to `NARROW_OC`).
 const SMALL_ACC: usize = 12;
 /// The most output pixels of a tile.
 const MAX_TILE: usize = 12;
@@ -118,10 +114,12 @@ unsafe fn body<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, 
         act,
     } = layer;
     let shape = &shape;
-    let (c, oc) = (shape.input.channels, shape.output.channels);
-    let all = channels == (0..oc);
-    if all && oc <= SMALL_OC && c % V::LANES == 0 && oc * shape.kernel * shape.kernel * c <= SMALL_WEIGHTS {
-        return match oc {
+    if channels.is_empty() {
+        return;
+    }
+    // Narrow layers are never split between threads: they are one panel.
+    if shape.is_narrow() {
+        return match shape.output.channels {
             1 => small::<V, 1>(shape, input, weights, bias, act, output),
             2 => small::<V, 2>(shape, input, weights, bias, act, output),
             3 => small::<V, 3>(shape, input, weights, bias, act, output),
@@ -322,10 +320,10 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
     }
 }
 
-/// Layers with very few output channels (the generator's last, 3 channels): vectors over output
-/// channels would be mostly padding, so each output channel of each pixel gets its own
-/// accumulator vector over input channels, summed across lanes at the end. The weights are first
-/// transposed on the stack to `[oc][ky][kx][ic]` so that input channels are contiguous.
+/// Narrow layers (the generator's last, 3 channels): vectors over output channels would be
+/// mostly padding, so each output channel of each pixel gets its own accumulator vector over
+/// input channels, summed across lanes at the end. Their weights are packed `[oc][ky][kx][ic]`,
+/// so input channels are contiguous in the weights as in the input.
 #[inline(always)]
 unsafe fn small<V: Simd, const OCN: usize>(
     shape: &ConvShape,
@@ -335,18 +333,12 @@ unsafe fn small<V: Simd, const OCN: usize>(
     act: Activation,
     output: *mut f32,
 ) {
-    // At most `SMALL_OC` channels: the weights are one panel, a row per (tap, input channel).
+    // One row of weights per output channel, a value per (tap, input channel).
     let rows = shape.kernel * shape.kernel * shape.input.channels;
-    let mut wt = [0.0f32; SMALL_WEIGHTS];
-    for (r, w) in weights.chunks_exact(OC_ALIGN).enumerate() {
-        for (o, &w) in w[..OCN].iter().enumerate() {
-            wt[o * rows + r] = w;
-        }
-    }
     let mut b = [0.0; OCN];
     b.copy_from_slice(bias);
     let f = Small::<V, OCN> {
-        weights: wt.as_ptr(),
+        weights: weights.as_ptr(),
         rows,
         bias: b,
         act,
@@ -390,25 +382,43 @@ impl<V: Simd, const OCN: usize> RowKernel for Small<V, OCN> {
 }
 
 impl<V: Simd, const OCN: usize> Small<V, OCN> {
+    /// Adds the products of `n <= LANES` input channels at `x` (pixel `t` at `x + t * in_step`)
+    /// and the weights at `w` (output channel `o` at `w + o * rows`).
+    #[inline(always)]
+    unsafe fn step<const T: usize>(
+        &self,
+        acc: &mut [[V; OCN]; T],
+        w: *const f32,
+        x: *const f32,
+        in_step: usize,
+        n: usize,
+    ) {
+        let mut wv = [V::splat(0.0); OCN];
+        for (o, wv) in wv.iter_mut().enumerate() {
+            *wv = load_n(w.add(o * self.rows), n);
+        }
+        for (t, acc) in acc.iter_mut().enumerate() {
+            let xv: V = load_n(x.add(t * in_step), n);
+            for (a, &wv) in acc.iter_mut().zip(&wv) {
+                *a = xv.mul_add(wv, *a);
+            }
+        }
+    }
+
     #[inline(always)]
     unsafe fn tile<const T: usize>(&self, row: &Row<'_>, first: usize) {
         let mut acc = [[V::splat(0.0); OCN]; T];
         let input = row.input.add(first * row.in_step);
         for seg in row.segs {
             let x = input.offset(seg.input);
+            // `Seg::weight` counts panel rows of `OC_ALIGN`; here a row is one value.
             let w = self.weights.add(seg.weight / OC_ALIGN);
-            // `seg.len` is a multiple of the lanes: input channels are.
-            for i in (0..seg.len).step_by(V::LANES) {
-                let mut wv = [V::splat(0.0); OCN];
-                for (o, wv) in wv.iter_mut().enumerate() {
-                    *wv = V::load(w.add(o * self.rows + i));
-                }
-                for (t, acc) in acc.iter_mut().enumerate() {
-                    let xv = V::load(x.add(t * row.in_step + i));
-                    for (a, &wv) in acc.iter_mut().zip(&wv) {
-                        *a = xv.mul_add(wv, *a);
-                    }
-                }
+            let whole = seg.len / V::LANES * V::LANES;
+            for i in (0..whole).step_by(V::LANES) {
+                self.step(&mut acc, w.add(i), x.add(i), row.in_step, V::LANES);
+            }
+            if whole < seg.len {
+                self.step(&mut acc, w.add(whole), x.add(whole), row.in_step, seg.len - whole);
             }
         }
         for (t, acc) in acc.iter().enumerate() {
