@@ -4,7 +4,7 @@
 mod common;
 
 use common::{fixture_path, relative_error, tolerance, Io, FIXTURES};
-use drivesim::{Isa, Model, Simulator};
+use drivesim::{Isa, IsaLevel, Model, Simulator};
 
 fn check(what: &str, name: &str, isa: Isa, found: &[f32], expected: &[f32]) {
     let err = relative_error(found, expected);
@@ -18,6 +18,9 @@ fn check(what: &str, name: &str, isa: Isa, found: &[f32], expected: &[f32]) {
 
 /// Runs `f` for every fixture on every instruction set this CPU has.
 fn each_fixture(f: impl Fn(&str, &Model, &Io, Simulator<'_>)) {
+    for level in IsaLevel::ALL.into_iter().filter(|&l| Isa::new(l).is_none()) {
+        eprintln!("skipping {}: CPU lacks it", level.name());
+    }
     for name in FIXTURES {
         let model = Model::load(fixture_path(&format!("{name}.safetensors"))).expect("fixture weights load");
         let io = Io::load(name);
