@@ -142,7 +142,6 @@ mod peak {
     macro_rules! fma_kernel {
         ($name:ident, $features:literal, $v:ty, $set1:ident, $fma:ident, $add:ident, $first:ident) => {
             #[target_feature(enable = $features)]
-            #[allow(clippy::incompatible_msrv)] // AVX-512 intrinsics are stable since Rust 1.89
             unsafe fn $name(iters: u64) -> f32 {
                 let (a, b) = ($set1(0.999_999), $set1(1e-7));
                 let mut acc: [$v; 12] = [$set1(1.0); 12];

@@ -9,7 +9,8 @@
 //! product summed horizontally at the end: 3 x 4 for AVX2, 4 x 4 for AVX-512), so each weight
 //! vector loaded feeds `BT` multiply-adds and each input vector `RT`. A single input streams
 //! every weight once, 4 rows at a time with two accumulators per row and a software prefetch
-//! (single-core DRAM streaming is latency-bound without it).
+//! (single-core DRAM streaming is latency-bound without it); the 4 rows are a quarter of the
+//! matrix apart, so even short rows form 4 long sequential streams.
 //! With several tiles of the batch, the columns are cut into panels so that the 4 rows of a
 //! panel stay in L1 while every batch tile reads them: the weights still come from memory once.
 //! Columns that do not fill a vector are read with masked loads (inputs) or through a
@@ -58,7 +59,6 @@ unsafe fn dense_avx2<T: Weight>(w: &[T], args: Args<'_>) {
 }
 
 #[target_feature(enable = "avx512f,avx2,fma,f16c")]
-#[allow(clippy::incompatible_msrv)] // AVX-512 target features are stable since Rust 1.89
 unsafe fn dense_avx512<T: Weight>(w: &[T], args: Args<'_>) {
     // 32 registers: 4 x 4 accumulators, 4 weight vectors, 1 input vector.
     dense_body::<__m512, T, 4, 4>(w, args)
@@ -95,8 +95,6 @@ impl Dot for __m256 {
     }
 }
 
-// The AVX-512 intrinsics are stable since Rust 1.89, above the workspace's rust-version.
-#[allow(clippy::incompatible_msrv)]
 impl Dot for __m512 {
     #[inline(always)]
     unsafe fn load_f16(p: *const f16) -> __m512 {
