@@ -24,7 +24,8 @@ use crate::{scalar, Activation, ConvKind, ConvParams, ConvShape, IsaLevel, OC_AL
 use core::arch::x86_64::{__m256, __m512};
 use core::ops::Range;
 
-/// The most segments one row can have: `k * k` for `Down`, `ceil(k / 2)^2` for `Up`.
+/// The most segments one row can have (`k` for `Down`, `ceil(k / 2)^2` for `Up`); kernels with
+/// `k * k` above it, which no model uses, fall back to the scalar kernel.
 const MAX_SEGS: usize = 128;
 /// Accumulators of the narrow layers' microkernel (a multiple of 1 to `NARROW_OC`).
 const SMALL_ACC: usize = 12;
