@@ -25,6 +25,14 @@ pub(crate) struct EncoderBuffers {
     /// The last convolution's output for each frame of a batch: the dense heads' input.
     flat: Vec<f32>,
 }
+
+impl EncoderBuffers {
+    /// Floats held.
+    pub fn len(&self) -> usize {
+        self.planes.iter().map(Vec::len).sum::<usize>() + self.flat.len()
+    }
+}
+
 impl Encoder {
     pub fn load(config: &Config, src: &mut dyn TensorSource) -> Result<Self> {
         let (k, b) = (config.kernel, config.base_channels);

@@ -23,6 +23,13 @@ pub(crate) struct GeneratorBuffers {
     planes: Vec<Vec<f32>>,
 }
 
+impl GeneratorBuffers {
+    /// Floats held.
+    pub fn len(&self) -> usize {
+        self.planes.iter().map(Vec::len).sum::<usize>() + self.flat.len()
+    }
+}
+
 impl Generator {
     pub fn load(config: &Config, src: &mut dyn TensorSource) -> Result<Self> {
         let (k, z, flat) = (config.kernel, config.z_dim, config.flat_len());

@@ -87,6 +87,14 @@ impl<'m> Simulator<'m> {
         self.model.config()
     }
 
+    /// Bytes of the buffers this simulator allocated when it was planned: all the memory its
+    /// calls use besides the model's weights (and a few hundred bytes of bookkeeping).
+    pub fn buffer_bytes(&self) -> usize {
+        let rollout = self.rollout_h.len() + self.rollout_z.iter().map(Vec::len).sum::<usize>();
+        let floats = self.encoder.len() + self.generator.len() + self.concat.len() + rollout;
+        floats * core::mem::size_of::<f32>()
+    }
+
     /// The largest batch one call takes.
     pub fn max_batch(&self) -> usize {
         self.max_batch

@@ -8,10 +8,12 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 struct Counting;
 
 static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+static BYTES: AtomicUsize = AtomicUsize::new(0);
 
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
+        BYTES.fetch_add(layout.size(), Ordering::SeqCst);
         System.alloc(layout)
     }
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
@@ -19,6 +21,7 @@ unsafe impl GlobalAlloc for Counting {
     }
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
         ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
+        BYTES.fetch_add(new_size, Ordering::SeqCst);
         System.realloc(ptr, layout, new_size)
     }
 }
@@ -30,6 +33,13 @@ fn allocations_during(f: impl FnOnce()) -> usize {
     let before = ALLOCATIONS.load(Ordering::SeqCst);
     f();
     ALLOCATIONS.load(Ordering::SeqCst) - before
+}
+
+/// What `f` returns and how many bytes it allocated.
+fn bytes_during<T>(f: impl FnOnce() -> T) -> (T, usize) {
+    let before = BYTES.load(Ordering::SeqCst);
+    let value = f();
+    (value, BYTES.load(Ordering::SeqCst) - before)
 }
 
 #[test]
@@ -46,8 +56,14 @@ fn hot_paths_allocate_nothing() {
     for dtype in [WeightDtype::F32, WeightDtype::F16] {
         let model = Model::random(&config, 3, dtype).unwrap();
         for isa in drivesim::Isa::supported() {
+            // Planning allocates the buffers it reports, and little else.
+            let (sim, bytes) = bytes_during(|| Simulator::with_batch(&model, 3).with_isa(isa));
+            assert!(
+                bytes >= sim.buffer_bytes() && bytes <= sim.buffer_bytes() + 1024,
+                "{bytes} bytes allocated"
+            );
             // Worker threads are started here, before counting; dispatching to them is free.
-            let mut sim = Simulator::with_batch(&model, 3).with_isa(isa).with_threads(2).unwrap();
+            let mut sim = sim.with_threads(2).unwrap();
             // Every caller buffer is made before counting starts.
             let frames = vec![0.25f32; 3 * config.frame_len()];
             let actions = vec![0.5f32; 6 * config.action_dim];
