@@ -4,7 +4,7 @@
 //!
 //! ```text
 //! cargo run --release --example bench_report -- [--weights FILE | --z N] [--dtype f32|f16]
-//!     [--batch 1,16] [--threads 1,2] [--seconds S]
+//!     [--batch 1,16] [--threads 1,2] [--networks encode,generate,transition] [--seconds S]
 //! ```
 //! Lines: `isa level=avx2`, `peak width=256 gflops=…`, and
 //! `result network=encode batch=1 threads=1 median_ms=… gflop=…` (GFLOP per call, all taps).
@@ -51,6 +51,16 @@ fn main() {
         .split(',')
         .map(|t| t.parse().expect("--threads: comma-separated integers"))
         .collect();
+    let networks: Vec<&str> = arg(&args, "--networks")
+        .unwrap_or("encode,generate,transition")
+        .split(',')
+        .collect();
+    if let Some(bad) = networks
+        .iter()
+        .find(|n| !["encode", "generate", "transition"].contains(n))
+    {
+        panic!("--networks: unknown network {bad:?} (encode, generate, transition)");
+    }
     let budget = Duration::from_secs_f64(arg(&args, "--seconds").map_or(2.0, |s| s.parse().expect("--seconds")));
     let dtype = match arg(&args, "--dtype").unwrap_or("f32") {
         "f16" => WeightDtype::F16,
@@ -79,7 +89,7 @@ fn main() {
         let mut out_frames = vec![0.0; batch * cfg.frame_len()];
         let mut out_codes = vec![0.0; batch * cfg.z_dim];
         let mut h = vec![0.0; batch * cfg.hidden_dim];
-        for network in ["encode", "generate", "transition"] {
+        for &network in &networks {
             let (flops, ms) = match network {
                 "encode" => (
                     encode_flops(&cfg),

@@ -93,9 +93,9 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
     ]))
 }
 
-/// Below this many weights a dense layer is not worth waking other threads for (the
-/// transition's matrices at z = 512 take a few microseconds).
-const PARALLEL_MIN_WEIGHTS: usize = 1 << 20;
+/// Below this many weights a dense layer is not worth sharing between threads: the pool's
+/// hand-off costs about a microsecond, the product of a 256 x 256 matrix not much more.
+const PARALLEL_MIN_WEIGHTS: usize = 1 << 16;
 
 /// Weights of a dense layer as kept in memory.
 pub(crate) enum DenseWeights {

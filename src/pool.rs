@@ -44,11 +44,19 @@ impl Pool {
 
 #[cfg(feature = "std")]
 mod workers {
+    use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
     use std::sync::{Arc, Condvar, Mutex, MutexGuard};
     use std::thread::JoinHandle;
+    use std::time::{Duration, Instant};
 
     /// A closure every thread runs with its index (`0` is the caller).
     type Task<'a> = dyn Fn(usize) + Sync + 'a;
+
+    /// How long a worker polls for the next task, and the caller for the workers to finish,
+    /// before sleeping on a condition variable. The layers of one network call follow each
+    /// other within microseconds, and waking a sleeping thread costs tens of microseconds on a
+    /// VM: more than a whole transition step. Between calls the threads sleep.
+    const SPIN: Duration = Duration::from_micros(200);
 
     pub(crate) struct Pool {
         shared: Arc<Shared>,
@@ -56,43 +64,65 @@ mod workers {
     }
 
     struct Shared {
+        /// The number of the latest task (or `u64::MAX` for shutdown); polled while spinning.
+        generation: AtomicU64,
+        /// Workers still running the current task.
+        running: AtomicUsize,
+        /// A worker's task panicked; the caller re-raises it.
+        panicked: AtomicBool,
         state: Mutex<State>,
-        /// Signals workers that a new task (or shutdown) was posted.
+        /// Signals sleeping workers that a new task (or shutdown) was posted.
         posted: Condvar,
-        /// Signals the caller that the last worker finished.
+        /// Signals the caller that the last worker finished (or, at start, that one is ready).
         finished: Condvar,
     }
 
     struct State {
-        /// Incremented for every task, so a worker runs each task once.
-        generation: u64,
         /// The current task, erased to `'static`: it lives on the stack of [`Pool::run`], which
         /// does not return before every worker is done with it.
         task: Option<*const Task<'static>>,
-        /// Workers still running the current task.
-        running: usize,
+        /// Workers asleep on `posted`: only then does posting a task need a system call.
+        sleeping: usize,
+        /// The caller sleeps on `finished`.
+        caller_sleeping: bool,
         /// Workers that have started and wait for tasks.
         ready: usize,
-        /// A worker's task panicked; the caller re-raises it.
-        panicked: bool,
-        shutdown: bool,
     }
 
     // SAFETY: the task pointer is only dereferenced while `Pool::run` keeps the closure alive, and
     // the closure is `Sync`.
     unsafe impl Send for State {}
 
+    const SHUTDOWN: u64 = u64::MAX;
+
+    /// Polls `done` for up to [`SPIN`]; true if it became true.
+    fn spin_until(done: impl Fn() -> bool) -> bool {
+        let start = Instant::now();
+        loop {
+            for _ in 0..64 {
+                if done() {
+                    return true;
+                }
+                std::hint::spin_loop();
+            }
+            if start.elapsed() > SPIN {
+                return done();
+            }
+        }
+    }
+
     impl Pool {
         /// A pool in which `threads` threads (the caller included) share each task.
         pub fn new(threads: usize) -> std::io::Result<Pool> {
             let shared = Arc::new(Shared {
+                generation: AtomicU64::new(0),
+                running: AtomicUsize::new(0),
+                panicked: AtomicBool::new(false),
                 state: Mutex::new(State {
-                    generation: 0,
                     task: None,
-                    running: 0,
+                    sleeping: 0,
+                    caller_sleeping: false,
                     ready: 0,
-                    panicked: false,
-                    shutdown: false,
                 }),
                 posted: Condvar::new(),
                 finished: Condvar::new(),
@@ -125,21 +155,25 @@ mod workers {
             if self.workers.is_empty() {
                 return task(0);
             }
+            let shared = &*self.shared;
             {
-                let mut state = lock(&self.shared.state);
+                let mut state = lock(&shared.state);
                 // SAFETY: only the lifetime is erased; this function waits below until every
                 // worker has finished with the task before `task` can go out of scope.
                 let erased: *const Task<'static> = unsafe { core::mem::transmute(task as *const Task<'_>) };
                 state.task = Some(erased);
-                state.generation += 1;
-                state.running = self.workers.len();
+                shared.running.store(self.workers.len(), Ordering::Relaxed);
+                // Published under the lock, so a worker about to sleep sees it or is counted.
+                shared.generation.fetch_add(1, Ordering::Release);
+                if state.sleeping > 0 {
+                    shared.posted.notify_all();
+                }
             }
-            self.shared.posted.notify_all();
             // Waits for the workers even if `task(0)` panics, so none outlives the closure.
-            let wait = WaitForWorkers(&self.shared);
+            let wait = WaitForWorkers(shared);
             task(0);
             drop(wait);
-            if core::mem::take(&mut lock(&self.shared.state).panicked) {
+            if shared.panicked.swap(false, Ordering::Relaxed) {
                 panic!("a drivesim worker thread panicked");
             }
         }
@@ -149,18 +183,29 @@ mod workers {
 
     impl Drop for WaitForWorkers<'_> {
         fn drop(&mut self) {
-            let mut state = lock(&self.0.state);
-            while state.running > 0 {
-                state = self.0.finished.wait(state).unwrap_or_else(|e| e.into_inner());
+            let shared = self.0;
+            let done = || shared.running.load(Ordering::Acquire) == 0;
+            if !spin_until(done) {
+                let mut state = lock(&shared.state);
+                state.caller_sleeping = true;
+                // The last worker takes the lock after counting down, so it cannot signal
+                // between this check and the wait.
+                while !done() {
+                    state = shared.finished.wait(state).unwrap_or_else(|e| e.into_inner());
+                }
+                state.caller_sleeping = false;
             }
-            state.task = None;
+            lock(&shared.state).task = None;
         }
     }
 
     impl Drop for Pool {
         fn drop(&mut self) {
-            lock(&self.shared.state).shutdown = true;
-            self.shared.posted.notify_all();
+            {
+                let _state = lock(&self.shared.state);
+                self.shared.generation.store(SHUTDOWN, Ordering::Release);
+                self.shared.posted.notify_all();
+            }
             for worker in self.workers.drain(..) {
                 let _ = worker.join();
             }
@@ -172,24 +217,33 @@ mod workers {
         lock(&shared.state).ready += 1;
         shared.finished.notify_all();
         loop {
+            let posted = || shared.generation.load(Ordering::Acquire) != seen;
             let task = {
+                let spun = spin_until(posted);
                 let mut state = lock(&shared.state);
-                while !state.shutdown && state.generation == seen {
-                    state = shared.posted.wait(state).unwrap_or_else(|e| e.into_inner());
+                if !spun {
+                    state.sleeping += 1;
+                    while !posted() {
+                        state = shared.posted.wait(state).unwrap_or_else(|e| e.into_inner());
+                    }
+                    state.sleeping -= 1;
                 }
-                if state.shutdown {
+                seen = shared.generation.load(Ordering::Acquire);
+                if seen == SHUTDOWN {
                     return;
                 }
-                seen = state.generation;
                 state.task.expect("a posted task")
             };
             // SAFETY: `Pool::run` keeps the closure alive until `running` drops to zero below.
             let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| unsafe { (*task)(index) }));
-            let mut state = lock(&shared.state);
-            state.panicked |= result.is_err();
-            state.running -= 1;
-            if state.running == 0 {
-                shared.finished.notify_one();
+            if result.is_err() {
+                shared.panicked.store(true, Ordering::Relaxed);
+            }
+            if shared.running.fetch_sub(1, Ordering::AcqRel) == 1 {
+                let state = lock(&shared.state);
+                if state.caller_sleeping {
+                    shared.finished.notify_one();
+                }
             }
         }
     }

@@ -170,9 +170,11 @@ impl<'m> Simulator<'m> {
         expect_finite("z", z)?;
         expect_finite("h", h)?;
         expect_finite("action", action)?;
-        self.model
-            .transition
-            .step(self.isa, &mut self.concat, h, z, action, z_next);
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
+        self.model.transition.step(exec, &mut self.concat, h, z, action, z_next);
         Ok(())
     }
 
@@ -268,7 +270,7 @@ impl<'m> Simulator<'m> {
             }
             self.model
                 .transition
-                .step(self.isa, &mut self.concat, &mut self.rollout_h, z, action, z_next);
+                .step(exec, &mut self.concat, &mut self.rollout_h, z, action, z_next);
             if let Some(t) = (step + 1).checked_sub(seed_count) {
                 codes[t * c.z_dim..][..c.z_dim].copy_from_slice(z_next);
                 if let Some(frames) = frames.as_deref_mut() {

@@ -1,10 +1,11 @@
 //! The transition model: `h' = tanh(W h + V z + U c + b)`, `z' = A h' + a`.
 
 use crate::layers::{DenseLayer, DenseWeights};
+use crate::pool::Exec;
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::{Config, Result};
 use alloc::vec::Vec;
-use drivesim_kernels::{Activation, Isa, Rnn};
+use drivesim_kernels::{Activation, Rnn};
 
 pub(crate) struct Transition {
     /// `[W | V | U]` and `b`.
@@ -45,7 +46,18 @@ impl Transition {
         self.input.cols
     }
 
-    pub fn step(&self, isa: Isa, concat: &mut [f32], h: &mut [f32], z: &[f32], action: &[f32], z_next: &mut [f32]) {
+    /// One step for a batch (see [`drivesim_kernels::rnn_step`]). With threads, each product
+    /// is split between them as [`DenseLayer::run`] splits it; at batch 1 that is by rows, so
+    /// the two products are two tasks, the second waiting for all of `h'`.
+    pub fn step(
+        &self,
+        exec: Exec<'_>,
+        concat: &mut [f32],
+        h: &mut [f32],
+        z: &[f32],
+        action: &[f32],
+        z_next: &mut [f32],
+    ) {
         let rnn = Rnn {
             input: self.input.matrix(),
             input_bias: &self.input.bias,
@@ -53,7 +65,12 @@ impl Transition {
             output_bias: &self.output.bias,
         };
         let concat = &mut concat[..h.len() / self.input.rows * self.input.cols];
-        drivesim_kernels::rnn_step(isa, &rnn, concat, h, z, action, z_next);
+        if exec.threads() == 1 {
+            return drivesim_kernels::rnn_step(exec.isa, &rnn, concat, h, z, action, z_next);
+        }
+        rnn.gather(concat, h, z, action);
+        self.input.run(exec, concat, h);
+        self.output.run(exec, h, z_next);
     }
 }
 

@@ -7,13 +7,13 @@ use drivesim::{Config, Model, Simulator, WeightDtype};
 
 #[test]
 fn threads_agree_with_one_thread() {
-    // Large enough that the dense layers are split too (over a million weights).
+    // Large enough that the dense layers are split too, the transition's included.
     let config = Config {
         height: 32,
         width: 64,
         base_channels: 16,
         z_dim: 1024,
-        hidden_dim: 40,
+        hidden_dim: 300,
         ..Config::COMMA
     };
     let model = Model::random(&config, 11, WeightDtype::F32).unwrap();
@@ -30,7 +30,21 @@ fn threads_agree_with_one_thread() {
         sim.generate(&z, &mut out).unwrap();
         let mut single = vec![0.0; config.z_dim];
         sim.encode(&frames[..config.frame_len()], &mut single).unwrap();
-        (z, out, single)
+        // Two steps, so that the second starts from a hidden state the threads wrote.
+        let actions: Vec<f32> = (0..batch * config.action_dim).map(|i| i as f32 / 4.0 - 0.5).collect();
+        let mut h = vec![0.0; batch * config.hidden_dim];
+        let mut z_next = vec![0.0; batch * config.z_dim];
+        for _ in 0..2 {
+            sim.transition(&z, &mut h, &actions, &mut z_next).unwrap();
+        }
+        // Batch 1 splits each product by rows: two tasks per step.
+        let mut h1 = vec![0.0; config.hidden_dim];
+        let mut z1 = vec![0.0; config.z_dim];
+        for _ in 0..2 {
+            sim.transition(&single, &mut h1, &actions[..config.action_dim], &mut z1)
+                .unwrap();
+        }
+        (z, out, single, [h, z_next, h1, z1])
     };
     let one = run(1);
     // Threads split a batch differently, and the kernels' summation order depends on the batch
@@ -43,5 +57,8 @@ fn threads_agree_with_one_thread() {
             relative_error(&many.2, &one.2) <= 1e-5,
             "encode batch 1, {threads} threads"
         );
+        for (i, (a, b)) in many.3.iter().zip(&one.3).enumerate() {
+            assert!(relative_error(a, b) <= 1e-5, "transition output {i}, {threads} threads");
+        }
     }
 }

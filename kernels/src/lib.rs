@@ -390,6 +390,23 @@ impl Rnn<'_> {
     pub fn action_dim(&self) -> usize {
         self.input.cols - self.input.rows - self.output.rows
     }
+
+    /// Writes each batch element's `[h | z | action]` to `concat`, the input of `[W | V | U]`:
+    /// the first half of [`rnn_step`], for callers that run its two products themselves
+    /// (split between threads).
+    pub fn gather(&self, concat: &mut [f32], h: &[f32], z: &[f32], action: &[f32]) {
+        let (hd, zd, ad) = (self.hidden(), self.z_dim(), self.action_dim());
+        assert!(hd > 0 && h.len().is_multiple_of(hd));
+        let batch = h.len() / hd;
+        assert_eq!(z.len(), batch * zd);
+        assert_eq!(action.len(), batch * ad);
+        assert_eq!(concat.len(), batch * self.input.cols);
+        for (n, row) in concat.chunks_exact_mut(self.input.cols).enumerate() {
+            row[..hd].copy_from_slice(&h[n * hd..][..hd]);
+            row[hd..hd + zd].copy_from_slice(&z[n * zd..][..zd]);
+            row[hd + zd..].copy_from_slice(&action[n * ad..][..ad]);
+        }
+    }
 }
 
 /// One RNN step for a batch: updates `h` in place and writes `z_next`.
@@ -403,17 +420,7 @@ pub fn rnn_step(
     action: &[f32],
     z_next: &mut [f32],
 ) {
-    let (hd, zd, ad) = (rnn.hidden(), rnn.z_dim(), rnn.action_dim());
-    assert!(hd > 0 && h.len().is_multiple_of(hd));
-    let batch = h.len() / hd;
-    assert_eq!(z.len(), batch * zd);
-    assert_eq!(action.len(), batch * ad);
-    assert_eq!(concat.len(), batch * rnn.input.cols);
-    for (n, row) in concat.chunks_exact_mut(rnn.input.cols).enumerate() {
-        row[..hd].copy_from_slice(&h[n * hd..][..hd]);
-        row[hd..hd + zd].copy_from_slice(&z[n * zd..][..zd]);
-        row[hd + zd..].copy_from_slice(&action[n * ad..][..ad]);
-    }
+    rnn.gather(concat, h, z, action);
     dense(isa, rnn.input, rnn.input_bias, Activation::Tanh, concat, h);
     dense(isa, rnn.output, rnn.output_bias, Activation::Identity, h, z_next);
 }
