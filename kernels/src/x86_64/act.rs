@@ -256,6 +256,22 @@ pub(crate) unsafe fn apply<V: Simd>(act: Activation, v: V) -> V {
     }
 }
 
+/// [`apply`] to every value of `data` in place.
+#[inline(always)]
+pub(crate) unsafe fn apply_slice<V: Simd>(act: Activation, data: &mut [f32]) {
+    if act == Activation::Identity {
+        return;
+    }
+    let mut chunks = data.chunks_exact_mut(V::LANES);
+    for c in &mut chunks {
+        apply(act, V::load(c.as_ptr())).store(c.as_mut_ptr());
+    }
+    let rest = chunks.into_remainder();
+    if !rest.is_empty() {
+        apply(act, V::load_partial(rest.as_ptr(), rest.len())).store_partial(rest.as_mut_ptr(), rest.len());
+    }
+}
+
 #[cfg(all(test, feature = "std"))]
 mod tests {
     use super::*;

@@ -342,10 +342,15 @@ unsafe fn small<V: Simd, const OCN: usize>(
         weights: weights.as_ptr(),
         rows,
         bias: b,
-        act,
         lanes: core::marker::PhantomData,
     };
     for_rows(shape, input, output, &f);
+    // The activation, vectorized: done per value in the tiles it would cost as much as the sums.
+    let op = shape.output;
+    for y in 0..op.height {
+        let row = core::slice::from_raw_parts_mut(output.add(op.index(y, 0)), op.width * op.channels);
+        act::apply_slice::<V>(act, row);
+    }
 }
 
 struct Small<V, const OCN: usize> {
@@ -353,7 +358,6 @@ struct Small<V, const OCN: usize> {
     weights: *const f32,
     rows: usize,
     bias: [f32; OCN],
-    act: Activation,
     lanes: core::marker::PhantomData<V>,
 }
 
@@ -425,7 +429,7 @@ impl<V: Simd, const OCN: usize> Small<V, OCN> {
         for (t, acc) in acc.iter().enumerate() {
             let out = row.output.add((first + t) * row.out_step);
             for (o, a) in acc.iter().enumerate() {
-                *out.add(o) = self.act.apply(a.reduce_add() + self.bias[o]);
+                *out.add(o) = a.reduce_add() + self.bias[o];
             }
         }
     }

@@ -326,15 +326,5 @@ unsafe fn dense_body<S: Dot, T: Weight, const RT: usize, const BT: usize>(w: &[T
         }
         k0 += len;
     }
-    if act == Activation::Identity {
-        return;
-    }
-    let mut chunks = y.chunks_exact_mut(S::LANES);
-    for c in &mut chunks {
-        act::apply(act, S::load(c.as_ptr())).store(c.as_mut_ptr());
-    }
-    let rest = chunks.into_remainder();
-    if !rest.is_empty() {
-        act::apply(act, S::load_partial(rest.as_ptr(), rest.len())).store_partial(rest.as_mut_ptr(), rest.len());
-    }
+    act::apply_slice::<S>(act, y);
 }
