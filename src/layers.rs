@@ -1,6 +1,7 @@
 //! The two kinds of layer the networks are made of, loaded and packed once.
 
 use crate::pool::{share, Disjoint, Exec};
+use core::sync::atomic::{AtomicUsize, Ordering};
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::Result;
 use alloc::format;
@@ -42,8 +43,10 @@ impl ConvLayer {
         })
     }
 
-    /// Runs the layer; with threads, each takes a share of the output channel panels (and so
-    /// reads only its share of the weights).
+    /// Runs the layer; with threads, each takes blocks of output channels from a shared
+    /// counter until none is left (and so reads only the weights of its blocks). Taking blocks
+    /// as they come, rather than a fixed share, keeps both busy when one core runs slower (a
+    /// busy neighbour, a lower clock).
     pub fn run(&self, exec: Exec<'_>, input: &[f32], output: &mut [f32]) {
         let (isa, threads, channels) = (exec.isa, exec.threads(), self.shape.output.channels);
         let layer = ConvParams {
@@ -52,21 +55,28 @@ impl ConvLayer {
             bias: &self.bias,
             act: self.act,
         };
-        let panels = channels.div_ceil(OC_ALIGN);
-        if threads == 1 || panels < 2 {
+        let blocks = channels.div_ceil(BLOCK_CHANNELS);
+        if threads == 1 || blocks < 2 {
             return drivesim_kernels::conv(isa, layer, input, output);
         }
         assert_eq!(output.len(), self.shape.output.len());
         let out = Disjoint::new(output);
-        exec.run(&|t| {
-            let mine = share(panels, threads, t);
-            let mine = mine.start * OC_ALIGN..(mine.end * OC_ALIGN).min(channels);
-            // SAFETY: `out` is the whole output plane, borrowed mutably, and the threads' channel
-            // ranges are disjoint.
+        let next = AtomicUsize::new(0);
+        exec.run(&|_| loop {
+            let block = next.fetch_add(1, Ordering::Relaxed);
+            if block >= blocks {
+                break;
+            }
+            let mine = block * BLOCK_CHANNELS..((block + 1) * BLOCK_CHANNELS).min(channels);
+            // SAFETY: `out` is the whole output plane, borrowed mutably, and each block of
+            // channels goes to one thread only.
             unsafe { drivesim_kernels::conv_channels(isa, layer, input, out.as_mut_ptr(), mine) }
         });
     }
 }
+
+/// Output channels threads take at a time: two panels, the kernels' widest block of channels.
+const BLOCK_CHANNELS: usize = 2 * OC_ALIGN;
 
 /// BatchNorm parameters as read from a source.
 pub(crate) struct BatchNormParams([Vec<f32>; 4]);
