@@ -1,6 +1,6 @@
 //! The encoder: a frame to the VAE's mean and log-sigma.
 
-use crate::layers::{ConvLayer, DenseLayer, DenseWeights};
+use crate::layers::{for_each_item, planes, run_convs, ConvLayer, DenseLayer, DenseWeights, Planes};
 use crate::pool::Exec;
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::{Config, Result};
@@ -20,8 +20,9 @@ pub(crate) struct Encoder {
 
 /// Per-simulator scratch of the encoder, sized once.
 pub(crate) struct EncoderBuffers {
-    /// The padded input plane of every convolution.
-    planes: Vec<Vec<f32>>,
+    /// The padded input plane of every convolution: one set, or one per thread when threads
+    /// take whole frames of a batch.
+    planes: Vec<Planes>,
     /// The last convolution's output for each frame of a batch: the dense heads' input.
     flat: Vec<f32>,
 }
@@ -29,7 +30,7 @@ pub(crate) struct EncoderBuffers {
 impl EncoderBuffers {
     /// Floats held.
     pub fn len(&self) -> usize {
-        self.planes.iter().map(Vec::len).sum::<usize>() + self.flat.len()
+        self.planes.iter().flatten().map(Vec::len).sum::<usize>() + self.flat.len()
     }
 }
 
@@ -69,13 +70,10 @@ impl Encoder {
         Ok(Encoder { convs, mean, logsigma })
     }
 
-    pub fn buffers(&self, max_batch: usize) -> EncoderBuffers {
+    /// Scratch for batches of up to `max_batch` frames, with `sets` sets of planes.
+    pub fn buffers(&self, max_batch: usize, sets: usize) -> EncoderBuffers {
         EncoderBuffers {
-            planes: self
-                .convs
-                .iter()
-                .map(|c| alloc::vec![0.0; c.shape.input.len()])
-                .collect(),
+            planes: (0..sets).map(|_| planes(&self.convs)).collect(),
             flat: alloc::vec![0.0; max_batch * self.mean.cols],
         }
     }
@@ -91,15 +89,19 @@ impl Encoder {
     ) {
         let frame_len = self.convs[0].shape.input.interior_len();
         let flat_len = self.mean.cols;
-        for (frame, flat) in frames.chunks_exact(frame_len).zip(buf.flat.chunks_exact_mut(flat_len)) {
-            self.convs[0].shape.input.write_interior(&mut buf.planes[0], frame);
-            for (i, conv) in self.convs.iter().enumerate() {
-                let (done, rest) = buf.planes.split_at_mut(i + 1);
-                let output = rest.first_mut().map_or(&mut *flat, |next| next.as_mut_slice());
-                conv.run(exec, &done[i], output);
-            }
-        }
-        let flat = &buf.flat[..frames.len() / frame_len * flat_len];
+        let flat = &mut buf.flat[..frames.len() / frame_len * flat_len];
+        for_each_item(
+            exec,
+            &mut buf.planes,
+            frames,
+            frame_len,
+            flat,
+            flat_len,
+            |exec, planes, frame, flat| {
+                self.convs[0].shape.input.write_interior(&mut planes[0], frame);
+                run_convs(exec, &self.convs, planes, flat);
+            },
+        );
         self.mean.run(exec, flat, mean);
         if let Some(logsigma) = logsigma {
             self.logsigma.run(exec, flat, logsigma);

@@ -1,6 +1,6 @@
 //! The generator: a latent code to a frame.
 
-use crate::layers::{read_batch_norm, ConvLayer, DenseLayer, DenseWeights};
+use crate::layers::{for_each_item, planes, read_batch_norm, run_convs, ConvLayer, DenseLayer, DenseWeights, Planes};
 use crate::pool::Exec;
 use crate::weights::{Init, TensorSource};
 use crate::{Config, Result};
@@ -19,14 +19,15 @@ pub(crate) struct Generator {
 pub(crate) struct GeneratorBuffers {
     /// `fc`'s output for each code of a batch.
     flat: Vec<f32>,
-    /// The padded input plane of every transposed convolution.
-    planes: Vec<Vec<f32>>,
+    /// The padded input plane of every transposed convolution: one set, or one per thread
+    /// when threads take whole codes of a batch.
+    planes: Vec<Planes>,
 }
 
 impl GeneratorBuffers {
     /// Floats held.
     pub fn len(&self) -> usize {
-        self.planes.iter().map(Vec::len).sum::<usize>() + self.flat.len()
+        self.planes.iter().flatten().map(Vec::len).sum::<usize>() + self.flat.len()
     }
 }
 
@@ -66,14 +67,11 @@ impl Generator {
         Ok(Generator { fc, deconvs })
     }
 
-    pub fn buffers(&self, max_batch: usize) -> GeneratorBuffers {
+    /// Scratch for batches of up to `max_batch` codes, with `sets` sets of planes.
+    pub fn buffers(&self, max_batch: usize, sets: usize) -> GeneratorBuffers {
         GeneratorBuffers {
             flat: alloc::vec![0.0; max_batch * self.fc.rows],
-            planes: self
-                .deconvs
-                .iter()
-                .map(|d| alloc::vec![0.0; d.shape.input.len()])
-                .collect(),
+            planes: (0..sets).map(|_| planes(&self.deconvs)).collect(),
         }
     }
 
@@ -82,13 +80,17 @@ impl Generator {
         let flat = &mut buf.flat[..z.len() / self.fc.cols * self.fc.rows];
         self.fc.run(exec, z, flat);
         let frame_len = self.deconvs.last().map_or(0, |d| d.shape.output.len());
-        for (features, frame) in flat.chunks_exact(self.fc.rows).zip(frames.chunks_exact_mut(frame_len)) {
-            self.deconvs[0].shape.input.write_interior(&mut buf.planes[0], features);
-            for (i, deconv) in self.deconvs.iter().enumerate() {
-                let (done, rest) = buf.planes.split_at_mut(i + 1);
-                let output = rest.first_mut().map_or(&mut *frame, |next| next.as_mut_slice());
-                deconv.run(exec, &done[i], output);
-            }
-        }
+        for_each_item(
+            exec,
+            &mut buf.planes,
+            flat,
+            self.fc.rows,
+            frames,
+            frame_len,
+            |exec, planes, features, frame| {
+                self.deconvs[0].shape.input.write_interior(&mut planes[0], features);
+                run_convs(exec, &self.deconvs, planes, frame);
+            },
+        );
     }
 }

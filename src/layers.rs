@@ -1,11 +1,11 @@
 //! The two kinds of layer the networks are made of, loaded and packed once.
 
 use crate::pool::{share, Disjoint, Exec};
-use core::sync::atomic::{AtomicUsize, Ordering};
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::Result;
 use alloc::format;
 use alloc::vec::Vec;
+use core::sync::atomic::{AtomicUsize, Ordering};
 use drivesim_kernels::pack::{self, BatchNorm};
 use drivesim_kernels::{f16, Activation, ConvParams, ConvShape, Matrix, MatrixData, OC_ALIGN};
 
@@ -77,6 +77,60 @@ impl ConvLayer {
 
 /// Output channels threads take at a time: two panels, the kernels' widest block of channels.
 const BLOCK_CHANNELS: usize = 2 * OC_ALIGN;
+
+/// The padded input plane of each layer of a chain of convolutions.
+pub(crate) type Planes = Vec<Vec<f32>>;
+
+/// Zeroed input planes for `convs`.
+pub(crate) fn planes(convs: &[ConvLayer]) -> Planes {
+    convs.iter().map(|c| alloc::vec![0.0; c.shape.input.len()]).collect()
+}
+
+/// Runs `convs` in turn: `planes[0]` (already filled) through the other planes to `output`.
+pub(crate) fn run_convs(exec: Exec<'_>, convs: &[ConvLayer], planes: &mut [Vec<f32>], output: &mut [f32]) {
+    for (i, conv) in convs.iter().enumerate() {
+        let (done, rest) = planes.split_at_mut(i + 1);
+        let output = rest.first_mut().map_or(&mut *output, |next| next.as_mut_slice());
+        conv.run(exec, &done[i], output);
+    }
+}
+
+/// Calls `f(exec, planes, input, output)` for each item of a batch: `input` holds items of
+/// `in_len` values, `output` items of `out_len`. With a set of planes per thread and at least
+/// as many items as threads, each thread takes whole items on its own planes (no hand-off
+/// between layers); otherwise the items go one by one and each layer shares the threads.
+pub(crate) fn for_each_item(
+    exec: Exec<'_>,
+    planes: &mut [Planes],
+    input: &[f32],
+    in_len: usize,
+    output: &mut [f32],
+    out_len: usize,
+    f: impl Fn(Exec<'_>, &mut [Vec<f32>], &[f32], &mut [f32]) + Sync,
+) {
+    let (items, threads) = (input.len() / in_len, exec.threads());
+    if threads == 1 || items < threads || planes.len() < threads {
+        let planes = &mut planes[0];
+        for (x, y) in input.chunks_exact(in_len).zip(output.chunks_exact_mut(out_len)) {
+            f(exec, planes, x, y);
+        }
+        return;
+    }
+    let planes = Disjoint::new(planes);
+    let output = Disjoint::new(&mut output[..items * out_len]);
+    exec.run(&|t| {
+        let alone = Exec {
+            isa: exec.isa,
+            pool: None,
+        };
+        // SAFETY: thread `t` alone takes set `t` of planes and the outputs of its items.
+        let planes = unsafe { &mut planes.range(t..t + 1)[0] };
+        for i in share(items, threads, t) {
+            let y = unsafe { output.range(i * out_len..(i + 1) * out_len) };
+            f(alone, planes, &input[i * in_len..][..in_len], y);
+        }
+    });
+}
 
 /// BatchNorm parameters as read from a source.
 pub(crate) struct BatchNormParams([Vec<f32>; 4]);

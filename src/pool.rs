@@ -260,19 +260,19 @@ pub(crate) fn share(len: usize, threads: usize, index: usize) -> core::ops::Rang
 }
 
 /// A mutable slice that the threads of one task write at disjoint ranges.
-pub(crate) struct Disjoint<'a> {
-    ptr: *mut f32,
+pub(crate) struct Disjoint<'a, T = f32> {
+    ptr: *mut T,
     len: usize,
-    _borrow: core::marker::PhantomData<&'a mut [f32]>,
+    _borrow: core::marker::PhantomData<&'a mut [T]>,
 }
 
 // SAFETY: threads only reach the data through `Disjoint::range`, whose callers keep the ranges
-// of concurrent threads apart.
-unsafe impl Send for Disjoint<'_> {}
-unsafe impl Sync for Disjoint<'_> {}
+// of concurrent threads apart; the values move between threads, so they must be `Send`.
+unsafe impl<T: Send> Send for Disjoint<'_, T> {}
+unsafe impl<T: Send> Sync for Disjoint<'_, T> {}
 
-impl<'a> Disjoint<'a> {
-    pub fn new(data: &'a mut [f32]) -> Self {
+impl<'a, T> Disjoint<'a, T> {
+    pub fn new(data: &'a mut [T]) -> Self {
         Disjoint {
             ptr: data.as_mut_ptr(),
             len: data.len(),
@@ -281,7 +281,7 @@ impl<'a> Disjoint<'a> {
     }
 
     /// The start of the data, for kernels that write their share through a pointer.
-    pub fn as_mut_ptr(&self) -> *mut f32 {
+    pub fn as_mut_ptr(&self) -> *mut T {
         self.ptr
     }
 
@@ -290,7 +290,7 @@ impl<'a> Disjoint<'a> {
     /// # Safety
     /// No other live reference from this `Disjoint` may overlap `range`.
     #[allow(clippy::mut_from_ref)] // the point of the type; callers keep ranges apart
-    pub unsafe fn range(&self, range: core::ops::Range<usize>) -> &mut [f32] {
+    pub unsafe fn range(&self, range: core::ops::Range<usize>) -> &mut [T] {
         assert!(range.start <= range.end && range.end <= self.len);
         core::slice::from_raw_parts_mut(self.ptr.add(range.start), range.len())
     }

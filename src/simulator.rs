@@ -47,8 +47,8 @@ impl<'m> Simulator<'m> {
             isa: Isa::best(),
             pool: None,
             max_batch,
-            encoder: model.encoder.buffers(max_batch),
-            generator: model.generator.buffers(max_batch),
+            encoder: model.encoder.buffers(max_batch, 1),
+            generator: model.generator.buffers(max_batch, 1),
             concat: alloc::vec![0.0; max_batch * model.transition.concat_len()],
             rollout_h: alloc::vec![0.0; c.hidden_dim],
             rollout_z: [alloc::vec![0.0; c.z_dim], alloc::vec![0.0; c.z_dim]],
@@ -61,15 +61,23 @@ impl<'m> Simulator<'m> {
         self
     }
 
-    /// Shares the work of each frame among `threads` threads (the caller's included), started
+    /// Shares the work of each call among `threads` threads (the caller's included), started
     /// here once and kept until the simulator is dropped. Calls still allocate nothing.
-    /// The transition step stays on the caller's thread: it takes microseconds.
+    ///
+    /// A single frame or code is shared layer by layer: each convolution by blocks of output
+    /// channels, each large dense layer (the transition's included) by rows. A batch of at
+    /// least `threads` items is shared item by item instead, so this also plans a set of
+    /// activation planes per thread when the planned batch is above 1 (see
+    /// [`Simulator::buffer_bytes`]).
     #[cfg(feature = "std")]
     pub fn with_threads(mut self, threads: usize) -> Result<Self> {
         self.pool = match threads {
             0 | 1 => None,
             n => Some(Pool::new(n).map_err(|source| Error::Threads { requested: n, source })?),
         };
+        let sets = if self.max_batch > 1 { self.threads() } else { 1 };
+        self.encoder = self.model.encoder.buffers(self.max_batch, sets);
+        self.generator = self.model.generator.buffers(self.max_batch, sets);
         Ok(self)
     }
 
