@@ -1,5 +1,6 @@
 //! Criterion benchmarks of the comma config: whole networks (encode, generate, one transition
-//! step) and their layers, at z = hidden = 512 and 2048, batch 1 and 16. Throughput is in
+//! step, also on 2 threads) and their layers, at z = hidden = 512 and 2048, batch 1 and 16, f32
+//! and f16 weights. Throughput is in
 //! floating-point operations (see `common::conv_flops`), so criterion's "elem/s" is FLOP/s.
 //!
 //! `cargo bench --bench networks [-- FILTER]`; `DRIVESIM_ISA=avx2|scalar` caps the kernels.
@@ -29,12 +30,8 @@ fn networks(c: &mut Criterion) {
     let mut g = group(c, "network");
     for z in [512, 2048] {
         let cfg = comma(z);
-        let dtypes: &[WeightDtype] = if z == 2048 {
-            &[WeightDtype::F32, WeightDtype::F16]
-        } else {
-            &[WeightDtype::F32]
-        };
-        for &dtype in dtypes {
+        let dtypes = [WeightDtype::F32, WeightDtype::F16];
+        for dtype in dtypes {
             let model = Model::random(&cfg, SEED, dtype).expect("valid config");
             let tag = format!("z{z}_{}", if dtype == WeightDtype::F16 { "f16" } else { "f32" });
             for batch in BATCHES {
@@ -61,6 +58,17 @@ fn networks(c: &mut Criterion) {
                     b.iter(|| {
                         h.fill(0.0);
                         sim.transition(black_box(&codes), &mut h, &actions, &mut out_codes)
+                            .unwrap()
+                    })
+                });
+                // The step is the one part short enough for the threads' hand-off to matter.
+                let mut sim2 = Simulator::with_batch(&model, batch)
+                    .with_threads(2)
+                    .expect("threads start");
+                g.bench_function(format!("transition/{tag}/batch{batch}/threads2"), |b| {
+                    b.iter(|| {
+                        h.fill(0.0);
+                        sim2.transition(black_box(&codes), &mut h, &actions, &mut out_codes)
                             .unwrap()
                     })
                 });

@@ -6,7 +6,8 @@
 //! cargo run --release --example bench_report -- [--weights FILE | --z N] [--dtype f32|f16]
 //!     [--batch 1,16] [--threads 1,2] [--networks encode,generate,transition] [--seconds S]
 //! ```
-//! Lines: `isa level=avx2`, `peak width=256 gflops=…`, and
+//! Lines: `isa level=avx2`, `peak width=256 threads=1 gflops=…` (for 1 and each `--threads`
+//! count: the FMA peak of that many threads at once), and
 //! `result network=encode batch=1 threads=1 median_ms=… gflop=…` (GFLOP per call, all taps).
 //! `--threads N` plans the simulator with `Simulator::with_threads(N)`.
 
@@ -76,8 +77,14 @@ fn main() {
     let cfg = *model.config();
     let isa = Isa::best();
     println!("isa level={}", isa.level().name());
-    for (width, gflops) in fma_peak() {
-        println!("peak width={width} gflops={gflops:.2}");
+    let mut peak_threads = thread_counts.clone();
+    peak_threads.push(1);
+    peak_threads.sort_unstable();
+    peak_threads.dedup();
+    for threads in peak_threads {
+        for (width, gflops) in fma_peak(threads) {
+            println!("peak width={width} threads={threads} gflops={gflops:.2}");
+        }
     }
     for (&threads, &batch) in thread_counts.iter().flat_map(|t| batches.iter().map(move |b| (t, b))) {
         let mut sim = Simulator::with_batch(&model, batch)
@@ -114,8 +121,9 @@ fn main() {
     }
 }
 
-/// Peak single-core FMA throughput in GFLOP/s for each vector width this CPU has.
-fn fma_peak() -> Vec<(usize, f64)> {
+/// Peak FMA throughput in GFLOP/s of `threads` threads at once (their sum), for each vector
+/// width this CPU has. Measured, not assumed: two vCPUs of a VM may share one core's FMA units.
+fn fma_peak(threads: usize) -> Vec<(usize, f64)> {
     let mut out = Vec::new();
     #[cfg(target_arch = "x86_64")]
     for (level, width) in [(IsaLevel::Avx2, 256), (IsaLevel::Avx512, 512)] {
@@ -126,12 +134,17 @@ fn fma_peak() -> Vec<(usize, f64)> {
         let mut best = f64::INFINITY;
         for _ in 0..10 {
             let t = Instant::now();
-            // SAFETY: `Isa::new` checked that the CPU has the features.
-            black_box(unsafe { peak::fma_loop(width, iters) });
+            std::thread::scope(|s| {
+                for _ in 0..threads {
+                    // SAFETY: `Isa::new` checked that the CPU has the features.
+                    s.spawn(|| black_box(unsafe { peak::fma_loop(width, iters) }));
+                }
+            });
             best = best.min(t.elapsed().as_secs_f64());
         }
-        // 12 accumulators, one FMA (2 FLOP per lane) each per iteration.
-        out.push((width, (iters * 12 * 2 * (width as u64 / 32)) as f64 / best / 1e9));
+        // 12 accumulators, one FMA (2 FLOP per lane) each per iteration, on every thread.
+        let flop = threads as u64 * iters * 12 * 2 * (width as u64 / 32);
+        out.push((width, flop as f64 / best / 1e9));
     }
     out
 }
