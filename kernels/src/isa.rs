@@ -24,6 +24,15 @@ impl IsaLevel {
         }
     }
 
+    /// f32 lanes of this level's vectors.
+    pub const fn lanes(self) -> usize {
+        match self {
+            IsaLevel::Scalar => 1,
+            IsaLevel::Avx2 => 8,
+            IsaLevel::Avx512 => 16,
+        }
+    }
+
     /// Parses a name as written by [`IsaLevel::name`].
     pub fn from_name(name: &str) -> Option<IsaLevel> {
         IsaLevel::ALL

@@ -1,7 +1,9 @@
 //! The SIMD convolution kernels against the scalar reference, on awkward shapes, at every
 //! instruction-set level this CPU supports.
 
-use drivesim_kernels::{conv, pack, scalar, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, Plane};
+use drivesim_kernels::{
+    conv, conv_channels, pack, scalar, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, Plane,
+};
 
 /// A small xorshift generator: uniform floats in [-1, 1).
 struct Rng(u64);
@@ -43,17 +45,34 @@ fn check(
     levels: &[Isa],
     kind: ConvKind,
     k: usize,
+    size: (usize, usize),
+    channels: (usize, usize),
+    extra_halo: usize,
+    act: Activation,
+) {
+    check_with_gain(rng, levels, kind, k, size, channels, extra_halo, act, 1.0)
+}
+
+/// [`check`] with the weights scaled by `gain`.
+#[allow(clippy::too_many_arguments)]
+fn check_with_gain(
+    rng: &mut Rng,
+    levels: &[Isa],
+    kind: ConvKind,
+    k: usize,
     (h, w): (usize, usize),
     (ic, oc): (usize, usize),
     extra_halo: usize,
     act: Activation,
+    gain: f32,
 ) {
     let ip = Plane::new(h, w, ic, kind.input_halo(k) + extra_halo);
     let shape = ConvShape::new(kind, k, ip, oc, extra_halo);
     let mut input = vec![0.0; ip.len()];
     ip.write_interior(&mut input, &rng.fill(ip.interior_len()));
-    // Random PyTorch-layout weights, packed as the model packs them.
-    let (weights, bias) = pack::conv_weights(&shape, &rng.fill(ic * oc * k * k), &rng.fill(oc), None);
+    // Random PyTorch-layout weights times `gain`, packed as the model packs them.
+    let torch: Vec<f32> = rng.fill(ic * oc * k * k).iter().map(|w| w * gain).collect();
+    let (weights, bias) = pack::conv_weights(&shape, &torch, &rng.fill(oc), None);
     let mut want = vec![0.0; shape.output.len()];
     let layer = ConvParams {
         shape,
@@ -72,6 +91,19 @@ fn check(
             "{} {kind:?} k{k} {h}x{w} {ic}->{oc} halo+{extra_halo} {act:?}: error {worst} of {scale}",
             isa.level().name()
         );
+        // Threads compute blocks of output channels with `conv_channels`: the same values.
+        if oc > 32 {
+            let mut split = vec![0.0; shape.output.len()];
+            for channels in [0..32, 32..oc] {
+                // SAFETY: `split` holds the whole output plane and is not shared.
+                unsafe { conv_channels(isa, layer, &input, split.as_mut_ptr(), channels) };
+            }
+            assert!(
+                split == got,
+                "{} {kind:?} {ic}->{oc}: split channels differ",
+                isa.level().name()
+            );
+        }
         // The border must stay zero (and the scalar kernel leaves it zero too, so got == want
         // there is already checked; make it explicit).
         let op = shape.output;
@@ -151,6 +183,28 @@ fn every_activation_and_wide_rows() {
         check(&mut rng, &levels, ConvKind::Up, 5, (3, 7), (32, 4), 1, act);
         check(&mut rng, &levels, ConvKind::Down, 5, (6, 14), (16, 1), 0, act);
         check(&mut rng, &levels, ConvKind::Up, 3, (2, 9), (48, 2), 0, act);
+    }
+}
+
+#[test]
+fn large_panels_take_several_passes() {
+    let levels = simd_levels();
+    let mut rng = Rng(0x5EED_0F_FA55_E5);
+    for act in ACTS {
+        // Panels of weights over 256 KiB are summed a few kernel rows at a time (see
+        // `x86_64::conv`): uneven windows, rows with no taps in a window, partial sums.
+        // Weights scaled by 1/sqrt(fan-in), as trained ones are: with thousands of terms of
+        // order 1 the sums would saturate tanh, and their rounding would exceed the tolerance.
+        let cases = [
+            (ConvKind::Down, 5, (5, 9), (200, 40), 0),
+            (ConvKind::Up, 5, (3, 5), (180, 20), 1),
+            (ConvKind::Down, 3, (4, 6), (480, 17), 0),
+            (ConvKind::Up, 5, (2, 3), (520, 36), 0),
+        ];
+        for (kind, k, size, (ic, oc), halo) in cases {
+            let gain = 1.0 / ((ic * k * k) as f32).sqrt();
+            check_with_gain(&mut rng, &levels, kind, k, size, (ic, oc), halo, act, gain);
+        }
     }
 }
 

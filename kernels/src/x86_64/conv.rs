@@ -11,7 +11,10 @@
 //!   phase apply (the inserted zeros are never multiplied).
 //!
 //! The packed weights of one block of output channels are one contiguous panel, so they stream
-//! from L2 while every output pixel of the layer uses them.
+//! from L2 while every output pixel of the layer uses them. Panels too large to stay in L2 next
+//! to the input (the deep layers: 400-800 KiB) would stream from L3 once per tile; their sum is
+//! taken in passes of a few kernel rows instead (see [`Pass`]), each reading its share of the
+//! weights from L3 once, with partial sums kept in the output between passes.
 //!
 //! Each row is a list of *segments* (an input offset, a weight offset and a length in channels)
 //! and the microkernel computes a tile of `T` pixels of a row times `NV` vectors of output
@@ -51,6 +54,21 @@ struct Row<'a> {
     output: *mut f32,
     out_step: usize,
     count: usize,
+    /// Start from the partial sums in the output instead of the bias.
+    accumulate: bool,
+    /// Apply the activation on store (else store the sums).
+    activate: bool,
+}
+
+/// The rows of a panel of packed weights (a row: `OC_ALIGN` values, one per output channel, for
+/// one tap and input channel) that one pass over the output sums. When a panel is too large for
+/// L2 next to the input, every tile streams it from L3; in passes of a few kernel rows each,
+/// a window of weights is read from L3 once and reused from L2 by every tile.
+#[derive(Clone, Copy)]
+struct Pass {
+    window: (usize, usize),
+    first: bool,
+    last: bool,
 }
 
 /// One block of output channels: `NV` vectors from channel `first`, of which `valid` are real.
@@ -78,16 +96,39 @@ pub(crate) unsafe fn conv(
     if layer.shape.kernel * layer.shape.kernel > MAX_SEGS {
         return scalar::conv_channels(layer, input, output, channels);
     }
-    match level {
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and FMA;
-        // `crate::conv_channels` checked the buffer lengths against `shape`.
-        IsaLevel::Avx512 => conv_avx512(layer, input, output, channels),
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA;
-        // `crate::conv_channels` checked the buffer lengths against `shape`.
-        IsaLevel::Avx2 => conv_avx2(layer, input, output, channels),
-        IsaLevel::Scalar => scalar::conv_channels(layer, input, output, channels),
+    let shape = &layer.shape;
+    // Panel rows of one kernel row (`ky`): every tap `kx` and input channel.
+    let ky_rows = shape.kernel * shape.input.channels;
+    let rows = shape.kernel * ky_rows;
+    let row_bytes = 2 * level.lanes() * core::mem::size_of::<f32>();
+    let window = if shape.is_narrow() || rows * row_bytes <= SINGLE_PASS_BYTES {
+        rows
+    } else {
+        (PASS_BYTES / (ky_rows * row_bytes)).max(1) * ky_rows
+    };
+    for start in (0..rows).step_by(window) {
+        let pass = Pass {
+            window: (start, (start + window).min(rows)),
+            first: start == 0,
+            last: start + window >= rows,
+        };
+        match level {
+            // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and
+            // FMA; `crate::conv_channels` checked the buffer lengths against `shape`.
+            IsaLevel::Avx512 => conv_avx512(layer, input, output, channels.clone(), pass),
+            // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA;
+            // `crate::conv_channels` checked the buffer lengths against `shape`.
+            IsaLevel::Avx2 => conv_avx2(layer, input, output, channels.clone(), pass),
+            IsaLevel::Scalar => return scalar::conv_channels(layer, input, output, channels),
+        }
     }
 }
+
+/// Panels of a block of output channels up to this size are summed in one pass: they stay in
+/// L2 next to the input.
+const SINGLE_PASS_BYTES: usize = 256 << 10;
+/// Bytes of weights per pass when there are several (whole kernel rows, at least one).
+const PASS_BYTES: usize = 128 << 10;
 
 /// The generic body compiled for one instruction set.
 macro_rules! entry {
@@ -96,8 +137,8 @@ macro_rules! entry {
         #[doc = concat!("The CPU must have ", $features, ", and the buffers must match `shape` (see `crate::conv`).")]
         $(#[$attr])*
         #[target_feature(enable = $features)]
-        unsafe fn $name(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
-            body::<$vector>(layer, input, output, channels)
+        unsafe fn $name(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>, pass: Pass) {
+            body::<$vector>(layer, input, output, channels, pass)
         }
     };
 }
@@ -107,7 +148,7 @@ entry!(conv_avx512, "avx512f,avx2,fma", __m512);
 
 /// Walks the blocks of output channels.
 #[inline(always)]
-unsafe fn body<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
+unsafe fn body<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>, pass: Pass) {
     let ConvParams {
         shape,
         weights,
@@ -133,13 +174,24 @@ unsafe fn body<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, 
         // Two vectors while more than one is needed: the packed weights are padded to whole
         // panels, so the second vector's weights exist whenever `left > LANES`.
         if left > V::LANES {
-            let block = block::<V, 2>(shape, weights, bias, first, left);
-            for_rows(shape, input, output, &Blocked { block: &block, act });
+            let block = block::<V, 2>(shape, weights, pass.first.then_some(bias), first, left);
+            for_rows(shape, input, output, pass, &Blocked { block: &block, act });
             first += 2 * V::LANES;
         } else {
-            let block = block::<V, 1>(shape, weights, bias, first, left);
-            for_rows(shape, input, output, &Blocked { block: &block, act });
+            let block = block::<V, 1>(shape, weights, pass.first.then_some(bias), first, left);
+            for_rows(shape, input, output, pass, &Blocked { block: &block, act });
             first += V::LANES;
+        }
+    }
+    // With several passes, rows without taps in the last window were stored without the
+    // activation: apply it to the whole range here.
+    if pass.last && !pass.first {
+        let op = shape.output;
+        for y in 0..op.height {
+            for x in 0..op.width {
+                let at = output.add(op.index(y, x) + channels.start);
+                act::apply_slice::<V>(act, core::slice::from_raw_parts_mut(at, channels.len()));
+            }
         }
     }
 }
@@ -165,10 +217,11 @@ unsafe fn store_n<V: Simd>(v: V, p: *mut f32, n: usize) {
 }
 
 #[inline(always)]
+/// A block of output channels; without `bias` (passes after the first) the sums start at zero.
 unsafe fn block<V: Simd, const NV: usize>(
     shape: &ConvShape,
     weights: &[f32],
-    bias: &[f32],
+    bias: Option<&[f32]>,
     first: usize,
     left: usize,
 ) -> Block<V, NV> {
@@ -176,7 +229,9 @@ unsafe fn block<V: Simd, const NV: usize>(
     let mut w = [weights.as_ptr(); NV];
     for (v, (b, w)) in b.iter_mut().zip(&mut w).enumerate() {
         let channel = first + v * V::LANES;
-        *b = load_n(bias.as_ptr().add(channel), left.saturating_sub(v * V::LANES));
+        if let Some(bias) = bias {
+            *b = load_n(bias.as_ptr().add(channel), left.saturating_sub(v * V::LANES));
+        }
         *w = w.add(shape.packed_index(0, 0, 0, channel));
     }
     Block {
@@ -187,9 +242,10 @@ unsafe fn block<V: Simd, const NV: usize>(
     }
 }
 
-/// Runs `f` over every row of the output (see the module comment).
+/// Runs `f` over every row of the output (see the module comment), with the taps of `pass`'s
+/// window only; after the first pass, rows with none are skipped.
 #[inline(always)]
-unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, f: &impl RowKernel) {
+unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, pass: Pass, f: &impl RowKernel) {
     let (k, ip, op) = (shape.kernel, shape.input, shape.output);
     let pad = k / 2;
     let c = ip.channels;
@@ -227,13 +283,28 @@ unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, f: &impl 
                     }
                 }
             }
+            // Keep the segments inside the window (whole kernel rows: a segment is in or out).
+            let (lo, hi) = pass.window;
+            let mut kept = 0;
+            for i in 0..n {
+                let row = segs[i].weight / OC_ALIGN;
+                if (lo..hi).contains(&row) {
+                    segs[kept] = segs[i];
+                    kept += 1;
+                }
+            }
+            if kept == 0 && !pass.first {
+                continue;
+            }
             f.run(&Row {
-                segs: &segs[..n],
+                segs: &segs[..kept],
                 input: in0,
                 in_step,
                 output: output.add(op.index(oy, px)),
                 out_step,
                 count,
+                accumulate: !pass.first,
+                activate: pass.first && pass.last,
             });
         }
     }
@@ -316,7 +387,10 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
     for (t, acc) in acc.iter().enumerate() {
         for (v, &a) in acc.iter().enumerate() {
             let n = block.valid.saturating_sub(v * V::LANES);
-            store_n(act::apply(act, a), out.add(t * row.out_step + v * V::LANES), n);
+            let at = out.add(t * row.out_step + v * V::LANES);
+            let a = if row.accumulate { a.add(load_n(at, n)) } else { a };
+            let a = if row.activate { act::apply(act, a) } else { a };
+            store_n(a, at, n);
         }
     }
 }
@@ -344,7 +418,12 @@ unsafe fn small<V: Simd, const OCN: usize>(
         bias: b,
         lanes: core::marker::PhantomData,
     };
-    for_rows(shape, input, output, &f);
+    let all = Pass {
+        window: (0, rows),
+        first: true,
+        last: true,
+    };
+    for_rows(shape, input, output, all, &f);
     // The activation, vectorized: done per value in the tiles it would cost as much as the sums.
     let op = shape.output;
     for y in 0..op.height {
