@@ -365,23 +365,20 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
     let out = row.output.add(first * row.out_step + block.first);
     let mut acc = [block.bias; T];
     let input = row.input.add(first * row.in_step);
-    let step = row.in_step;
     for seg in row.segs {
-        let mut x = input.offset(seg.input);
-        let mut w = seg.weight;
-        for _ in 0..seg.len {
-            let mut wv = [V::splat(0.0); NV];
-            for (wv, panel) in wv.iter_mut().zip(&block.weights) {
-                *wv = V::load(panel.add(w));
+        // One pointer per pixel and one index shared by all: the loads address `pixel + index`
+        // with no arithmetic per pixel, and `UNROLL` steps share each loop's bookkeeping.
+        let x: [*const f32; T] = core::array::from_fn(|t| input.offset(seg.input).add(t * row.in_step));
+        let w: [*const f32; NV] = core::array::from_fn(|v| block.weights[v].add(seg.weight));
+        let mut i = 0;
+        while i + UNROLL <= seg.len {
+            for u in i..i + UNROLL {
+                conv_step(&mut acc, &x, &w, u);
             }
-            for (t, acc) in acc.iter_mut().enumerate() {
-                let b = V::splat(*x.add(t * step));
-                for (a, &wv) in acc.iter_mut().zip(&wv) {
-                    *a = b.mul_add(wv, *a);
-                }
-            }
-            x = x.add(1);
-            w += OC_ALIGN;
+            i += UNROLL;
+        }
+        for u in i..seg.len {
+            conv_step(&mut acc, &x, &w, u);
         }
     }
     for (t, acc) in acc.iter().enumerate() {
@@ -391,6 +388,29 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
             let a = if row.accumulate { a.add(load_n(at, n)) } else { a };
             let a = if row.activate { act::apply(act, a) } else { a };
             store_n(a, at, n);
+        }
+    }
+}
+
+/// Steps of a segment per loop iteration in [`tile`].
+const UNROLL: usize = 8;
+
+/// Step `i` of a segment: weights `w[v] + i * OC_ALIGN`, inputs `x[t] + i`.
+#[inline(always)]
+unsafe fn conv_step<V: Simd, const T: usize, const NV: usize>(
+    acc: &mut [[V; NV]; T],
+    x: &[*const f32; T],
+    w: &[*const f32; NV],
+    i: usize,
+) {
+    let mut wv = [V::splat(0.0); NV];
+    for (wv, w) in wv.iter_mut().zip(w) {
+        *wv = V::load(w.add(i * OC_ALIGN));
+    }
+    for (acc, x) in acc.iter_mut().zip(x) {
+        let b = V::splat(*x.add(i));
+        for (a, &wv) in acc.iter_mut().zip(&wv) {
+            *a = b.mul_add(wv, *a);
         }
     }
 }
