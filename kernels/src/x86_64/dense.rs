@@ -155,7 +155,8 @@ unsafe fn step<S: Dot, const R: usize, const B: usize, const U: usize>(
 }
 
 /// The dot products of `R` weight rows (`w`, `w + ldw`, ...) with `B` inputs (`x`, `x + ldx`,
-/// ...) over `len` columns, each accumulated in `U` vectors.
+/// ...) over `len` columns, each accumulated in `U` vectors. `stream`: this tile is the first
+/// to read these weights, from memory, so it prefetches ahead of them.
 #[inline(always)]
 unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize>(
     w: *const T,
@@ -163,6 +164,7 @@ unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize
     x: *const f32,
     ldx: usize,
     len: usize,
+    stream: bool,
 ) -> [[f32; B]; R] {
     let mut acc = [[[S::splat(0.0); U]; B]; R];
     // Long rows prefetch further along the same row; short rows (a tall, narrow matrix such as
@@ -175,8 +177,8 @@ unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize
     };
     let mut k = 0;
     while k + U * S::LANES <= len {
-        // Only a single input streams the weights from memory; batch tiles reuse them from L1.
-        if B == 1 {
+        // Later tiles of a batch reuse the weights from L1.
+        if stream {
             for r in 0..R {
                 _mm_prefetch::<_MM_HINT_T0>(w.add(r * ldw + k).cast::<i8>().wrapping_add(ahead));
             }
@@ -253,20 +255,33 @@ unsafe fn row_block<S: Dot, T: Weight, const R: usize, const BT: usize>(
     let xp = |n0: usize| x.as_ptr().add(n0 * cols + k0);
     let mut n0 = 0;
     if batch == 1 {
-        let s = tile::<S, T, R, 1, 2>(wp, ldw, xp(0), cols, len);
+        let s = tile::<S, T, R, 1, 2>(wp, ldw, xp(0), cols, len, true);
         emit(0, s.as_flattened(), 1);
         return;
     }
     while n0 + BT <= batch {
-        let s = tile::<S, T, R, BT, 1>(wp, ldw, xp(n0), cols, len);
+        let s = tile::<S, T, R, BT, 1>(wp, ldw, xp(n0), cols, len, n0 == 0);
         emit(n0, s.as_flattened(), BT);
         n0 += BT;
     }
+    let stream = n0 == 0;
     match batch - n0 {
         0 => {}
-        1 => emit(n0, tile::<S, T, R, 1, 1>(wp, ldw, xp(n0), cols, len).as_flattened(), 1),
-        2 => emit(n0, tile::<S, T, R, 2, 1>(wp, ldw, xp(n0), cols, len).as_flattened(), 2),
-        _ => emit(n0, tile::<S, T, R, 3, 1>(wp, ldw, xp(n0), cols, len).as_flattened(), 3),
+        1 => emit(
+            n0,
+            tile::<S, T, R, 1, 1>(wp, ldw, xp(n0), cols, len, stream).as_flattened(),
+            1,
+        ),
+        2 => emit(
+            n0,
+            tile::<S, T, R, 2, 1>(wp, ldw, xp(n0), cols, len, stream).as_flattened(),
+            2,
+        ),
+        _ => emit(
+            n0,
+            tile::<S, T, R, 3, 1>(wp, ldw, xp(n0), cols, len, stream).as_flattened(),
+            3,
+        ),
     }
 }
 
