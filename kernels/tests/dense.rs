@@ -34,6 +34,15 @@ fn simd_levels() -> Vec<Isa> {
     supported
 }
 
+/// max|got - want| / max(terms): the error relative to the largest sum of absolute terms.
+/// Activations are 1-Lipschitz, so they do not enlarge the bound.
+fn normwise_error(got: &[f32], want: &[f32], terms: &[f32]) -> f32 {
+    assert!(got.iter().all(|v| v.is_finite()), "non-finite output");
+    let scale = terms.iter().fold(1e-6f32, |m, &v| m.max(v));
+    let diff = got.iter().zip(want).fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
+    diff / scale
+}
+
 /// max|got - want| / max(|want|_inf, 1e-6).
 fn relative_error(got: &[f32], want: &[f32]) -> f32 {
     let scale = want.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
@@ -56,8 +65,27 @@ fn dense_matches_scalar() {
             let w32 = values(seed, rows * cols, 1.0 / (cols as f32).sqrt());
             let w16 = halves(&w32);
             let bias = values(seed + 1, rows, 0.5);
+            let abs = |v: &[f32]| v.iter().map(|x| x.abs()).collect::<Vec<_>>();
+            let (w32_abs, bias_abs) = (abs(&w32), abs(&bias));
             for &batch in &BATCHES {
                 let x = values(seed + 2 + batch as u64, batch * cols, 2.0);
+                // The size of the terms of each sum, |W| |x| + |b|: the scale of the rounding
+                // error of any order of summation (a sum that cancels to nearly zero is exact
+                // in no order, so its error relative to itself means nothing).
+                let mut terms = vec![0.0; batch * rows];
+                let w_abs = Matrix {
+                    data: MatrixData::F32(&w32_abs),
+                    rows,
+                    cols,
+                };
+                dense(
+                    Isa::SCALAR,
+                    w_abs,
+                    &bias_abs,
+                    Activation::Identity,
+                    &abs(&x),
+                    &mut terms,
+                );
                 for data in [MatrixData::F32(&w32), MatrixData::F16(&w16)] {
                     let w = Matrix { data, rows, cols };
                     for act in ACTS {
@@ -66,7 +94,7 @@ fn dense_matches_scalar() {
                         for &isa in &levels {
                             let mut got = vec![f32::NAN; batch * rows];
                             dense(isa, w, &bias, act, &x, &mut got);
-                            let err = relative_error(&got, &want);
+                            let err = normwise_error(&got, &want, &terms);
                             assert!(
                                 err <= TOLERANCE,
                                 "{:?} rows {rows} cols {cols} batch {batch} {:?} {act:?}: error {err}",

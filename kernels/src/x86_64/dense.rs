@@ -4,25 +4,27 @@
 //! through the activations' [`Simd`] trait and its small extension [`Dot`]; only the
 //! `#[target_feature]` entry points differ. The Tanh/ReLU epilogue is [`act::apply`].
 //!
-//! Layout of the work: `y[n][r] = act(W[r] . x[n] + b[r])`. A batch is taken `RT` rows by `BT`
-//! inputs at a time (a register tile of `RT x BT` vector accumulators, each a partial dot
-//! product summed horizontally at the end: 3 x 4 for AVX2, 4 x 4 for AVX-512), so each weight
-//! vector loaded feeds `BT` multiply-adds and each input vector `RT`. A single input streams
-//! every weight once, 4 rows at a time with two accumulators per row and a software prefetch
-//! (single-core DRAM streaming is latency-bound without it); the 4 rows are a quarter of the
-//! matrix apart, so even short rows form 4 long sequential streams.
-//! With several tiles of the batch, the columns are cut into panels so that the 4 rows of a
-//! panel stay in L1 while every batch tile reads them: the weights still come from memory once.
+//! Layout of the work: `y[n][r] = act(W[r] . x[n] + b[r])`.
+//! - A single input streams every weight once, 4 rows at a time with two accumulators per row
+//!   (partial dot products, summed across lanes at the end) and a software prefetch
+//!   (single-core DRAM streaming is latency-bound without it); the 4 rows are a quarter of the
+//!   matrix apart, so even short rows form 4 long sequential streams.
+//! - A batch puts its items across the vector lanes instead: the inputs are transposed,
+//!   [`BATCH_COLS`] columns at a time, into a buffer on the stack, and a register tile of
+//!   `BR` rows by `NV` vectors of items (6 x 2 for AVX2, 12 x 1 for AVX-512) broadcasts each
+//!   weight once to multiply it with `NV * LANES` items: the same shape as the convolution's
+//!   microkernel, with no sums across lanes.
+//!
 //! Columns that do not fill a vector are read with masked loads (inputs) or through a
 //! zero-padded copy on the stack (weights, which may be f16).
 
 use super::act::{self, Simd};
 use crate::{f16, Activation, IsaLevel, Matrix, MatrixData};
 use core::arch::x86_64::*;
+use core::mem::size_of;
 
 pub(crate) fn dense(level: IsaLevel, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
     let args = Args {
-        rows: w.rows,
         cols: w.cols,
         bias,
         act,
@@ -44,7 +46,6 @@ pub(crate) fn dense(level: IsaLevel, w: Matrix<'_>, bias: &[f32], act: Activatio
 
 /// The arguments of one call besides the weights.
 struct Args<'a> {
-    rows: usize,
     cols: usize,
     bias: &'a [f32],
     act: Activation,
@@ -54,20 +55,25 @@ struct Args<'a> {
 
 #[target_feature(enable = "avx2,fma,f16c")]
 unsafe fn dense_avx2<T: Weight>(w: &[T], args: Args<'_>) {
-    // 16 registers: 3 x 4 accumulators, 3 weight vectors, 1 input vector.
-    dense_body::<__m256, T, 3, 4>(w, args)
+    // A batch tile in 16 registers: 6 x 2 accumulators, 2 input vectors, 1 weight broadcast.
+    dense_body::<__m256, T, 6, 2>(w, args)
 }
 
 #[target_feature(enable = "avx512f,avx2,fma,f16c")]
 unsafe fn dense_avx512<T: Weight>(w: &[T], args: Args<'_>) {
-    // 32 registers: 4 x 4 accumulators, 4 weight vectors, 1 input vector.
-    dense_body::<__m512, T, 4, 4>(w, args)
+    // A batch tile of 16 items (one vector): 12 accumulators of 32 registers.
+    dense_body::<__m512, T, 12, 1>(w, args)
 }
 
 /// Rows of the register tile for a single input.
 const ROWS: usize = 4;
-/// Columns per panel when the batch takes several tiles: 4 rows of f32 fill 16 KiB of L1.
-const PANEL: usize = 1024;
+/// Columns of a batch's inputs transposed at a time, into 32 KiB on the stack (with the
+/// widened f16 rows, a batch call uses up to 56 KiB of stack).
+const BATCH_COLS: usize = 512;
+/// Columns per prefetch in the batch microkernel.
+const UNROLL: usize = 4;
+/// Items of a batch tile: `NV * LANES` for both instruction sets.
+const BATCH_ITEMS: usize = 16;
 /// Bytes ahead of the current weights to prefetch.
 const PREFETCH: usize = 1024;
 /// Widest vector, in lanes (for the stack buffers of partial vectors).
@@ -87,6 +93,7 @@ impl Dot for __m256 {
     unsafe fn load_f16(p: *const f16) -> __m256 {
         _mm256_cvtph_ps(_mm_loadu_si128(p.cast()))
     }
+
     #[inline(always)]
     unsafe fn sum(self) -> f32 {
         let s = _mm_add_ps(_mm256_castps256_ps128(self), _mm256_extractf128_ps::<1>(self));
@@ -100,6 +107,7 @@ impl Dot for __m512 {
     unsafe fn load_f16(p: *const f16) -> __m512 {
         _mm512_cvtph_ps(_mm256_loadu_si256(p.cast()))
     }
+
     #[inline(always)]
     unsafe fn sum(self) -> f32 {
         _mm512_reduce_add_ps(self)
@@ -109,6 +117,8 @@ impl Dot for __m512 {
 /// A stored weight type: loads `LANES` of them as f32 lanes.
 trait Weight: Copy + Default {
     unsafe fn load<S: Dot>(p: *const Self) -> S;
+    /// The `n` values at `p` as f32: `p` itself, or their widened copy in `buf`.
+    unsafe fn as_f32<S: Dot>(p: *const Self, n: usize, buf: *mut f32) -> *const f32;
 }
 
 impl Weight for f32 {
@@ -116,12 +126,27 @@ impl Weight for f32 {
     unsafe fn load<S: Dot>(p: *const f32) -> S {
         S::load(p)
     }
+    #[inline(always)]
+    unsafe fn as_f32<S: Dot>(p: *const f32, _n: usize, _buf: *mut f32) -> *const f32 {
+        p
+    }
 }
 
 impl Weight for f16 {
     #[inline(always)]
     unsafe fn load<S: Dot>(p: *const f16) -> S {
         S::load_f16(p)
+    }
+    #[inline(always)]
+    unsafe fn as_f32<S: Dot>(p: *const f16, n: usize, buf: *mut f32) -> *const f32 {
+        let whole = n / S::LANES * S::LANES;
+        for i in (0..whole).step_by(S::LANES) {
+            S::load_f16(p.add(i)).store(buf.add(i));
+        }
+        if whole < n {
+            load_partial::<S, f16>(p.add(whole), n - whole).store_partial(buf.add(whole), n - whole);
+        }
+        buf
     }
 }
 
@@ -133,40 +158,30 @@ unsafe fn load_partial<S: Dot, T: Weight>(p: *const T, n: usize) -> S {
     T::load::<S>(buf.as_ptr())
 }
 
-/// One vector of columns: `wl(r)` loads the weights of row `r`, `xl(b)` the input of item `b`,
-/// and their products go to accumulator `u`.
+/// One vector of columns: `wl(r)` loads the weights of row `r`, `xv` is the input, and their
+/// products go to accumulator `u` of each row.
 #[inline(always)]
-unsafe fn step<S: Dot, const R: usize, const B: usize, const U: usize>(
-    acc: &mut [[[S; U]; B]; R],
+unsafe fn step<S: Dot, const R: usize, const U: usize>(
+    acc: &mut [[S; U]; R],
     u: usize,
     wl: impl Fn(usize) -> S,
-    xl: impl Fn(usize) -> S,
+    xv: S,
 ) {
-    let mut wv = [S::splat(0.0); R];
-    for (r, v) in wv.iter_mut().enumerate() {
-        *v = wl(r);
-    }
-    for b in 0..B {
-        let xv = xl(b);
-        for (acc, &wv) in acc.iter_mut().zip(&wv) {
-            acc[b][u] = wv.mul_add(xv, acc[b][u]);
-        }
+    for (r, acc) in acc.iter_mut().enumerate() {
+        acc[u] = wl(r).mul_add(xv, acc[u]);
     }
 }
 
-/// The dot products of `R` weight rows (`w`, `w + ldw`, ...) with `B` inputs (`x`, `x + ldx`,
-/// ...) over `len` columns, each accumulated in `U` vectors. `stream`: this tile is the first
-/// to read these weights, from memory, so it prefetches ahead of them.
+/// The dot products of `R` weight rows (`w`, `w + ldw`, ...) with the input `x` over `len`
+/// columns, each accumulated in `U` vectors, prefetching ahead of the weights.
 #[inline(always)]
-unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize>(
+unsafe fn tile<S: Dot, T: Weight, const R: usize, const U: usize>(
     w: *const T,
     ldw: usize,
     x: *const f32,
-    ldx: usize,
     len: usize,
-    stream: bool,
-) -> [[f32; B]; R] {
-    let mut acc = [[[S::splat(0.0); U]; B]; R];
+) -> [f32; R] {
+    let mut acc = [[S::splat(0.0); U]; R];
     // Long rows prefetch further along the same row; short rows (a tall, narrow matrix such as
     // the generator's fc) would run off its end, so they prefetch the next block of rows.
     let row_bytes = ldw * core::mem::size_of::<T>();
@@ -177,169 +192,180 @@ unsafe fn tile<S: Dot, T: Weight, const R: usize, const B: usize, const U: usize
     };
     let mut k = 0;
     while k + U * S::LANES <= len {
-        // Later tiles of a batch reuse the weights from L1.
-        if stream {
-            for r in 0..R {
-                _mm_prefetch::<_MM_HINT_T0>(w.add(r * ldw + k).cast::<i8>().wrapping_add(ahead));
-            }
+        for r in 0..R {
+            _mm_prefetch::<_MM_HINT_T0>(w.add(r * ldw + k).cast::<i8>().wrapping_add(ahead));
         }
         for u in 0..U {
             let at = k + u * S::LANES;
-            step::<S, R, B, U>(
-                &mut acc,
-                u,
-                |r| T::load::<S>(w.add(r * ldw + at)),
-                |b| S::load(x.add(b * ldx + at)),
-            );
+            step(&mut acc, u, |r| T::load::<S>(w.add(r * ldw + at)), S::load(x.add(at)));
         }
         k += U * S::LANES;
     }
     while k + S::LANES <= len {
-        step::<S, R, B, U>(
-            &mut acc,
-            0,
-            |r| T::load::<S>(w.add(r * ldw + k)),
-            |b| S::load(x.add(b * ldx + k)),
-        );
+        step(&mut acc, 0, |r| T::load::<S>(w.add(r * ldw + k)), S::load(x.add(k)));
         k += S::LANES;
     }
     if k < len {
         let n = len - k;
-        step::<S, R, B, U>(
-            &mut acc,
-            0,
-            |r| load_partial::<S, T>(w.add(r * ldw + k), n),
-            |b| S::load_partial(x.add(b * ldx + k), n),
-        );
+        let xv = S::load_partial(x.add(k), n);
+        step(&mut acc, 0, |r| load_partial::<S, T>(w.add(r * ldw + k), n), xv);
     }
-    let mut sums = [[0.0; B]; R];
-    for (sums, acc) in sums.iter_mut().zip(&acc) {
-        for (sum, acc) in sums.iter_mut().zip(acc) {
-            let mut v = acc[0];
-            for &a in &acc[1..] {
-                v = v.add(a);
-            }
-            *sum = v.sum();
+    let mut sums = [0.0; R];
+    for (sum, acc) in sums.iter_mut().zip(&acc) {
+        let mut v = acc[0];
+        for &a in &acc[1..] {
+            v = v.add(a);
         }
+        *sum = v.sum();
     }
     sums
 }
 
-/// Adds the dot products of rows `r0 .. r0 + R` with every input over the columns
-/// `k0 .. k0 + len` into `y` (or writes them plus the bias when `first`). The tile's rows are
-/// `r0, r0 + step, r0 + 2 * step, ...`.
+/// A single input: every row block, `R` rows at a time (then one at a time) whose rows are
+/// `rows / R` apart rather than adjacent, so that the weights stream from memory as `R` long
+/// sequential runs even when rows are short (the generator's 25600 x 512 fc): adjacent short
+/// rows would restart the prefetchers every few cache lines.
 #[inline(always)]
-unsafe fn row_block<S: Dot, T: Weight, const R: usize, const BT: usize>(
-    w: &[T],
-    cols: usize,
-    (r0, step, k0, len): (usize, usize, usize, usize),
-    bias: &[f32],
-    x: &[f32],
-    y: &mut [f32],
-    first: bool,
-) {
+unsafe fn single<S: Dot, T: Weight, const R: usize>(w: &[T], cols: usize, bias: &[f32], x: &[f32], y: &mut [f32]) {
     let rows = bias.len();
-    let batch = x.len() / cols;
-    let wp = w.as_ptr().add(r0 * cols + k0);
-    let ldw = step * cols;
-    let mut emit = |n0: usize, sums: &[f32], nb: usize| {
-        for r in 0..R {
+    let blocks = rows / R;
+    let mut emit = |r0: usize, step: usize, sums: &[f32]| {
+        for (r, s) in sums.iter().enumerate() {
             let row = r0 + r * step;
-            for b in 0..nb {
-                let out = &mut y[(n0 + b) * rows + row];
-                let s = sums[r * nb + b];
-                *out = if first { s + bias[row] } else { *out + s };
-            }
+            y[row] = s + bias[row];
         }
     };
-    let xp = |n0: usize| x.as_ptr().add(n0 * cols + k0);
-    let mut n0 = 0;
-    if batch == 1 {
-        let s = tile::<S, T, R, 1, 2>(wp, ldw, xp(0), cols, len, true);
-        emit(0, s.as_flattened(), 1);
-        return;
+    for r0 in 0..blocks {
+        let sums = tile::<S, T, R, 2>(w.as_ptr().add(r0 * cols), blocks * cols, x.as_ptr(), cols);
+        emit(r0, blocks, &sums);
     }
-    while n0 + BT <= batch {
-        let s = tile::<S, T, R, BT, 1>(wp, ldw, xp(n0), cols, len, n0 == 0);
-        emit(n0, s.as_flattened(), BT);
-        n0 += BT;
-    }
-    let stream = n0 == 0;
-    match batch - n0 {
-        0 => {}
-        1 => emit(
-            n0,
-            tile::<S, T, R, 1, 1>(wp, ldw, xp(n0), cols, len, stream).as_flattened(),
+    for r0 in blocks * R..rows {
+        emit(
+            r0,
             1,
-        ),
-        2 => emit(
-            n0,
-            tile::<S, T, R, 2, 1>(wp, ldw, xp(n0), cols, len, stream).as_flattened(),
-            2,
-        ),
-        _ => emit(
-            n0,
-            tile::<S, T, R, 3, 1>(wp, ldw, xp(n0), cols, len, stream).as_flattened(),
-            3,
-        ),
+            &tile::<S, T, 1, 2>(w.as_ptr().add(r0 * cols), cols, x.as_ptr(), cols),
+        );
     }
 }
 
-/// Every row block over the columns `k0 .. k0 + len`: `R` rows at a time, then one at a time.
-///
-/// With `spread`, a block's rows are `rows / R` apart instead of adjacent, so that the weights
-/// stream from memory as `R` long sequential runs even when rows are short (the generator's
-/// 25600 x 512 fc): adjacent short rows would restart the prefetchers every few cache lines.
-#[allow(clippy::too_many_arguments)]
+/// A batch, [`BATCH_ITEMS`] items at a time (see the module comment).
 #[inline(always)]
-unsafe fn row_blocks<S: Dot, T: Weight, const R: usize, const BT: usize>(
+unsafe fn batch<S: Dot, T: Weight, const BR: usize, const NV: usize>(
     w: &[T],
-    rows: usize,
     cols: usize,
-    (k0, len): (usize, usize),
     bias: &[f32],
     x: &[f32],
     y: &mut [f32],
-    spread: bool,
 ) {
-    let first = k0 == 0;
-    let blocks = rows / R;
-    let (count, step) = if spread { (blocks, blocks) } else { (blocks, R) };
-    for i in 0..count {
-        let (r0, row_step) = if spread { (i, step) } else { (i * step, 1) };
-        row_block::<S, T, R, BT>(w, cols, (r0, row_step, k0, len), bias, x, y, first);
-    }
-    for r0 in blocks * R..rows {
-        row_block::<S, T, 1, BT>(w, cols, (r0, 1, k0, len), bias, x, y, first);
+    let (rows, batch) = (bias.len(), x.len() / cols);
+    debug_assert_eq!(NV * S::LANES, BATCH_ITEMS);
+    // `xt[k * BATCH_ITEMS + j]` is column `k0 + k` of item `n0 + j`. Lanes past the last item
+    // hold stale values: lanes never mix, and their sums are not stored.
+    let mut xt = [0.0f32; BATCH_COLS * BATCH_ITEMS];
+    for n0 in (0..batch).step_by(BATCH_ITEMS) {
+        let items = BATCH_ITEMS.min(batch - n0);
+        for k0 in (0..cols).step_by(BATCH_COLS) {
+            let len = BATCH_COLS.min(cols - k0);
+            for (j, item) in x[n0 * cols..].chunks_exact(cols).take(items).enumerate() {
+                for (k, &v) in item[k0..k0 + len].iter().enumerate() {
+                    xt[k * BATCH_ITEMS + j] = v;
+                }
+            }
+            let out = Out {
+                y: y.as_mut_ptr(),
+                rows,
+                n0,
+                items,
+                bias: (k0 == 0).then_some(bias),
+            };
+            let wk = w.as_ptr().add(k0);
+            let mut r0 = 0;
+            while r0 + BR <= rows {
+                batch_tile::<S, T, BR, NV>(wk.add(r0 * cols), cols, &xt, len, r0, &out);
+                r0 += BR;
+            }
+            for r0 in r0..rows {
+                batch_tile::<S, T, 1, NV>(wk.add(r0 * cols), cols, &xt, len, r0, &out);
+            }
+        }
     }
 }
 
-/// See [`crate::dense`]. Batches use a register tile of `RT` rows by `BT` inputs (`BT` at most
-/// 4); a single input uses [`ROWS`] rows with two accumulators each.
+/// Where a batch tile's sums go: `y[n0 + j][r]` for its `items` items, plus the bias on the
+/// first pass over the columns, else added to what earlier passes stored.
+struct Out<'a> {
+    /// `y`, borrowed mutably by [`batch`].
+    y: *mut f32,
+    rows: usize,
+    n0: usize,
+    items: usize,
+    bias: Option<&'a [f32]>,
+}
+
+/// Rows `r0 .. r0 + R` (weights at `w`, `w + ldw`, ...) times the transposed inputs `xt` over
+/// `len` columns: the batch microkernel.
 #[inline(always)]
-unsafe fn dense_body<S: Dot, T: Weight, const RT: usize, const BT: usize>(w: &[T], args: Args<'_>) {
-    let Args {
-        rows,
-        cols,
-        bias,
-        act,
-        x,
-        y,
-    } = args;
-    debug_assert!(BT <= 4 && S::LANES <= MAX_LANES);
-    let batch = x.len() / cols;
-    // Panels only pay when several batch tiles reuse them.
-    let panels = if batch <= BT { 1 } else { cols.div_ceil(PANEL) };
-    let panel = cols.div_ceil(panels).next_multiple_of(S::LANES);
-    let mut k0 = 0;
-    while k0 < cols {
-        let len = panel.min(cols - k0);
-        if batch == 1 {
-            row_blocks::<S, T, ROWS, BT>(w, rows, cols, (k0, len), bias, x, y, true);
-        } else {
-            row_blocks::<S, T, RT, BT>(w, rows, cols, (k0, len), bias, x, y, false);
+unsafe fn batch_tile<S: Dot, T: Weight, const R: usize, const NV: usize>(
+    w: *const T,
+    ldw: usize,
+    xt: &[f32; BATCH_COLS * BATCH_ITEMS],
+    len: usize,
+    r0: usize,
+    out: &Out<'_>,
+) {
+    let mut acc = [[S::splat(0.0); NV]; R];
+    // f16 rows are widened once here rather than per broadcast.
+    let mut wide = core::mem::MaybeUninit::<[[f32; BATCH_COLS]; R]>::uninit();
+    let wide = wide.as_mut_ptr().cast::<f32>();
+    let rows: [*const f32; R] = core::array::from_fn(|r| T::as_f32::<S>(w.add(r * ldw), len, wide.add(r * BATCH_COLS)));
+    // The next block of rows streams from memory while this one computes: a cache line of each
+    // of its rows every `UNROLL` columns (enough: a line holds at least 16 weights).
+    let next: [*const i8; R] = core::array::from_fn(|r| w.cast::<i8>().wrapping_add((R + r) * ldw * size_of::<T>()));
+    let lines = (len * size_of::<T>()).div_ceil(64);
+    let mut k = 0;
+    while k < len {
+        for k in k..(k + UNROLL).min(len) {
+            let xv: [S; NV] = core::array::from_fn(|v| S::load(xt.as_ptr().add(k * BATCH_ITEMS + v * S::LANES)));
+            for (acc, row) in acc.iter_mut().zip(&rows) {
+                let b = S::splat(*row.add(k));
+                for (a, &xv) in acc.iter_mut().zip(&xv) {
+                    *a = b.mul_add(xv, *a);
+                }
+            }
         }
-        k0 += len;
+        let line = k / UNROLL;
+        if line < lines {
+            for row in next {
+                _mm_prefetch::<_MM_HINT_T0>(row.wrapping_add(line * 64));
+            }
+        }
+        k += UNROLL;
+    }
+    let mut sums = [0.0f32; BATCH_ITEMS];
+    for (r, acc) in acc.iter().enumerate() {
+        for (v, a) in acc.iter().enumerate() {
+            a.store(sums.as_mut_ptr().add(v * S::LANES));
+        }
+        let row = r0 + r;
+        for (j, &s) in sums[..out.items].iter().enumerate() {
+            let at = out.y.add((out.n0 + j) * out.rows + row);
+            *at = match out.bias {
+                Some(bias) => s + bias[row],
+                None => *at + s,
+            };
+        }
+    }
+}
+
+/// See [`crate::dense`].
+#[inline(always)]
+unsafe fn dense_body<S: Dot, T: Weight, const BR: usize, const NV: usize>(w: &[T], args: Args<'_>) {
+    let Args { cols, bias, act, x, y } = args;
+    debug_assert!(S::LANES <= MAX_LANES);
+    if x.len() == cols {
+        single::<S, T, ROWS>(w, cols, bias, x, y);
+    } else {
+        batch::<S, T, BR, NV>(w, cols, bias, x, y);
     }
     act::apply_slice::<S>(act, y);
 }
