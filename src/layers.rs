@@ -208,34 +208,19 @@ impl DenseLayer {
         }
     }
 
-    /// `y = act(W x + b)` for a batch; with threads, each takes a share of the rows (batch 1)
-    /// or of the batch.
+    /// `y = act(W x + b)` for a batch; with threads, each takes a share of the rows (and so
+    /// reads only its share of the weights) for every item.
     pub fn run(&self, exec: Exec<'_>, x: &[f32], y: &mut [f32]) {
-        let (isa, threads, batch) = (exec.isa, exec.threads(), x.len() / self.cols);
+        let (isa, threads) = (exec.isa, exec.threads());
         if threads == 1 || self.rows * self.cols < PARALLEL_MIN_WEIGHTS {
             return drivesim_kernels::dense(isa, self.matrix(), &self.bias, self.act, x, y);
         }
+        assert_eq!(y.len(), x.len() / self.cols * self.rows);
         let out = Disjoint::new(y);
         exec.run(&|t| {
-            if batch == 1 {
-                let rows = share(self.rows, threads, t);
-                // SAFETY: the threads' row ranges are disjoint.
-                let y = unsafe { out.range(rows.clone()) };
-                drivesim_kernels::dense(
-                    isa,
-                    self.matrix().row_range(rows.clone()),
-                    &self.bias[rows],
-                    self.act,
-                    x,
-                    y,
-                );
-            } else {
-                let items = share(batch, threads, t);
-                // SAFETY: the threads' item ranges are disjoint.
-                let y = unsafe { out.range(items.start * self.rows..items.end * self.rows) };
-                let x = &x[items.start * self.cols..items.end * self.cols];
-                drivesim_kernels::dense(isa, self.matrix(), &self.bias, self.act, x, y);
-            }
+            let rows = share(self.rows, threads, t);
+            // SAFETY: `out` is all of `y`, borrowed mutably, and the threads' rows are disjoint.
+            unsafe { drivesim_kernels::dense_rows(isa, self.matrix(), &self.bias, self.act, x, out.as_mut_ptr(), rows) }
         });
     }
 }

@@ -354,12 +354,37 @@ pub unsafe fn conv_channels(
 /// `y[n] = act(W x[n] + bias)` for a batch of `x.len() / W.cols` inputs stored one after another.
 pub fn dense(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
     w.check(bias, x, y);
+    // SAFETY: `y` holds every row of every item and is borrowed mutably for the call.
+    unsafe { dense_rows(isa, w, bias, act, x, y.as_mut_ptr(), 0..w.rows) }
+}
+
+/// [`dense`] for the rows `rows` only (`y[n * W.rows + r]` for `r` in `rows`), written through
+/// a pointer so that threads can fill disjoint row ranges of one batch's output at once (each
+/// reading only its rows of the weights).
+///
+/// # Safety
+/// `y` must point to `batch * W.rows` floats valid for writes, and no other thread may read or
+/// write rows `rows` of any item during the call.
+pub unsafe fn dense_rows(
+    isa: Isa,
+    w: Matrix<'_>,
+    bias: &[f32],
+    act: Activation,
+    x: &[f32],
+    y: *mut f32,
+    rows: core::ops::Range<usize>,
+) {
+    assert!(rows.start <= rows.end && rows.end <= w.rows && bias.len() == w.rows);
+    let (ldy, part) = (w.rows, w.row_range(rows.clone()));
+    let (bias, y) = (&bias[rows.clone()], y.add(rows.start));
+    let batch = x.len() / w.cols;
+    assert!(w.cols > 0 && batch * w.cols == x.len(), "input is not whole rows");
     match isa.level() {
-        IsaLevel::Scalar => scalar::dense(w, bias, act, x, y),
+        IsaLevel::Scalar => scalar::dense_rows(part, bias, act, x, y, ldy),
         #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
-        level => x86_64::dense(level, w, bias, act, x, y),
+        level => x86_64::dense(level, part, bias, act, x, y, ldy),
         #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        _ => scalar::dense(w, bias, act, x, y),
+        _ => scalar::dense_rows(part, bias, act, x, y, ldy),
     }
 }
 

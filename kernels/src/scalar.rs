@@ -59,8 +59,18 @@ pub unsafe fn conv_channels(layer: ConvParams<'_>, input: &[f32], output: *mut f
 
 /// See [`crate::dense`].
 pub fn dense(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
-    for (x, y) in x.chunks_exact(w.cols).zip(y.chunks_exact_mut(w.rows)) {
-        for (r, (y, &b)) in y.iter_mut().zip(bias).enumerate() {
+    assert_eq!(y.len(), x.len() / w.cols * w.rows);
+    // SAFETY: `y` holds every row of every item.
+    unsafe { dense_rows(w, bias, act, x, y.as_mut_ptr(), w.rows) }
+}
+
+/// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row `r` of `w` and item `n`.
+///
+/// # Safety
+/// `y` must be valid for those writes.
+pub unsafe fn dense_rows(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: *mut f32, ldy: usize) {
+    for (n, x) in x.chunks_exact(w.cols).enumerate() {
+        for (r, &b) in bias.iter().enumerate() {
             let dot: f32 = match w.data {
                 MatrixData::F32(d) => d[r * w.cols..][..w.cols].iter().zip(x).map(|(w, x)| w * x).sum(),
                 MatrixData::F16(d) => d[r * w.cols..][..w.cols]
@@ -69,7 +79,7 @@ pub fn dense(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f
                     .map(|(w, x)| w.to_f32() * x)
                     .sum(),
             };
-            *y = act.apply(dot + b);
+            *y.add(n * ldy + r) = act.apply(dot + b);
         }
     }
 }

@@ -3,7 +3,7 @@
 mod common;
 
 use common::values;
-use drivesim_kernels::{dense, f16, rnn_step, Activation, Isa, IsaLevel, Matrix, MatrixData, Rnn};
+use drivesim_kernels::{dense, dense_rows, f16, rnn_step, Activation, Isa, IsaLevel, Matrix, MatrixData, Rnn};
 
 const ROWS: [usize; 9] = [1, 2, 3, 5, 7, 8, 9, 17, 33];
 const COLS: [usize; 13] = [1, 2, 3, 7, 8, 9, 15, 16, 17, 31, 33, 100, 1000];
@@ -171,6 +171,31 @@ fn rnn_step_matches_scalar() {
                         isa.level()
                     );
                 }
+            }
+        }
+    }
+}
+
+#[test]
+fn row_ranges_match_whole() {
+    // Threads each take a range of rows of every item: together they write what one call does.
+    let (rows, cols) = (37, 45);
+    let w32 = values(5, rows * cols, 0.2);
+    let w16 = halves(&w32);
+    let bias = values(6, rows, 0.5);
+    for batch in [1, 2, 17] {
+        let x = values(7, batch * cols, 1.0);
+        for data in [MatrixData::F32(&w32), MatrixData::F16(&w16)] {
+            let w = Matrix { data, rows, cols };
+            for isa in Isa::supported() {
+                let mut whole = vec![0.0; batch * rows];
+                dense(isa, w, &bias, Activation::Tanh, &x, &mut whole);
+                let mut parts = vec![f32::NAN; batch * rows];
+                for range in [0..5, 5..6, 6..6, 6..37] {
+                    // SAFETY: `parts` holds every row of every item and is not shared.
+                    unsafe { dense_rows(isa, w, &bias, Activation::Tanh, &x, parts.as_mut_ptr(), range) };
+                }
+                assert_eq!(parts, whole, "{:?} batch {batch}", isa.level());
             }
         }
     }

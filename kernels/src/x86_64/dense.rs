@@ -23,34 +23,47 @@ use crate::{f16, Activation, IsaLevel, Matrix, MatrixData};
 use core::arch::x86_64::*;
 use core::mem::size_of;
 
-pub(crate) fn dense(level: IsaLevel, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
+/// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row of `w` (see
+/// [`crate::dense_rows`]).
+///
+/// # Safety
+/// `y` must be valid for those writes; `level` must come from an `Isa`.
+pub(crate) unsafe fn dense(
+    level: IsaLevel,
+    w: Matrix<'_>,
+    bias: &[f32],
+    act: Activation,
+    x: &[f32],
+    y: *mut f32,
+    ldy: usize,
+) {
     let args = Args {
         cols: w.cols,
         bias,
         act,
         x,
         y,
+        ldy,
     };
     // SAFETY: an `IsaLevel` other than `Scalar` reaches here only from an `Isa`, which proves
-    // that the CPU has the features each entry point enables; `crate::dense` checked the lengths.
-    unsafe {
-        match (level, w.data) {
-            (IsaLevel::Avx512, MatrixData::F32(d)) => dense_avx512(d, args),
-            (IsaLevel::Avx512, MatrixData::F16(d)) => dense_avx512(d, args),
-            (IsaLevel::Avx2, MatrixData::F32(d)) => dense_avx2(d, args),
-            (IsaLevel::Avx2, MatrixData::F16(d)) => dense_avx2(d, args),
-            (IsaLevel::Scalar, _) => crate::scalar::dense(w, args.bias, args.act, args.x, args.y),
-        }
+    // that the CPU has the features each entry point enables; the caller vouches for `y`.
+    match (level, w.data) {
+        (IsaLevel::Avx512, MatrixData::F32(d)) => dense_avx512(d, args),
+        (IsaLevel::Avx512, MatrixData::F16(d)) => dense_avx512(d, args),
+        (IsaLevel::Avx2, MatrixData::F32(d)) => dense_avx2(d, args),
+        (IsaLevel::Avx2, MatrixData::F16(d)) => dense_avx2(d, args),
+        (IsaLevel::Scalar, _) => crate::scalar::dense_rows(w, bias, act, x, y, ldy),
     }
 }
 
-/// The arguments of one call besides the weights.
+/// The arguments of one call besides the weights: output item `n` starts at `y + n * ldy`.
 struct Args<'a> {
     cols: usize,
     bias: &'a [f32],
     act: Activation,
     x: &'a [f32],
-    y: &'a mut [f32],
+    y: *mut f32,
+    ldy: usize,
 }
 
 #[target_feature(enable = "avx2,fma,f16c")]
@@ -226,13 +239,13 @@ unsafe fn tile<S: Dot, T: Weight, const R: usize, const U: usize>(
 /// sequential runs even when rows are short (the generator's 25600 x 512 fc): adjacent short
 /// rows would restart the prefetchers every few cache lines.
 #[inline(always)]
-unsafe fn single<S: Dot, T: Weight, const R: usize>(w: &[T], cols: usize, bias: &[f32], x: &[f32], y: &mut [f32]) {
+unsafe fn single<S: Dot, T: Weight, const R: usize>(w: &[T], cols: usize, bias: &[f32], x: &[f32], y: *mut f32) {
     let rows = bias.len();
     let blocks = rows / R;
-    let mut emit = |r0: usize, step: usize, sums: &[f32]| {
+    let emit = |r0: usize, step: usize, sums: &[f32]| {
         for (r, s) in sums.iter().enumerate() {
             let row = r0 + r * step;
-            y[row] = s + bias[row];
+            *y.add(row) = s + bias[row];
         }
     };
     for r0 in 0..blocks {
@@ -255,7 +268,7 @@ unsafe fn batch<S: Dot, T: Weight, const BR: usize, const NV: usize>(
     cols: usize,
     bias: &[f32],
     x: &[f32],
-    y: &mut [f32],
+    (y, ldy): (*mut f32, usize),
 ) {
     let (rows, batch) = (bias.len(), x.len() / cols);
     debug_assert_eq!(NV * S::LANES, BATCH_ITEMS);
@@ -272,8 +285,8 @@ unsafe fn batch<S: Dot, T: Weight, const BR: usize, const NV: usize>(
                 }
             }
             let out = Out {
-                y: y.as_mut_ptr(),
-                rows,
+                y,
+                ldy,
                 n0,
                 items,
                 bias: (k0 == 0).then_some(bias),
@@ -291,12 +304,11 @@ unsafe fn batch<S: Dot, T: Weight, const BR: usize, const NV: usize>(
     }
 }
 
-/// Where a batch tile's sums go: `y[n0 + j][r]` for its `items` items, plus the bias on the
-/// first pass over the columns, else added to what earlier passes stored.
+/// Where a batch tile's sums go: `y[(n0 + j) * ldy + r]` for its `items` items, plus the bias
+/// on the first pass over the columns, else added to what earlier passes stored.
 struct Out<'a> {
-    /// `y`, borrowed mutably by [`batch`].
     y: *mut f32,
-    rows: usize,
+    ldy: usize,
     n0: usize,
     items: usize,
     bias: Option<&'a [f32]>,
@@ -348,7 +360,7 @@ unsafe fn batch_tile<S: Dot, T: Weight, const R: usize, const NV: usize>(
         }
         let row = r0 + r;
         for (j, &s) in sums[..out.items].iter().enumerate() {
-            let at = out.y.add((out.n0 + j) * out.rows + row);
+            let at = out.y.add((out.n0 + j) * out.ldy + row);
             *at = match out.bias {
                 Some(bias) => s + bias[row],
                 None => *at + s,
@@ -360,12 +372,22 @@ unsafe fn batch_tile<S: Dot, T: Weight, const R: usize, const NV: usize>(
 /// See [`crate::dense`].
 #[inline(always)]
 unsafe fn dense_body<S: Dot, T: Weight, const BR: usize, const NV: usize>(w: &[T], args: Args<'_>) {
-    let Args { cols, bias, act, x, y } = args;
+    let Args {
+        cols,
+        bias,
+        act,
+        x,
+        y,
+        ldy,
+    } = args;
     debug_assert!(S::LANES <= MAX_LANES);
-    if x.len() == cols {
+    let items = x.len() / cols;
+    if items == 1 {
         single::<S, T, ROWS>(w, cols, bias, x, y);
     } else {
-        batch::<S, T, BR, NV>(w, cols, bias, x, y);
+        batch::<S, T, BR, NV>(w, cols, bias, x, (y, ldy));
     }
-    act::apply_slice::<S>(act, y);
+    for n in 0..items {
+        act::apply_slice::<S>(act, core::slice::from_raw_parts_mut(y.add(n * ldy), bias.len()));
+    }
 }
