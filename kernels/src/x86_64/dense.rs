@@ -334,16 +334,19 @@ unsafe fn batch_tile<S: Dot, T: Weight, const R: usize, const NV: usize>(
     // of its rows every `UNROLL` columns (enough: a line holds at least 16 weights).
     let next: [*const i8; R] = core::array::from_fn(|r| w.cast::<i8>().wrapping_add((R + r) * ldw * size_of::<T>()));
     let lines = (len * size_of::<T>()).div_ceil(64);
-    let mut k = 0;
-    while k < len {
-        for k in k..(k + UNROLL).min(len) {
-            let xv: [S; NV] = core::array::from_fn(|v| S::load(xt.as_ptr().add(k * BATCH_ITEMS + v * S::LANES)));
-            for (acc, row) in acc.iter_mut().zip(&rows) {
-                let b = S::splat(*row.add(k));
-                for (a, &xv) in acc.iter_mut().zip(&xv) {
-                    *a = b.mul_add(xv, *a);
-                }
+    let step = |acc: &mut [[S; NV]; R], k: usize| {
+        let xv: [S; NV] = core::array::from_fn(|v| S::load(xt.as_ptr().add(k * BATCH_ITEMS + v * S::LANES)));
+        for (acc, row) in acc.iter_mut().zip(&rows) {
+            let b = S::splat(*row.add(k));
+            for (a, &xv) in acc.iter_mut().zip(&xv) {
+                *a = b.mul_add(xv, *a);
             }
+        }
+    };
+    let mut k = 0;
+    while k + UNROLL <= len {
+        for u in 0..UNROLL {
+            step(&mut acc, k + u);
         }
         let line = k / UNROLL;
         if line < lines {
@@ -352,6 +355,9 @@ unsafe fn batch_tile<S: Dot, T: Weight, const R: usize, const NV: usize>(
             }
         }
         k += UNROLL;
+    }
+    for k in k..len {
+        step(&mut acc, k);
     }
     let mut sums = [0.0f32; BATCH_ITEMS];
     for (r, acc) in acc.iter().enumerate() {
