@@ -3,12 +3,14 @@
 //! This crate is the contract between the networks and the arithmetic. It defines
 //! - the data layouts the kernels read and write ([`Plane`], [`ConvShape`], [`Matrix`]),
 //! - one entry point per operation ([`conv`], [`dense`], [`rnn_step`]) that dispatches on an
-//!   [`Isa`] chosen once at run time,
+//!   [`Isa`] chosen once at run time, plus [`conv_channels`] and [`dense_rows`], which compute
+//!   part of the output so that threads can share one call,
 //! - the scalar reference of every operation ([`scalar`]), which is the test oracle for the
 //!   SIMD versions and the fallback on every other target,
 //! - weight packing done once at load ([`pack`]).
 //!
-//! Nothing here allocates except the packing functions; the kernels write into caller buffers.
+//! Nothing here allocates except the packing functions; the kernels write into caller buffers
+//! (a batched [`dense`] uses up to 56 KiB of stack for its transposed inputs).
 //! Shapes are the caller's responsibility: a kernel panics on inconsistent lengths, since the
 //! model validates every shape before it ever calls one.
 #![cfg_attr(not(feature = "std"), no_std)]
