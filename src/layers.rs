@@ -123,9 +123,10 @@ pub(crate) fn for_each_item(
             isa: exec.isa,
             pool: None,
         };
-        // SAFETY: thread `t` alone takes set `t` of planes and the outputs of its items.
+        // SAFETY: thread `t` alone takes set `t` of planes (`planes.len() >= threads`).
         let planes = unsafe { &mut planes.range(t..t + 1)[0] };
         for i in share(items, threads, t) {
+            // SAFETY: the threads' shares of the items are disjoint.
             let y = unsafe { output.range(i * out_len..(i + 1) * out_len) };
             f(alone, planes, &input[i * in_len..][..in_len], y);
         }

@@ -216,8 +216,8 @@ unsafe fn store_n<V: Simd>(v: V, p: *mut f32, n: usize) {
     }
 }
 
-#[inline(always)]
 /// A block of output channels; without `bias` (passes after the first) the sums start at zero.
+#[inline(always)]
 unsafe fn block<V: Simd, const NV: usize>(
     shape: &ConvShape,
     weights: &[f32],
