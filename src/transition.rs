@@ -47,8 +47,8 @@ impl Transition {
     }
 
     /// One step for a batch (see [`drivesim_kernels::rnn_step`]). With threads, each product
-    /// is split between them as [`DenseLayer::run`] splits it; at batch 1 that is by rows, so
-    /// the two products are two tasks, the second waiting for all of `h'`.
+    /// is split between them by rows ([`DenseLayer::run`]), so the two products are two tasks,
+    /// the second waiting for all of `h'`.
     pub fn step(
         &self,
         exec: Exec<'_>,

@@ -197,7 +197,7 @@ unsafe fn tile<S: Dot, T: Weight, const R: usize, const U: usize>(
     let mut acc = [[S::splat(0.0); U]; R];
     // Long rows prefetch further along the same row; short rows (a tall, narrow matrix such as
     // the generator's fc) would run off its end, so they prefetch the next block of rows.
-    let row_bytes = ldw * core::mem::size_of::<T>();
+    let row_bytes = ldw * size_of::<T>();
     let ahead = if row_bytes >= 4 * PREFETCH {
         PREFETCH
     } else {
