@@ -10,7 +10,9 @@ mod common;
 use common::*;
 use criterion::{criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput};
 use drivesim::{Model, Simulator, WeightDtype};
-use drivesim_kernels::{conv, dense, f16, Activation, ConvParams, ConvShape, Isa, Matrix, MatrixData};
+use drivesim_kernels::{
+    conv, dense, f16, winograd, winograd_conv, Activation, ConvParams, ConvShape, Isa, Matrix, MatrixData, Winograd,
+};
 use std::hint::black_box;
 use std::time::Duration;
 
@@ -109,7 +111,18 @@ fn conv_layers(c: &mut Criterion) {
             bias: &bias,
             act,
         };
-        g.bench_function(name, |b| b.iter(|| conv(isa, layer, black_box(&x), &mut y)));
+        g.bench_function(name.as_str(), |b| b.iter(|| conv(isa, layer, black_box(&x), &mut y)));
+        // The same layer by Winograd, as the networks run it where it applies. Throughput still
+        // counts the direct convolution's FLOPs, so the two compare as rates of the same work.
+        if let Some(wino) = Winograd::new(shape) {
+            let u = values(5, wino.packed_len(), 0.05);
+            let mut v = vec![0.0; wino.input_len()];
+            let mut scratch = vec![0.0; winograd::SCRATCH_LEN];
+            let layer = ConvParams { weights: &u, ..layer };
+            g.bench_function(format!("{name}.winograd"), |b| {
+                b.iter(|| winograd_conv(isa, layer, black_box(&x), &mut v, &mut scratch, &mut y))
+            });
+        }
     }
     g.finish();
 }

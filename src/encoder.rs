@@ -1,6 +1,6 @@
 //! The encoder: a frame to the VAE's mean and log-sigma.
 
-use crate::layers::{for_each_item, planes, run_convs, ConvLayer, DenseLayer, DenseWeights, Planes};
+use crate::layers::{for_each_item, plane_sets, run_convs, ConvLayer, DenseLayer, DenseWeights, Planes};
 use crate::pool::Exec;
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::{Config, Result};
@@ -30,7 +30,7 @@ pub(crate) struct EncoderBuffers {
 impl EncoderBuffers {
     /// Floats held.
     pub fn len(&self) -> usize {
-        self.planes.iter().flatten().map(Vec::len).sum::<usize>() + self.flat.len()
+        self.planes.iter().map(Planes::len).sum::<usize>() + self.flat.len()
     }
 }
 
@@ -70,10 +70,11 @@ impl Encoder {
         Ok(Encoder { convs, mean, logsigma })
     }
 
-    /// Scratch for batches of up to `max_batch` frames, with `sets` sets of planes.
-    pub fn buffers(&self, max_batch: usize, sets: usize) -> EncoderBuffers {
+    /// Scratch for batches of up to `max_batch` frames, with `sets` sets of
+    /// planes, the first shared by `threads` threads.
+    pub fn buffers(&self, max_batch: usize, sets: usize, threads: usize) -> EncoderBuffers {
         EncoderBuffers {
-            planes: (0..sets).map(|_| planes(&self.convs)).collect(),
+            planes: plane_sets(&self.convs, sets, threads),
             flat: alloc::vec![0.0; max_batch * self.mean.cols],
         }
     }
@@ -98,7 +99,7 @@ impl Encoder {
             flat,
             flat_len,
             |exec, planes, frame, flat| {
-                self.convs[0].shape.input.write_interior(&mut planes[0], frame);
+                self.convs[0].shape.input.write_interior(planes.input(), frame);
                 run_convs(exec, &self.convs, planes, flat);
             },
         );

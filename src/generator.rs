@@ -1,6 +1,8 @@
 //! The generator: a latent code to a frame.
 
-use crate::layers::{for_each_item, planes, read_batch_norm, run_convs, ConvLayer, DenseLayer, DenseWeights, Planes};
+use crate::layers::{
+    for_each_item, plane_sets, read_batch_norm, run_convs, ConvLayer, DenseLayer, DenseWeights, Planes,
+};
 use crate::pool::Exec;
 use crate::weights::{Init, TensorSource};
 use crate::{Config, Result};
@@ -27,7 +29,7 @@ pub(crate) struct GeneratorBuffers {
 impl GeneratorBuffers {
     /// Floats held.
     pub fn len(&self) -> usize {
-        self.planes.iter().flatten().map(Vec::len).sum::<usize>() + self.flat.len()
+        self.planes.iter().map(Planes::len).sum::<usize>() + self.flat.len()
     }
 }
 
@@ -67,11 +69,12 @@ impl Generator {
         Ok(Generator { fc, deconvs })
     }
 
-    /// Scratch for batches of up to `max_batch` codes, with `sets` sets of planes.
-    pub fn buffers(&self, max_batch: usize, sets: usize) -> GeneratorBuffers {
+    /// Scratch for batches of up to `max_batch` codes, with `sets` sets of
+    /// planes, the first shared by `threads` threads.
+    pub fn buffers(&self, max_batch: usize, sets: usize, threads: usize) -> GeneratorBuffers {
         GeneratorBuffers {
             flat: alloc::vec![0.0; max_batch * self.fc.rows],
-            planes: (0..sets).map(|_| planes(&self.deconvs)).collect(),
+            planes: plane_sets(&self.deconvs, sets, threads),
         }
     }
 
@@ -88,7 +91,7 @@ impl Generator {
             frames,
             frame_len,
             |exec, planes, features, frame| {
-                self.deconvs[0].shape.input.write_interior(&mut planes[0], features);
+                self.deconvs[0].shape.input.write_interior(planes.input(), features);
                 run_convs(exec, &self.deconvs, planes, frame);
             },
         );

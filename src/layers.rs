@@ -5,13 +5,17 @@ use crate::weights::{Init, Tensor, TensorSource};
 use crate::Result;
 use alloc::format;
 use alloc::vec::Vec;
+use core::ops::Range;
 use core::sync::atomic::{AtomicUsize, Ordering};
 use drivesim_kernels::pack::{self, BatchNorm};
-use drivesim_kernels::{f16, Activation, ConvParams, ConvShape, Matrix, MatrixData, OC_ALIGN};
+use drivesim_kernels::{f16, winograd, Activation, ConvParams, ConvShape, Matrix, MatrixData, Winograd, OC_ALIGN};
 
-/// A convolution with its BatchNorm folded in and its activation fused.
+/// A convolution with its BatchNorm folded in and its activation fused, computed directly or,
+/// where [`Winograd::new`] takes the layer, by Winograd's algorithm (with its weights packed
+/// for that).
 pub(crate) struct ConvLayer {
     pub shape: ConvShape,
+    winograd: Option<Winograd>,
     weights: Vec<f32>,
     bias: Vec<f32>,
     act: Activation,
@@ -34,9 +38,15 @@ impl ConvLayer {
         let weight = src.f32(&format!("{name}.weight"), &torch_shape, Init::FanIn(fan_in))?;
         let bias = src.f32(&format!("{name}.bias"), &[oc], Init::FanIn(fan_in))?;
         let bn = bn.map(|bn| read_batch_norm(src, bn, oc)).transpose()?;
-        let (weights, bias) = pack::conv_weights(&shape, &weight, &bias, bn.as_ref().map(|p| p.view()));
+        let bn = bn.as_ref().map(|p| p.view());
+        let winograd = Winograd::new(shape);
+        let (weights, bias) = match &winograd {
+            Some(w) => pack::winograd_weights(w, &weight, &bias, bn),
+            None => pack::conv_weights(&shape, &weight, &bias, bn),
+        };
         Ok(ConvLayer {
             shape,
+            winograd,
             weights,
             bias,
             act,
@@ -46,8 +56,9 @@ impl ConvLayer {
     /// Runs the layer; with threads, each takes blocks of output channels from a shared
     /// counter until none is left (and so reads only the weights of its blocks). Taking blocks
     /// as they come, rather than a fixed share, keeps both busy when one core runs slower (a
-    /// busy neighbour, a lower clock).
-    pub fn run(&self, exec: Exec<'_>, input: &[f32], output: &mut [f32]) {
+    /// busy neighbour, a lower clock). A Winograd layer first shares its input transform by
+    /// stride phases.
+    pub fn run(&self, exec: Exec<'_>, input: &[f32], output: &mut [f32], scratch: Scratch<'_>) {
         let (isa, threads, channels) = (exec.isa, exec.threads(), self.shape.output.channels);
         let layer = ConvParams {
             shape: self.shape,
@@ -56,42 +67,120 @@ impl ConvLayer {
             act: self.act,
         };
         let blocks = channels.div_ceil(BLOCK_CHANNELS);
-        if threads == 1 || blocks < 2 {
-            return drivesim_kernels::conv(isa, layer, input, output);
-        }
-        assert_eq!(output.len(), self.shape.output.len());
-        let out = Disjoint::new(output);
-        let next = AtomicUsize::new(0);
-        exec.run(&|_| loop {
-            let block = next.fetch_add(1, Ordering::Relaxed);
-            if block >= blocks {
-                break;
+        let single = threads == 1 || blocks < 2;
+        let Some(w) = &self.winograd else {
+            if single {
+                return drivesim_kernels::conv(isa, layer, input, output);
             }
-            let mine = block * BLOCK_CHANNELS..((block + 1) * BLOCK_CHANNELS).min(channels);
-            // SAFETY: `out` is the whole output plane, borrowed mutably, and each block of
-            // channels goes to one thread only.
-            unsafe { drivesim_kernels::conv_channels(isa, layer, input, out.as_mut_ptr(), mine) }
+            // SAFETY: each block of channels goes to one thread only (see `share_blocks`).
+            return share_blocks(exec, blocks, channels, output, &|_, out, mine| unsafe {
+                drivesim_kernels::conv_channels(isa, layer, input, out, mine)
+            });
+        };
+        let v = &mut scratch.transformed[..w.input_len()];
+        if single {
+            let products = &mut scratch.products[..winograd::SCRATCH_LEN];
+            return drivesim_kernels::winograd_conv(isa, layer, input, v, products, output);
+        }
+        {
+            let v = Disjoint::new(&mut *v);
+            exec.run(&|t| {
+                for phase in share(4, threads, t) {
+                    // SAFETY: the phases' spans of `v` are disjoint, and each goes to one thread.
+                    let span = unsafe { v.range(w.phase_span(phase)) };
+                    drivesim_kernels::winograd_input(isa, w, phase, input, span);
+                }
+            });
+        }
+        let v = &*v;
+        assert!(scratch.products.len() >= threads * winograd::SCRATCH_LEN);
+        let products = Disjoint::new(scratch.products);
+        share_blocks(exec, blocks, channels, output, &|t, out, mine| {
+            // SAFETY: thread `t` alone uses product scratch `t`; each block of channels goes to
+            // one thread only (see `share_blocks`).
+            unsafe {
+                let scratch = products.range(t * winograd::SCRATCH_LEN..(t + 1) * winograd::SCRATCH_LEN);
+                drivesim_kernels::winograd_channels(isa, layer, v, scratch, out, mine)
+            }
         });
     }
+}
+
+/// The Winograd layers' buffers that [`ConvLayer::run`] uses.
+pub(crate) struct Scratch<'a> {
+    transformed: &'a mut [f32],
+    products: &'a mut [f32],
+}
+
+/// Has the threads take blocks of output channels from a counter and call `f(thread, output,
+/// channels)` for each; `f` may write channels `channels` of the output plane at `output`.
+fn share_blocks(
+    exec: Exec<'_>,
+    blocks: usize,
+    channels: usize,
+    output: &mut [f32],
+    f: &(dyn Fn(usize, *mut f32, Range<usize>) + Sync),
+) {
+    let out = Disjoint::new(output);
+    let next = AtomicUsize::new(0);
+    exec.run(&|t| loop {
+        let block = next.fetch_add(1, Ordering::Relaxed);
+        if block >= blocks {
+            break;
+        }
+        f(
+            t,
+            out.as_mut_ptr(),
+            block * BLOCK_CHANNELS..((block + 1) * BLOCK_CHANNELS).min(channels),
+        );
+    });
 }
 
 /// Output channels threads take at a time: two panels, the kernels' widest block of channels.
 const BLOCK_CHANNELS: usize = 2 * OC_ALIGN;
 
-/// The padded input plane of each layer of a chain of convolutions.
-pub(crate) type Planes = Vec<Vec<f32>>;
-
-/// Zeroed input planes for `convs`.
-pub(crate) fn planes(convs: &[ConvLayer]) -> Planes {
-    convs.iter().map(|c| alloc::vec![0.0; c.shape.input.len()]).collect()
+/// The buffers of a chain of convolutions running one image at a time.
+pub(crate) struct Planes {
+    /// The padded input plane of each layer.
+    inputs: Vec<Vec<f32>>,
+    /// The transformed input of the largest Winograd layer.
+    transformed: Vec<f32>,
+    /// Winograd product scratch, one per thread that may share a layer on these planes.
+    products: Vec<f32>,
 }
 
-/// Runs `convs` in turn: `planes[0]` (already filled) through the other planes to `output`.
-pub(crate) fn run_convs(exec: Exec<'_>, convs: &[ConvLayer], planes: &mut [Vec<f32>], output: &mut [f32]) {
+impl Planes {
+    /// Zeroed buffers for `convs`, shared by up to `threads` threads.
+    pub fn new(convs: &[ConvLayer], threads: usize) -> Self {
+        let transformed = convs.iter().filter_map(|c| c.winograd.map(|w| w.input_len())).max();
+        Planes {
+            inputs: convs.iter().map(|c| alloc::vec![0.0; c.shape.input.len()]).collect(),
+            transformed: alloc::vec![0.0; transformed.unwrap_or(0)],
+            products: alloc::vec![0.0; if transformed.is_some() { threads * winograd::SCRATCH_LEN } else { 0 }],
+        }
+    }
+
+    /// Floats held.
+    pub fn len(&self) -> usize {
+        self.inputs.iter().map(Vec::len).sum::<usize>() + self.transformed.len() + self.products.len()
+    }
+
+    /// The first layer's input plane.
+    pub fn input(&mut self) -> &mut [f32] {
+        &mut self.inputs[0]
+    }
+}
+
+/// Runs `convs` in turn: the first input plane (already filled) through the others to `output`.
+pub(crate) fn run_convs(exec: Exec<'_>, convs: &[ConvLayer], planes: &mut Planes, output: &mut [f32]) {
     for (i, conv) in convs.iter().enumerate() {
-        let (done, rest) = planes.split_at_mut(i + 1);
+        let (done, rest) = planes.inputs.split_at_mut(i + 1);
         let output = rest.first_mut().map_or(&mut *output, |next| next.as_mut_slice());
-        conv.run(exec, &done[i], output);
+        let scratch = Scratch {
+            transformed: &mut planes.transformed,
+            products: &mut planes.products,
+        };
+        conv.run(exec, &done[i], output, scratch);
     }
 }
 
@@ -106,7 +195,7 @@ pub(crate) fn for_each_item(
     in_len: usize,
     output: &mut [f32],
     out_len: usize,
-    f: impl Fn(Exec<'_>, &mut [Vec<f32>], &[f32], &mut [f32]) + Sync,
+    f: impl Fn(Exec<'_>, &mut Planes, &[f32], &mut [f32]) + Sync,
 ) {
     let (items, threads) = (input.len() / in_len, exec.threads());
     if threads == 1 || items < threads || planes.len() < threads {
@@ -131,6 +220,14 @@ pub(crate) fn for_each_item(
             f(alone, planes, &input[i * in_len..][..in_len], y);
         }
     });
+}
+
+/// Sets of planes for `convs`: the first shared by `threads` threads, the others (one per
+/// further thread, when threads take whole items of a batch) used by one each.
+pub(crate) fn plane_sets(convs: &[ConvLayer], sets: usize, threads: usize) -> Vec<Planes> {
+    (0..sets)
+        .map(|s| Planes::new(convs, if s == 0 { threads } else { 1 }))
+        .collect()
 }
 
 /// BatchNorm parameters as read from a source.

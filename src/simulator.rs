@@ -47,8 +47,8 @@ impl<'m> Simulator<'m> {
             isa: Isa::best(),
             pool: None,
             max_batch,
-            encoder: model.encoder.buffers(max_batch, 1),
-            generator: model.generator.buffers(max_batch, 1),
+            encoder: model.encoder.buffers(max_batch, 1, 1),
+            generator: model.generator.buffers(max_batch, 1, 1),
             concat: alloc::vec![0.0; max_batch * model.transition.concat_len()],
             rollout_h: alloc::vec![0.0; c.hidden_dim],
             rollout_z: [alloc::vec![0.0; c.z_dim], alloc::vec![0.0; c.z_dim]],
@@ -76,8 +76,8 @@ impl<'m> Simulator<'m> {
             n => Some(Pool::new(n).map_err(|source| Error::Threads { requested: n, source })?),
         };
         let sets = if self.max_batch > 1 { self.threads() } else { 1 };
-        self.encoder = self.model.encoder.buffers(self.max_batch, sets);
-        self.generator = self.model.generator.buffers(self.max_batch, sets);
+        self.encoder = self.model.encoder.buffers(self.max_batch, sets, self.threads());
+        self.generator = self.model.generator.buffers(self.max_batch, sets, self.threads());
         Ok(self)
     }
 

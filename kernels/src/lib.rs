@@ -21,12 +21,14 @@ mod isa;
 pub mod math;
 pub mod pack;
 pub mod scalar;
+pub mod winograd;
 // Soft-float x86-64 targets (x86_64-unknown-none) cannot compile vector code: scalar only.
 #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
 mod x86_64;
 
 pub use half::f16;
 pub use isa::{Isa, IsaLevel};
+pub use winograd::Winograd;
 
 /// Packed convolution weights come in panels of this many output channels (the last panel
 /// zero-padded), so that every SIMD width up to 16 lanes loads whole vectors of weights and one
@@ -351,6 +353,78 @@ pub unsafe fn conv_channels(
         #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
         _ => scalar::conv_channels(layer, input, output, channels),
     }
+}
+
+/// Step 1 of a Winograd convolution (see [`winograd`]): writes the transformed input of stride
+/// phase `phase` (0 to 3) to `v`, the span [`Winograd::phase_span`] of the whole transformed
+/// input. Threads may fill different phases at once.
+pub fn winograd_input(isa: Isa, w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
+    assert!(phase < 4);
+    assert_eq!(input.len(), w.shape.input.len());
+    assert_eq!(v.len(), w.phase_span(phase).len());
+    match isa.level() {
+        #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
+        // SAFETY: `level` comes from an `Isa`; the lengths are checked above.
+        level => unsafe { x86_64::winograd::input(level, w, phase, input, v) },
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
+        // SAFETY: scalar code; the lengths are checked above.
+        _ => unsafe { winograd::with_phase(phase, &mut winograd::InputTransform::<f32>::new(w, input, v)) },
+    }
+}
+
+/// Steps 2 and 3 of a Winograd convolution (see [`winograd`]) for the output channels
+/// `channels`: `output = act(conv(input) + bias)` from the transformed input `v` (all four
+/// phases) and weights packed by [`pack::winograd_weights`], using `scratch`
+/// ([`winograd::SCRATCH_LEN`] floats, one per thread). `channels.start` must be a multiple of
+/// [`OC_ALIGN`]. Only those channels of the output's interior are written.
+///
+/// # Safety
+/// As for [`conv_channels`].
+pub unsafe fn winograd_channels(
+    isa: Isa,
+    layer: ConvParams<'_>,
+    v: &[f32],
+    scratch: &mut [f32],
+    output: *mut f32,
+    channels: core::ops::Range<usize>,
+) {
+    let w = Winograd::new(layer.shape).expect("a layer Winograd computes");
+    assert_eq!(layer.weights.len(), w.packed_len());
+    assert_eq!(layer.bias.len(), layer.shape.output.channels);
+    assert_eq!(v.len(), w.input_len());
+    assert!(scratch.len() >= winograd::SCRATCH_LEN);
+    assert!(
+        channels.start.is_multiple_of(OC_ALIGN)
+            && channels.start <= channels.end
+            && channels.end <= layer.shape.output.channels
+    );
+    match isa.level() {
+        #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
+        level => x86_64::winograd::channels(level, layer, v, scratch, output, channels),
+        #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
+        _ => winograd::channels::<f32, _>(&winograd::ScalarProduct, layer, v, scratch, output, channels),
+    }
+}
+
+/// A whole Winograd convolution on one thread: [`winograd_input`] for every phase into `v`
+/// ([`Winograd::input_len`] floats), then [`winograd_channels`] for every channel.
+pub fn winograd_conv(
+    isa: Isa,
+    layer: ConvParams<'_>,
+    input: &[f32],
+    v: &mut [f32],
+    scratch: &mut [f32],
+    output: &mut [f32],
+) {
+    let w = Winograd::new(layer.shape).expect("a layer Winograd computes");
+    assert_eq!(output.len(), layer.shape.output.len());
+    assert_eq!(v.len(), w.input_len());
+    for phase in 0..4 {
+        winograd_input(isa, &w, phase, input, &mut v[w.phase_span(phase)]);
+    }
+    let all = 0..layer.shape.output.channels;
+    // SAFETY: `output` holds the whole output plane and is borrowed mutably for the call.
+    unsafe { winograd_channels(isa, layer, v, scratch, output.as_mut_ptr(), all) }
 }
 
 /// `y[n] = act(W x[n] + bias)` for a batch of `x.len() / W.cols` inputs stored one after another.

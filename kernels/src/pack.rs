@@ -1,5 +1,6 @@
 //! Weight preparation done once at load: PyTorch layouts in, kernel layouts out.
 
+use crate::winograd::{with_phase, WeightTransform, Winograd};
 use crate::{math, ConvKind, ConvShape};
 use alloc::vec::Vec;
 
@@ -62,6 +63,29 @@ pub fn conv_weights(
         .zip(&affine)
         .map(|(&b, &(s, t))| (b as f64 * s + t) as f32)
         .collect();
+    (packed, bias)
+}
+
+/// Packs PyTorch convolution weights for [`crate::winograd_channels`] (see [`Winograd`]),
+/// folding an optional BatchNorm as [`conv_weights`] does. The transform `G g G^T` of each
+/// phase's taps is computed in f64 and rounded once. Returns `(packed weights, bias)`.
+pub fn winograd_weights(
+    w: &Winograd,
+    torch_weight: &[f32],
+    bias: &[f32],
+    bn: Option<BatchNorm<'_>>,
+) -> (Vec<f32>, Vec<f32>) {
+    let (direct, bias) = conv_weights(&w.shape, torch_weight, bias, bn);
+    let mut packed = alloc::vec![0.0f32; w.packed_len()];
+    let mut transform = WeightTransform {
+        w,
+        direct: &direct,
+        packed: &mut packed,
+    };
+    for phase in 0..4 {
+        // SAFETY: the weight transform is plain scalar code.
+        unsafe { with_phase(phase, &mut transform) };
+    }
     (packed, bias)
 }
 

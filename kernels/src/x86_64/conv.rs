@@ -37,27 +37,27 @@ const MAX_TILE: usize = 12;
 
 /// A run of `len` consecutive input floats times `len` weight rows `OC_ALIGN` apart.
 #[derive(Clone, Copy, Default)]
-struct Seg {
+pub(super) struct Seg {
     /// Floats from the row's input base (pixel 0, channel 0) to the first input value.
-    input: isize,
+    pub input: isize,
     /// Floats from the start of a panel of packed weights to the first weight row.
-    weight: usize,
-    len: usize,
+    pub weight: usize,
+    pub len: usize,
 }
 
 /// Output pixels `0..count` of a row: pixel `p` reads `input + p * in_step + seg.input + i` and
 /// writes `output + p * out_step`.
-struct Row<'a> {
-    segs: &'a [Seg],
-    input: *const f32,
-    in_step: usize,
-    output: *mut f32,
-    out_step: usize,
-    count: usize,
+pub(super) struct Row<'a> {
+    pub segs: &'a [Seg],
+    pub input: *const f32,
+    pub in_step: usize,
+    pub output: *mut f32,
+    pub out_step: usize,
+    pub count: usize,
     /// Start from the partial sums in the output instead of the bias.
-    accumulate: bool,
+    pub accumulate: bool,
     /// Apply the activation on store (else store the sums).
-    activate: bool,
+    pub activate: bool,
 }
 
 /// The rows of a panel of packed weights (a row: `OC_ALIGN` values, one per output channel, for
@@ -73,13 +73,13 @@ struct Pass {
 
 /// One block of output channels: `NV` vectors from channel `first`, of which `valid` are real.
 #[derive(Clone, Copy)]
-struct Block<V, const NV: usize> {
+pub(super) struct Block<V, const NV: usize> {
     /// For each vector, its channels' lane in their panel of the packed weights.
-    weights: [*const f32; NV],
-    bias: [V; NV],
+    pub weights: [*const f32; NV],
+    pub bias: [V; NV],
     /// Channel offset within an output pixel.
-    first: usize,
-    valid: usize,
+    pub first: usize,
+    pub valid: usize,
 }
 
 /// See [`crate::conv_channels`].
@@ -197,7 +197,7 @@ unsafe fn body<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, 
 }
 
 #[inline(always)]
-unsafe fn load_n<V: Simd>(p: *const f32, n: usize) -> V {
+pub(super) unsafe fn load_n<V: Simd>(p: *const f32, n: usize) -> V {
     if n >= V::LANES {
         V::load(p)
     } else if n > 0 {
@@ -208,7 +208,7 @@ unsafe fn load_n<V: Simd>(p: *const f32, n: usize) -> V {
 }
 
 #[inline(always)]
-unsafe fn store_n<V: Simd>(v: V, p: *mut f32, n: usize) {
+pub(super) unsafe fn store_n<V: Simd>(v: V, p: *mut f32, n: usize) {
     if n >= V::LANES {
         v.store(p)
     } else if n > 0 {
@@ -331,7 +331,7 @@ impl<V: Simd, const NV: usize> RowKernel for Blocked<'_, V, NV> {
 
 /// Cuts a row into tiles of nearly equal size, at most `MAX_TILE / NV` pixels each.
 #[inline(always)]
-unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Block<V, NV>, act: Activation) {
+pub(super) unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Block<V, NV>, act: Activation) {
     let max = MAX_TILE / NV;
     let tiles = row.count.div_ceil(max);
     let mut start = 0;

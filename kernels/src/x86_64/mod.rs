@@ -6,3 +6,4 @@ mod dense;
 
 pub(crate) use conv::conv;
 pub(crate) use dense::dense;
+pub(crate) mod winograd;

@@ -1,0 +1,605 @@
+//! Winograd convolution for the model's 5x5 stride-2 layers, both kinds.
+//!
+//! A stride-2 layer is four stride-1 correlations, one per pair of stride phases `(py, px)`:
+//! - `Down`: output `o` reads input `2o + k - 2`. Split the input into its even and odd pixels
+//!   per axis ("phase grids" of half the size): taps `k = 0, 2, 4` read the even grid at
+//!   `o - 1, o, o + 1`, taps `k = 1, 3` the odd grid at `o - 1, o`. The output sums the four.
+//! - `Up`: output `2j + p` reads input `j + (p + 2 - k) / 2` for the taps of parity `p`: the
+//!   even outputs see taps `4, 2, 0` at `j - 1, j, j + 1`, the odd ones taps `3, 1` at `j, j + 1`.
+//!   Each output phase is its own correlation of the input.
+//!
+//! Each correlation uses Winograd's minimal filtering per axis on tiles of 2 outputs: F(2,3)
+//! for three taps (4 products instead of 6) and F(2,2) for two (3 instead of 4). A 2x2 tile of
+//! every phase takes 16 + 12 + 12 + 9 = 49 products per pair of channels where the direct sum
+//! takes 100. The products of one transform point over all input channels are a matrix product
+//! (tiles x in_channels times in_channels x out_channels), which the SIMD path computes with the
+//! direct convolution's microkernel.
+//!
+//! Three steps, each over a caller's buffer (nothing is allocated):
+//! 1. [`crate::winograd_input`] transforms the input into `V`, `[point][tile][in_channel]`, one
+//!    phase at a time (tiles row-major over the phase grid, see [`Winograd::tiles`]);
+//! 2. and 3. [`crate::winograd_channels`] multiplies a group of tiles by the packed weights
+//!    `U` (`[out_channel / 16][point][in_channel][out_channel % 16]`, see
+//!    [`Winograd::packed_index`]) into a scratch of [`SCRATCH_LEN`] floats, then transforms the
+//!    products back, adds the bias, applies the activation and stores the output pixels.
+//!
+//! The scalar path runs the same three steps one float at a time; it is tested against the
+//! direct scalar convolution, the oracle of both.
+
+use crate::{Activation, ConvKind, ConvParams, ConvShape, OC_ALIGN};
+use core::ops::Range;
+
+/// Transform points of the four phases together.
+pub const POINTS: usize = 49;
+/// First point and number of points of each phase `2 * py + px` (phase 0 of an axis has three
+/// taps, phase 1 two).
+const PHASE_POINTS: [(usize, usize); 4] = [(0, 16), (16, 12), (28, 12), (40, 9)];
+/// Tiles whose products are kept at once: 49 points x 32 tiles x 16 channels (100 KiB with
+/// AVX2) stay in L2 between the product and the output transform.
+pub const GROUP_TILES: usize = 32;
+/// Floats of the product scratch [`crate::winograd_channels`] needs: blocks of up to 32 output
+/// channels (two AVX-512 vectors).
+pub const SCRATCH_LEN: usize = POINTS * GROUP_TILES * 2 * OC_ALIGN;
+/// Layers with fewer input channels stay direct: each product would be too short to pay for
+/// the transforms (the first encoder layer has 3).
+pub const MIN_IN_CHANNELS: usize = 8;
+
+/// The Winograd geometry of a convolution layer; made by [`Winograd::new`] only for layers it
+/// computes exactly: kernel 5, more than [`crate::NARROW_OC`] output channels, at least
+/// [`MIN_IN_CHANNELS`] input channels, and for `Down` an even input size.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Winograd {
+    pub shape: ConvShape,
+}
+
+impl Winograd {
+    pub fn new(shape: ConvShape) -> Option<Winograd> {
+        let even =
+            shape.kind == ConvKind::Up || (shape.input.height.is_multiple_of(2) && shape.input.width.is_multiple_of(2));
+        let fits = shape.kernel == 5 && !shape.is_narrow() && shape.input.channels >= MIN_IN_CHANNELS && even;
+        fits.then_some(Winograd { shape })
+    }
+
+    /// Height and width of a phase grid: the output for `Down`, the input for `Up`.
+    pub fn grid(&self) -> (usize, usize) {
+        let p = match self.shape.kind {
+            ConvKind::Down => self.shape.output,
+            ConvKind::Up => self.shape.input,
+        };
+        (p.height, p.width)
+    }
+
+    /// Tiles per row of the phase grid.
+    pub fn tiles_wide(&self) -> usize {
+        self.grid().1.div_ceil(2)
+    }
+
+    /// Tiles of 2x2 grid positions covering the phase grid (the last row and column of tiles
+    /// may hang over it).
+    pub fn tiles(&self) -> usize {
+        self.grid().0.div_ceil(2) * self.tiles_wide()
+    }
+
+    /// Floats of one panel of 16 output channels of the packed weights.
+    pub fn panel_len(&self) -> usize {
+        POINTS * self.shape.input.channels * OC_ALIGN
+    }
+
+    /// Floats of the packed weights.
+    pub fn packed_len(&self) -> usize {
+        self.shape.output.channels.div_ceil(OC_ALIGN) * self.panel_len()
+    }
+
+    /// Where the transformed weight of `point` from input channel `ic` to output channel `oc`
+    /// is packed.
+    pub fn packed_index(&self, point: usize, ic: usize, oc: usize) -> usize {
+        (oc / OC_ALIGN) * self.panel_len() + (point * self.shape.input.channels + ic) * OC_ALIGN + oc % OC_ALIGN
+    }
+
+    /// Floats of the transformed input `V`.
+    pub fn input_len(&self) -> usize {
+        POINTS * self.tiles() * self.shape.input.channels
+    }
+
+    /// The part of `V` that phase `phase` (0 to 3) fills.
+    pub fn phase_span(&self, phase: usize) -> Range<usize> {
+        let (first, count) = PHASE_POINTS[phase];
+        let per_point = self.tiles() * self.shape.input.channels;
+        first * per_point..(first + count) * per_point
+    }
+
+    /// Offset from twice a tile's index to its first source position, along an axis.
+    fn lo(&self, phase: usize) -> isize {
+        match self.shape.kind {
+            ConvKind::Down => -1,
+            ConvKind::Up => phase as isize - 1,
+        }
+    }
+
+    /// The kernel tap that sub-tap `m` of `phase` is, along an axis.
+    pub(crate) fn tap(&self, phase: usize, m: usize) -> usize {
+        match self.shape.kind {
+            ConvKind::Down => 2 * m + phase,
+            ConvKind::Up => 4 - phase - 2 * m,
+        }
+    }
+
+    /// The input coordinate of grid position `g` of `phase` along an axis of `len` grid
+    /// positions, or `None` outside the grid (where the source is zero).
+    fn source(&self, phase: usize, g: isize, len: usize) -> Option<usize> {
+        let g = usize::try_from(g).ok().filter(|&g| g < len)?;
+        Some(match self.shape.kind {
+            ConvKind::Down => 2 * g + phase,
+            ConvKind::Up => g,
+        })
+    }
+
+    /// The output coordinate of grid position `g` of `phase` along an axis.
+    fn target(&self, phase: usize, g: usize) -> usize {
+        match self.shape.kind {
+            ConvKind::Down => g,
+            ConvKind::Up => 2 * g + phase,
+        }
+    }
+}
+
+/// Winograd's minimal filtering F(2, `K`) on `P = K + 1` points: for inputs `d` (P values) and
+/// taps `g` (K values), the two outputs `y[i] = sum_m d[i + m] g[m]` are
+/// `output(G g . input(d))`. The transforms are written out, so that their constant 0 and ±1
+/// coefficients cost nothing.
+pub(crate) trait Filter<const P: usize, const K: usize> {
+    /// The weight transform, applied once at packing.
+    const G: [[f64; K]; P];
+    /// `B^T d`.
+    unsafe fn input<L: Lane>(d: [L; P]) -> [L; P];
+    /// `A^T m`.
+    unsafe fn output<L: Lane>(m: [L; P]) -> [L; 2];
+}
+
+/// F(2,3), points 0, 1, -1 and infinity.
+pub(crate) struct F23;
+
+impl Filter<4, 3> for F23 {
+    const G: [[f64; 3]; 4] = [[1.0, 0.0, 0.0], [0.5, 0.5, 0.5], [0.5, -0.5, 0.5], [0.0, 0.0, 1.0]];
+    #[inline(always)]
+    unsafe fn input<L: Lane>([d0, d1, d2, d3]: [L; 4]) -> [L; 4] {
+        [d0.sub(d2), d1.add(d2), d2.sub(d1), d1.sub(d3)]
+    }
+    #[inline(always)]
+    unsafe fn output<L: Lane>([m0, m1, m2, m3]: [L; 4]) -> [L; 2] {
+        [m0.add(m1).add(m2), m1.sub(m2).sub(m3)]
+    }
+}
+
+/// F(2,2), points 0, 1 and infinity.
+pub(crate) struct F22;
+
+impl Filter<3, 2> for F22 {
+    const G: [[f64; 2]; 3] = [[1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
+    #[inline(always)]
+    unsafe fn input<L: Lane>([d0, d1, d2]: [L; 3]) -> [L; 3] {
+        [d0.sub(d1), d1, d2.sub(d1)]
+    }
+    #[inline(always)]
+    unsafe fn output<L: Lane>([m0, m1, m2]: [L; 3]) -> [L; 2] {
+        [m0.add(m1), m1.add(m2)]
+    }
+}
+
+/// Something generic over the transforms of one phase: `PY x PX` points, `KY x KX` taps.
+pub(crate) trait PhaseFn {
+    /// # Safety
+    /// As the implementation requires (SIMD features, valid pointers).
+    unsafe fn call<const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(&mut self, phase: usize)
+    where
+        FY: Filter<PY, KY>,
+        FX: Filter<PX, KX>;
+}
+
+/// Calls `f` with the transforms of `phase` (`2 * py + px`; phase 0 of an axis has 3 taps).
+///
+/// # Safety
+/// As `f` requires.
+#[inline(always)]
+pub(crate) unsafe fn with_phase(phase: usize, f: &mut impl PhaseFn) {
+    match phase {
+        0 => f.call::<4, 3, 4, 3, F23, F23>(0),
+        1 => f.call::<4, 3, 3, 2, F23, F22>(1),
+        2 => f.call::<3, 2, 4, 3, F22, F23>(2),
+        _ => f.call::<3, 2, 3, 2, F22, F22>(3),
+    }
+}
+
+/// A run of `LANES` floats the transforms work on: one float on the scalar path, a vector on
+/// the SIMD paths. Methods are unsafe for the SIMD types (see `x86_64::act::Simd`).
+pub(crate) trait Lane: Copy {
+    const LANES: usize;
+    /// Output channels per block of the matrix products.
+    const BLOCK: usize;
+    unsafe fn zero() -> Self;
+    /// The first `min(n, LANES)` floats at `p`, zero in the other lanes.
+    unsafe fn load_n(p: *const f32, n: usize) -> Self;
+    /// Stores the first `min(n, LANES)` lanes to `p`.
+    unsafe fn store_n(self, p: *mut f32, n: usize);
+    unsafe fn add(self, b: Self) -> Self;
+    unsafe fn sub(self, b: Self) -> Self;
+    unsafe fn activate(self, act: Activation) -> Self;
+}
+
+impl Lane for f32 {
+    const LANES: usize = 1;
+    const BLOCK: usize = OC_ALIGN;
+    unsafe fn zero() -> f32 {
+        0.0
+    }
+    unsafe fn load_n(p: *const f32, n: usize) -> f32 {
+        if n > 0 {
+            *p
+        } else {
+            0.0
+        }
+    }
+    unsafe fn store_n(self, p: *mut f32, n: usize) {
+        if n > 0 {
+            *p = self
+        }
+    }
+    unsafe fn add(self, b: f32) -> f32 {
+        self + b
+    }
+    unsafe fn sub(self, b: f32) -> f32 {
+        self - b
+    }
+    unsafe fn activate(self, act: Activation) -> f32 {
+        act.apply(self)
+    }
+}
+
+/// The tile's columns, each a `PY`-array.
+#[inline(always)]
+unsafe fn columns<L: Lane, const PY: usize, const PX: usize>(x: &[[L; PX]; PY]) -> [[L; PY]; PX] {
+    let mut columns = [[L::zero(); PY]; PX];
+    for (r, row) in x.iter().enumerate() {
+        for (column, &v) in columns.iter_mut().zip(row) {
+            column[r] = v;
+        }
+    }
+    columns
+}
+
+/// `B_y^T d B_x` for a `PY x PX` input tile `d`.
+#[inline(always)]
+unsafe fn input_tile<L, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
+    d: &[[L; PX]; PY],
+) -> [[L; PX]; PY]
+where
+    L: Lane,
+    FY: Filter<PY, KY>,
+    FX: Filter<PX, KX>,
+{
+    let mut down = [[L::zero(); PY]; PX];
+    for (t, column) in down.iter_mut().zip(columns(d)) {
+        *t = FY::input(column);
+    }
+    let mut out = columns(&down);
+    for row in out.iter_mut() {
+        *row = FX::input(*row);
+    }
+    out
+}
+
+/// `A_y^T m A_x` for a `PY x PX` tile of products `m`: a 2x2 tile of outputs.
+#[inline(always)]
+unsafe fn output_tile<L, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
+    m: &[[L; PX]; PY],
+) -> [[L; 2]; 2]
+where
+    L: Lane,
+    FY: Filter<PY, KY>,
+    FX: Filter<PX, KX>,
+{
+    let mut down = [[L::zero(); 2]; PX];
+    for (t, column) in down.iter_mut().zip(columns(m)) {
+        *t = FY::output(column);
+    }
+    let [top, bottom] = columns(&down);
+    [FX::output(top), FX::output(bottom)]
+}
+
+/// Step 1 for one phase: fills `V`'s span of `phase` (`v` is that span, see
+/// [`Winograd::phase_span`]) from the input plane, `L::LANES` channels at a time.
+pub(crate) struct InputTransform<'a, L> {
+    w: &'a Winograd,
+    input: &'a [f32],
+    v: &'a mut [f32],
+    lanes: core::marker::PhantomData<L>,
+}
+
+impl<'a, L> InputTransform<'a, L> {
+    pub fn new(w: &'a Winograd, input: &'a [f32], v: &'a mut [f32]) -> Self {
+        InputTransform {
+            w,
+            input,
+            v,
+            lanes: core::marker::PhantomData,
+        }
+    }
+}
+
+impl<L: Lane> PhaseFn for InputTransform<'_, L> {
+    #[inline(always)]
+    unsafe fn call<const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(&mut self, phase: usize)
+    where
+        FY: Filter<PY, KY>,
+        FX: Filter<PX, KX>,
+    {
+        let w = self.w;
+        let (ip, (gh, gw)) = (w.shape.input, w.grid());
+        let (py, px) = (phase / 2, phase % 2);
+        let (c, tiles, wide) = (ip.channels, w.tiles(), w.tiles_wide());
+        let input = self.input.as_ptr();
+        let v = self.v.as_mut_ptr();
+        for tile in 0..tiles {
+            let (gy, gx) = (
+                2 * (tile / wide) as isize + w.lo(py),
+                2 * (tile % wide) as isize + w.lo(px),
+            );
+            // Each tap's pixel, or none where the grid has no source.
+            let pixels: [[Option<usize>; PX]; PY] = core::array::from_fn(|r| {
+                let y = w.source(py, gy + r as isize, gh);
+                core::array::from_fn(|s| Some(ip.index(y?, w.source(px, gx + s as isize, gw)?)))
+            });
+            for c0 in (0..c).step_by(L::LANES) {
+                let n = c - c0;
+                let mut d = [[L::zero(); PX]; PY];
+                for (d, pixels) in d.iter_mut().zip(&pixels) {
+                    for (d, pixel) in d.iter_mut().zip(pixels) {
+                        if let Some(p) = pixel {
+                            *d = L::load_n(input.add(p + c0), n);
+                        }
+                    }
+                }
+                let t = input_tile::<L, PY, KY, PX, KX, FY, FX>(&d);
+                for (r, row) in t.iter().enumerate() {
+                    for (s, value) in row.iter().enumerate() {
+                        value.store_n(v.add(((r * PX + s) * tiles + tile) * c + c0), n);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The matrix products of step 2: `m[t * L::BLOCK + j] = sum_i v[t * in_channels + i] *
+/// U[point][i][first + j]` for tiles `t < count` and `j < valid`.
+pub(crate) trait Product {
+    /// # Safety
+    /// `v` must hold `count` tiles of input channels, `m` `count` rows of `L::BLOCK` floats;
+    /// `first` is a multiple of [`OC_ALIGN`] and `first + valid` at most the output channels.
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn run(
+        &self,
+        w: &Winograd,
+        u: &[f32],
+        point: usize,
+        v: *const f32,
+        count: usize,
+        m: *mut f32,
+        first: usize,
+        valid: usize,
+    );
+}
+
+/// The scalar products, straight from the definition.
+pub(crate) struct ScalarProduct;
+
+impl Product for ScalarProduct {
+    unsafe fn run(
+        &self,
+        w: &Winograd,
+        u: &[f32],
+        point: usize,
+        v: *const f32,
+        count: usize,
+        m: *mut f32,
+        first: usize,
+        valid: usize,
+    ) {
+        let c = w.shape.input.channels;
+        for t in 0..count {
+            let v = core::slice::from_raw_parts(v.add(t * c), c);
+            for j in 0..valid {
+                let sum = v
+                    .iter()
+                    .enumerate()
+                    .map(|(i, x)| x * u[w.packed_index(point, i, first + j)])
+                    .sum();
+                *m.add(t * <f32 as Lane>::BLOCK + j) = sum;
+            }
+        }
+    }
+}
+
+/// Steps 2 and 3 for output channels `channels` (`channels.start` a multiple of [`OC_ALIGN`]).
+///
+/// # Safety
+/// As for [`crate::winograd_channels`], and the CPU must support `L` and `P`.
+#[inline(always)]
+pub(crate) unsafe fn channels<L: Lane, P: Product>(
+    product: &P,
+    layer: ConvParams<'_>,
+    v: &[f32],
+    scratch: &mut [f32],
+    output: *mut f32,
+    channels: Range<usize>,
+) {
+    let w = Winograd::new(layer.shape).expect("a Winograd layer");
+    let tiles = w.tiles();
+    let c = w.shape.input.channels;
+    let m = scratch.as_mut_ptr();
+    for first in channels.clone().step_by(L::BLOCK) {
+        let valid = (channels.end - first).min(L::BLOCK);
+        for start in (0..tiles).step_by(GROUP_TILES) {
+            let count = (tiles - start).min(GROUP_TILES);
+            for point in 0..POINTS {
+                let v = v.as_ptr().add((point * tiles + start) * c);
+                product.run(
+                    &w,
+                    layer.weights,
+                    point,
+                    v,
+                    count,
+                    m.add(point * GROUP_TILES * L::BLOCK),
+                    first,
+                    valid,
+                );
+            }
+            let mut out = OutputTransform::<L> {
+                w: &w,
+                m,
+                bias: layer.bias.as_ptr().add(first),
+                act: layer.act,
+                output: output.add(first),
+                sum: [[L::zero(); 2]; 2],
+                tile: 0,
+                channel: 0,
+                n: 0,
+                m_at: 0,
+            };
+            for tile in start..start + count {
+                for channel in (0..valid).step_by(L::LANES) {
+                    out.tile = tile;
+                    out.channel = channel;
+                    out.n = valid - channel;
+                    out.finish_tile(start);
+                }
+            }
+        }
+    }
+}
+
+/// Step 3 for one tile and `L::LANES` channels: reads the products of each phase, transforms
+/// them back and stores the output pixels (after summing the phases for `Down`).
+struct OutputTransform<'a, L> {
+    w: &'a Winograd,
+    /// The products of the group, `[point][tile in group][L::BLOCK]`.
+    m: *const f32,
+    /// Bias and output from the block's first channel.
+    bias: *const f32,
+    act: Activation,
+    output: *mut f32,
+    /// The phases summed so far (`Down`).
+    sum: [[L; 2]; 2],
+    tile: usize,
+    /// These channels' offset from the block's first, and how many of them are real.
+    channel: usize,
+    n: usize,
+    /// Offset of these channels in a point's products.
+    m_at: usize,
+}
+
+impl<L: Lane> OutputTransform<'_, L> {
+    /// Runs every phase for the current tile and channels; `start` is the group's first tile.
+    #[inline(always)]
+    unsafe fn finish_tile(&mut self, start: usize) {
+        self.m_at = (self.tile - start) * L::BLOCK + self.channel;
+        self.sum = [[L::zero(); 2]; 2];
+        for phase in 0..4 {
+            with_phase(phase, self);
+        }
+        if self.w.shape.kind == ConvKind::Down {
+            self.store(0, self.sum);
+        }
+    }
+
+    /// Adds the bias, applies the activation and stores the pixels of `y` (the tile of `phase`
+    /// for `Up`; of all phases for `Down`) that lie in the output.
+    #[inline(always)]
+    unsafe fn store(&self, phase: usize, y: [[L; 2]; 2]) {
+        let (w, op, (gh, gw)) = (self.w, self.w.shape.output, self.w.grid());
+        let (ty, tx) = (self.tile / w.tiles_wide(), self.tile % w.tiles_wide());
+        let bias = L::load_n(self.bias.add(self.channel), self.n);
+        for (dy, row) in y.iter().enumerate() {
+            let gy = 2 * ty + dy;
+            if gy >= gh {
+                continue;
+            }
+            for (dx, value) in row.iter().enumerate() {
+                let gx = 2 * tx + dx;
+                if gx >= gw {
+                    continue;
+                }
+                let at = op.index(w.target(phase / 2, gy), w.target(phase % 2, gx)) + self.channel;
+                value.add(bias).activate(self.act).store_n(self.output.add(at), self.n);
+            }
+        }
+    }
+}
+
+impl<L: Lane> PhaseFn for OutputTransform<'_, L> {
+    #[inline(always)]
+    unsafe fn call<const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(&mut self, phase: usize)
+    where
+        FY: Filter<PY, KY>,
+        FX: Filter<PX, KX>,
+    {
+        let first = PHASE_POINTS[phase].0;
+        let mut m = [[L::zero(); PX]; PY];
+        for (r, row) in m.iter_mut().enumerate() {
+            for (s, m) in row.iter_mut().enumerate() {
+                let point = first + r * PX + s;
+                *m = L::load_n(self.m.add(point * GROUP_TILES * L::BLOCK + self.m_at), self.n);
+            }
+        }
+        let y = output_tile::<L, PY, KY, PX, KX, FY, FX>(&m);
+        match self.w.shape.kind {
+            ConvKind::Down => {
+                for (sum, y) in self.sum.iter_mut().zip(&y) {
+                    for (s, &y) in sum.iter_mut().zip(y) {
+                        *s = s.add(y);
+                    }
+                }
+            }
+            ConvKind::Up => self.store(phase, y),
+        }
+    }
+}
+
+/// Packs weights already in the direct layout (see [`crate::pack::winograd_weights`]).
+pub(crate) struct WeightTransform<'a> {
+    pub w: &'a Winograd,
+    pub direct: &'a [f32],
+    pub packed: &'a mut [f32],
+}
+
+impl PhaseFn for WeightTransform<'_> {
+    unsafe fn call<const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(&mut self, phase: usize)
+    where
+        FY: Filter<PY, KY>,
+        FX: Filter<PX, KX>,
+    {
+        let (w, shape) = (self.w, &self.w.shape);
+        let (py, px, first) = (phase / 2, phase % 2, PHASE_POINTS[phase].0);
+        for oc in 0..shape.output.channels {
+            for ic in 0..shape.input.channels {
+                let g: [[f64; KX]; KY] = core::array::from_fn(|my| {
+                    core::array::from_fn(|mx| {
+                        self.direct[shape.packed_index(w.tap(py, my), w.tap(px, mx), ic, oc)] as f64
+                    })
+                });
+                // G g G^T in f64, rounded once.
+                for (r, gy) in FY::G.iter().enumerate() {
+                    for (s, gx) in FX::G.iter().enumerate() {
+                        let mut sum = 0.0;
+                        for (grow, &cy) in g.iter().zip(gy) {
+                            for (&value, &cx) in grow.iter().zip(gx) {
+                                sum += cy * value * cx;
+                            }
+                        }
+                        self.packed[w.packed_index(first + r * PX + s, ic, oc)] = sum as f32;
+                    }
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,158 @@
+//! The SIMD side of [`crate::winograd`]: its transforms over vectors of channels, and its
+//! matrix products on the direct convolution's microkernel (a product is a row of "pixels"
+//! (tiles) with one segment of input channels).
+
+use super::act::{self, Simd};
+use super::conv::{load_n, run_row, store_n, Block, Row, Seg};
+use crate::winograd::{self, InputTransform, Lane, Product, Winograd};
+use crate::{Activation, ConvParams, IsaLevel, OC_ALIGN};
+use core::arch::x86_64::{__m256, __m512};
+use core::ops::Range;
+
+impl<V: Simd> Lane for V {
+    const LANES: usize = V::LANES;
+    const BLOCK: usize = 2 * V::LANES;
+    #[inline(always)]
+    unsafe fn zero() -> V {
+        V::splat(0.0)
+    }
+    #[inline(always)]
+    unsafe fn load_n(p: *const f32, n: usize) -> V {
+        load_n(p, n)
+    }
+    #[inline(always)]
+    unsafe fn store_n(self, p: *mut f32, n: usize) {
+        store_n(self, p, n)
+    }
+    #[inline(always)]
+    unsafe fn add(self, b: V) -> V {
+        Simd::add(self, b)
+    }
+    #[inline(always)]
+    unsafe fn sub(self, b: V) -> V {
+        Simd::sub(self, b)
+    }
+    #[inline(always)]
+    unsafe fn activate(self, act: Activation) -> V {
+        act::apply(act, self)
+    }
+}
+
+/// The products on the microkernel: tiles are its pixels, `in_channels` apart in `V`.
+struct Microkernel<V>(core::marker::PhantomData<V>);
+
+impl<V: Simd> Product for Microkernel<V> {
+    #[inline(always)]
+    unsafe fn run(
+        &self,
+        w: &Winograd,
+        u: &[f32],
+        point: usize,
+        v: *const f32,
+        count: usize,
+        m: *mut f32,
+        first: usize,
+        valid: usize,
+    ) {
+        let c = w.shape.input.channels;
+        let segs = [Seg {
+            input: 0,
+            weight: point * c * OC_ALIGN,
+            len: c,
+        }];
+        let row = Row {
+            segs: &segs,
+            input: v,
+            in_step: c,
+            output: m,
+            out_step: 2 * V::LANES,
+            count,
+            accumulate: false,
+            activate: false,
+        };
+        // The lane of channel `first + i` in its panel (panels are whole, so the second vector's
+        // weights exist whenever `valid > LANES`).
+        let lane = |i: usize| u.as_ptr().add(w.packed_index(0, 0, first + i));
+        if valid > V::LANES {
+            let block = Block::<V, 2> {
+                weights: [lane(0), lane(V::LANES)],
+                bias: [V::splat(0.0); 2],
+                first: 0,
+                valid,
+            };
+            run_row(&row, &block, Activation::Identity)
+        } else {
+            let block = Block::<V, 1> {
+                weights: [lane(0)],
+                bias: [V::splat(0.0)],
+                first: 0,
+                valid,
+            };
+            run_row(&row, &block, Activation::Identity)
+        }
+    }
+}
+
+/// See [`crate::winograd_input`].
+///
+/// # Safety
+/// `level` must come from an `Isa`; the buffers are checked by the caller.
+pub(crate) unsafe fn input(level: IsaLevel, w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
+    match level {
+        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and FMA.
+        IsaLevel::Avx512 => input_avx512(w, phase, input, v),
+        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA.
+        IsaLevel::Avx2 => input_avx2(w, phase, input, v),
+        IsaLevel::Scalar => winograd::with_phase(phase, &mut InputTransform::<f32>::new(w, input, v)),
+    }
+}
+
+/// See [`crate::winograd_channels`].
+///
+/// # Safety
+/// As for [`crate::winograd_channels`]; `level` must come from an `Isa`.
+pub(crate) unsafe fn channels(
+    level: IsaLevel,
+    layer: ConvParams<'_>,
+    v: &[f32],
+    scratch: &mut [f32],
+    output: *mut f32,
+    channels: Range<usize>,
+) {
+    match level {
+        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and FMA.
+        IsaLevel::Avx512 => channels_avx512(layer, v, scratch, output, channels),
+        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA.
+        IsaLevel::Avx2 => channels_avx2(layer, v, scratch, output, channels),
+        IsaLevel::Scalar => winograd::channels::<f32, _>(&winograd::ScalarProduct, layer, v, scratch, output, channels),
+    }
+}
+
+/// The generic bodies compiled for one instruction set.
+macro_rules! entries {
+    ($input:ident, $channels:ident, $features:literal, $vector:ty) => {
+        /// # Safety
+        #[doc = concat!("The CPU must have ", $features, ".")]
+        #[target_feature(enable = $features)]
+        unsafe fn $input(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
+            winograd::with_phase(phase, &mut InputTransform::<$vector>::new(w, input, v))
+        }
+
+        /// # Safety
+        #[doc = concat!("The CPU must have ", $features, "; as for `crate::winograd_channels`.")]
+        #[target_feature(enable = $features)]
+        unsafe fn $channels(
+            layer: ConvParams<'_>,
+            v: &[f32],
+            scratch: &mut [f32],
+            output: *mut f32,
+            channels: Range<usize>,
+        ) {
+            let product = Microkernel::<$vector>(core::marker::PhantomData);
+            winograd::channels::<$vector, _>(&product, layer, v, scratch, output, channels)
+        }
+    };
+}
+
+entries!(input_avx2, channels_avx2, "avx2,fma", __m256);
+entries!(input_avx512, channels_avx512, "avx512f,avx2,fma", __m512);

@@ -1,0 +1,152 @@
+//! Winograd convolutions, scalar and SIMD, against the direct scalar convolution (the oracle)
+//! on awkward shapes: odd channel counts, odd grid sizes (tiles hanging over the edge), 1x1
+//! grids, every activation, both kinds.
+
+mod common;
+
+use common::values;
+use drivesim_kernels::winograd::SCRATCH_LEN;
+use drivesim_kernels::{
+    pack, scalar, winograd_channels, winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, Plane,
+    Winograd,
+};
+
+/// Every level this CPU supports, scalar included, saying which are skipped.
+fn levels() -> Vec<Isa> {
+    for level in [IsaLevel::Avx2, IsaLevel::Avx512] {
+        if Isa::new(level).is_none() {
+            eprintln!("skipping {}: CPU lacks it", level.name());
+        }
+    }
+    Isa::supported().collect()
+}
+
+/// The largest error of `got` against `want`, relative to the size of the terms each output
+/// sums (`sum |w| |x| + |b|`, bounded here by the largest such sum over the layer).
+fn check(
+    kind: ConvKind,
+    (h, w): (usize, usize),
+    (ic, oc): (usize, usize),
+    halo: (usize, usize),
+    act: Activation,
+) -> f32 {
+    let k = 5;
+    let seed = (h * 1000 + w * 100 + ic * 10 + oc) as u64;
+    let ip = Plane::new(h, w, ic, kind.input_halo(k) + halo.0);
+    let shape = ConvShape::new(kind, k, ip, oc, halo.1);
+    let wino = Winograd::new(shape).expect("a Winograd shape");
+    let mut input = vec![0.0; ip.len()];
+    ip.write_interior(&mut input, &values(seed, ip.interior_len(), 1.0));
+    let torch = values(seed + 1, ic * oc * k * k, 1.0);
+    let bias = values(seed + 2, oc, 1.0);
+    let (direct, folded) = pack::conv_weights(&shape, &torch, &bias, None);
+    let direct_layer = ConvParams {
+        shape,
+        weights: &direct,
+        bias: &folded,
+        act,
+    };
+    let mut want = vec![0.0; shape.output.len()];
+    scalar::conv(direct_layer, &input, &mut want);
+    // The error scale: |input| and |w| are at most 1, so each output sums at most
+    // 25 * ic products of size 1.
+    let scale = (k * k * ic) as f32 + 1.0;
+    let (packed, bias) = pack::winograd_weights(&wino, &torch, &bias, None);
+    let layer = ConvParams {
+        shape,
+        weights: &packed,
+        bias: &bias,
+        act,
+    };
+    let mut worst_all = 0.0f32;
+    for isa in levels() {
+        let mut v = vec![f32::NAN; wino.input_len()];
+        let mut scratch = vec![f32::NAN; SCRATCH_LEN];
+        let mut got = vec![0.0; shape.output.len()];
+        winograd_conv(isa, layer, &input, &mut v, &mut scratch, &mut got);
+        let worst = got.iter().zip(&want).fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
+        let name = isa.level().name();
+        assert!(
+            worst / scale <= 2e-7,
+            "{name} {kind:?} {h}x{w} {ic}->{oc} {act:?}: error {worst} of {scale}"
+        );
+        // The border stays zero: `want` has a zero border, so `worst` covers it. Every interior
+        // value is written, and channel ranges (as threads use them) give the same values:
+        // rerun into an output whose interior is NaN.
+        let op = shape.output;
+        let mut nan_filled = vec![f32::NAN; shape.output.len()];
+        nan_filled.copy_from_slice(&got);
+        for y in 0..op.height {
+            for x in 0..op.width {
+                let at = op.index(y, x);
+                nan_filled[at..at + op.channels].fill(f32::NAN);
+            }
+        }
+        // SAFETY: `nan_filled` holds the whole output plane and is not shared.
+        unsafe {
+            let split = if oc > 16 { 16 } else { 0 };
+            for channels in [0..split, split..oc] {
+                winograd_channels(isa, layer, &v, &mut scratch, nan_filled.as_mut_ptr(), channels);
+            }
+        }
+        assert!(
+            nan_filled.iter().zip(&got).all(|(a, b)| a == b),
+            "{name} {kind:?} {h}x{w} {ic}->{oc}: channel ranges differ from one call, or a value was not written"
+        );
+        worst_all = worst_all.max(worst / scale);
+    }
+    worst_all
+}
+
+const ACTS: [Activation; 4] = [
+    Activation::Identity,
+    Activation::Relu,
+    Activation::LeakyRelu(0.2),
+    Activation::Tanh,
+];
+
+#[test]
+fn down_matches_direct() {
+    let mut worst = 0.0f32;
+    for (size, channels) in [
+        ((2, 2), (8, 5)),
+        ((4, 6), (9, 17)),
+        ((10, 14), (16, 16)),
+        ((6, 20), (33, 47)),
+        ((12, 4), (64, 40)),
+    ] {
+        for act in ACTS {
+            worst = worst.max(check(ConvKind::Down, size, channels, (0, 2), act));
+        }
+    }
+    worst = worst.max(check(ConvKind::Down, (8, 8), (12, 24), (1, 0), Activation::Identity));
+    eprintln!("Down: largest error {worst:.2e} of the terms' size");
+}
+
+#[test]
+fn up_matches_direct() {
+    let mut worst = 0.0f32;
+    for (size, channels) in [
+        ((1, 1), (8, 5)),
+        ((2, 3), (9, 17)),
+        ((5, 7), (16, 16)),
+        ((3, 10), (33, 47)),
+        ((6, 2), (64, 40)),
+    ] {
+        for act in ACTS {
+            worst = worst.max(check(ConvKind::Up, size, channels, (0, 1), act));
+        }
+    }
+    worst = worst.max(check(ConvKind::Up, (4, 4), (24, 12), (1, 0), Activation::Identity));
+    eprintln!("Up: largest error {worst:.2e} of the terms' size");
+}
+
+#[test]
+fn narrow_or_shallow_layers_stay_direct() {
+    let plane = Plane::new(8, 8, 16, 2);
+    assert!(Winograd::new(ConvShape::new(ConvKind::Down, 5, plane, 16, 0)).is_some());
+    assert!(Winograd::new(ConvShape::new(ConvKind::Down, 5, plane, 3, 0)).is_none());
+    assert!(Winograd::new(ConvShape::new(ConvKind::Down, 3, plane, 16, 0)).is_none());
+    assert!(Winograd::new(ConvShape::new(ConvKind::Down, 5, Plane::new(8, 8, 3, 2), 16, 0)).is_none());
+    assert!(Winograd::new(ConvShape::new(ConvKind::Down, 5, Plane::new(7, 8, 16, 2), 16, 0)).is_none());
+}
