@@ -34,9 +34,8 @@ pub const POINTS: usize = 49;
 /// First point and number of points of each phase `2 * py + px` (phase 0 of an axis has three
 /// taps, phase 1 two).
 const PHASE_POINTS: [(usize, usize); 4] = [(0, 16), (16, 12), (28, 12), (40, 9)];
-/// Tiles whose products are kept at once: 49 points x 32 tiles x 16 channels (100 KiB with
-/// AVX2) stay in L2 between the product and the output transform.
-pub const GROUP_TILES: usize = 32;
+/// The most tiles whose products are kept at once (see [`channels`]).
+pub const GROUP_TILES: usize = 20;
 /// Floats of the product scratch [`crate::winograd_channels`] needs: blocks of up to 32 output
 /// channels (two AVX-512 vectors).
 pub const SCRATCH_LEN: usize = POINTS * GROUP_TILES * 2 * OC_ALIGN;
@@ -435,45 +434,69 @@ pub(crate) unsafe fn channels<L: Lane, P: Product>(
 ) {
     let w = Winograd::new(layer.shape).expect("a Winograd layer");
     let tiles = w.tiles();
+    // The tiles go in groups of nearly equal size; all the products of a group and a block of
+    // output channels (49 x 20 x 16 floats with AVX2, 61 KiB) are kept until the output
+    // transform. Of the two operands, the larger streams from L3 and the smaller is reused
+    // from L2: with more weights than transformed input, each block's weights (49 points x
+    // input channels x 16) serve every group in turn; otherwise each group's transformed input
+    // serves every block.
+    let groups = tiles.div_ceil(GROUP_TILES);
+    let group = |g: usize| tiles * g / groups..tiles * (g + 1) / groups;
+    let blocks = channels.clone().step_by(L::BLOCK);
+    if w.packed_len() > w.input_len() {
+        for first in blocks {
+            for g in 0..groups {
+                group_block::<L, P>(product, &w, layer, v, scratch, output, group(g), first..channels.end);
+            }
+        }
+    } else {
+        for g in 0..groups {
+            for first in blocks.clone() {
+                group_block::<L, P>(product, &w, layer, v, scratch, output, group(g), first..channels.end);
+            }
+        }
+    }
+}
+
+/// Steps 2 and 3 for the tiles `tiles` and the block of output channels from `channels.start`.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn group_block<L: Lane, P: Product>(
+    product: &P,
+    w: &Winograd,
+    layer: ConvParams<'_>,
+    v: &[f32],
+    scratch: &mut [f32],
+    output: *mut f32,
+    tiles: Range<usize>,
+    channels: Range<usize>,
+) {
+    let (first, valid) = (channels.start, channels.len().min(L::BLOCK));
     let c = w.shape.input.channels;
     let m = scratch.as_mut_ptr();
-    for first in channels.clone().step_by(L::BLOCK) {
-        let valid = (channels.end - first).min(L::BLOCK);
-        for start in (0..tiles).step_by(GROUP_TILES) {
-            let count = (tiles - start).min(GROUP_TILES);
-            for point in 0..POINTS {
-                let v = v.as_ptr().add((point * tiles + start) * c);
-                product.run(
-                    &w,
-                    layer.weights,
-                    point,
-                    v,
-                    count,
-                    m.add(point * GROUP_TILES * L::BLOCK),
-                    first,
-                    valid,
-                );
-            }
-            let mut out = OutputTransform::<L> {
-                w: &w,
-                m,
-                bias: layer.bias.as_ptr().add(first),
-                act: layer.act,
-                output: output.add(first),
-                sum: [[L::zero(); 2]; 2],
-                tile: 0,
-                channel: 0,
-                n: 0,
-                m_at: 0,
-            };
-            for tile in start..start + count {
-                for channel in (0..valid).step_by(L::LANES) {
-                    out.tile = tile;
-                    out.channel = channel;
-                    out.n = valid - channel;
-                    out.finish_tile(start);
-                }
-            }
+    for point in 0..POINTS {
+        let v = v.as_ptr().add((point * w.tiles() + tiles.start) * c);
+        let m = m.add(point * GROUP_TILES * L::BLOCK);
+        product.run(w, layer.weights, point, v, tiles.len(), m, first, valid);
+    }
+    let mut out = OutputTransform::<L> {
+        w,
+        m,
+        bias: layer.bias.as_ptr().add(first),
+        act: layer.act,
+        output: output.add(first),
+        sum: [[L::zero(); 2]; 2],
+        tile: 0,
+        channel: 0,
+        n: 0,
+        m_at: 0,
+    };
+    for tile in tiles.clone() {
+        for channel in (0..valid).step_by(L::LANES) {
+            out.tile = tile;
+            out.channel = channel;
+            out.n = valid - channel;
+            out.finish_tile(tiles.start);
         }
     }
 }

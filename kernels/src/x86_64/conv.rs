@@ -24,7 +24,7 @@
 
 use super::act::{self, Simd};
 use crate::{scalar, Activation, ConvKind, ConvParams, ConvShape, IsaLevel, OC_ALIGN};
-use core::arch::x86_64::{__m256, __m512};
+use core::arch::x86_64::{__m256, __m512, _mm_prefetch, _MM_HINT_T0};
 use core::ops::Range;
 
 /// The most segments one row can have (`k` for `Down`, `ceil(k / 2)^2` for `Up`); kernels with
@@ -58,6 +58,9 @@ pub(super) struct Row<'a> {
     pub accumulate: bool,
     /// Apply the activation on store (else store the sums).
     pub activate: bool,
+    /// Prefetch the weights this many segment steps ahead (0: none). For weights that stream
+    /// from L3 or memory at each use, faster than the hardware prefetcher ramps up.
+    pub prefetch: usize,
 }
 
 /// The rows of a panel of packed weights (a row: `OC_ALIGN` values, one per output channel, for
@@ -305,6 +308,7 @@ unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, pass: Pas
                 count,
                 accumulate: !pass.first,
                 activate: pass.first && pass.last,
+                prefetch: 0,
             });
         }
     }
@@ -373,6 +377,12 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
         let mut i = 0;
         while i + UNROLL <= seg.len {
             for u in i..i + UNROLL {
+                if row.prefetch > 0 {
+                    for w in w {
+                        let ahead = w.wrapping_add((u + row.prefetch) * OC_ALIGN);
+                        _mm_prefetch::<_MM_HINT_T0>(ahead.cast::<i8>());
+                    }
+                }
                 conv_step(&mut acc, &x, &w, u);
             }
             i += UNROLL;
