@@ -114,6 +114,8 @@ fn down_matches_direct() {
         ((10, 14), (16, 16)),
         ((6, 20), (33, 47)),
         ((12, 4), (64, 40)),
+        // More transformed input than weights (tiles before blocks), several tile groups.
+        ((20, 40), (9, 20)),
     ] {
         for act in ACTS {
             worst = worst.max(check(ConvKind::Down, size, channels, (0, 2), act));
@@ -132,6 +134,7 @@ fn up_matches_direct() {
         ((5, 7), (16, 16)),
         ((3, 10), (33, 47)),
         ((6, 2), (64, 40)),
+        ((12, 14), (16, 17)),
     ] {
         for act in ACTS {
             worst = worst.max(check(ConvKind::Up, size, channels, (0, 1), act));
