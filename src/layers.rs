@@ -5,7 +5,6 @@ use crate::weights::{Init, Tensor, TensorSource};
 use crate::Result;
 use alloc::format;
 use alloc::vec::Vec;
-use core::ops::Range;
 use core::sync::atomic::{AtomicUsize, Ordering};
 use drivesim_kernels::pack::{self, BatchNorm};
 use drivesim_kernels::{f16, winograd, Activation, ConvParams, ConvShape, Matrix, MatrixData, Winograd, OC_ALIGN};
@@ -53,11 +52,11 @@ impl ConvLayer {
         })
     }
 
-    /// Runs the layer; with threads, each takes blocks of output channels from a shared
-    /// counter until none is left (and so reads only the weights of its blocks). Taking blocks
-    /// as they come, rather than a fixed share, keeps both busy when one core runs slower (a
-    /// busy neighbour, a lower clock). A Winograd layer first shares its input transform by
-    /// stride phases.
+    /// Runs the layer; with threads, a direct layer has each take blocks of output channels
+    /// from a shared counter until none is left (and so read only the weights of its blocks).
+    /// Taking blocks as they come, rather than a fixed share, keeps both busy when one core runs
+    /// slower (a busy neighbour, a lower clock). A Winograd layer shares its input transform by
+    /// stride phases, then gives each thread a fixed share of the output channels.
     pub fn run(&self, exec: Exec<'_>, input: &[f32], output: &mut [f32], scratch: Scratch<'_>) {
         let (isa, threads, channels) = (exec.isa, exec.threads(), self.shape.output.channels);
         let layer = ConvParams {
@@ -72,9 +71,17 @@ impl ConvLayer {
             if single {
                 return drivesim_kernels::conv(isa, layer, input, output);
             }
-            // SAFETY: each block of channels goes to one thread only (see `share_blocks`).
-            return share_blocks(exec, blocks, channels, output, &|_, out, mine| unsafe {
-                drivesim_kernels::conv_channels(isa, layer, input, out, mine)
+            let out = Disjoint::new(output);
+            let next = AtomicUsize::new(0);
+            return exec.run(&|_| loop {
+                let block = next.fetch_add(1, Ordering::Relaxed);
+                if block >= blocks {
+                    break;
+                }
+                let mine = block * BLOCK_CHANNELS..((block + 1) * BLOCK_CHANNELS).min(channels);
+                // SAFETY: `out` is the whole output plane, borrowed mutably, and each block of
+                // channels goes to one thread only.
+                unsafe { drivesim_kernels::conv_channels(isa, layer, input, out.as_mut_ptr(), mine) }
             });
         };
         let v = &mut scratch.transformed[..w.input_len()];
@@ -95,12 +102,18 @@ impl ConvLayer {
         let v = &*v;
         assert!(scratch.products.len() >= threads * winograd::SCRATCH_LEN);
         let products = Disjoint::new(scratch.products);
-        share_blocks(exec, blocks, channels, output, &|t, out, mine| {
-            // SAFETY: thread `t` alone uses product scratch `t`; each block of channels goes to
-            // one thread only (see `share_blocks`).
+        let out = Disjoint::new(output);
+        // A fixed share of whole panels per thread, in one call: the kernel then reads the
+        // larger of weights and transformed input once per call (see `winograd_channels`),
+        // where blocks taken one at a time would each read it again.
+        let panels = channels.div_ceil(OC_ALIGN);
+        exec.run(&|t| {
+            let mine = share(panels, threads, t);
+            let mine = mine.start * OC_ALIGN..(mine.end * OC_ALIGN).min(channels);
+            // SAFETY: thread `t` alone uses product scratch `t` and writes channels `mine`.
             unsafe {
                 let scratch = products.range(t * winograd::SCRATCH_LEN..(t + 1) * winograd::SCRATCH_LEN);
-                drivesim_kernels::winograd_channels(isa, layer, v, scratch, out, mine)
+                drivesim_kernels::winograd_channels(isa, layer, v, scratch, out.as_mut_ptr(), mine)
             }
         });
     }
@@ -110,30 +123,6 @@ impl ConvLayer {
 pub(crate) struct Scratch<'a> {
     transformed: &'a mut [f32],
     products: &'a mut [f32],
-}
-
-/// Has the threads take blocks of output channels from a counter and call `f(thread, output,
-/// channels)` for each; `f` may write channels `channels` of the output plane at `output`.
-fn share_blocks(
-    exec: Exec<'_>,
-    blocks: usize,
-    channels: usize,
-    output: &mut [f32],
-    f: &(dyn Fn(usize, *mut f32, Range<usize>) + Sync),
-) {
-    let out = Disjoint::new(output);
-    let next = AtomicUsize::new(0);
-    exec.run(&|t| loop {
-        let block = next.fetch_add(1, Ordering::Relaxed);
-        if block >= blocks {
-            break;
-        }
-        f(
-            t,
-            out.as_mut_ptr(),
-            block * BLOCK_CHANNELS..((block + 1) * BLOCK_CHANNELS).min(channels),
-        );
-    });
 }
 
 /// Output channels threads take at a time: two panels, the kernels' widest block of channels.
