@@ -276,11 +276,16 @@ where
     FY: Filter<PY, KY>,
     FX: Filter<PX, KX>,
 {
-    let mut down = [[L::zero(); PY]; PX];
-    for (t, column) in down.iter_mut().zip(columns(d)) {
-        *t = FY::input(column);
+    let mut out = *d;
+    for c in 0..PX {
+        let mut column = [L::zero(); PY];
+        for (value, row) in column.iter_mut().zip(&out) {
+            *value = row[c];
+        }
+        for (row, value) in out.iter_mut().zip(FY::input(column)) {
+            row[c] = value;
+        }
     }
-    let mut out = columns(&down);
     for row in out.iter_mut() {
         *row = FX::input(*row);
     }
@@ -344,10 +349,14 @@ impl<L: Lane> PhaseFn for InputTransform<'_, L> {
                 2 * (tile % wide) as isize + w.lo(px),
             );
             // Each tap's pixel, or none where the grid has no source.
-            let pixels: [[Option<usize>; PX]; PY] = core::array::from_fn(|r| {
-                let y = w.source(py, gy + r as isize, gh);
-                core::array::from_fn(|s| Some(ip.index(y?, w.source(px, gx + s as isize, gw)?)))
-            });
+            let mut pixels = [[None; PX]; PY];
+            for (r, row) in pixels.iter_mut().enumerate() {
+                if let Some(y) = w.source(py, gy + r as isize, gh) {
+                    for (s, pixel) in row.iter_mut().enumerate() {
+                        *pixel = w.source(px, gx + s as isize, gw).map(|x| ip.index(y, x));
+                    }
+                }
+            }
             for c0 in (0..c).step_by(L::LANES) {
                 let n = c - c0;
                 let mut d = [[L::zero(); PX]; PY];
