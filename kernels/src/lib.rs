@@ -5,6 +5,10 @@
 //! - one entry point per operation ([`conv`], [`dense`], [`rnn_step`]) that dispatches on an
 //!   [`Isa`] chosen once at run time, plus [`conv_channels`] and [`dense_rows`], which compute
 //!   part of the output so that threads can share one call,
+//! - a second algorithm for the convolutions, Winograd's minimal filtering ([`winograd`]:
+//!   [`winograd_conv`], or [`winograd_input`] and [`winograd_channels`] for threads), with its
+//!   own weight layout and caller-provided scratch; its scalar path is tested against the
+//!   direct scalar convolution,
 //! - the scalar reference of every operation ([`scalar`]), which is the test oracle for the
 //!   SIMD versions and the fallback on every other target,
 //! - weight packing done once at load ([`pack`]).

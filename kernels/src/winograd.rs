@@ -34,7 +34,7 @@ pub const POINTS: usize = 49;
 /// First point and number of points of each phase `2 * py + px` (phase 0 of an axis has three
 /// taps, phase 1 two).
 const PHASE_POINTS: [(usize, usize); 4] = [(0, 16), (16, 12), (28, 12), (40, 9)];
-/// The most tiles whose products are kept at once (see [`channels`]).
+/// The most tiles whose products are kept at once (see [`crate::winograd_channels`]).
 pub const GROUP_TILES: usize = 20;
 /// Floats of the product scratch [`crate::winograd_channels`] needs: blocks of up to 32 output
 /// channels (two AVX-512 vectors).
