@@ -378,41 +378,37 @@ impl<L: Lane> PhaseFn for InputTransform<'_, L> {
     }
 }
 
-/// The matrix products of step 2: `m[t * L::BLOCK + j] = sum_i v[t * in_channels + i] *
+/// One matrix product of step 2: `m[t * L::BLOCK + j] = sum_i v[t * in_channels + i] *
 /// U[point][i][first + j]` for tiles `t < count` and `j < valid`.
+pub(crate) struct Products<'a> {
+    pub w: &'a Winograd,
+    /// The packed weights `U`.
+    pub u: &'a [f32],
+    pub point: usize,
+    /// `count` tiles of input channels.
+    pub v: *const f32,
+    pub count: usize,
+    /// `count` rows of `L::BLOCK` floats.
+    pub m: *mut f32,
+    /// A multiple of [`OC_ALIGN`]; `first + valid` is at most the output channels.
+    pub first: usize,
+    pub valid: usize,
+}
+
+/// What computes [`Products`].
 pub(crate) trait Product {
     /// # Safety
-    /// `v` must hold `count` tiles of input channels, `m` `count` rows of `L::BLOCK` floats;
-    /// `first` is a multiple of [`OC_ALIGN`] and `first + valid` at most the output channels.
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn run(
-        &self,
-        w: &Winograd,
-        u: &[f32],
-        point: usize,
-        v: *const f32,
-        count: usize,
-        m: *mut f32,
-        first: usize,
-        valid: usize,
-    );
+    /// The pointers of `p` must be valid as [`Products`] describes.
+    unsafe fn run(&self, p: &Products<'_>);
 }
 
 /// The scalar products, straight from the definition.
 pub(crate) struct ScalarProduct;
 
 impl Product for ScalarProduct {
-    unsafe fn run(
-        &self,
-        w: &Winograd,
-        u: &[f32],
-        point: usize,
-        v: *const f32,
-        count: usize,
-        m: *mut f32,
-        first: usize,
-        valid: usize,
-    ) {
+    unsafe fn run(&self, p: &Products<'_>) {
+        let (w, u, point, v, m) = (p.w, p.u, p.point, p.v, p.m);
+        let (count, first, valid) = (p.count, p.first, p.valid);
         let c = w.shape.input.channels;
         for t in 0..count {
             let v = core::slice::from_raw_parts(v.add(t * c), c);
@@ -486,7 +482,17 @@ unsafe fn group_block<L: Lane, P: Product>(
     for point in 0..POINTS {
         let v = v.as_ptr().add((point * w.tiles() + tiles.start) * c);
         let m = m.add(point * GROUP_TILES * L::BLOCK);
-        product.run(w, layer.weights, point, v, tiles.len(), m, first, valid);
+        let products = Products {
+            w,
+            u: layer.weights,
+            point,
+            v,
+            count: tiles.len(),
+            m,
+            first,
+            valid,
+        };
+        product.run(&products);
     }
     let mut out = OutputTransform::<L> {
         w,

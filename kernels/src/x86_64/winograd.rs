@@ -4,7 +4,7 @@
 
 use super::act::{self, Simd};
 use super::conv::{load_n, run_row, store_n, Block, Row, Seg};
-use crate::winograd::{self, InputTransform, Lane, Product, Winograd};
+use crate::winograd::{self, InputTransform, Lane, Product, Products, Winograd};
 use crate::{Activation, ConvParams, IsaLevel, OC_ALIGN};
 use core::arch::x86_64::{__m256, __m512};
 use core::ops::Range;
@@ -47,17 +47,17 @@ struct Microkernel<V>(core::marker::PhantomData<V>);
 
 impl<V: Simd> Product for Microkernel<V> {
     #[inline(always)]
-    unsafe fn run(
-        &self,
-        w: &Winograd,
-        u: &[f32],
-        point: usize,
-        v: *const f32,
-        count: usize,
-        m: *mut f32,
-        first: usize,
-        valid: usize,
-    ) {
+    unsafe fn run(&self, p: &Products<'_>) {
+        let Products {
+            w,
+            u,
+            point,
+            v,
+            count,
+            m,
+            first,
+            valid,
+        } = *p;
         let c = w.shape.input.channels;
         let segs = [Seg {
             input: 0,
