@@ -58,9 +58,6 @@ pub(super) struct Row<'a> {
     pub accumulate: bool,
     /// Apply the activation on store (else store the sums).
     pub activate: bool,
-    /// Prefetch the weights this many segment steps ahead (0: none). For weights that stream
-    /// from L3 or memory at each use, faster than the hardware prefetcher ramps up.
-    pub prefetch: usize,
 }
 
 /// The rows of a panel of packed weights (a row: `OC_ALIGN` values, one per output channel, for
@@ -308,7 +305,6 @@ unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, pass: Pas
                 count,
                 accumulate: !pass.first,
                 activate: pass.first && pass.last,
-                prefetch: 0,
             });
         }
     }
@@ -329,13 +325,19 @@ struct Blocked<'a, V, const NV: usize> {
 impl<V: Simd, const NV: usize> RowKernel for Blocked<'_, V, NV> {
     #[inline(always)]
     unsafe fn run(&self, row: &Row<'_>) {
-        run_row(row, self.block, self.act)
+        run_row::<V, NV, 0>(row, self.block, self.act)
     }
 }
 
-/// Cuts a row into tiles of nearly equal size, at most `MAX_TILE / NV` pixels each.
+/// Cuts a row into tiles of nearly equal size, at most `MAX_TILE / NV` pixels each. With
+/// `PREFETCH > 0` the tiles prefetch the weights that many segment steps ahead: for weights that
+/// stream from L3 or memory at each use, faster than the hardware prefetcher ramps up.
 #[inline(always)]
-pub(super) unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Block<V, NV>, act: Activation) {
+pub(super) unsafe fn run_row<V: Simd, const NV: usize, const PREFETCH: usize>(
+    row: &Row<'_>,
+    block: &Block<V, NV>,
+    act: Activation,
+) {
     let max = MAX_TILE / NV;
     let tiles = row.count.div_ceil(max);
     let mut start = 0;
@@ -344,7 +346,7 @@ pub(super) unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Bl
         macro_rules! tile_of {
             ($($t:literal)+) => {
                 match end - start {
-                    $($t => tile::<V, $t, NV>(row, start, block, act),)+
+                    $($t => tile::<V, $t, NV, PREFETCH>(row, start, block, act),)+
                     _ => unreachable!(),
                 }
             };
@@ -360,7 +362,7 @@ pub(super) unsafe fn run_row<V: Simd, const NV: usize>(row: &Row<'_>, block: &Bl
 
 /// Output pixels `first..first + T` of `row`, channels of `block`: the microkernel.
 #[inline(always)]
-unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
+unsafe fn tile<V: Simd, const T: usize, const NV: usize, const PREFETCH: usize>(
     row: &Row<'_>,
     first: usize,
     block: &Block<V, NV>,
@@ -377,9 +379,9 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize>(
         let mut i = 0;
         while i + UNROLL <= seg.len {
             for u in i..i + UNROLL {
-                if row.prefetch > 0 {
+                if PREFETCH > 0 {
                     for w in w {
-                        let ahead = w.wrapping_add((u + row.prefetch) * OC_ALIGN);
+                        let ahead = w.wrapping_add((u + PREFETCH) * OC_ALIGN);
                         _mm_prefetch::<_MM_HINT_T0>(ahead.cast::<i8>());
                     }
                 }

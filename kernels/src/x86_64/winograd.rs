@@ -73,7 +73,6 @@ impl<V: Simd> Product for Microkernel<V> {
             count,
             accumulate: false,
             activate: false,
-            prefetch: PREFETCH_STEPS,
         };
         // The lane of channel `first + i` in its panel (panels are whole, so the second vector's
         // weights exist whenever `valid > LANES`).
@@ -85,7 +84,7 @@ impl<V: Simd> Product for Microkernel<V> {
                 first: 0,
                 valid,
             };
-            run_row(&row, &block, Activation::Identity)
+            run_row::<V, 2, PREFETCH_STEPS>(&row, &block, Activation::Identity)
         } else {
             let block = Block::<V, 1> {
                 weights: [lane(0)],
@@ -93,7 +92,7 @@ impl<V: Simd> Product for Microkernel<V> {
                 first: 0,
                 valid,
             };
-            run_row(&row, &block, Activation::Identity)
+            run_row::<V, 1, PREFETCH_STEPS>(&row, &block, Activation::Identity)
         }
     }
 }
