@@ -221,6 +221,15 @@ impl ConvShape {
             * (self.input.channels * self.output.channels) as u64
     }
 
+    /// A range of output channels a call may compute: starting on a panel, inside the layer.
+    fn check_channels(&self, channels: &core::ops::Range<usize>) {
+        assert!(
+            channels.start.is_multiple_of(OC_ALIGN)
+                && channels.start <= channels.end
+                && channels.end <= self.output.channels
+        );
+    }
+
     fn check(&self, input: &[f32], weights: &[f32], bias: &[f32]) {
         assert!(self.kernel % 2 == 1, "odd kernels only");
         assert!(
@@ -345,11 +354,7 @@ pub unsafe fn conv_channels(
     channels: core::ops::Range<usize>,
 ) {
     layer.shape.check(input, layer.weights, layer.bias);
-    assert!(
-        channels.start.is_multiple_of(OC_ALIGN)
-            && channels.start <= channels.end
-            && channels.end <= layer.shape.output.channels
-    );
+    layer.shape.check_channels(&channels);
     match isa.level() {
         IsaLevel::Scalar => scalar::conv_channels(layer, input, output, channels),
         #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
@@ -367,12 +372,12 @@ pub fn winograd_input(isa: Isa, w: &Winograd, phase: usize, input: &[f32], v: &m
     assert_eq!(input.len(), w.shape.input.len());
     assert_eq!(v.len(), w.phase_span(phase).len());
     match isa.level() {
+        IsaLevel::Scalar => scalar::winograd_input(w, phase, input, v),
         #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
         // SAFETY: `level` comes from an `Isa`; the lengths are checked above.
         level => unsafe { x86_64::winograd::input(level, w, phase, input, v) },
         #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        // SAFETY: scalar code; the lengths are checked above.
-        _ => unsafe { winograd::with_phase(phase, &mut winograd::InputTransform::<f32>::new(w, input, v)) },
+        _ => scalar::winograd_input(w, phase, input, v),
     }
 }
 
@@ -397,16 +402,13 @@ pub unsafe fn winograd_channels(
     assert_eq!(layer.bias.len(), layer.shape.output.channels);
     assert_eq!(v.len(), w.input_len());
     assert!(scratch.len() >= winograd::SCRATCH_LEN);
-    assert!(
-        channels.start.is_multiple_of(OC_ALIGN)
-            && channels.start <= channels.end
-            && channels.end <= layer.shape.output.channels
-    );
+    layer.shape.check_channels(&channels);
     match isa.level() {
+        IsaLevel::Scalar => scalar::winograd_channels(layer, v, scratch, output, channels),
         #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
         level => x86_64::winograd::channels(level, layer, v, scratch, output, channels),
         #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        _ => winograd::channels::<f32, _>(&winograd::ScalarProduct, layer, v, scratch, output, channels),
+        _ => scalar::winograd_channels(layer, v, scratch, output, channels),
     }
 }
 

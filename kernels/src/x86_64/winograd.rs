@@ -5,7 +5,7 @@
 use super::act::{self, Simd};
 use super::conv::{load_n, run_row, store_n, Block, Row, Seg};
 use crate::winograd::{self, InputTransform, Lane, Product, Products, Winograd};
-use crate::{Activation, ConvParams, IsaLevel, OC_ALIGN};
+use crate::{scalar, Activation, ConvParams, IsaLevel, OC_ALIGN};
 use core::arch::x86_64::{__m256, __m512};
 use core::ops::Range;
 
@@ -107,7 +107,7 @@ pub(crate) unsafe fn input(level: IsaLevel, w: &Winograd, phase: usize, input: &
         IsaLevel::Avx512 => input_avx512(w, phase, input, v),
         // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA.
         IsaLevel::Avx2 => input_avx2(w, phase, input, v),
-        IsaLevel::Scalar => winograd::with_phase(phase, &mut InputTransform::<f32>::new(w, input, v)),
+        IsaLevel::Scalar => scalar::winograd_input(w, phase, input, v),
     }
 }
 
@@ -128,7 +128,7 @@ pub(crate) unsafe fn channels(
         IsaLevel::Avx512 => channels_avx512(layer, v, scratch, output, channels),
         // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA.
         IsaLevel::Avx2 => channels_avx2(layer, v, scratch, output, channels),
-        IsaLevel::Scalar => winograd::channels::<f32, _>(&winograd::ScalarProduct, layer, v, scratch, output, channels),
+        IsaLevel::Scalar => scalar::winograd_channels(layer, v, scratch, output, channels),
     }
 }
 
