@@ -11,7 +11,8 @@ use common::*;
 use criterion::{criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput};
 use drivesim::{Model, Simulator, WeightDtype};
 use drivesim_kernels::{
-    conv, dense, f16, winograd, winograd_conv, Activation, ConvParams, ConvShape, Isa, Matrix, MatrixData, Winograd,
+    conv, dense, f16, pack, winograd, winograd_conv, Activation, ConvParams, ConvShape, Isa, Matrix, MatrixData,
+    Winograd,
 };
 use std::hint::black_box;
 use std::time::Duration;
@@ -141,7 +142,7 @@ fn dense_layers(c: &mut Criterion) {
             ("transition.A", z, z, Activation::Identity),
         ];
         for (name, rows, cols, act) in layers {
-            let w32 = values(7, rows * cols, 1.0 / (cols as f32).sqrt());
+            let w32 = pack::dense_weights(&values(7, rows * cols, 1.0 / (cols as f32).sqrt()), rows, cols);
             let w16: Vec<f16> = w32.iter().map(|&v| f16::from_f32(v)).collect();
             let bias = values(8, rows, 0.1);
             let halves: &[bool] = if z == 2048 { &[false, true] } else { &[false] };

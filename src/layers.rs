@@ -106,10 +106,8 @@ impl ConvLayer {
         // A fixed share of whole panels per thread, in one call: the kernel then reads the
         // larger of weights and transformed input once per call (see `winograd_channels`),
         // where blocks taken one at a time would each read it again.
-        let panels = channels.div_ceil(OC_ALIGN);
         exec.run(&|t| {
-            let mine = share(panels, threads, t);
-            let mine = mine.start * OC_ALIGN..(mine.end * OC_ALIGN).min(channels);
+            let mine = share_panels(channels, threads, t);
             // SAFETY: thread `t` alone uses product scratch `t` and writes channels `mine`.
             unsafe {
                 let scratch = products.range(t * winograd::SCRATCH_LEN..(t + 1) * winograd::SCRATCH_LEN);
@@ -248,7 +246,14 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
 /// hand-off costs about a microsecond, the product of a 256 x 256 matrix not much more.
 const PARALLEL_MIN_WEIGHTS: usize = 1 << 16;
 
-/// Weights of a dense layer as kept in memory.
+/// Thread `index`'s part of `0..len` outputs in whole panels of [`OC_ALIGN`]: the kernels
+/// then read only that thread's panels of the weights.
+fn share_panels(len: usize, threads: usize, index: usize) -> core::ops::Range<usize> {
+    let panels = share(len.div_ceil(OC_ALIGN), threads, index);
+    panels.start * OC_ALIGN..(panels.end * OC_ALIGN).min(len)
+}
+
+/// Weights of a dense layer: row-major as loaded, packed by [`DenseLayer::new`].
 pub(crate) enum DenseWeights {
     F32(Vec<f32>),
     F16(Vec<f16>),
@@ -263,7 +268,7 @@ impl From<Tensor> for DenseWeights {
     }
 }
 
-/// `y = act(W x + b)` with `W` row-major `rows x cols`.
+/// `y = act(W x + b)` with `W` `rows x cols`, packed in the kernels' panels ([`Matrix`]).
 pub(crate) struct DenseLayer {
     weights: DenseWeights,
     pub bias: Vec<f32>,
@@ -273,7 +278,12 @@ pub(crate) struct DenseLayer {
 }
 
 impl DenseLayer {
+    /// A layer from row-major weights, which it packs.
     pub fn new(weights: DenseWeights, bias: Vec<f32>, rows: usize, cols: usize, act: Activation) -> Self {
+        let weights = match weights {
+            DenseWeights::F32(w) => DenseWeights::F32(pack::dense_weights(&w, rows, cols)),
+            DenseWeights::F16(w) => DenseWeights::F16(pack::dense_weights(&w, rows, cols)),
+        };
         DenseLayer {
             weights,
             bias,
@@ -305,7 +315,7 @@ impl DenseLayer {
         assert_eq!(y.len(), x.len() / self.cols * self.rows);
         let out = Disjoint::new(y);
         exec.run(&|t| {
-            let rows = share(self.rows, threads, t);
+            let rows = share_panels(self.rows, threads, t);
             // SAFETY: `out` is all of `y`, borrowed mutably, and the threads' rows are disjoint.
             unsafe { drivesim_kernels::dense_rows(isa, self.matrix(), &self.bias, self.act, x, out.as_mut_ptr(), rows) }
         });

@@ -13,8 +13,7 @@
 //!   SIMD versions and the fallback on every other target,
 //! - weight packing done once at load ([`pack`]).
 //!
-//! Nothing here allocates except the packing functions; the kernels write into caller buffers
-//! (a batched [`dense`] uses up to 56 KiB of stack for its transposed inputs).
+//! Nothing here allocates except the packing functions; the kernels write into caller buffers.
 //! Shapes are the caller's responsibility: a kernel panics on inconsistent lengths, since the
 //! model validates every shape before it ever calls one.
 #![cfg_attr(not(feature = "std"), no_std)]
@@ -34,9 +33,9 @@ pub use half::f16;
 pub use isa::{Isa, IsaLevel};
 pub use winograd::Winograd;
 
-/// Packed convolution weights come in panels of this many output channels (the last panel
-/// zero-padded), so that every SIMD width up to 16 lanes loads whole vectors of weights and one
-/// block of output channels streams through contiguous memory.
+/// Packed convolution and dense weights come in panels of this many output channels or rows
+/// (the last panel zero-padded), so that every SIMD width up to 16 lanes loads whole vectors of
+/// weights and one block of outputs streams through contiguous memory.
 pub const OC_ALIGN: usize = 16;
 
 /// Layers with at most this many output channels pack their weights input-channel-major
@@ -272,7 +271,7 @@ impl Activation {
     }
 }
 
-/// The stored values of a row-major weight matrix.
+/// The stored values of a packed weight matrix (see [`Matrix`]).
 #[derive(Clone, Copy, Debug)]
 pub enum MatrixData<'a> {
     F32(&'a [f32]),
@@ -280,7 +279,10 @@ pub enum MatrixData<'a> {
     F16(&'a [f16]),
 }
 
-/// A row-major `rows x cols` matrix: `y = W x` reads row `r` for output `r`.
+/// A `rows x cols` matrix for `y = W x`, packed by [`pack::dense_weights`] in panels of
+/// [`OC_ALIGN`] rows stored column by column: `[row / 16][col][row % 16]`, the last panel
+/// zero-padded (see [`Matrix::packed_index`]). One column of a panel is then one or two whole
+/// vectors of weights, one per output row, and each panel streams through contiguous memory.
 #[derive(Clone, Copy, Debug)]
 pub struct Matrix<'a> {
     pub data: MatrixData<'a>,
@@ -289,9 +291,21 @@ pub struct Matrix<'a> {
 }
 
 impl<'a> Matrix<'a> {
-    /// Rows `rows` of this matrix.
+    /// Values stored for a `rows x cols` matrix: whole panels.
+    pub const fn packed_len(rows: usize, cols: usize) -> usize {
+        rows.div_ceil(OC_ALIGN) * OC_ALIGN * cols
+    }
+
+    /// Where weight `(row, col)` of a matrix with `cols` columns is stored.
+    pub const fn packed_index(row: usize, col: usize, cols: usize) -> usize {
+        (row / OC_ALIGN * cols + col) * OC_ALIGN + row % OC_ALIGN
+    }
+
+    /// Rows `rows` of this matrix; `rows.start` must be a multiple of [`OC_ALIGN`] (a panel).
     pub fn row_range(&self, rows: core::ops::Range<usize>) -> Matrix<'a> {
-        let span = rows.start * self.cols..rows.end * self.cols;
+        assert!(rows.start.is_multiple_of(OC_ALIGN), "row range does not start a panel");
+        let start = rows.start * self.cols;
+        let span = start..start + Self::packed_len(rows.len(), self.cols);
         let data = match self.data {
             MatrixData::F32(d) => MatrixData::F32(&d[span]),
             MatrixData::F16(d) => MatrixData::F16(&d[span]),
@@ -303,12 +317,20 @@ impl<'a> Matrix<'a> {
         }
     }
 
-    fn check(&self, bias: &[f32], x: &[f32], y: &[f32]) -> usize {
+    fn check_packed(&self) {
         let stored = match self.data {
             MatrixData::F32(d) => d.len(),
             MatrixData::F16(d) => d.len(),
         };
-        assert_eq!(stored, self.rows * self.cols);
+        assert_eq!(
+            stored,
+            Self::packed_len(self.rows, self.cols),
+            "matrix is not packed whole"
+        );
+    }
+
+    fn check(&self, bias: &[f32], x: &[f32], y: &[f32]) -> usize {
+        self.check_packed();
         assert_eq!(bias.len(), self.rows);
         assert!(
             self.cols > 0 && x.len().is_multiple_of(self.cols),
@@ -442,7 +464,7 @@ pub fn dense(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], 
 
 /// [`dense`] for the rows `rows` only (`y[n * W.rows + r]` for `r` in `rows`), written through
 /// a pointer so that threads can fill disjoint row ranges of one batch's output at once (each
-/// reading only its rows of the weights).
+/// reading only its rows of the weights). `rows.start` must be a multiple of [`OC_ALIGN`].
 ///
 /// # Safety
 /// `y` must point to `batch * W.rows` floats valid for writes, and no other thread may read or
@@ -457,6 +479,7 @@ pub unsafe fn dense_rows(
     rows: core::ops::Range<usize>,
 ) {
     assert!(rows.start <= rows.end && rows.end <= w.rows && bias.len() == w.rows);
+    w.check_packed();
     let (ldy, part) = (w.rows, w.row_range(rows.clone()));
     let (bias, y) = (&bias[rows.clone()], y.add(rows.start));
     let batch = x.len() / w.cols;

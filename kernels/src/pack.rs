@@ -1,7 +1,7 @@
 //! Weight preparation done once at load: PyTorch layouts in, kernel layouts out.
 
 use crate::winograd::{with_phase, WeightTransform, Winograd};
-use crate::{math, ConvKind, ConvShape};
+use crate::{math, ConvKind, ConvShape, Matrix};
 use alloc::vec::Vec;
 
 /// PyTorch's BatchNorm epsilon.
@@ -136,4 +136,17 @@ pub fn permute_rows_chw_to_hwc(
         out_b[dst] = (bias[r] as f64 * scale + shift) as f32;
     }
     (out_w, out_b)
+}
+
+/// Packs a row-major `rows x cols` matrix (PyTorch's `Linear.weight`) into the panels of
+/// [`Matrix`], f32 or f16 alike.
+pub fn dense_weights<T: Copy + Default>(row_major: &[T], rows: usize, cols: usize) -> Vec<T> {
+    assert_eq!(row_major.len(), rows * cols);
+    let mut packed = alloc::vec![T::default(); Matrix::packed_len(rows, cols)];
+    for (r, row) in row_major.chunks_exact(cols.max(1)).enumerate() {
+        for (c, &v) in row.iter().enumerate() {
+            packed[Matrix::packed_index(r, c, cols)] = v;
+        }
+    }
+    packed
 }

@@ -91,16 +91,16 @@ pub fn dense(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f
 /// # Safety
 /// `y` must be valid for those writes.
 pub unsafe fn dense_rows(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: *mut f32, ldy: usize) {
+    let weight = |r: usize, c: usize| {
+        let at = Matrix::packed_index(r, c, w.cols);
+        match w.data {
+            MatrixData::F32(d) => d[at],
+            MatrixData::F16(d) => d[at].to_f32(),
+        }
+    };
     for (n, x) in x.chunks_exact(w.cols).enumerate() {
         for (r, &b) in bias.iter().enumerate() {
-            let dot: f32 = match w.data {
-                MatrixData::F32(d) => d[r * w.cols..][..w.cols].iter().zip(x).map(|(w, x)| w * x).sum(),
-                MatrixData::F16(d) => d[r * w.cols..][..w.cols]
-                    .iter()
-                    .zip(x)
-                    .map(|(w, x)| w.to_f32() * x)
-                    .sum(),
-            };
+            let dot: f32 = x.iter().enumerate().map(|(c, &x)| weight(r, c) * x).sum();
             *y.add(n * ldy + r) = act.apply(dot + b);
         }
     }

@@ -3,10 +3,11 @@
 mod common;
 
 use common::values;
+use drivesim_kernels::pack::dense_weights;
 use drivesim_kernels::{dense, dense_rows, f16, rnn_step, Activation, Isa, IsaLevel, Matrix, MatrixData, Rnn};
 
-const ROWS: [usize; 9] = [1, 2, 3, 5, 7, 8, 9, 17, 33];
-const COLS: [usize; 13] = [1, 2, 3, 7, 8, 9, 15, 16, 17, 31, 33, 100, 1000];
+const ROWS: [usize; 10] = [1, 2, 3, 5, 7, 8, 9, 17, 33, 129];
+const COLS: [usize; 14] = [1, 2, 3, 7, 8, 9, 15, 16, 17, 31, 33, 100, 1000, 2500];
 const BATCHES: [usize; 6] = [1, 2, 3, 5, 16, 17];
 const ACTS: [Activation; 4] = [
     Activation::Identity,
@@ -62,7 +63,7 @@ fn dense_matches_scalar() {
     for &rows in &ROWS {
         for &cols in &COLS {
             let seed = (rows * 1000 + cols) as u64;
-            let w32 = values(seed, rows * cols, 1.0 / (cols as f32).sqrt());
+            let w32 = dense_weights(&values(seed, rows * cols, 1.0 / (cols as f32).sqrt()), rows, cols);
             let w16 = halves(&w32);
             let bias = values(seed + 1, rows, 0.5);
             let abs = |v: &[f32]| v.iter().map(|x| x.abs()).collect::<Vec<_>>();
@@ -112,6 +113,51 @@ fn dense_matches_scalar() {
 }
 
 #[test]
+fn packed_matrix_computes_row_major_product() {
+    // The scalar kernel on packed weights against the product written on the row-major
+    // matrix, in the same order of summation: equal to the bit, so the layout is the one meant.
+    for (rows, cols) in [(1, 1), (5, 3), (16, 7), (17, 33), (40, 9)] {
+        let row_major = values((rows * 31 + cols) as u64, rows * cols, 0.5);
+        let bias = values(3, rows, 0.5);
+        let batch = 3;
+        let x = values(4, batch * cols, 1.0);
+        let mut want = Vec::new();
+        for item in x.chunks_exact(cols) {
+            for (row, b) in row_major.chunks_exact(cols).zip(&bias) {
+                let dot: f32 = row.iter().zip(item).map(|(w, x)| w * x).sum();
+                want.push(dot + b);
+            }
+        }
+        let halved = halves(&row_major);
+        let want16: Vec<f32> = x
+            .chunks_exact(cols)
+            .flat_map(|item| {
+                halved
+                    .chunks_exact(cols)
+                    .zip(&bias)
+                    .map(move |(row, b)| row.iter().zip(item).map(|(w, x)| w.to_f32() * x).sum::<f32>() + b)
+            })
+            .collect();
+        let (p32, p16) = (
+            dense_weights(&row_major, rows, cols),
+            dense_weights(&halved, rows, cols),
+        );
+        for (data, want) in [(MatrixData::F32(&p32), &want), (MatrixData::F16(&p16), &want16)] {
+            let mut got = vec![f32::NAN; batch * rows];
+            dense(
+                Isa::SCALAR,
+                Matrix { data, rows, cols },
+                &bias,
+                Activation::Identity,
+                &x,
+                &mut got,
+            );
+            assert_eq!(&got, want, "rows {rows} cols {cols}");
+        }
+    }
+}
+
+#[test]
 fn rnn_step_matches_scalar() {
     let levels = simd_levels();
     // (hidden, z, action): tiny, odd, and one that crosses the column panels.
@@ -125,8 +171,8 @@ fn rnn_step_matches_scalar() {
     ] {
         let cols = hd + zd + ad;
         let seed = (hd * 7 + zd) as u64;
-        let wvu = values(seed, hd * cols, 1.0 / (cols as f32).sqrt());
-        let a = values(seed + 1, zd * hd, 1.0 / (hd as f32).sqrt());
+        let wvu = dense_weights(&values(seed, hd * cols, 1.0 / (cols as f32).sqrt()), hd, cols);
+        let a = dense_weights(&values(seed + 1, zd * hd, 1.0 / (hd as f32).sqrt()), zd, hd);
         let (wvu16, a16) = (halves(&wvu), halves(&a));
         let b = values(seed + 2, hd, 0.1);
         let small_a = values(seed + 3, zd, 0.1);
@@ -180,7 +226,7 @@ fn rnn_step_matches_scalar() {
 fn row_ranges_match_whole() {
     // Threads each take a range of rows of every item: together they write what one call does.
     let (rows, cols) = (37, 45);
-    let w32 = values(5, rows * cols, 0.2);
+    let w32 = dense_weights(&values(5, rows * cols, 0.2), rows, cols);
     let w16 = halves(&w32);
     let bias = values(6, rows, 0.5);
     for batch in [1, 2, 17] {
@@ -191,7 +237,8 @@ fn row_ranges_match_whole() {
                 let mut whole = vec![0.0; batch * rows];
                 dense(isa, w, &bias, Activation::Tanh, &x, &mut whole);
                 let mut parts = vec![f32::NAN; batch * rows];
-                for range in [0..5, 5..6, 6..6, 6..37] {
+                // Ranges start at panels, as threads' shares do.
+                for range in [0..16, 16..16, 16..32, 32..37] {
                     // SAFETY: `parts` holds every row of every item and is not shared.
                     unsafe { dense_rows(isa, w, &bias, Activation::Tanh, &x, parts.as_mut_ptr(), range) };
                 }
