@@ -18,6 +18,7 @@
 //!   what earlier ones stored.
 
 use super::act::{self, Simd};
+use super::conv::{load_n, store_n};
 use crate::{f16, Activation, IsaLevel, Matrix, MatrixData, OC_ALIGN};
 use core::arch::x86_64::*;
 
@@ -189,17 +190,7 @@ unsafe fn tile<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], a
             let n = S::LANES.min(rows - row);
             let (dst, b) = (out.add(row), bias.as_ptr().add(row));
             let earlier = if tile.col == 0 { b } else { dst };
-            let value = if n == S::LANES {
-                S::load(earlier)
-            } else {
-                S::load_partial(earlier, n)
-            }
-            .add(sum);
-            if n == S::LANES {
-                value.store(dst);
-            } else {
-                value.store_partial(dst, n);
-            }
+            store_n(load_n::<S>(earlier, n).add(sum), dst, n);
         }
     }
 }
