@@ -5,19 +5,29 @@
 //! ```text
 //! cargo run --release --example bench_report -- [--weights FILE | --z N] [--dtype f32|f16]
 //!     [--batch 1,16] [--threads 1,2] [--networks encode,generate,transition] [--seconds S]
+//!     [--serve]
 //! ```
 //! Lines: `isa level=avx2`, `peak width=256 threads=1 gflops=…` (for 1 and each `--threads`
 //! count: the FMA peak of that many threads at once), and
 //! `result network=encode batch=1 threads=1 median_ms=… gflop=…` (GFLOP per call, all taps).
 //! `--threads N` plans the simulator with `Simulator::with_threads(N)`.
+//!
+//! With `--serve` it times nothing by itself: after the peaks it prints `ready`, then reads
+//! requests `NETWORK BATCH THREADS` from standard input, one per line, and answers each with
+//! its `result` line, so that a caller can interleave drivesim's measurements with other
+//! runtimes' on a noisy machine (`weights/compare.py` does).
 
 #[path = "../benches/common/mod.rs"]
 mod common;
 
 use common::*;
 use drivesim::{Isa, IsaLevel, Model, Simulator, WeightDtype};
+use std::collections::HashMap;
 use std::hint::black_box;
+use std::io::Write;
 use std::time::{Duration, Instant};
+
+const NETWORKS: [&str; 3] = ["encode", "generate", "transition"];
 
 fn arg<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
     args.iter()
@@ -58,9 +68,9 @@ fn main() {
         .collect();
     if let Some(bad) = networks
         .iter()
-        .find(|n| !["encode", "generate", "transition"].contains(n))
+        .find(|n| !NETWORKS.contains(n))
     {
-        panic!("--networks: unknown network {bad:?} (encode, generate, transition)");
+        panic!("--networks: unknown network {bad:?} ({})", NETWORKS.join(", "));
     }
     let budget = Duration::from_secs_f64(arg(&args, "--seconds").map_or(2.0, |s| s.parse().expect("--seconds")));
     let dtype = match arg(&args, "--dtype").unwrap_or("f32") {
@@ -74,7 +84,6 @@ fn main() {
             Model::random(&comma(z), 2016, dtype).expect("valid config")
         }
     };
-    let cfg = *model.config();
     let isa = Isa::best();
     println!("isa level={}", isa.level().name());
     let mut peak_threads = thread_counts.clone();
@@ -86,38 +95,76 @@ fn main() {
             println!("peak width={width} threads={threads} gflops={gflops:.2}");
         }
     }
-    for (&threads, &batch) in thread_counts.iter().flat_map(|t| batches.iter().map(move |b| (t, b))) {
-        let mut sim = Simulator::with_batch(&model, batch)
-            .with_threads(threads)
-            .expect("threads start");
-        let frames = values(1, batch * cfg.frame_len(), 1.0);
-        let codes = values(2, batch * cfg.z_dim, 1.0);
-        let actions = values(3, batch * cfg.action_dim, 1.0);
-        let mut out_frames = vec![0.0; batch * cfg.frame_len()];
-        let mut out_codes = vec![0.0; batch * cfg.z_dim];
-        let mut h = vec![0.0; batch * cfg.hidden_dim];
-        for &network in &networks {
-            let (flops, ms) = match network {
-                "encode" => (
-                    encode_flops(&cfg),
-                    median_ms(budget, || sim.encode(black_box(&frames), &mut out_codes).unwrap()),
-                ),
-                "generate" => (
-                    generate_flops(&cfg),
-                    median_ms(budget, || sim.generate(black_box(&codes), &mut out_frames).unwrap()),
-                ),
-                _ => (
-                    transition_flops(&cfg),
-                    median_ms(budget, || {
-                        h.fill(0.0);
-                        sim.transition(black_box(&codes), &mut h, &actions, &mut out_codes)
-                            .unwrap()
-                    }),
-                ),
+    let mut sims = HashMap::new();
+    if args.iter().any(|a| a == "--serve") {
+        println!("ready");
+        std::io::stdout().flush().expect("stdout");
+        for line in std::io::stdin().lines() {
+            let line = line.expect("reading a request");
+            let request: Vec<&str> = line.split_whitespace().collect();
+            let [network, batch, threads] = request[..] else {
+                panic!("a request is NETWORK BATCH THREADS, got {line:?}");
             };
-            let gflop = (batch as u64 * flops) as f64 / 1e9;
-            println!("result network={network} batch={batch} threads={threads} median_ms={ms:.4} gflop={gflop:.6}");
+            assert!(NETWORKS.contains(&network), "unknown network {network:?}");
+            let (batch, threads) = (batch.parse().expect("BATCH"), threads.parse().expect("THREADS"));
+            answer(&mut sims, &model, network, batch, threads, budget);
         }
+        return;
+    }
+    for (&threads, &batch) in thread_counts.iter().flat_map(|t| batches.iter().map(move |b| (t, b))) {
+        for &network in &networks {
+            answer(&mut sims, &model, network, batch, threads, budget);
+        }
+        // One simulator at a time: each holds its planned buffers.
+        sims.clear();
+    }
+}
+
+/// Times `network` on `batch` items with `threads` threads and prints its `result` line; the
+/// simulators stay planned in `sims` for the next request.
+fn answer<'m>(
+    sims: &mut HashMap<(usize, usize), Simulator<'m>>,
+    model: &'m Model,
+    network: &str,
+    batch: usize,
+    threads: usize,
+    budget: Duration,
+) {
+    let sim = sims
+        .entry((threads, batch))
+        .or_insert_with(|| Simulator::with_batch(model, batch).with_threads(threads).expect("threads start"));
+    let (flops, ms) = measure(sim, network, batch, budget);
+    let gflop = (batch as u64 * flops) as f64 / 1e9;
+    println!("result network={network} batch={batch} threads={threads} median_ms={ms:.4} gflop={gflop:.6}");
+    std::io::stdout().flush().expect("stdout");
+}
+
+/// FLOPs of one item and the median ms of one call of `network` on `batch` items.
+fn measure(sim: &mut Simulator<'_>, network: &str, batch: usize, budget: Duration) -> (u64, f64) {
+    let cfg = *sim.config();
+    let frames = values(1, batch * cfg.frame_len(), 1.0);
+    let codes = values(2, batch * cfg.z_dim, 1.0);
+    let actions = values(3, batch * cfg.action_dim, 1.0);
+    let mut out_frames = vec![0.0; batch * cfg.frame_len()];
+    let mut out_codes = vec![0.0; batch * cfg.z_dim];
+    let mut h = vec![0.0; batch * cfg.hidden_dim];
+    match network {
+        "encode" => (
+            encode_flops(&cfg),
+            median_ms(budget, || sim.encode(black_box(&frames), &mut out_codes).unwrap()),
+        ),
+        "generate" => (
+            generate_flops(&cfg),
+            median_ms(budget, || sim.generate(black_box(&codes), &mut out_frames).unwrap()),
+        ),
+        _ => (
+            transition_flops(&cfg),
+            median_ms(budget, || {
+                h.fill(0.0);
+                sim.transition(black_box(&codes), &mut h, &actions, &mut out_codes)
+                    .unwrap()
+            }),
+        ),
     }
 }
 

@@ -1,19 +1,24 @@
 """Compare drivesim with ONNX Runtime and PyTorch eager on the CPU.
 
-    weights/tool compare [--z 512] [--batch 1,16] [--threads 1,2] [--seconds 2] [--out DIR]
+    weights/tool compare [--z 512] [--batch 1,16] [--threads 1,2] [--seconds 1] [--rounds 3] [--out DIR]
 
 Builds the comma config with seeded random weights, writes them as a drivesim safetensors
 file and as ONNX graphs with a dynamic batch (encoder mean head, generator, transition step),
-times ONNX Runtime and PyTorch eager with their intra-op threads pinned to each --threads
-value, runs drivesim's `examples/bench_report` with the same thread counts on the same weights
-file, and
-prints the CPU, the FMA peak per vector width and a markdown table of median times.
+and times the three runtimes on the same weights: ONNX Runtime and PyTorch eager with their
+intra-op threads pinned to each --threads value, drivesim through its `examples/bench_report`
+(`--serve`, planned with the same thread counts). Prints the CPU, the FMA peak per vector
+width and a markdown table of median times.
+
+The machine may be shared and noisy, so the runtimes are interleaved: each of `--rounds`
+rounds times every runtime on every network, batch and thread count for `--seconds` (one
+configuration at a time, the three runtimes back to back, in alternating order). A row's
+median is the median of its rounds' medians; "peer/drivesim" is the median of the rounds'
+ratios of the peer's median time over drivesim's (above 1: drivesim is faster), with their
+range across rounds.
 
 FLOPs count every kernel tap (`benches/common/mod.rs`): about 1.04 GFLOP per frame for the
 encoder and the generator at the comma config. "of peak" is GFLOP/s over the FMA peak of the
-widest vector measured with as many threads at once. "peer/drivesim" is the
-peer's median time over drivesim's at the same batch and thread count (above 1: drivesim is
-faster).
+widest vector measured with as many threads at once.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import argparse
 import os
 import platform
 import re
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -110,64 +116,102 @@ def median_ms(fn, seconds: float) -> float:
     return times[len(times) // 2]
 
 
-def time_ort(paths, cfg, batches, threads, seconds):
-    import onnxruntime as ort
+class Ort:
+    """ONNX Runtime sessions for every network and thread count, made once."""
 
-    rows = []
-    for t in threads:
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = t
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        for net in NETWORKS:
-            sess = ort.InferenceSession(str(paths[net]), opts, providers=["CPUExecutionProvider"])
-            names = [i.name for i in sess.get_inputs()]
-            for b in batches:
-                feed = {n: v.numpy() for n, v in zip(names, inputs(cfg, b)[net])}
-                rows.append(("onnxruntime", net, b, t, median_ms(lambda: sess.run(None, feed), seconds)))
-    return rows
+    def __init__(self, paths, threads):
+        import onnxruntime as ort
 
+        self.sessions = {}
+        for t in threads:
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads = t
+            opts.inter_op_num_threads = 1
+            opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+            for net in NETWORKS:
+                self.sessions[(net, t)] = ort.InferenceSession(str(paths[net]), opts, providers=["CPUExecutionProvider"])
 
-def time_torch(model, cfg, batches, threads, seconds):
-    rows = []
-    mods = modules(model)
-    for t in threads:
-        torch.set_num_threads(t)
-        for net in NETWORKS:
-            for b in batches:
-                args = inputs(cfg, b)[net]
-
-                def run(m=mods[net], a=args):
-                    with torch.inference_mode():
-                        m(*a)
-
-                rows.append(("pytorch", net, b, t, median_ms(run, seconds)))
-    return rows
+    def time(self, cfg, net, batch, threads, seconds) -> float:
+        sess = self.sessions[(net, threads)]
+        names = [i.name for i in sess.get_inputs()]
+        feed = {n: v.numpy() for n, v in zip(names, inputs(cfg, batch)[net])}
+        return median_ms(lambda: sess.run(None, feed), seconds)
 
 
-def time_drivesim(weights: Path, batches, threads, seconds, binary: Path | None):
-    """Runs the bench_report example (built by cargo, or a prebuilt `binary` on a machine
-    without Rust); returns (rows, gflop per (net, batch), isa, peaks)."""
-    run = [str(binary)] if binary else ["cargo", "run", "--quiet", "--release", "--example", "bench_report", "--"]
-    cmd = run + [
-        "--weights", str(weights), "--batch", ",".join(map(str, batches)),
-        "--threads", ",".join(map(str, threads)), "--seconds", str(seconds),
-    ]
-    print("$", " ".join(cmd), file=sys.stderr)
-    text = subprocess.run(cmd, cwd=ROOT, check=True, capture_output=True, text=True).stdout
-    rows, gflop, peaks, isa = [], {}, {}, "?"
-    for line in text.splitlines():
+class Torch:
+    """PyTorch eager, the intra-op threads set per measurement."""
+
+    def __init__(self, model):
+        self.modules = modules(model)
+
+    def time(self, cfg, net, batch, threads, seconds) -> float:
+        torch.set_num_threads(threads)
+        args = inputs(cfg, batch)[net]
+
+        def run(m=self.modules[net], a=args):
+            with torch.inference_mode():
+                m(*a)
+
+        return median_ms(run, seconds)
+
+
+class Drivesim:
+    """The bench_report example in `--serve` mode (built by cargo, or a prebuilt `binary` on a
+    machine without Rust), answering one measurement at a time."""
+
+    def __init__(self, weights: Path, threads, seconds, binary: Path | None):
+        run = [str(binary)] if binary else ["cargo", "run", "--quiet", "--release", "--example", "bench_report", "--"]
+        cmd = run + ["--weights", str(weights), "--threads", ",".join(map(str, threads)), "--seconds", str(seconds), "--serve"]
+        print("$", " ".join(cmd), file=sys.stderr)
+        self.proc = subprocess.Popen(cmd, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self.isa, self.peaks, self.gflop = "?", {}, {}
+        for line in self.proc.stdout:
+            fields = dict(re.findall(r"(\w+)=(\S+)", line))
+            if line.startswith("isa "):
+                self.isa = fields["level"]
+            elif line.startswith("peak "):
+                self.peaks[(int(fields["width"]), int(fields.get("threads", 1)))] = float(fields["gflops"])
+            elif line.strip() == "ready":
+                break
+        else:
+            raise RuntimeError(f"bench_report exited with {self.proc.wait()} before serving")
+
+    def time(self, cfg, net, batch, threads, seconds) -> float:
+        self.proc.stdin.write(f"{net} {batch} {threads}\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line.startswith("result "):
+            raise RuntimeError(f"bench_report answered {line!r} (exit status {self.proc.poll()})")
         fields = dict(re.findall(r"(\w+)=(\S+)", line))
-        if line.startswith("isa "):
-            isa = fields["level"]
-        elif line.startswith("peak "):
-            peaks[(int(fields["width"]), int(fields.get("threads", 1)))] = float(fields["gflops"])
-        elif line.startswith("result "):
-            net, b = fields["network"], int(fields["batch"])
-            rows.append(("drivesim", net, b, int(fields["threads"]), float(fields["median_ms"])))
-            gflop[(net, b)] = float(fields["gflop"])
-    return rows, gflop, isa, peaks
+        self.gflop[(net, batch)] = float(fields["gflop"])
+        return float(fields["median_ms"])
+
+    def close(self):
+        self.proc.stdin.close()
+        self.proc.wait()
+
+
+def time_rounds(runtimes: dict, cfg, batches, threads, seconds, rounds) -> dict:
+    """`{(runtime, net, batch, threads): [median ms of each round]}`, the runtimes interleaved."""
+    samples: dict = {}
+    names = list(runtimes)
+    for r in range(rounds):
+        for t in threads:
+            for net in NETWORKS:
+                for b in batches:
+                    # Alternate the order, so that no runtime always follows the same one.
+                    for name in names if r % 2 == 0 else names[::-1]:
+                        ms = runtimes[name].time(cfg, net, b, t, seconds)
+                        samples.setdefault((name, net, b, t), []).append(ms)
+        print(f"round {r + 1} of {rounds} done", file=sys.stderr)
+    return samples
+
+
+def spread(values: list[float]) -> str:
+    """The median of `values`, with their range when there are several."""
+    m = statistics.median(values)
+    return f"{m:.2f}" if len(values) == 1 else f"{m:.2f} ({min(values):.2f}-{max(values):.2f})"
 
 
 def cpu_info() -> tuple[str, list[str]]:
@@ -186,7 +230,8 @@ def main() -> int:
     p.add_argument("--z", type=int, default=512, help="z_dim = hidden_dim (default 512)")
     p.add_argument("--batch", default="1,16")
     p.add_argument("--threads", default="1,2", help="peer intra-op thread counts")
-    p.add_argument("--seconds", type=float, default=2.0, help="time budget per measurement")
+    p.add_argument("--seconds", type=float, default=1.0, help="time budget per measurement and round")
+    p.add_argument("--rounds", type=int, default=3, help="rounds of every measurement, interleaved")
     p.add_argument("--seed", type=int, default=2016)
     p.add_argument("--out", type=Path, help="where to write the weights and graphs (default: a temp dir)")
     p.add_argument("--bench-report", type=Path, help="a prebuilt examples/bench_report binary to run instead of cargo")
@@ -202,33 +247,46 @@ def main() -> int:
     save_drivesim(model, cfg, weights)
     paths = export_onnx(model, cfg, out)
 
-    ds_rows, gflop, isa, peaks = time_drivesim(weights, batches, threads, a.seconds, a.bench_report)
-    rows = ds_rows + time_ort(paths, cfg, batches, threads, a.seconds) + time_torch(model, cfg, batches, threads, a.seconds)
+    drivesim = Drivesim(weights, threads, a.seconds, a.bench_report)
+    runtimes = {"drivesim": drivesim, "onnxruntime": Ort(paths, threads), "pytorch": Torch(model)}
+    try:
+        samples = time_rounds(runtimes, cfg, batches, threads, a.seconds, a.rounds)
+    finally:
+        drivesim.close()
+    gflop, peaks = drivesim.gflop, drivesim.peaks
 
     import onnxruntime
 
     name, flags = cpu_info()
     print(f"CPU: {name}; {os.cpu_count()} logical CPUs; flags: {' '.join(flags)}")
-    print(f"drivesim kernels: {isa}; onnxruntime {onnxruntime.__version__}; torch {torch.__version__}")
+    print(f"drivesim kernels: {drivesim.isa}; onnxruntime {onnxruntime.__version__}; torch {torch.__version__}")
     print("FMA peak: " + ", ".join(f"{w}-bit {t} thread(s) {g:.1f} GFLOP/s" for (w, t), g in sorted(peaks.items())))
-    print(f"config: comma 80x160, b=64, z=hidden={a.z}; f32 weights; seed {a.seed}\n")
+    print(f"config: comma 80x160, b=64, z=hidden={a.z}; f32 weights; seed {a.seed}; {a.rounds} rounds of {a.seconds} s\n")
     widest = max((w for w, _ in peaks), default=0)
 
     def peak(t):
         """The measured peak of `t` threads at the widest vector, else t times one thread's."""
         return peaks.get((widest, t), peaks.get((widest, 1), float("nan")) * t)
 
-    ds = {(net, b, t): ms for (_, net, b, t, ms) in ds_rows}
-    print("| network | batch | runtime | threads | median ms | GFLOP/s | of peak | peer/drivesim |")
+    print("| network | batch | runtime | threads | median ms | GFLOP/s | of peak | peer/drivesim (range) |")
     print("|---|---:|---|---:|---:|---:|---:|---:|")
     for net in NETWORKS:
         for b in batches:
-            for rt, n, bb, t, ms in rows:
-                if n != net or bb != b:
-                    continue
-                gf = gflop.get((net, b), float("nan")) / (ms / 1e3)
-                ratio = "" if rt == "drivesim" else f"{ms / ds[(net, b, t)]:.2f}"
-                print(f"| {net} | {b} | {rt} | {t} | {ms:.3f} | {gf:.1f} | {gf / peak(t):.0%} | {ratio} |")
+            for t in threads:
+                own = samples[("drivesim", net, b, t)]
+                for rt in runtimes:
+                    times = samples[(rt, net, b, t)]
+                    ms = statistics.median(times)
+                    gf = gflop.get((net, b), float("nan")) / (ms / 1e3)
+                    ratio = "" if rt == "drivesim" else spread([p / d for p, d in zip(times, own)])
+                    print(f"| {net} | {b} | {rt} | {t} | {ms:.3f} | {gf:.1f} | {gf / peak(t):.0%} | {ratio} |")
+    if 1 in batches and len(batches) > 1:
+        print("\ndrivesim per item at the largest batch against batch 1, per round (above 1: batching helps):")
+        big = max(batches)
+        for net in NETWORKS:
+            for t in threads:
+                one, many = samples[("drivesim", net, 1, t)], samples[("drivesim", net, big, t)]
+                print(f"- {net}, {t} thread(s): {spread([o / (m / big) for o, m in zip(one, many)])}")
     return 0
 
 
