@@ -66,10 +66,7 @@ fn main() {
         .unwrap_or("encode,generate,transition")
         .split(',')
         .collect();
-    if let Some(bad) = networks
-        .iter()
-        .find(|n| !NETWORKS.contains(n))
-    {
+    if let Some(bad) = networks.iter().find(|n| !NETWORKS.contains(n)) {
         panic!("--networks: unknown network {bad:?} ({})", NETWORKS.join(", "));
     }
     let budget = Duration::from_secs_f64(arg(&args, "--seconds").map_or(2.0, |s| s.parse().expect("--seconds")));
@@ -130,9 +127,11 @@ fn answer<'m>(
     threads: usize,
     budget: Duration,
 ) {
-    let sim = sims
-        .entry((threads, batch))
-        .or_insert_with(|| Simulator::with_batch(model, batch).with_threads(threads).expect("threads start"));
+    let sim = sims.entry((threads, batch)).or_insert_with(|| {
+        Simulator::with_batch(model, batch)
+            .with_threads(threads)
+            .expect("threads start")
+    });
     let (flops, ms) = measure(sim, network, batch, budget);
     let gflop = (batch as u64 * flops) as f64 / 1e9;
     println!("result network={network} batch={batch} threads={threads} median_ms={ms:.4} gflop={gflop:.6}");
