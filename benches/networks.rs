@@ -121,7 +121,7 @@ fn conv_layers(c: &mut Criterion) {
             let mut scratch = vec![0.0; winograd::SCRATCH_LEN];
             let layer = ConvParams { weights: &u, ..layer };
             g.bench_function(format!("{name}.winograd"), |b| {
-                b.iter(|| winograd_conv(isa, layer, black_box(&x), &mut v, &mut scratch, &mut y))
+                b.iter(|| winograd_conv(isa, &wino, layer, black_box(&x), &mut v, &mut scratch, &mut y))
             });
         }
     }

@@ -87,7 +87,7 @@ impl ConvLayer {
         let v = &mut scratch.transformed[..w.input_len()];
         if single {
             let products = &mut scratch.products[..winograd::SCRATCH_LEN];
-            return drivesim_kernels::winograd_conv(isa, layer, input, v, products, output);
+            return drivesim_kernels::winograd_conv(isa, w, layer, input, v, products, output);
         }
         {
             let v = Disjoint::new(&mut *v);
@@ -111,7 +111,7 @@ impl ConvLayer {
             // SAFETY: thread `t` alone uses product scratch `t` and writes channels `mine`.
             unsafe {
                 let scratch = products.range(t * winograd::SCRATCH_LEN..(t + 1) * winograd::SCRATCH_LEN);
-                drivesim_kernels::winograd_channels(isa, layer, v, scratch, out.as_mut_ptr(), mine)
+                drivesim_kernels::winograd_channels(isa, w, layer, v, scratch, out.as_mut_ptr(), mine)
             }
         });
     }

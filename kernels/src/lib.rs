@@ -405,7 +405,7 @@ pub fn winograd_input(isa: Isa, w: &Winograd, phase: usize, input: &[f32], v: &m
 
 /// Steps 2 and 3 of a Winograd convolution (see [`winograd`]) for the output channels
 /// `channels`: `output = act(conv(input) + bias)` from the transformed input `v` (all four
-/// phases) and weights packed by [`pack::winograd_weights`], using `scratch`
+/// phases) and weights packed by [`pack::winograd_weights`] for the same `w`, using `scratch`
 /// ([`winograd::SCRATCH_LEN`] floats, one per thread). `channels.start` must be a multiple of
 /// [`OC_ALIGN`]. Only those channels of the output's interior are written.
 ///
@@ -413,24 +413,25 @@ pub fn winograd_input(isa: Isa, w: &Winograd, phase: usize, input: &[f32], v: &m
 /// As for [`conv_channels`].
 pub unsafe fn winograd_channels(
     isa: Isa,
+    w: &Winograd,
     layer: ConvParams<'_>,
     v: &[f32],
     scratch: &mut [f32],
     output: *mut f32,
     channels: core::ops::Range<usize>,
 ) {
-    let w = Winograd::new(layer.shape).expect("a layer Winograd computes");
+    assert_eq!(w.shape, layer.shape);
     assert_eq!(layer.weights.len(), w.packed_len());
     assert_eq!(layer.bias.len(), layer.shape.output.channels);
     assert_eq!(v.len(), w.input_len());
     assert!(scratch.len() >= winograd::SCRATCH_LEN);
     layer.shape.check_channels(&channels);
     match isa.level() {
-        IsaLevel::Scalar => scalar::winograd_channels(layer, v, scratch, output, channels),
+        IsaLevel::Scalar => scalar::winograd_channels(w, layer, v, scratch, output, channels),
         #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
-        level => x86_64::winograd::channels(level, layer, v, scratch, output, channels),
+        level => x86_64::winograd::channels(level, w, layer, v, scratch, output, channels),
         #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        _ => scalar::winograd_channels(layer, v, scratch, output, channels),
+        _ => scalar::winograd_channels(w, layer, v, scratch, output, channels),
     }
 }
 
@@ -438,21 +439,21 @@ pub unsafe fn winograd_channels(
 /// ([`Winograd::input_len`] floats), then [`winograd_channels`] for every channel.
 pub fn winograd_conv(
     isa: Isa,
+    w: &Winograd,
     layer: ConvParams<'_>,
     input: &[f32],
     v: &mut [f32],
     scratch: &mut [f32],
     output: &mut [f32],
 ) {
-    let w = Winograd::new(layer.shape).expect("a layer Winograd computes");
     assert_eq!(output.len(), layer.shape.output.len());
     assert_eq!(v.len(), w.input_len());
     for phase in 0..4 {
-        winograd_input(isa, &w, phase, input, &mut v[w.phase_span(phase)]);
+        winograd_input(isa, w, phase, input, &mut v[w.phase_span(phase)]);
     }
     let all = 0..layer.shape.output.channels;
     // SAFETY: `output` holds the whole output plane and is borrowed mutably for the call.
-    unsafe { winograd_channels(isa, layer, v, scratch, output.as_mut_ptr(), all) }
+    unsafe { winograd_channels(isa, w, layer, v, scratch, output.as_mut_ptr(), all) }
 }
 
 /// `y[n] = act(W x[n] + bias)` for a batch of `x.len() / W.cols` inputs stored one after another.

@@ -84,7 +84,7 @@ pub fn winograd_weights(
     };
     for phase in 0..4 {
         // SAFETY: the weight transform is plain scalar code.
-        unsafe { with_phase(phase, &mut transform) };
+        unsafe { with_phase(w, phase, &mut transform) };
     }
     (packed, bias)
 }

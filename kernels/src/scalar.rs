@@ -61,7 +61,7 @@ pub unsafe fn conv_channels(layer: ConvParams<'_>, input: &[f32], output: *mut f
 /// See [`crate::winograd_input`]: the transforms one float at a time.
 pub fn winograd_input(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
     // SAFETY: plain scalar code; `crate::winograd_input` checked the buffer lengths.
-    unsafe { winograd::with_phase(phase, &mut winograd::InputTransform::<f32>::new(w, input, v)) }
+    unsafe { winograd::with_phase(w, phase, &mut winograd::InputTransform::<f32>::new(w, input, v)) }
 }
 
 /// See [`crate::winograd_channels`]: the products straight from their definition, the output
@@ -70,13 +70,14 @@ pub fn winograd_input(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) 
 /// # Safety
 /// As for [`crate::winograd_channels`].
 pub unsafe fn winograd_channels(
+    w: &Winograd,
     layer: ConvParams<'_>,
     v: &[f32],
     scratch: &mut [f32],
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    winograd::channels::<f32, _>(&winograd::ScalarProduct, layer, v, scratch, output, channels)
+    winograd::channels::<f32, _>(&winograd::ScalarProduct, w, layer, v, scratch, output, channels)
 }
 
 /// See [`crate::dense`].

@@ -8,12 +8,13 @@
 //!   even outputs see taps `4, 2, 0` at `j - 1, j, j + 1`, the odd ones taps `3, 1` at `j, j + 1`.
 //!   Each output phase is its own correlation of the input.
 //!
-//! Each correlation uses Winograd's minimal filtering per axis on tiles of 2 outputs: F(2,3)
-//! for three taps (4 products instead of 6) and F(2,2) for two (3 instead of 4). A 2x2 tile of
-//! every phase takes 16 + 12 + 12 + 9 = 49 products per pair of channels where the direct sum
-//! takes 100. The products of one transform point over all input channels are a matrix product
-//! (tiles x in_channels times in_channels x out_channels), which the SIMD path computes with the
-//! direct convolution's microkernel.
+//! Each correlation uses Winograd's minimal filtering per axis on tiles of `m` outputs, with
+//! `m` = 2 or 4 per layer ([`Winograd::tile`]): F(m,3) for three taps and F(m,2) for two. A
+//! 2x2 tile of every phase takes 16 + 12 + 12 + 9 = 49 products per pair of channels where the
+//! direct sum takes 100; a 4x4 tile takes 36 + 30 + 30 + 25 = 121 where the direct sum takes
+//! 400, but its transformed weights are 121 / 49 times larger. The products of one transform
+//! point over all input channels are a matrix product (tiles x in_channels times in_channels x
+//! out_channels), which the SIMD path computes with the direct convolution's microkernel.
 //!
 //! Three steps, each over a caller's buffer (nothing is allocated):
 //! 1. [`crate::winograd_input`] transforms the input into `V`, `[point][tile][in_channel]`, one
@@ -23,40 +24,84 @@
 //!    [`Winograd::packed_index`]) into a scratch of [`SCRATCH_LEN`] floats, then transforms the
 //!    products back, adds the bias, applies the activation and stores the output pixels.
 //!
+//! The input and output transforms are written out (their coefficients are small integers), so
+//! the scalar and SIMD paths share them; the weight transform runs once, in f64.
+//!
 //! The scalar path runs the same three steps one float at a time; it is tested against the
 //! direct scalar convolution, the oracle of both.
 
 use crate::{Activation, ConvKind, ConvParams, ConvShape, OC_ALIGN};
 use core::ops::Range;
 
-/// Transform points of the four phases together.
-pub const POINTS: usize = 49;
-/// First point and number of points of each phase `2 * py + px` (phase 0 of an axis has three
-/// taps, phase 1 two).
-const PHASE_POINTS: [(usize, usize); 4] = [(0, 16), (16, 12), (28, 12), (40, 9)];
-/// The most tiles whose products are kept at once (see [`crate::winograd_channels`]).
-pub const GROUP_TILES: usize = 20;
-/// Floats of the product scratch [`crate::winograd_channels`] needs: blocks of up to 32 output
-/// channels (two AVX-512 vectors).
-pub const SCRATCH_LEN: usize = POINTS * GROUP_TILES * 2 * OC_ALIGN;
+/// Floats of the product scratch [`crate::winograd_channels`] needs: the products of one group
+/// of tiles ([`Winograd::group_tiles`]) at every transform point, for a block of up to 32 output
+/// channels (two AVX-512 vectors). 4x4 tiles (121 points, groups of 12) need more than 2x2
+/// tiles (49 points, groups of 20).
+pub const SCRATCH_LEN: usize = 121 * 12 * 2 * OC_ALIGN;
 /// Layers with fewer input channels stay direct: each product would be too short to pay for
 /// the transforms (the first encoder layer has 3).
 pub const MIN_IN_CHANNELS: usize = 8;
 
-/// The Winograd geometry of a convolution layer; made by [`Winograd::new`] only for layers it
-/// computes exactly: kernel 5, more than [`crate::NARROW_OC`] output channels, at least
-/// [`MIN_IN_CHANNELS`] input channels, and for `Down` an even input size.
+/// The Winograd geometry of a convolution layer; made only for layers it computes exactly:
+/// kernel 5, more than [`crate::NARROW_OC`] output channels, at least [`MIN_IN_CHANNELS`] input
+/// channels, and for `Down` an even input size.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Winograd {
     pub shape: ConvShape,
+    /// Outputs per tile along each axis of a phase grid: 2 or 4.
+    tile: usize,
 }
 
 impl Winograd {
+    /// The layer with the tile size that suits it: 4 where 2x2 tiles would make the transformed
+    /// input larger than the weights (large images, few channels), which then streams through
+    /// the products; there 4x4 tiles shrink both it and the products by 1.6 and the weights,
+    /// read once per group of tiles, grow by 2.5. Elsewhere the weights are the larger operand
+    /// and 2x2 tiles keep them small.
     pub fn new(shape: ConvShape) -> Option<Winograd> {
+        let small = Self::with_tile(shape, 2)?;
+        if small.input_len() > small.packed_len() {
+            Self::with_tile(shape, 4)
+        } else {
+            Some(small)
+        }
+    }
+
+    /// The layer with tiles of `tile` (2 or 4) outputs per axis.
+    pub fn with_tile(shape: ConvShape, tile: usize) -> Option<Winograd> {
         let even =
             shape.kind == ConvKind::Up || (shape.input.height.is_multiple_of(2) && shape.input.width.is_multiple_of(2));
         let fits = shape.kernel == 5 && !shape.is_narrow() && shape.input.channels >= MIN_IN_CHANNELS && even;
-        fits.then_some(Winograd { shape })
+        (fits && (tile == 2 || tile == 4)).then_some(Winograd { shape, tile })
+    }
+
+    /// Outputs per tile along each axis of a phase grid.
+    pub fn tile(&self) -> usize {
+        self.tile
+    }
+
+    /// Transform points of the four phases together: `(m + 2)^2 + 2 (m + 2)(m + 1) + (m + 1)^2`.
+    pub fn points(&self) -> usize {
+        (2 * self.tile + 3) * (2 * self.tile + 3)
+    }
+
+    /// First point and number of points of phase `2 * py + px` (phase 0 of an axis has three
+    /// taps, phase 1 two).
+    fn phase_points(&self, phase: usize) -> (usize, usize) {
+        let per_axis = |p: usize| self.tile + 2 - p;
+        let count = |phase: usize| per_axis(phase / 2) * per_axis(phase % 2);
+        ((0..phase).map(count).sum(), count(phase))
+    }
+
+    /// The most tiles whose products are kept at once (see [`crate::winograd_channels`]): 20
+    /// of 2x2 (tried from 12 to 64: as good as any), 12 of 4x4 (two sweeps of the AVX2
+    /// microkernel's 6 tiles). Their products fit [`SCRATCH_LEN`].
+    pub fn group_tiles(&self) -> usize {
+        if self.tile == 2 {
+            20
+        } else {
+            12
+        }
     }
 
     /// Height and width of a phase grid: the output for `Down`, the input for `Up`.
@@ -70,18 +115,18 @@ impl Winograd {
 
     /// Tiles per row of the phase grid.
     pub fn tiles_wide(&self) -> usize {
-        self.grid().1.div_ceil(2)
+        self.grid().1.div_ceil(self.tile)
     }
 
-    /// Tiles of 2x2 grid positions covering the phase grid (the last row and column of tiles
-    /// may hang over it).
+    /// Tiles of `tile x tile` grid positions covering the phase grid (the last row and column of
+    /// tiles may hang over it).
     pub fn tiles(&self) -> usize {
-        self.grid().0.div_ceil(2) * self.tiles_wide()
+        self.grid().0.div_ceil(self.tile) * self.tiles_wide()
     }
 
     /// Floats of one panel of 16 output channels of the packed weights.
     pub fn panel_len(&self) -> usize {
-        POINTS * self.shape.input.channels * OC_ALIGN
+        self.points() * self.shape.input.channels * OC_ALIGN
     }
 
     /// Floats of the packed weights.
@@ -97,17 +142,17 @@ impl Winograd {
 
     /// Floats of the transformed input `V`.
     pub fn input_len(&self) -> usize {
-        POINTS * self.tiles() * self.shape.input.channels
+        self.points() * self.tiles() * self.shape.input.channels
     }
 
     /// The part of `V` that phase `phase` (0 to 3) fills.
     pub fn phase_span(&self, phase: usize) -> Range<usize> {
-        let (first, count) = PHASE_POINTS[phase];
+        let (first, count) = self.phase_points(phase);
         let per_point = self.tiles() * self.shape.input.channels;
         first * per_point..(first + count) * per_point
     }
 
-    /// Offset from twice a tile's index to its first source position, along an axis.
+    /// Offset from `tile` times a tile's index to its first source position, along an axis.
     fn lo(&self, phase: usize) -> isize {
         match self.shape.kind {
             ConvKind::Down => -1,
@@ -142,23 +187,23 @@ impl Winograd {
     }
 }
 
-/// Winograd's minimal filtering F(2, `K`) on `P = K + 1` points: for inputs `d` (P values) and
-/// taps `g` (K values), the two outputs `y[i] = sum_m d[i + m] g[m]` are
-/// `output(G g . input(d))`. The transforms are written out, so that their constant 0 and ±1
-/// coefficients cost nothing.
-pub(crate) trait Filter<const P: usize, const K: usize> {
+/// Winograd's minimal filtering F(`M`, `K`) on `P = M + K - 1` points: for inputs `d` (P
+/// values) and taps `g` (K values), the `M` outputs `y[i] = sum_k d[i + k] g[k]` are
+/// `output(G g . input(d))`. The transforms are written out, so that their constant small
+/// integer coefficients cost little.
+pub(crate) trait Filter<const M: usize, const P: usize, const K: usize> {
     /// The weight transform, applied once at packing.
     const G: [[f64; K]; P];
     /// `B^T d`.
     unsafe fn input<L: Lane>(d: [L; P]) -> [L; P];
     /// `A^T m`.
-    unsafe fn output<L: Lane>(m: [L; P]) -> [L; 2];
+    unsafe fn output<L: Lane>(m: [L; P]) -> [L; M];
 }
 
 /// F(2,3), points 0, 1, -1 and infinity.
 pub(crate) struct F23;
 
-impl Filter<4, 3> for F23 {
+impl Filter<2, 4, 3> for F23 {
     const G: [[f64; 3]; 4] = [[1.0, 0.0, 0.0], [0.5, 0.5, 0.5], [0.5, -0.5, 0.5], [0.0, 0.0, 1.0]];
     #[inline(always)]
     unsafe fn input<L: Lane>([d0, d1, d2, d3]: [L; 4]) -> [L; 4] {
@@ -173,7 +218,7 @@ impl Filter<4, 3> for F23 {
 /// F(2,2), points 0, 1 and infinity.
 pub(crate) struct F22;
 
-impl Filter<3, 2> for F22 {
+impl Filter<2, 3, 2> for F22 {
     const G: [[f64; 2]; 3] = [[1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
     #[inline(always)]
     unsafe fn input<L: Lane>([d0, d1, d2]: [L; 3]) -> [L; 3] {
@@ -185,27 +230,106 @@ impl Filter<3, 2> for F22 {
     }
 }
 
-/// Something generic over the transforms of one phase: `PY x PX` points, `KY x KX` taps.
+/// F(4,3), points 0, 1, -1, 2, -2 and infinity.
+pub(crate) struct F43;
+
+impl Filter<4, 6, 3> for F43 {
+    const G: [[f64; 3]; 6] = [
+        [1.0 / 4.0, 0.0, 0.0],
+        [-1.0 / 6.0, -1.0 / 6.0, -1.0 / 6.0],
+        [-1.0 / 6.0, 1.0 / 6.0, -1.0 / 6.0],
+        [1.0 / 24.0, 1.0 / 12.0, 1.0 / 6.0],
+        [1.0 / 24.0, -1.0 / 12.0, 1.0 / 6.0],
+        [0.0, 0.0, 1.0],
+    ];
+    #[inline(always)]
+    unsafe fn input<L: Lane>([d0, d1, d2, d3, d4, d5]: [L; 6]) -> [L; 6] {
+        let (a, b) = (d2.mul_add(-4.0, d4), d1.mul_add(-4.0, d3));
+        let (c, e) = (d4.sub(d2), d3.sub(d1));
+        let e = e.add(e);
+        [
+            d2.mul_add(-5.0, d0.mul_add(4.0, d4)),
+            a.add(b),
+            a.sub(b),
+            c.add(e),
+            c.sub(e),
+            d3.mul_add(-5.0, d1.mul_add(4.0, d5)),
+        ]
+    }
+    #[inline(always)]
+    unsafe fn output<L: Lane>([m0, m1, m2, m3, m4, m5]: [L; 6]) -> [L; 4] {
+        let (p, q, r, s) = (m1.add(m2), m1.sub(m2), m3.add(m4), m3.sub(m4));
+        [
+            m0.add(p).add(r),
+            s.mul_add(2.0, q),
+            r.mul_add(4.0, p),
+            s.mul_add(8.0, q).add(m5),
+        ]
+    }
+}
+
+/// F(4,2), points 0, 1, -1, 2 and infinity.
+pub(crate) struct F42;
+
+impl Filter<4, 5, 2> for F42 {
+    const G: [[f64; 2]; 5] = [
+        [1.0 / 2.0, 0.0],
+        [-1.0 / 2.0, -1.0 / 2.0],
+        [-1.0 / 6.0, 1.0 / 6.0],
+        [1.0 / 6.0, 1.0 / 3.0],
+        [0.0, 1.0],
+    ];
+    #[inline(always)]
+    unsafe fn input<L: Lane>([d0, d1, d2, d3, d4]: [L; 5]) -> [L; 5] {
+        [
+            d0.sub(d2).mul_add(2.0, d3.sub(d1)),
+            d1.mul_add(-2.0, d3.sub(d2)),
+            d1.mul_add(2.0, d2.mul_add(-3.0, d3)),
+            d3.sub(d1),
+            d1.sub(d3).mul_add(2.0, d4.sub(d2)),
+        ]
+    }
+    #[inline(always)]
+    unsafe fn output<L: Lane>([m0, m1, m2, m3, m4]: [L; 5]) -> [L; 4] {
+        let (p, q) = (m1.add(m2), m1.sub(m2));
+        [
+            m0.add(p).add(m3),
+            m3.mul_add(2.0, q),
+            m3.mul_add(4.0, p),
+            m3.mul_add(8.0, q).add(m4),
+        ]
+    }
+}
+
+/// Something generic over the transforms of one phase: tiles of `M x M` outputs, `PY x PX`
+/// points, `KY x KX` taps.
 pub(crate) trait PhaseFn {
     /// # Safety
     /// As the implementation requires (SIMD features, valid pointers).
-    unsafe fn call<const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(&mut self, phase: usize)
-    where
-        FY: Filter<PY, KY>,
-        FX: Filter<PX, KX>;
+    unsafe fn call<const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
+        &mut self,
+        phase: usize,
+    ) where
+        FY: Filter<M, PY, KY>,
+        FX: Filter<M, PX, KX>;
 }
 
-/// Calls `f` with the transforms of `phase` (`2 * py + px`; phase 0 of an axis has 3 taps).
+/// Calls `f` with the transforms of `phase` (`2 * py + px`; phase 0 of an axis has 3 taps) for
+/// the tiles of `w`.
 ///
 /// # Safety
 /// As `f` requires.
 #[inline(always)]
-pub(crate) unsafe fn with_phase(phase: usize, f: &mut impl PhaseFn) {
-    match phase {
-        0 => f.call::<4, 3, 4, 3, F23, F23>(0),
-        1 => f.call::<4, 3, 3, 2, F23, F22>(1),
-        2 => f.call::<3, 2, 4, 3, F22, F23>(2),
-        _ => f.call::<3, 2, 3, 2, F22, F22>(3),
+pub(crate) unsafe fn with_phase(w: &Winograd, phase: usize, f: &mut impl PhaseFn) {
+    match (w.tile, phase) {
+        (2, 0) => f.call::<2, 4, 3, 4, 3, F23, F23>(0),
+        (2, 1) => f.call::<2, 4, 3, 3, 2, F23, F22>(1),
+        (2, 2) => f.call::<2, 3, 2, 4, 3, F22, F23>(2),
+        (2, _) => f.call::<2, 3, 2, 3, 2, F22, F22>(3),
+        (_, 0) => f.call::<4, 6, 3, 6, 3, F43, F43>(0),
+        (_, 1) => f.call::<4, 6, 3, 5, 2, F43, F42>(1),
+        (_, 2) => f.call::<4, 5, 2, 6, 3, F42, F43>(2),
+        (_, _) => f.call::<4, 5, 2, 5, 2, F42, F42>(3),
     }
 }
 
@@ -222,6 +346,8 @@ pub(crate) trait Lane: Copy {
     unsafe fn store_n(self, p: *mut f32, n: usize);
     unsafe fn add(self, b: Self) -> Self;
     unsafe fn sub(self, b: Self) -> Self;
+    /// `self * c + acc`.
+    unsafe fn mul_add(self, c: f32, acc: Self) -> Self;
     unsafe fn activate(self, act: Activation) -> Self;
 }
 
@@ -249,6 +375,9 @@ impl Lane for f32 {
     unsafe fn sub(self, b: f32) -> f32 {
         self - b
     }
+    unsafe fn mul_add(self, c: f32, acc: f32) -> f32 {
+        self * c + acc
+    }
     unsafe fn activate(self, act: Activation) -> f32 {
         act.apply(self)
     }
@@ -268,13 +397,13 @@ unsafe fn columns<L: Lane, const PY: usize, const PX: usize>(x: &[[L; PX]; PY]) 
 
 /// `B_y^T d B_x` for a `PY x PX` input tile `d`.
 #[inline(always)]
-unsafe fn input_tile<L, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
+unsafe fn input_tile<L, const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
     d: &[[L; PX]; PY],
 ) -> [[L; PX]; PY]
 where
     L: Lane,
-    FY: Filter<PY, KY>,
-    FX: Filter<PX, KX>,
+    FY: Filter<M, PY, KY>,
+    FX: Filter<M, PX, KX>,
 {
     let mut out = *d;
     for c in 0..PX {
@@ -292,22 +421,27 @@ where
     out
 }
 
-/// `A_y^T m A_x` for a `PY x PX` tile of products `m`: a 2x2 tile of outputs.
+/// `A_y^T m A_x` for a `PY x PX` tile of products `m`: a tile of `M x M` outputs.
 #[inline(always)]
-unsafe fn output_tile<L, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
+unsafe fn output_tile<L, const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
     m: &[[L; PX]; PY],
-) -> [[L; 2]; 2]
+) -> [[L; M]; M]
 where
     L: Lane,
-    FY: Filter<PY, KY>,
-    FX: Filter<PX, KX>,
+    FY: Filter<M, PY, KY>,
+    FX: Filter<M, PX, KX>,
 {
-    let mut down = [[L::zero(); 2]; PX];
+    let mut down = [[L::zero(); M]; PX];
     for (t, column) in down.iter_mut().zip(columns(m)) {
         *t = FY::output(column);
     }
-    let [top, bottom] = columns(&down);
-    [FX::output(top), FX::output(bottom)]
+    // Loops, not closures: a closure would not inherit the caller's target features, and
+    // every vector operation in it would become a call.
+    let mut y = [[L::zero(); M]; M];
+    for (y, row) in y.iter_mut().zip(columns(&down)) {
+        *y = FX::output(row);
+    }
+    y
 }
 
 /// Step 1 for one phase: fills `V`'s span of `phase` (`v` is that span, see
@@ -332,10 +466,12 @@ impl<'a, L> InputTransform<'a, L> {
 
 impl<L: Lane> PhaseFn for InputTransform<'_, L> {
     #[inline(always)]
-    unsafe fn call<const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(&mut self, phase: usize)
-    where
-        FY: Filter<PY, KY>,
-        FX: Filter<PX, KX>,
+    unsafe fn call<const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
+        &mut self,
+        phase: usize,
+    ) where
+        FY: Filter<M, PY, KY>,
+        FX: Filter<M, PX, KX>,
     {
         let w = self.w;
         let (ip, (gh, gw)) = (w.shape.input, w.grid());
@@ -345,8 +481,8 @@ impl<L: Lane> PhaseFn for InputTransform<'_, L> {
         let v = self.v.as_mut_ptr();
         for tile in 0..tiles {
             let (gy, gx) = (
-                2 * (tile / wide) as isize + w.lo(py),
-                2 * (tile % wide) as isize + w.lo(px),
+                (M * (tile / wide)) as isize + w.lo(py),
+                (M * (tile % wide)) as isize + w.lo(px),
             );
             // Each tap's pixel, or none where the grid has no source.
             let mut pixels = [[None; PX]; PY];
@@ -367,7 +503,7 @@ impl<L: Lane> PhaseFn for InputTransform<'_, L> {
                         }
                     }
                 }
-                let t = input_tile::<L, PY, KY, PX, KX, FY, FX>(&d);
+                let t = input_tile::<L, M, PY, KY, PX, KX, FY, FX>(&d);
                 for (r, row) in t.iter().enumerate() {
                     for (s, value) in row.iter().enumerate() {
                         value.store_n(v.add(((r * PX + s) * tiles + tile) * c + c0), n);
@@ -431,33 +567,33 @@ impl Product for ScalarProduct {
 #[inline(always)]
 pub(crate) unsafe fn channels<L: Lane, P: Product>(
     product: &P,
+    w: &Winograd,
     layer: ConvParams<'_>,
     v: &[f32],
     scratch: &mut [f32],
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    let w = Winograd::new(layer.shape).expect("a Winograd layer");
     let tiles = w.tiles();
     // The tiles go in groups of nearly equal size; all the products of a group and a block of
-    // output channels (49 x 20 x 16 floats with AVX2, 61 KiB) are kept until the output
-    // transform. Of the two operands, the larger streams from L3 and the smaller is reused
-    // from L2: with more weights than transformed input, each block's weights (49 points x
-    // input channels x 16) serve every group in turn; otherwise each group's transformed input
-    // serves every block.
-    let groups = tiles.div_ceil(GROUP_TILES);
+    // output channels (points x group tiles x 16 floats with AVX2, at most 91 KiB) are kept
+    // until the output transform. Of the two operands, the larger streams from L3 and the
+    // smaller is reused from L2: with more weights than transformed input, each block's weights
+    // (points x input channels x 16) serve every group in turn; otherwise each group's
+    // transformed input serves every block.
+    let groups = tiles.div_ceil(w.group_tiles());
     let group = |g: usize| tiles * g / groups..tiles * (g + 1) / groups;
     let blocks = channels.clone().step_by(L::BLOCK);
     if w.packed_len() > w.input_len() {
         for first in blocks {
             for g in 0..groups {
-                group_block::<L, P>(product, &w, layer, v, scratch, output, group(g), first..channels.end);
+                group_block::<L, P>(product, w, layer, v, scratch, output, group(g), first..channels.end);
             }
         }
     } else {
         for g in 0..groups {
             for first in blocks.clone() {
-                group_block::<L, P>(product, &w, layer, v, scratch, output, group(g), first..channels.end);
+                group_block::<L, P>(product, w, layer, v, scratch, output, group(g), first..channels.end);
             }
         }
     }
@@ -479,9 +615,9 @@ unsafe fn group_block<L: Lane, P: Product>(
     let (first, valid) = (channels.start, channels.len().min(L::BLOCK));
     let c = w.shape.input.channels;
     let m = scratch.as_mut_ptr();
-    for point in 0..POINTS {
+    for point in 0..w.points() {
         let v = v.as_ptr().add((point * w.tiles() + tiles.start) * c);
-        let m = m.add(point * GROUP_TILES * L::BLOCK);
+        let m = m.add(point * w.group_tiles() * L::BLOCK);
         let products = Products {
             w,
             u: layer.weights,
@@ -500,7 +636,7 @@ unsafe fn group_block<L: Lane, P: Product>(
         bias: layer.bias.as_ptr().add(first),
         act: layer.act,
         output: output.add(first),
-        sum: [[L::zero(); 2]; 2],
+        sum: [[L::zero(); 4]; 4],
         tile: 0,
         channel: 0,
         n: 0,
@@ -526,8 +662,8 @@ struct OutputTransform<'a, L> {
     bias: *const f32,
     act: Activation,
     output: *mut f32,
-    /// The phases summed so far (`Down`).
-    sum: [[L; 2]; 2],
+    /// The phases summed so far (`Down`), in the first `tile x tile`.
+    sum: [[L; 4]; 4],
     tile: usize,
     /// These channels' offset from the block's first, and how many of them are real.
     channel: usize,
@@ -541,29 +677,26 @@ impl<L: Lane> OutputTransform<'_, L> {
     #[inline(always)]
     unsafe fn finish_tile(&mut self, start: usize) {
         self.m_at = (self.tile - start) * L::BLOCK + self.channel;
-        self.sum = [[L::zero(); 2]; 2];
+        self.sum = [[L::zero(); 4]; 4];
         for phase in 0..4 {
-            with_phase(phase, self);
-        }
-        if self.w.shape.kind == ConvKind::Down {
-            self.store(0, self.sum);
+            with_phase(self.w, phase, self);
         }
     }
 
     /// Adds the bias, applies the activation and stores the pixels of `y` (the tile of `phase`
     /// for `Up`; of all phases for `Down`) that lie in the output.
     #[inline(always)]
-    unsafe fn store(&self, phase: usize, y: [[L; 2]; 2]) {
+    unsafe fn store<const M: usize>(&self, phase: usize, y: [[L; M]; M]) {
         let (w, op, (gh, gw)) = (self.w, self.w.shape.output, self.w.grid());
         let (ty, tx) = (self.tile / w.tiles_wide(), self.tile % w.tiles_wide());
         let bias = L::load_n(self.bias.add(self.channel), self.n);
         for (dy, row) in y.iter().enumerate() {
-            let gy = 2 * ty + dy;
+            let gy = M * ty + dy;
             if gy >= gh {
                 continue;
             }
             for (dx, value) in row.iter().enumerate() {
-                let gx = 2 * tx + dx;
+                let gx = M * tx + dx;
                 if gx >= gw {
                     continue;
                 }
@@ -576,26 +709,35 @@ impl<L: Lane> OutputTransform<'_, L> {
 
 impl<L: Lane> PhaseFn for OutputTransform<'_, L> {
     #[inline(always)]
-    unsafe fn call<const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(&mut self, phase: usize)
-    where
-        FY: Filter<PY, KY>,
-        FX: Filter<PX, KX>,
+    unsafe fn call<const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
+        &mut self,
+        phase: usize,
+    ) where
+        FY: Filter<M, PY, KY>,
+        FX: Filter<M, PX, KX>,
     {
-        let first = PHASE_POINTS[phase].0;
+        let (first, group_tiles) = (self.w.phase_points(phase).0, self.w.group_tiles());
         let mut m = [[L::zero(); PX]; PY];
         for (r, row) in m.iter_mut().enumerate() {
             for (s, m) in row.iter_mut().enumerate() {
                 let point = first + r * PX + s;
-                *m = L::load_n(self.m.add(point * GROUP_TILES * L::BLOCK + self.m_at), self.n);
+                *m = L::load_n(self.m.add(point * group_tiles * L::BLOCK + self.m_at), self.n);
             }
         }
-        let y = output_tile::<L, PY, KY, PX, KX, FY, FX>(&m);
+        let y = output_tile::<L, M, PY, KY, PX, KX, FY, FX>(&m);
         match self.w.shape.kind {
             ConvKind::Down => {
                 for (sum, y) in self.sum.iter_mut().zip(&y) {
                     for (s, &y) in sum.iter_mut().zip(y) {
                         *s = s.add(y);
                     }
+                }
+                if phase == 3 {
+                    let mut sum = [[L::zero(); M]; M];
+                    for (sum, all) in sum.iter_mut().zip(&self.sum) {
+                        sum.copy_from_slice(&all[..M]);
+                    }
+                    self.store::<M>(0, sum);
                 }
             }
             ConvKind::Up => self.store(phase, y),
@@ -611,13 +753,15 @@ pub(crate) struct WeightTransform<'a> {
 }
 
 impl PhaseFn for WeightTransform<'_> {
-    unsafe fn call<const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(&mut self, phase: usize)
-    where
-        FY: Filter<PY, KY>,
-        FX: Filter<PX, KX>,
+    unsafe fn call<const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
+        &mut self,
+        phase: usize,
+    ) where
+        FY: Filter<M, PY, KY>,
+        FX: Filter<M, PX, KX>,
     {
         let (w, shape) = (self.w, &self.w.shape);
-        let (py, px, first) = (phase / 2, phase % 2, PHASE_POINTS[phase].0);
+        let (py, px, first) = (phase / 2, phase % 2, w.phase_points(phase).0);
         for oc in 0..shape.output.channels {
             for ic in 0..shape.input.channels {
                 let g: [[f64; KX]; KY] = core::array::from_fn(|my| {

@@ -21,20 +21,24 @@ fn levels() -> Vec<Isa> {
     Isa::supported().collect()
 }
 
-/// The largest error of `got` against `want`, relative to the size of the terms each output
-/// sums (`sum |w| |x| + |b|`, bounded here by the largest such sum over the layer).
+/// The largest error of `got` against `want` with tiles of `tile` outputs per axis, relative
+/// to the size of the terms each output sums (`sum |w| |x| + |b|`, bounded here by the largest
+/// such sum over the layer).
 fn check(
     kind: ConvKind,
     (h, w): (usize, usize),
     (ic, oc): (usize, usize),
     halo: (usize, usize),
     act: Activation,
+    tile: usize,
 ) -> f32 {
     let k = 5;
     let seed = (h * 1000 + w * 100 + ic * 10 + oc) as u64;
     let ip = Plane::new(h, w, ic, kind.input_halo(k) + halo.0);
     let shape = ConvShape::new(kind, k, ip, oc, halo.1);
-    let wino = Winograd::new(shape).expect("a Winograd shape");
+    let wino = Winograd::with_tile(shape, tile).expect("a Winograd shape");
+    // F(4, k) has larger transform coefficients (up to 8 and 1/24) than F(2, k) (1 and 1/2).
+    let tolerance = if tile == 2 { 2e-7 } else { 2e-6 };
     let mut input = vec![0.0; ip.len()];
     ip.write_interior(&mut input, &values(seed, ip.interior_len(), 1.0));
     let torch = values(seed + 1, ic * oc * k * k, 1.0);
@@ -63,12 +67,12 @@ fn check(
         let mut v = vec![f32::NAN; wino.input_len()];
         let mut scratch = vec![f32::NAN; SCRATCH_LEN];
         let mut got = vec![0.0; shape.output.len()];
-        winograd_conv(isa, layer, &input, &mut v, &mut scratch, &mut got);
+        winograd_conv(isa, &wino, layer, &input, &mut v, &mut scratch, &mut got);
         let worst = got.iter().zip(&want).fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
         let name = isa.level().name();
         assert!(
-            worst / scale <= 2e-7,
-            "{name} {kind:?} {h}x{w} {ic}->{oc} {act:?}: error {worst} of {scale}"
+            worst / scale <= tolerance,
+            "{name} {kind:?} {h}x{w} {ic}->{oc} {act:?}, tile {tile}: error {worst} of {scale}"
         );
         // The border stays zero: `want` has a zero border, so `worst` covers it. Every interior
         // value is written, and channel ranges (as threads use them) give the same values:
@@ -86,12 +90,12 @@ fn check(
         unsafe {
             let split = if oc > 16 { 16 } else { 0 };
             for channels in [0..split, split..oc] {
-                winograd_channels(isa, layer, &v, &mut scratch, nan_filled.as_mut_ptr(), channels);
+                winograd_channels(isa, &wino, layer, &v, &mut scratch, nan_filled.as_mut_ptr(), channels);
             }
         }
         assert!(
             nan_filled.iter().zip(&got).all(|(a, b)| a == b),
-            "{name} {kind:?} {h}x{w} {ic}->{oc}: channel ranges differ from one call, or a value was not written"
+            "{name} {kind:?} {h}x{w} {ic}->{oc}, tile {tile}: channel ranges differ from one call, or a value was not written"
         );
         worst_all = worst_all.max(worst / scale);
     }
@@ -105,18 +109,20 @@ const ACTS: [Activation; 4] = [
     Activation::Tanh,
 ];
 
-/// Checks `kind` on every shape with every activation (output border `halo`), and one shape
-/// with wider borders than the minimum; prints the largest error.
+/// Checks `kind` with both tile sizes on every shape with every activation (output border
+/// `halo`), and one shape with wider borders than the minimum; prints the largest errors.
 fn check_all(kind: ConvKind, shapes: &[Shape], halo: usize) {
-    let mut worst = 0.0f32;
-    for &(size, channels) in shapes {
-        for act in ACTS {
-            worst = worst.max(check(kind, size, channels, (0, halo), act));
+    for tile in [2, 4] {
+        let mut worst = 0.0f32;
+        for &(size, channels) in shapes {
+            for act in ACTS {
+                worst = worst.max(check(kind, size, channels, (0, halo), act, tile));
+            }
         }
+        let (size, channels) = shapes[1];
+        worst = worst.max(check(kind, size, channels, (1, 0), Activation::Identity, tile));
+        eprintln!("{kind:?}, tile {tile}: largest error {worst:.2e} of the terms' size");
     }
-    let (size, channels) = shapes[1];
-    worst = worst.max(check(kind, size, channels, (1, 0), Activation::Identity));
-    eprintln!("{kind:?}: largest error {worst:.2e} of the terms' size");
 }
 
 /// Input size and (input, output) channels.
@@ -157,4 +163,21 @@ fn narrow_or_shallow_layers_stay_direct() {
     assert!(Winograd::new(ConvShape::new(ConvKind::Down, 3, plane, 16, 0)).is_none());
     assert!(Winograd::new(ConvShape::new(ConvKind::Down, 5, Plane::new(8, 8, 3, 2), 16, 0)).is_none());
     assert!(Winograd::new(ConvShape::new(ConvKind::Down, 5, Plane::new(7, 8, 16, 2), 16, 0)).is_none());
+    assert!(Winograd::with_tile(ConvShape::new(ConvKind::Down, 5, plane, 16, 0), 3).is_none());
+}
+
+/// Layers whose 2x2-tile transformed input would outweigh their weights get 4x4 tiles: the
+/// comma config's second encoder and third generator layers; the others keep 2x2.
+#[test]
+fn large_images_with_few_channels_take_4x4_tiles() {
+    let tile = |kind, (h, w), (ic, oc)| {
+        let shape = ConvShape::new(kind, 5, Plane::new(h, w, ic, kind.input_halo(5)), oc, 0);
+        Winograd::new(shape).expect("a Winograd shape").tile()
+    };
+    assert_eq!(tile(ConvKind::Down, (40, 80), (64, 128)), 4);
+    assert_eq!(tile(ConvKind::Down, (20, 40), (128, 256)), 2);
+    assert_eq!(tile(ConvKind::Down, (10, 20), (256, 512)), 2);
+    assert_eq!(tile(ConvKind::Up, (5, 10), (512, 256)), 2);
+    assert_eq!(tile(ConvKind::Up, (10, 20), (256, 128)), 2);
+    assert_eq!(tile(ConvKind::Up, (20, 40), (128, 64)), 4);
 }

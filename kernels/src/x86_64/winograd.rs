@@ -33,6 +33,10 @@ impl<V: Simd> Lane for V {
         Simd::sub(self, b)
     }
     #[inline(always)]
+    unsafe fn mul_add(self, c: f32, acc: V) -> V {
+        Simd::mul_add(self, V::splat(c), acc)
+    }
+    #[inline(always)]
     unsafe fn activate(self, act: Activation) -> V {
         act::apply(act, self)
     }
@@ -117,6 +121,7 @@ pub(crate) unsafe fn input(level: IsaLevel, w: &Winograd, phase: usize, input: &
 /// As for [`crate::winograd_channels`]; `level` must come from an `Isa`.
 pub(crate) unsafe fn channels(
     level: IsaLevel,
+    w: &Winograd,
     layer: ConvParams<'_>,
     v: &[f32],
     scratch: &mut [f32],
@@ -125,10 +130,10 @@ pub(crate) unsafe fn channels(
 ) {
     match level {
         // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and FMA.
-        IsaLevel::Avx512 => channels_avx512(layer, v, scratch, output, channels),
+        IsaLevel::Avx512 => channels_avx512(w, layer, v, scratch, output, channels),
         // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA.
-        IsaLevel::Avx2 => channels_avx2(layer, v, scratch, output, channels),
-        IsaLevel::Scalar => scalar::winograd_channels(layer, v, scratch, output, channels),
+        IsaLevel::Avx2 => channels_avx2(w, layer, v, scratch, output, channels),
+        IsaLevel::Scalar => scalar::winograd_channels(w, layer, v, scratch, output, channels),
     }
 }
 
@@ -139,13 +144,14 @@ macro_rules! entries {
         #[doc = concat!("The CPU must have ", $features, ".")]
         #[target_feature(enable = $features)]
         unsafe fn $input(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-            winograd::with_phase(phase, &mut InputTransform::<$vector>::new(w, input, v))
+            winograd::with_phase(w, phase, &mut InputTransform::<$vector>::new(w, input, v))
         }
 
         /// # Safety
         #[doc = concat!("The CPU must have ", $features, "; as for `crate::winograd_channels`.")]
         #[target_feature(enable = $features)]
         unsafe fn $channels(
+            w: &Winograd,
             layer: ConvParams<'_>,
             v: &[f32],
             scratch: &mut [f32],
@@ -153,7 +159,7 @@ macro_rules! entries {
             channels: Range<usize>,
         ) {
             let product = Microkernel::<$vector>(core::marker::PhantomData);
-            winograd::channels::<$vector, _>(&product, layer, v, scratch, output, channels)
+            winograd::channels::<$vector, _>(&product, w, layer, v, scratch, output, channels)
         }
     };
 }
