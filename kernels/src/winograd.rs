@@ -35,9 +35,9 @@ use core::ops::Range;
 
 /// Floats of the product scratch [`crate::winograd_channels`] needs: the products of one group
 /// of tiles ([`Winograd::group_tiles`]) at every transform point, for a block of up to 32 output
-/// channels (two AVX-512 vectors). 4x4 tiles (121 points, groups of 12) need more than 2x2
+/// channels (two AVX-512 vectors). 4x4 tiles (121 points, groups of 25) need more than 2x2
 /// tiles (49 points, groups of 20).
-pub const SCRATCH_LEN: usize = 121 * 12 * 2 * OC_ALIGN;
+pub const SCRATCH_LEN: usize = 121 * 25 * 2 * OC_ALIGN;
 /// Layers with fewer input channels stay direct: each product would be too short to pay for
 /// the transforms (the first encoder layer has 3).
 pub const MIN_IN_CHANNELS: usize = 8;
@@ -94,13 +94,14 @@ impl Winograd {
     }
 
     /// The most tiles whose products are kept at once (see [`crate::winograd_channels`]): 20
-    /// of 2x2 (tried from 12 to 64: as good as any), 12 of 4x4 (two sweeps of the AVX2
-    /// microkernel's 6 tiles). Their products fit [`SCRATCH_LEN`].
+    /// of 2x2 (tried from 12 to 64: as good as any), 25 of 4x4 (the encoder's conv1 on Zen 3:
+    /// 1.74 ms in groups of 12, 1.49-1.58 of 17, 1.43-1.48 of 25, 1.37 in one group of 50,
+    /// whose scratch would be as large as L2). Their products fit [`SCRATCH_LEN`].
     pub fn group_tiles(&self) -> usize {
         if self.tile == 2 {
             20
         } else {
-            12
+            25
         }
     }
 
@@ -576,7 +577,7 @@ pub(crate) unsafe fn channels<L: Lane, P: Product>(
 ) {
     let tiles = w.tiles();
     // The tiles go in groups of nearly equal size; all the products of a group and a block of
-    // output channels (points x group tiles x 16 floats with AVX2, at most 91 KiB) are kept
+    // output channels (points x group tiles x 16 floats with AVX2, at most 189 KiB) are kept
     // until the output transform. Of the two operands, the larger streams from L3 and the
     // smaller is reused from L2: with more weights than transformed input, each block's weights
     // (points x input channels x 16) serve every group in turn; otherwise each group's

@@ -138,6 +138,8 @@ fn down_matches_direct() {
         ((12, 4), (64, 40)),
         // More transformed input than weights (tiles before blocks), several tile groups.
         ((20, 40), (9, 20)),
+        // Several groups of 4x4 tiles too.
+        ((40, 56), (9, 20)),
     ];
     check_all(ConvKind::Down, &shapes, 2);
 }
@@ -151,6 +153,8 @@ fn up_matches_direct() {
         ((3, 10), (33, 47)),
         ((6, 2), (64, 40)),
         ((12, 14), (16, 17)),
+        // Several groups of 4x4 tiles.
+        ((24, 30), (9, 20)),
     ];
     check_all(ConvKind::Up, &shapes, 1);
 }
