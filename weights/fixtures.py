@@ -33,6 +33,9 @@ FIXTURES = {
     "small_f16": (Config(48, 112, 3, 6, z_dim=20, hidden_dim=36, action_dim=2), "f16", 2),
     "tiny_bf16": (Config(16, 32, 1, 3, z_dim=5, hidden_dim=7, action_dim=2), "bf16", 3),
     "tall_f32": (Config(64, 32, 4, 5, z_dim=9, hidden_dim=11, action_dim=3), "f32", 4),
+    # Eight channels on a 16x32 plane: the encoder's second and the generator's third layer
+    # take 4x4 Winograd tiles.
+    "wide_f32": (Config(32, 64, 3, 8, z_dim=12, hidden_dim=16, action_dim=2), "f32", 5),
 }
 
 

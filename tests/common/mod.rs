@@ -4,7 +4,7 @@
 use safetensors::{Dtype, SafeTensors};
 use std::path::PathBuf;
 
-pub const FIXTURES: [&str; 4] = ["small_f32", "small_f16", "tiny_bf16", "tall_f32"];
+pub const FIXTURES: [&str; 5] = ["small_f32", "small_f16", "tiny_bf16", "tall_f32", "wide_f32"];
 
 pub fn fixture_path(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
