@@ -37,7 +37,10 @@ use core::ops::Range;
 /// of tiles ([`Winograd::group_tiles`]) at every transform point, for a block of up to 32 output
 /// channels (two AVX-512 vectors). 4x4 tiles (121 points, groups of 25) need more than 2x2
 /// tiles (49 points, groups of 20).
-pub const SCRATCH_LEN: usize = 121 * 25 * 2 * OC_ALIGN;
+pub const SCRATCH_LEN: usize = 121 * GROUP_4X4 * 2 * OC_ALIGN;
+/// Tiles per group (see [`Winograd::group_tiles`]).
+const GROUP_2X2: usize = 20;
+const GROUP_4X4: usize = 25;
 /// Layers with fewer input channels stay direct: each product would be too short to pay for
 /// the transforms (the first encoder layer has 3).
 pub const MIN_IN_CHANNELS: usize = 8;
@@ -99,9 +102,9 @@ impl Winograd {
     /// whose scratch would be as large as L2). Their products fit [`SCRATCH_LEN`].
     pub fn group_tiles(&self) -> usize {
         if self.tile == 2 {
-            20
+            GROUP_2X2
         } else {
-            25
+            GROUP_4X4
         }
     }
 
@@ -682,6 +685,13 @@ impl<L: Lane> OutputTransform<'_, L> {
         for phase in 0..4 {
             with_phase(self.w, phase, self);
         }
+        if self.w.shape.kind == ConvKind::Down {
+            let s = self.sum;
+            match self.w.tile {
+                2 => self.store(0, [[s[0][0], s[0][1]], [s[1][0], s[1][1]]]),
+                _ => self.store(0, s),
+            }
+        }
     }
 
     /// Adds the bias, applies the activation and stores the pixels of `y` (the tile of `phase`
@@ -732,13 +742,6 @@ impl<L: Lane> PhaseFn for OutputTransform<'_, L> {
                     for (s, &y) in sum.iter_mut().zip(y) {
                         *s = s.add(y);
                     }
-                }
-                if phase == 3 {
-                    let mut sum = [[L::zero(); M]; M];
-                    for (sum, all) in sum.iter_mut().zip(&self.sum) {
-                        sum.copy_from_slice(&all[..M]);
-                    }
-                    self.store::<M>(0, sum);
                 }
             }
             ConvKind::Up => self.store(phase, y),
