@@ -25,9 +25,7 @@ pub mod math;
 pub mod pack;
 pub mod scalar;
 pub mod winograd;
-// Soft-float x86-64 targets (x86_64-unknown-none) cannot compile vector code: scalar only.
-#[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
-mod x86_64;
+mod simd;
 
 pub use half::f16;
 pub use isa::{Isa, IsaLevel};
@@ -379,10 +377,7 @@ pub unsafe fn conv_channels(
     layer.shape.check_channels(&channels);
     match isa.level() {
         IsaLevel::Scalar => scalar::conv_channels(layer, input, output, channels),
-        #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
-        level => x86_64::conv(level, layer, input, output, channels),
-        #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        _ => scalar::conv_channels(layer, input, output, channels),
+        level => simd::conv(level, layer, input, output, channels),
     }
 }
 
@@ -395,11 +390,8 @@ pub fn winograd_input(isa: Isa, w: &Winograd, phase: usize, input: &[f32], v: &m
     assert_eq!(v.len(), w.phase_span(phase).len());
     match isa.level() {
         IsaLevel::Scalar => scalar::winograd_input(w, phase, input, v),
-        #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
         // SAFETY: `level` comes from an `Isa`; the lengths are checked above.
-        level => unsafe { x86_64::winograd::input(level, w, phase, input, v) },
-        #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        _ => scalar::winograd_input(w, phase, input, v),
+        level => unsafe { simd::winograd::input(level, w, phase, input, v) },
     }
 }
 
@@ -428,10 +420,7 @@ pub unsafe fn winograd_channels(
     layer.shape.check_channels(&channels);
     match isa.level() {
         IsaLevel::Scalar => scalar::winograd_channels(w, layer, v, scratch, output, channels),
-        #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
-        level => x86_64::winograd::channels(level, w, layer, v, scratch, output, channels),
-        #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        _ => scalar::winograd_channels(w, layer, v, scratch, output, channels),
+        level => simd::winograd::channels(level, w, layer, v, scratch, output, channels),
     }
 }
 
@@ -487,10 +476,7 @@ pub unsafe fn dense_rows(
     assert!(w.cols > 0 && batch * w.cols == x.len(), "input is not whole rows");
     match isa.level() {
         IsaLevel::Scalar => scalar::dense_rows(part, bias, act, x, y, ldy),
-        #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
-        level => x86_64::dense(level, part, bias, act, x, y, ldy),
-        #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
-        _ => scalar::dense_rows(part, bias, act, x, y, ldy),
+        level => simd::dense(level, part, bias, act, x, y, ldy),
     }
 }
 

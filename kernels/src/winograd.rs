@@ -338,7 +338,7 @@ pub(crate) unsafe fn with_phase(w: &Winograd, phase: usize, f: &mut impl PhaseFn
 }
 
 /// A run of `LANES` floats the transforms work on: one float on the scalar path, a vector on
-/// the SIMD paths. Methods are unsafe for the SIMD types (see `x86_64::act::Simd`).
+/// the SIMD paths. Methods are unsafe for the SIMD types (see `simd::act::Simd`).
 pub(crate) trait Lane: Copy {
     const LANES: usize;
     /// Output channels per block of the matrix products.

@@ -1,8 +1,9 @@
-//! Dense (matrix times batch of vectors) kernels for AVX2 and AVX-512.
+//! Dense (matrix times batch of vectors) kernels.
 //!
-//! One generic body ([`dense_body`]) is instantiated per vector width (`__m256`, `__m512`)
-//! through the activations' [`Simd`] trait and its small extension [`Widen`]; only the
-//! `#[target_feature]` entry points differ. The Tanh/ReLU epilogue is [`act::apply`].
+//! One generic body ([`body`]) is instantiated per instruction set through the activations'
+//! [`Simd`] trait and its small extension [`Widen`]; the architecture module holds the
+//! `#[target_feature]` entry points and picks each one's tile. The Tanh/ReLU epilogue is
+//! [`act::apply`].
 //!
 //! The weights are in the panels of [`Matrix`]: one column of a panel is the weight of that
 //! column for [`OC_ALIGN`] consecutive rows, one vector (AVX-512) or two (AVX2). So outputs go
@@ -13,14 +14,14 @@
 //!   the weights stream once, as four or eight long runs, with a software prefetch (single-core
 //!   DRAM streaming is latency-bound without it).
 //! - A batch is split into balanced blocks of up to `NI` items (8 x 3 vectors for AVX-512,
-//!   4 x 2 for AVX2). Long rows are cut into chunks of at most [`CHUNK`] columns, so that a
+//!   4 x 2 for AVX2, 4 x 4 for NEON). Long rows are cut into chunks of at most [`CHUNK`] columns, so that a
 //!   tile's weights stay in L2 while every block of items reuses them; later chunks add to
 //!   what earlier ones stored.
 
 use super::act::{self, Simd};
+use super::arch;
 use super::conv::{load_n, store_n};
 use crate::{f16, Activation, IsaLevel, Matrix, MatrixData, OC_ALIGN};
-use core::arch::x86_64::*;
 
 /// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row of `w` (see
 /// [`crate::dense_rows`]).
@@ -44,40 +45,36 @@ pub(crate) unsafe fn dense(
         y,
         ldy,
     };
-    // SAFETY: an `IsaLevel` other than `Scalar` reaches here only from an `Isa`, which proves
-    // that the CPU has the features each entry point enables; the caller vouches for `y`.
-    match (level, w.data) {
-        (IsaLevel::Avx512, MatrixData::F32(d)) => dense_avx512(d, args),
-        (IsaLevel::Avx512, MatrixData::F16(d)) => dense_avx512(d, args),
-        (IsaLevel::Avx2, MatrixData::F32(d)) => dense_avx2(d, args),
-        (IsaLevel::Avx2, MatrixData::F16(d)) => dense_avx2(d, args),
-        (IsaLevel::Scalar, _) => crate::scalar::dense_rows(w, bias, act, x, y, ldy),
+    match w.data {
+        MatrixData::F32(d) => run(level, w, d, args),
+        MatrixData::F16(d) => run(level, w, d, args),
     }
 }
 
+/// [`dense`] on the weights `d` of `w`, stored as `T`.
+///
+/// # Safety
+/// As for [`dense`].
+unsafe fn run<T: Weight>(level: IsaLevel, w: Matrix<'_>, d: &[T], args: Args<'_>) {
+    match arch::dense_entry::<T>(level) {
+        // SAFETY: `level` comes from an `Isa`, which proves that the CPU has the entry's
+        // features; the caller vouches for `y`.
+        Some(entry) => entry(d, args),
+        None => crate::scalar::dense_rows(w, args.bias, args.act, args.x, args.y, args.ldy),
+    }
+}
+
+/// An instruction set's instance of [`body`] (see [`arch::dense_entry`]).
+pub(super) type Entry<T> = unsafe fn(&[T], Args<'_>);
+
 /// The arguments of one call besides the weights: output item `n` starts at `y + n * ldy`.
-struct Args<'a> {
+pub(super) struct Args<'a> {
     cols: usize,
     bias: &'a [f32],
     act: Activation,
     x: &'a [f32],
     y: *mut f32,
     ldy: usize,
-}
-
-#[target_feature(enable = "avx2,fma,f16c")]
-unsafe fn dense_avx2<T: Weight>(w: &[T], args: Args<'_>) {
-    // A batch tile in 14 of 16 registers: 4 x 2 accumulators, 2 weight vectors and the 4
-    // broadcasts, which the compiler loads all at once (with more items, an accumulator spills
-    // to the stack and the loop waits on it).
-    dense_body::<__m256, T, 4, 2>(w, args)
-}
-
-#[target_feature(enable = "avx512f,avx2,fma,f16c")]
-unsafe fn dense_avx512<T: Weight>(w: &[T], args: Args<'_>) {
-    // 8 x 3 accumulators and 3 weight vectors; the broadcasts fold into the multiply-adds'
-    // memory operands. On a Xeon this measured level with or ahead of 8 x 2 and 12 x 2.
-    dense_body::<__m512, T, 8, 3>(w, args)
 }
 
 /// Vectors of rows in the single-input tile.
@@ -90,27 +87,13 @@ const PREFETCH: usize = 1024;
 
 /// What the dense kernel needs on top of [`Simd`]: loading halves widened.
 /// Methods are `inline(always)`, to compile inside the caller's `#[target_feature]` function.
-trait Widen: Simd {
+pub(super) trait Widen: Simd {
     /// Loads `LANES` halves and widens them.
     unsafe fn load_f16(p: *const f16) -> Self;
 }
 
-impl Widen for __m256 {
-    #[inline(always)]
-    unsafe fn load_f16(p: *const f16) -> __m256 {
-        _mm256_cvtph_ps(_mm_loadu_si128(p.cast()))
-    }
-}
-
-impl Widen for __m512 {
-    #[inline(always)]
-    unsafe fn load_f16(p: *const f16) -> __m512 {
-        _mm512_cvtph_ps(_mm256_loadu_si256(p.cast()))
-    }
-}
-
 /// A stored weight type: loads `LANES` of them as f32 lanes.
-trait Weight: Copy {
+pub(super) trait Weight: Copy {
     unsafe fn load<S: Widen>(p: *const Self) -> S;
 }
 
@@ -169,7 +152,7 @@ unsafe fn tile<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], a
         // A column of a panel is 64 bytes of f32 (one cache line) or 32 of f16: one prefetch
         // per panel and column.
         for v in (0..NV).step_by(OC_ALIGN / S::LANES) {
-            _mm_prefetch::<_MM_HINT_T0>(at(v).cast::<i8>().wrapping_add(PREFETCH));
+            S::prefetch(at(v).cast::<u8>().wrapping_add(PREFETCH));
         }
         let wv: [S; NV] = core::array::from_fn(|v| T::load::<S>(at(v)));
         for (acc, input) in acc.iter_mut().zip(&inputs) {
@@ -197,7 +180,7 @@ unsafe fn tile<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], a
 
 /// See [`crate::dense`].
 #[inline(always)]
-unsafe fn dense_body<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], args: Args<'_>) {
+pub(super) unsafe fn body<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], args: Args<'_>) {
     let (cols, rows) = (args.cols, args.bias.len());
     debug_assert!(OC_ALIGN.is_multiple_of(S::LANES) && (NV * S::LANES).is_multiple_of(OC_ALIGN));
     let padded = rows.next_multiple_of(OC_ALIGN);

@@ -1,5 +1,5 @@
-//! Convolution kernels for AVX2 and AVX-512: one generic body over [`Simd`], instantiated per
-//! instruction set inside a `#[target_feature]` function.
+//! Convolution kernels: one generic body over [`Simd`], instantiated per instruction set by the
+//! architecture module inside a `#[target_feature]` function.
 //!
 //! Both kinds of layer reduce to the same microkernel. The output is cut into *rows*: runs of
 //! output pixels in one image row whose inputs are evenly spaced and which use the same taps.
@@ -23,8 +23,8 @@
 //! image horizontally read the zero border; rows of taps outside the image are skipped.
 
 use super::act::{self, Simd};
+use super::arch;
 use crate::{scalar, Activation, ConvKind, ConvParams, ConvShape, IsaLevel, OC_ALIGN};
-use core::arch::x86_64::{__m256, __m512, _mm_prefetch, _MM_HINT_T0};
 use core::ops::Range;
 
 /// The most segments one row can have (`k` for `Down`, `ceil(k / 2)^2` for `Up`); kernels with
@@ -65,7 +65,7 @@ pub(super) struct Row<'a> {
 /// L2 next to the input, every tile streams it from L3; in passes of a few kernel rows each,
 /// a window of weights is read from L3 once and reused from L2 by every tile.
 #[derive(Clone, Copy)]
-struct Pass {
+pub(super) struct Pass {
     window: (usize, usize),
     first: bool,
     last: bool,
@@ -82,6 +82,9 @@ pub(super) struct Block<V, const NV: usize> {
     pub valid: usize,
 }
 
+/// An instruction set's instance of [`body`] (see [`arch::conv_entry`]).
+pub(super) type Entry = unsafe fn(ConvParams<'_>, &[f32], *mut f32, Range<usize>, Pass);
+
 /// See [`crate::conv_channels`].
 ///
 /// # Safety
@@ -93,9 +96,10 @@ pub(crate) unsafe fn conv(
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    if layer.shape.kernel * layer.shape.kernel > MAX_SEGS {
-        return scalar::conv_channels(layer, input, output, channels);
-    }
+    let entry = match arch::conv_entry(level) {
+        Some(entry) if layer.shape.kernel * layer.shape.kernel <= MAX_SEGS => entry,
+        _ => return scalar::conv_channels(layer, input, output, channels),
+    };
     let shape = &layer.shape;
     // Panel rows of one kernel row (`ky`): every tap `kx` and input channel.
     let ky_rows = shape.kernel * shape.input.channels;
@@ -112,15 +116,9 @@ pub(crate) unsafe fn conv(
             first: start == 0,
             last: start + window >= rows,
         };
-        match level {
-            // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and
-            // FMA; `crate::conv_channels` checked the buffer lengths against `shape`.
-            IsaLevel::Avx512 => conv_avx512(layer, input, output, channels.clone(), pass),
-            // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA;
-            // `crate::conv_channels` checked the buffer lengths against `shape`.
-            IsaLevel::Avx2 => conv_avx2(layer, input, output, channels.clone(), pass),
-            IsaLevel::Scalar => return scalar::conv_channels(layer, input, output, channels),
-        }
+        // SAFETY: `level` comes from an `Isa`, which proves the CPU has the entry's features;
+        // `crate::conv_channels` checked the buffer lengths against `shape`.
+        entry(layer, input, output, channels.clone(), pass);
     }
 }
 
@@ -130,25 +128,9 @@ const SINGLE_PASS_BYTES: usize = 256 << 10;
 /// Bytes of weights per pass when there are several (whole kernel rows, at least one).
 const PASS_BYTES: usize = 128 << 10;
 
-/// The generic body compiled for one instruction set.
-macro_rules! entry {
-    ($(#[$attr:meta])* $name:ident, $features:literal, $vector:ty) => {
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, ", and the buffers must match `shape` (see `crate::conv`).")]
-        $(#[$attr])*
-        #[target_feature(enable = $features)]
-        unsafe fn $name(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>, pass: Pass) {
-            body::<$vector>(layer, input, output, channels, pass)
-        }
-    };
-}
-
-entry!(conv_avx2, "avx2,fma", __m256);
-entry!(conv_avx512, "avx512f,avx2,fma", __m512);
-
 /// Walks the blocks of output channels.
 #[inline(always)]
-unsafe fn body<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>, pass: Pass) {
+pub(super) unsafe fn body<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>, pass: Pass) {
     let ConvParams {
         shape,
         weights,
@@ -382,7 +364,7 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize, const PREFETCH: usize>(
                 if PREFETCH > 0 {
                     for w in w {
                         let ahead = w.wrapping_add((u + PREFETCH) * OC_ALIGN);
-                        _mm_prefetch::<_MM_HINT_T0>(ahead.cast::<i8>());
+                        V::prefetch(ahead.cast());
                     }
                 }
                 conv_step(&mut acc, &x, &w, u);

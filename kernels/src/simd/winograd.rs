@@ -3,10 +3,10 @@
 //! (tiles) with one segment of input channels).
 
 use super::act::{self, Simd};
+use super::arch;
 use super::conv::{load_n, run_row, store_n, Block, Row, Seg};
 use crate::winograd::{self, InputTransform, Lane, Product, Products, Winograd};
 use crate::{scalar, Activation, ConvParams, IsaLevel, OC_ALIGN};
-use core::arch::x86_64::{__m256, __m512};
 use core::ops::Range;
 
 impl<V: Simd> Lane for V {
@@ -101,17 +101,20 @@ impl<V: Simd> Product for Microkernel<V> {
     }
 }
 
+/// An instruction set's instance of [`input_body`] (see [`arch::winograd_input_entry`]).
+pub(super) type InputEntry = unsafe fn(&Winograd, usize, &[f32], &mut [f32]);
+/// An instruction set's instance of [`channels_body`] (see [`arch::winograd_channels_entry`]).
+pub(super) type ChannelsEntry = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mut [f32], *mut f32, Range<usize>);
+
 /// See [`crate::winograd_input`].
 ///
 /// # Safety
 /// `level` must come from an `Isa`; the buffers are checked by the caller.
 pub(crate) unsafe fn input(level: IsaLevel, w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-    match level {
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and FMA.
-        IsaLevel::Avx512 => input_avx512(w, phase, input, v),
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA.
-        IsaLevel::Avx2 => input_avx2(w, phase, input, v),
-        IsaLevel::Scalar => scalar::winograd_input(w, phase, input, v),
+    match arch::winograd_input_entry(level) {
+        // SAFETY: `level` comes from an `Isa`, which proves the CPU has the entry's features.
+        Some(entry) => entry(w, phase, input, v),
+        None => scalar::winograd_input(w, phase, input, v),
     }
 }
 
@@ -128,41 +131,29 @@ pub(crate) unsafe fn channels(
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    match level {
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX-512F, AVX2 and FMA.
-        IsaLevel::Avx512 => channels_avx512(w, layer, v, scratch, output, channels),
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has AVX2 and FMA.
-        IsaLevel::Avx2 => channels_avx2(w, layer, v, scratch, output, channels),
-        IsaLevel::Scalar => scalar::winograd_channels(w, layer, v, scratch, output, channels),
+    match arch::winograd_channels_entry(level) {
+        // SAFETY: `level` comes from an `Isa`, which proves the CPU has the entry's features.
+        Some(entry) => entry(w, layer, v, scratch, output, channels),
+        None => scalar::winograd_channels(w, layer, v, scratch, output, channels),
     }
 }
 
-/// The generic bodies compiled for one instruction set.
-macro_rules! entries {
-    ($input:ident, $channels:ident, $features:literal, $vector:ty) => {
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, ".")]
-        #[target_feature(enable = $features)]
-        unsafe fn $input(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-            winograd::with_phase(w, phase, &mut InputTransform::<$vector>::new(w, input, v))
-        }
-
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, "; as for `crate::winograd_channels`.")]
-        #[target_feature(enable = $features)]
-        unsafe fn $channels(
-            w: &Winograd,
-            layer: ConvParams<'_>,
-            v: &[f32],
-            scratch: &mut [f32],
-            output: *mut f32,
-            channels: Range<usize>,
-        ) {
-            let product = Microkernel::<$vector>(core::marker::PhantomData);
-            winograd::channels::<$vector, _>(&product, w, layer, v, scratch, output, channels)
-        }
-    };
+/// The input transform of one phase, for one instruction set.
+#[inline(always)]
+pub(super) unsafe fn input_body<V: Simd>(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
+    winograd::with_phase(w, phase, &mut InputTransform::<V>::new(w, input, v))
 }
 
-entries!(input_avx2, channels_avx2, "avx2,fma", __m256);
-entries!(input_avx512, channels_avx512, "avx512f,avx2,fma", __m512);
+/// The products and output transform of some channels, for one instruction set.
+#[inline(always)]
+pub(super) unsafe fn channels_body<V: Simd>(
+    w: &Winograd,
+    layer: ConvParams<'_>,
+    v: &[f32],
+    scratch: &mut [f32],
+    output: *mut f32,
+    channels: Range<usize>,
+) {
+    let product = Microkernel::<V>(core::marker::PhantomData);
+    winograd::channels::<V, _>(&product, w, layer, v, scratch, output, channels)
+}

@@ -1,0 +1,151 @@
+//! The vector trait every SIMD kernel is written over ([`Simd`]), and the activations on it.
+//! The architecture modules implement it: `__m256` (AVX2 + FMA) and `__m512` (AVX-512F) on
+//! x86-64, `float32x4_t` (NEON) on aarch64.
+//!
+//! Tanh evaluates exactly the formula of [`crate::math::tanh`] lane by lane, with the same
+//! constants and the same (unfused) operation order, so SIMD and scalar agree bit for bit on the
+//! same input (up to the sign of a zero).
+//!
+//! The trait's methods are `#[inline(always)]` and call target-feature intrinsics: they are only
+//! meant to be used inside a `#[target_feature]` function that enables the features of the type
+//! (`avx2,fma` for `__m256`, `avx512f` for `__m512`, `neon` for `float32x4_t`), where they
+//! inline into plain instructions.
+
+use crate::math::{EXP_POLY, LN2_HI, LN2_LO, TANH_CLAMP, TANH_SERIES, TANH_SERIES_LIMIT};
+use crate::Activation;
+
+/// A vector of `LANES` f32. Every method is unsafe: the caller must run on a CPU with the
+/// type's features (see the module comment) and pass pointers valid for the lanes touched.
+#[allow(clippy::missing_safety_doc)]
+pub(crate) trait Simd: Copy {
+    const LANES: usize;
+    unsafe fn splat(x: f32) -> Self;
+    /// Loads `LANES` floats from `p` (no alignment needed).
+    unsafe fn load(p: *const f32) -> Self;
+    /// Loads the first `n < LANES` floats from `p`, the other lanes are zero; reads only `n`.
+    unsafe fn load_partial(p: *const f32, n: usize) -> Self;
+    unsafe fn store(self, p: *mut f32);
+    /// Stores the first `n < LANES` lanes to `p`; writes only `n` floats.
+    unsafe fn store_partial(self, p: *mut f32, n: usize);
+    unsafe fn add(self, b: Self) -> Self;
+    unsafe fn sub(self, b: Self) -> Self;
+    unsafe fn mul(self, b: Self) -> Self;
+    unsafe fn div(self, b: Self) -> Self;
+    unsafe fn max(self, b: Self) -> Self;
+    unsafe fn min(self, b: Self) -> Self;
+    /// `self * b + c` with one rounding.
+    unsafe fn mul_add(self, b: Self, c: Self) -> Self;
+    unsafe fn abs(self) -> Self;
+    /// `self` (assumed >= 0) negated in the lanes where `sign_of < 0`.
+    unsafe fn neg_where_negative(self, sign_of: Self) -> Self;
+    /// Per lane: `if self < limit { then } else { other }`.
+    unsafe fn select_lt(self, limit: Self, then: Self, other: Self) -> Self;
+    /// Per lane `x as i32 as f32` (truncation toward zero).
+    unsafe fn trunc(self) -> Self;
+    /// Per lane `2^n` for integral `n` in the normal exponent range.
+    unsafe fn pow2(self) -> Self;
+    /// The sum of the lanes.
+    unsafe fn reduce_add(self) -> f32;
+    /// Hints that the cache line at `p` will be read soon; `p` need not be valid.
+    unsafe fn prefetch(p: *const u8);
+}
+
+/// [`crate::math::exp`] lane by lane (valid for `0 <= x <= 2 * TANH_CLAMP`).
+#[inline(always)]
+pub(crate) unsafe fn exp<V: Simd>(x: V) -> V {
+    let n = x.mul(V::splat(core::f32::consts::LOG2_E)).add(V::splat(0.5)).trunc();
+    let r = x.sub(n.mul(V::splat(LN2_HI))).sub(n.mul(V::splat(LN2_LO)));
+    let mut p = V::splat(EXP_POLY[4]);
+    for &c in EXP_POLY[..4].iter().rev() {
+        p = V::splat(c).add(r.mul(p));
+    }
+    let p = V::splat(1.0).add(r.mul(V::splat(1.0).add(r.mul(p))));
+    p.mul(n.pow2())
+}
+
+/// [`crate::math::tanh`] lane by lane.
+#[inline(always)]
+pub(crate) unsafe fn tanh<V: Simd>(x: V) -> V {
+    let a = x.abs().min(V::splat(TANH_CLAMP));
+    let a2 = a.mul(a);
+    let series = V::splat(TANH_SERIES[1]).add(a2.mul(V::splat(TANH_SERIES[2])));
+    let series = V::splat(TANH_SERIES[0]).add(a2.mul(series));
+    let series = a.mul(V::splat(1.0).add(a2.mul(series)));
+    let one = V::splat(1.0);
+    let large = one.sub(V::splat(2.0).div(exp(V::splat(2.0).mul(a)).add(one)));
+    a.select_lt(V::splat(TANH_SERIES_LIMIT), series, large)
+        .neg_where_negative(x)
+}
+
+/// [`Activation::apply`] lane by lane, for any [`Simd`] type.
+#[inline(always)]
+pub(crate) unsafe fn apply<V: Simd>(act: Activation, v: V) -> V {
+    match act {
+        Activation::Identity => v,
+        Activation::Relu => v.max(V::splat(0.0)),
+        Activation::LeakyRelu(slope) => v.max(V::splat(slope).mul(v)),
+        Activation::Tanh => tanh(v),
+    }
+}
+
+/// [`apply`] to every value of `data` in place.
+#[inline(always)]
+pub(crate) unsafe fn apply_slice<V: Simd>(act: Activation, data: &mut [f32]) {
+    if act == Activation::Identity {
+        return;
+    }
+    let mut chunks = data.chunks_exact_mut(V::LANES);
+    for c in &mut chunks {
+        apply(act, V::load(c.as_ptr())).store(c.as_mut_ptr());
+    }
+    let rest = chunks.into_remainder();
+    if !rest.is_empty() {
+        apply(act, V::load_partial(rest.as_ptr(), rest.len())).store_partial(rest.as_mut_ptr(), rest.len());
+    }
+}
+
+#[cfg(all(test, feature = "std"))]
+pub(super) mod tests {
+    use super::*;
+
+    const ACTS: [Activation; 4] = [
+        Activation::Identity,
+        Activation::Relu,
+        Activation::LeakyRelu(0.2),
+        Activation::Tanh,
+    ];
+
+    /// Inputs from -20 to 20 in small steps, plus the special points of the tanh formula.
+    fn inputs() -> impl Iterator<Item = f32> {
+        let specials = [
+            0.0,
+            -0.0,
+            TANH_SERIES_LIMIT,
+            -TANH_SERIES_LIMIT,
+            TANH_CLAMP,
+            1e-30,
+            -1e30,
+        ];
+        (-20 * 512..=20 * 512)
+            .map(|i| i as f32 / 512.0 + 1.0 / 4096.0)
+            .chain(specials)
+    }
+
+    /// Checks `apply_v`, an instruction set's [`apply`] on 16 values, against
+    /// [`Activation::apply`].
+    pub(in crate::simd) fn check(apply_v: impl Fn(Activation, &[f32; 16]) -> [f32; 16]) {
+        let xs: alloc::vec::Vec<f32> = inputs().collect();
+        for act in ACTS {
+            for chunk in xs.chunks(16) {
+                let mut lanes = [0.0f32; 16];
+                lanes[..chunk.len()].copy_from_slice(chunk);
+                let got = apply_v(act, &lanes);
+                for (i, &x) in lanes.iter().enumerate() {
+                    let want = act.apply(x);
+                    // Same formula, same operation order: equal up to the sign of zero.
+                    assert!(got[i] == want, "{act:?}({x}): simd {} scalar {want}", got[i]);
+                }
+            }
+        }
+    }
+}

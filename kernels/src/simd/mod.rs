@@ -1,0 +1,54 @@
+//! The SIMD kernels, one file per operation: each a generic body over the vector trait
+//! [`act::Simd`]. The architecture's module implements the trait for its vectors and compiles
+//! each body once per instruction set inside a `#[target_feature]` entry point
+//! (`x86_64`: AVX2 + FMA + F16C and AVX-512F; `aarch64`: NEON); the operations look their entry
+//! up by [`crate::IsaLevel`] and fall back to the scalar kernels where there is none.
+
+// Without a vector unit the kernels know, nothing instantiates the generic bodies.
+#![cfg_attr(
+    not(any(
+        all(target_arch = "aarch64", target_feature = "neon"),
+        all(target_arch = "x86_64", target_feature = "sse2")
+    )),
+    allow(dead_code)
+)]
+
+pub(crate) mod act;
+mod conv;
+mod dense;
+pub(crate) mod winograd;
+
+#[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
+mod aarch64;
+#[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
+use aarch64 as arch;
+#[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
+mod x86_64;
+#[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
+use x86_64 as arch;
+// Soft-float targets (x86_64-unknown-none) and other architectures: no entries, so every
+// operation takes the scalar kernels.
+#[cfg(not(any(
+    all(target_arch = "aarch64", target_feature = "neon"),
+    all(target_arch = "x86_64", target_feature = "sse2")
+)))]
+mod arch {
+    use super::{conv, dense, winograd};
+    use crate::IsaLevel;
+
+    pub(super) fn conv_entry(_: IsaLevel) -> Option<conv::Entry> {
+        None
+    }
+    pub(super) fn dense_entry<T>(_: IsaLevel) -> Option<dense::Entry<T>> {
+        None
+    }
+    pub(super) fn winograd_input_entry(_: IsaLevel) -> Option<winograd::InputEntry> {
+        None
+    }
+    pub(super) fn winograd_channels_entry(_: IsaLevel) -> Option<winograd::ChannelsEntry> {
+        None
+    }
+}
+
+pub(crate) use conv::conv;
+pub(crate) use dense::dense;
