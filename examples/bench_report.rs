@@ -171,8 +171,7 @@ fn measure(sim: &mut Simulator<'_>, network: &str, batch: usize, budget: Duratio
 /// width this CPU has. Measured, not assumed: two vCPUs of a VM may share one core's FMA units.
 fn fma_peak(threads: usize) -> Vec<(usize, f64)> {
     let mut out = Vec::new();
-    #[cfg(target_arch = "x86_64")]
-    for (level, width) in [(IsaLevel::Avx2, 256), (IsaLevel::Avx512, 512)] {
+    for (level, width) in [(IsaLevel::Neon, 128), (IsaLevel::Avx2, 256), (IsaLevel::Avx512, 512)] {
         if Isa::new(level).is_none() {
             continue;
         }
@@ -188,8 +187,8 @@ fn fma_peak(threads: usize) -> Vec<(usize, f64)> {
             });
             best = best.min(t.elapsed().as_secs_f64());
         }
-        // 12 accumulators, one FMA (2 FLOP per lane) each per iteration, on every thread.
-        let flop = threads as u64 * iters * 12 * 2 * (width as u64 / 32);
+        // `CHAINS` accumulators, one FMA (2 FLOP per lane) each per iteration, on every thread.
+        let flop = threads as u64 * iters * peak::CHAINS * 2 * (width as u64 / 32);
         out.push((width, flop as f64 / best / 1e9));
     }
     out
@@ -199,7 +198,10 @@ fn fma_peak(threads: usize) -> Vec<(usize, f64)> {
 mod peak {
     use std::arch::x86_64::*;
 
-    /// `iters` rounds of 12 independent FMA chains (enough to cover 2 ports x 4-6 cycles).
+    /// Independent FMA chains: enough to cover 2 ports x 4-6 cycles.
+    pub const CHAINS: u64 = 12;
+
+    /// `iters` rounds of the FMA chains at `width` bits.
     pub unsafe fn fma_loop(width: usize, iters: u64) -> f32 {
         if width == 512 {
             fma512(iters)
@@ -242,4 +244,33 @@ mod peak {
         _mm512_add_ps,
         _mm512_cvtss_f32
     );
+}
+
+#[cfg(target_arch = "aarch64")]
+mod peak {
+    use std::arch::aarch64::*;
+
+    /// Independent FMA chains: enough to cover 4 pipes x 4 cycles.
+    pub const CHAINS: u64 = 16;
+
+    /// `iters` rounds of the FMA chains on 128-bit NEON vectors.
+    pub unsafe fn fma_loop(_width: usize, iters: u64) -> f32 {
+        let (a, b) = (vdupq_n_f32(0.999_999), vdupq_n_f32(1e-7));
+        let mut acc = [vdupq_n_f32(1.0); CHAINS as usize];
+        for _ in 0..std::hint::black_box(iters) {
+            for v in acc.iter_mut() {
+                *v = vfmaq_f32(b, *v, a);
+            }
+        }
+        vgetq_lane_f32::<0>(acc.iter().fold(vdupq_n_f32(0.0), |s, &v| vaddq_f32(s, v)))
+    }
+}
+
+/// Other architectures have no vector level, so `fma_peak` never calls this.
+#[cfg(not(any(target_arch = "x86_64", target_arch = "aarch64")))]
+mod peak {
+    pub const CHAINS: u64 = 0;
+    pub unsafe fn fma_loop(_width: usize, _iters: u64) -> f32 {
+        0.0
+    }
 }

@@ -2,11 +2,14 @@
 
 use core::sync::atomic::{AtomicU8, Ordering};
 
-/// Instruction-set levels, each a superset of the one before.
+/// Instruction-set levels, ordered by vector width. A CPU has the levels of its architecture:
+/// on x86-64 each is a superset of the one before.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum IsaLevel {
     /// Portable Rust: the reference every other level is tested against.
     Scalar,
+    /// aarch64 NEON (128-bit vectors), with its half-precision conversions.
+    Neon,
     /// x86-64 AVX2 + FMA + F16C (256-bit vectors).
     Avx2,
     /// x86-64 AVX-512F (512-bit vectors), on top of everything in `Avx2`.
@@ -14,11 +17,12 @@ pub enum IsaLevel {
 }
 
 impl IsaLevel {
-    pub const ALL: [IsaLevel; 3] = [IsaLevel::Scalar, IsaLevel::Avx2, IsaLevel::Avx512];
+    pub const ALL: [IsaLevel; 4] = [IsaLevel::Scalar, IsaLevel::Neon, IsaLevel::Avx2, IsaLevel::Avx512];
 
     pub const fn name(self) -> &'static str {
         match self {
             IsaLevel::Scalar => "scalar",
+            IsaLevel::Neon => "neon",
             IsaLevel::Avx2 => "avx2",
             IsaLevel::Avx512 => "avx512",
         }
@@ -28,6 +32,7 @@ impl IsaLevel {
     pub const fn lanes(self) -> usize {
         match self {
             IsaLevel::Scalar => 1,
+            IsaLevel::Neon => 4,
             IsaLevel::Avx2 => 8,
             IsaLevel::Avx512 => 16,
         }
@@ -43,6 +48,10 @@ impl IsaLevel {
     fn cpu_has(self) -> bool {
         match self {
             IsaLevel::Scalar => true,
+            // Every aarch64 target that has it enables it at build time (it is baseline on
+            // aarch64 Linux, macOS and Windows).
+            #[cfg(target_arch = "aarch64")]
+            IsaLevel::Neon => cfg!(target_feature = "neon"),
             #[cfg(all(target_arch = "x86_64", feature = "std"))]
             IsaLevel::Avx2 => {
                 std::arch::is_x86_feature_detected!("avx2")
@@ -60,7 +69,6 @@ impl IsaLevel {
             )),
             #[cfg(all(target_arch = "x86_64", not(feature = "std")))]
             IsaLevel::Avx512 => IsaLevel::Avx2.cpu_has() && cfg!(target_feature = "avx512f"),
-            #[cfg(not(target_arch = "x86_64"))]
             _ => false,
         }
     }
@@ -93,7 +101,8 @@ impl Isa {
     }
 
     /// The highest supported level, capped by the environment variable `DRIVESIM_ISA`
-    /// (`scalar`, `avx2` or `avx512`) when std is available. Detected once, then cached.
+    /// (`scalar`, `neon`, `avx2` or `avx512`: levels up to that one in [`IsaLevel`]'s order)
+    /// when std is available. Detected once, then cached.
     pub fn best() -> Isa {
         let cached = BEST.load(Ordering::Relaxed);
         if cached != 0 {

@@ -24,8 +24,8 @@ mod isa;
 pub mod math;
 pub mod pack;
 pub mod scalar;
-pub mod winograd;
 mod simd;
+pub mod winograd;
 
 pub use half::f16;
 pub use isa::{Isa, IsaLevel};

@@ -29,7 +29,7 @@ const ACTS: [Activation; 4] = [
 
 /// The SIMD levels to test: every supported one above scalar, saying which are skipped.
 fn simd_levels() -> Vec<Isa> {
-    for level in [IsaLevel::Avx2, IsaLevel::Avx512] {
+    for level in IsaLevel::ALL {
         if Isa::new(level).is_none() {
             eprintln!("skipping {}: CPU lacks it", level.name());
         }
@@ -208,7 +208,7 @@ fn large_panels_take_several_passes() {
     }
 }
 
-/// `DRIVESIM_REQUIRE_ISA=avx2` (or `avx512`) makes CI fail when the CPU cannot run that level,
+/// `DRIVESIM_REQUIRE_ISA=avx2` (or `avx512`, `neon`) makes CI fail when the CPU cannot run that level,
 /// so a green run proves the SIMD path was tested rather than skipped.
 #[test]
 fn required_isa_is_present() {

@@ -20,7 +20,7 @@ const TOLERANCE: f32 = 1e-5;
 /// The SIMD levels this CPU has; fails when `DRIVESIM_REQUIRE_ISA` names one it lacks.
 fn simd_levels() -> Vec<Isa> {
     let supported: Vec<Isa> = Isa::supported().filter(|i| i.level() != IsaLevel::Scalar).collect();
-    for level in [IsaLevel::Avx2, IsaLevel::Avx512] {
+    for level in IsaLevel::ALL {
         if !supported.iter().any(|i| i.level() == level) {
             eprintln!("skipping {}: not supported by this CPU", level.name());
         }

@@ -13,7 +13,7 @@ use drivesim_kernels::{
 
 /// Every level this CPU supports, scalar included, saying which are skipped.
 fn levels() -> Vec<Isa> {
-    for level in [IsaLevel::Avx2, IsaLevel::Avx512] {
+    for level in IsaLevel::ALL {
         if Isa::new(level).is_none() {
             eprintln!("skipping {}: CPU lacks it", level.name());
         }

@@ -130,7 +130,13 @@ const PASS_BYTES: usize = 128 << 10;
 
 /// Walks the blocks of output channels.
 #[inline(always)]
-pub(super) unsafe fn body<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>, pass: Pass) {
+pub(super) unsafe fn body<V: Simd>(
+    layer: ConvParams<'_>,
+    input: &[f32],
+    output: *mut f32,
+    channels: Range<usize>,
+    pass: Pass,
+) {
     let ConvParams {
         shape,
         weights,

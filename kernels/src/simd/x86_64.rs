@@ -209,7 +209,13 @@ macro_rules! entries {
         /// # Safety
         #[doc = concat!("The CPU must have ", $features, "; as for `conv::body`.")]
         #[target_feature(enable = $features)]
-        unsafe fn $conv(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>, pass: conv::Pass) {
+        unsafe fn $conv(
+            layer: ConvParams<'_>,
+            input: &[f32],
+            output: *mut f32,
+            channels: Range<usize>,
+            pass: conv::Pass,
+        ) {
             conv::body::<$vector>(layer, input, output, channels, pass)
         }
 

@@ -1,0 +1,186 @@
+//! aarch64: the NEON vector type (`float32x4_t`), and the kernels' entry points for it. NEON is
+//! part of every aarch64 target this module is compiled for (`target_feature = "neon"`), so the
+//! entries need no run-time check.
+
+use super::act::Simd;
+use super::dense::{Weight, Widen};
+use super::{conv, dense, winograd};
+use crate::winograd::Winograd;
+use crate::{f16, ConvParams, IsaLevel};
+use core::arch::aarch64::*;
+use core::arch::asm;
+use core::ops::Range;
+
+impl Simd for float32x4_t {
+    const LANES: usize = 4;
+    #[inline(always)]
+    unsafe fn splat(x: f32) -> Self {
+        vdupq_n_f32(x)
+    }
+    #[inline(always)]
+    unsafe fn load(p: *const f32) -> Self {
+        vld1q_f32(p)
+    }
+    #[inline(always)]
+    unsafe fn load_partial(p: *const f32, n: usize) -> Self {
+        // NEON has no masked loads: gather the `n` floats in a zeroed buffer.
+        let mut lanes = [0.0f32; 4];
+        core::ptr::copy_nonoverlapping(p, lanes.as_mut_ptr(), n);
+        vld1q_f32(lanes.as_ptr())
+    }
+    #[inline(always)]
+    unsafe fn store(self, p: *mut f32) {
+        vst1q_f32(p, self)
+    }
+    #[inline(always)]
+    unsafe fn store_partial(self, p: *mut f32, n: usize) {
+        let mut lanes = [0.0f32; 4];
+        vst1q_f32(lanes.as_mut_ptr(), self);
+        core::ptr::copy_nonoverlapping(lanes.as_ptr(), p, n);
+    }
+    #[inline(always)]
+    unsafe fn add(self, b: Self) -> Self {
+        vaddq_f32(self, b)
+    }
+    #[inline(always)]
+    unsafe fn sub(self, b: Self) -> Self {
+        vsubq_f32(self, b)
+    }
+    #[inline(always)]
+    unsafe fn mul(self, b: Self) -> Self {
+        vmulq_f32(self, b)
+    }
+    #[inline(always)]
+    unsafe fn div(self, b: Self) -> Self {
+        vdivq_f32(self, b)
+    }
+    #[inline(always)]
+    unsafe fn max(self, b: Self) -> Self {
+        vmaxq_f32(self, b)
+    }
+    #[inline(always)]
+    unsafe fn min(self, b: Self) -> Self {
+        vminq_f32(self, b)
+    }
+    #[inline(always)]
+    unsafe fn mul_add(self, b: Self, c: Self) -> Self {
+        vfmaq_f32(c, self, b)
+    }
+    #[inline(always)]
+    unsafe fn abs(self) -> Self {
+        vabsq_f32(self)
+    }
+    #[inline(always)]
+    unsafe fn neg_where_negative(self, sign_of: Self) -> Self {
+        let negative = vcltq_f32(sign_of, vdupq_n_f32(0.0));
+        let sign = vandq_u32(negative, vdupq_n_u32(0x8000_0000));
+        vreinterpretq_f32_u32(veorq_u32(vreinterpretq_u32_f32(self), sign))
+    }
+    #[inline(always)]
+    unsafe fn select_lt(self, limit: Self, then: Self, other: Self) -> Self {
+        vbslq_f32(vcltq_f32(self, limit), then, other)
+    }
+    #[inline(always)]
+    unsafe fn trunc(self) -> Self {
+        vcvtq_f32_s32(vcvtq_s32_f32(self))
+    }
+    #[inline(always)]
+    unsafe fn pow2(self) -> Self {
+        let n = vaddq_s32(vcvtq_s32_f32(self), vdupq_n_s32(127));
+        vreinterpretq_f32_s32(vshlq_n_s32::<23>(n))
+    }
+    #[inline(always)]
+    unsafe fn reduce_add(self) -> f32 {
+        vaddvq_f32(self)
+    }
+    #[inline(always)]
+    unsafe fn prefetch(p: *const u8) {
+        // A prefetch never faults, whatever the address.
+        asm!("prfm pldl1keep, [{0}]", in(reg) p, options(nostack, preserves_flags, readonly));
+    }
+}
+
+impl Widen for float32x4_t {
+    #[inline(always)]
+    unsafe fn load_f16(p: *const f16) -> float32x4_t {
+        // FCVTL widens exactly, as F16C does; its intrinsic needs the unstable `float16x4_t`.
+        let halves = vld1_u16(p.cast());
+        let widened: float32x4_t;
+        asm!("fcvtl {0:v}.4s, {1:v}.4h", lateout(vreg) widened, in(vreg) halves, options(pure, nomem, nostack, preserves_flags));
+        widened
+    }
+}
+
+/// # Safety
+/// As for `conv::body`.
+#[target_feature(enable = "neon")]
+unsafe fn conv_neon(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>, pass: conv::Pass) {
+    conv::body::<float32x4_t>(layer, input, output, channels, pass)
+}
+
+/// # Safety
+/// As for `dense::body`.
+#[target_feature(enable = "neon")]
+unsafe fn dense_neon<T: Weight>(w: &[T], args: dense::Args<'_>) {
+    // 4 items x 4 vectors (one panel of rows): 16 of the 32 registers as accumulators, 4 for
+    // the weights and 4 for the broadcasts. Not tuned on hardware.
+    dense::body::<float32x4_t, T, 4, 4>(w, args)
+}
+
+/// # Safety
+/// As for `winograd::input_body`.
+#[target_feature(enable = "neon")]
+unsafe fn input_neon(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
+    winograd::input_body::<float32x4_t>(w, phase, input, v)
+}
+
+/// # Safety
+/// As for `winograd::channels_body`.
+#[target_feature(enable = "neon")]
+unsafe fn channels_neon(
+    w: &Winograd,
+    layer: ConvParams<'_>,
+    v: &[f32],
+    scratch: &mut [f32],
+    output: *mut f32,
+    channels: Range<usize>,
+) {
+    winograd::channels_body::<float32x4_t>(w, layer, v, scratch, output, channels)
+}
+
+pub(super) fn conv_entry(level: IsaLevel) -> Option<conv::Entry> {
+    (level == IsaLevel::Neon).then_some(conv_neon as conv::Entry)
+}
+
+pub(super) fn dense_entry<T: Weight>(level: IsaLevel) -> Option<dense::Entry<T>> {
+    (level == IsaLevel::Neon).then_some(dense_neon::<T> as dense::Entry<T>)
+}
+
+pub(super) fn winograd_input_entry(level: IsaLevel) -> Option<winograd::InputEntry> {
+    (level == IsaLevel::Neon).then_some(input_neon as winograd::InputEntry)
+}
+
+pub(super) fn winograd_channels_entry(level: IsaLevel) -> Option<winograd::ChannelsEntry> {
+    (level == IsaLevel::Neon).then_some(channels_neon as winograd::ChannelsEntry)
+}
+
+#[cfg(all(test, feature = "std"))]
+mod tests {
+    use super::*;
+    use crate::simd::act::{apply, tests::check};
+
+    #[test]
+    fn neon_matches_scalar() {
+        check(|act, lanes| {
+            let mut out = [0.0f32; 16];
+            // SAFETY: NEON is part of the target; the pointers cover 16 floats.
+            unsafe {
+                for q in 0..4 {
+                    let v = apply(act, vld1q_f32(lanes[4 * q..].as_ptr()));
+                    vst1q_f32(out[4 * q..].as_mut_ptr(), v);
+                }
+            }
+            out
+        });
+    }
+}
