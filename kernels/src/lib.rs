@@ -10,7 +10,8 @@
 //!   own weight layout and caller-provided scratch; its scalar path is tested against the
 //!   direct scalar convolution,
 //! - the scalar reference of every operation ([`scalar`]), which is the test oracle for the
-//!   SIMD versions and the fallback on every other target,
+//!   SIMD versions (AVX2 and AVX-512 on x86-64, NEON on aarch64: one generic body per
+//!   operation, instantiated per instruction set) and the fallback on every other target,
 //! - weight packing done once at load ([`pack`]).
 //!
 //! Nothing here allocates except the packing functions; the kernels write into caller buffers.
