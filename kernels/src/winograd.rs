@@ -530,7 +530,9 @@ pub(crate) struct Products<'a> {
     pub count: usize,
     /// `count` rows of `L::BLOCK` floats.
     pub m: *mut f32,
-    /// A multiple of [`OC_ALIGN`]; `first + valid` is at most the output channels.
+    /// The block's first output channel: a multiple of `L::BLOCK` past the multiple of
+    /// [`OC_ALIGN`] where the caller's channels start; `first + valid` is at most the output
+    /// channels.
     pub first: usize,
     pub valid: usize,
 }
