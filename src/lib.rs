@@ -11,7 +11,8 @@
 //! - [`Simulator`] allocates every buffer up front; encoding, stepping and generating
 //!   allocate nothing.
 //! - The arithmetic lives in the `drivesim-kernels` crate: scalar reference kernels and
-//!   AVX2/AVX-512 versions, chosen at run time (cap with `DRIVESIM_ISA=scalar|avx2|avx512`).
+//!   AVX2/AVX-512 (x86-64) or NEON (aarch64) versions, chosen at run time (cap with
+//!   `DRIVESIM_ISA=scalar|neon|avx2|avx512`).
 //!
 //! BatchNorm uses PyTorch eval semantics (running statistics). The paper's Keras code used
 //! batch statistics even at test time (`BN(mode=2)`), which makes outputs depend on the batch;

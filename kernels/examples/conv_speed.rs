@@ -1,6 +1,6 @@
 //! Speed of the convolution kernels on the comma.ai model's layers (80x160x3 frames), one image
 //! per call, single-threaded: `cargo run --release -p drivesim-kernels --example conv_speed`.
-//! Set `DRIVESIM_ISA` to cap the level (scalar, avx2, avx512).
+//! Set `DRIVESIM_ISA` to cap the level (scalar, neon, avx2, avx512).
 //!
 //! Times are this thread's CPU time (from `/proc/thread-self/schedstat` where it exists, else
 //! wall time), so that other processes sharing the cores do not inflate them.
