@@ -5,11 +5,9 @@
 use super::act::Simd;
 use super::dense::{Weight, Widen};
 use super::{conv, dense, winograd};
-use crate::winograd::Winograd;
-use crate::{f16, ConvParams, IsaLevel};
+use crate::{f16, IsaLevel};
 use core::arch::aarch64::*;
 use core::arch::asm;
-use core::ops::Range;
 
 impl Simd for float32x4_t {
     const LANES: usize = 4;
@@ -111,42 +109,9 @@ impl Widen for float32x4_t {
     }
 }
 
-/// # Safety
-/// As for `conv::body`.
-#[target_feature(enable = "neon")]
-unsafe fn conv_neon(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>, pass: conv::Pass) {
-    conv::body::<float32x4_t>(layer, input, output, channels, pass)
-}
-
-/// # Safety
-/// As for `dense::body`.
-#[target_feature(enable = "neon")]
-unsafe fn dense_neon<T: Weight>(w: &[T], args: dense::Args<'_>) {
-    // 4 items x 4 vectors (one panel of rows): 16 of the 32 registers as accumulators, 4 for
-    // the weights and 4 for the broadcasts. Not tuned on hardware.
-    dense::body::<float32x4_t, T, 4, 4>(w, args)
-}
-
-/// # Safety
-/// As for `winograd::input_body`.
-#[target_feature(enable = "neon")]
-unsafe fn input_neon(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-    winograd::input_body::<float32x4_t>(w, phase, input, v)
-}
-
-/// # Safety
-/// As for `winograd::channels_body`.
-#[target_feature(enable = "neon")]
-unsafe fn channels_neon(
-    w: &Winograd,
-    layer: ConvParams<'_>,
-    v: &[f32],
-    scratch: &mut [f32],
-    output: *mut f32,
-    channels: Range<usize>,
-) {
-    winograd::channels_body::<float32x4_t>(w, layer, v, scratch, output, channels)
-}
+// The dense batch tile: 4 items x 4 vectors (one panel of rows), 16 of the 32 registers as
+// accumulators, 4 for the weights and 4 for the broadcasts. Not tuned on hardware.
+entries!("neon", float32x4_t, dense tile 4 x 4, conv_neon, dense_neon, input_neon, channels_neon);
 
 pub(super) fn conv_entry(level: IsaLevel) -> Option<conv::Entry> {
     (level == IsaLevel::Neon).then_some(conv_neon as conv::Entry)

@@ -10,13 +10,62 @@
         all(target_arch = "aarch64", target_feature = "neon"),
         all(target_arch = "x86_64", target_feature = "sse2")
     )),
-    allow(dead_code)
+    allow(dead_code, unused_macros)
 )]
 
 pub(crate) mod act;
 mod conv;
 mod dense;
 pub(crate) mod winograd;
+
+/// Every kernel's generic body compiled for one instruction set: the architecture modules'
+/// entry points (`$features` for `#[target_feature]`, `$vector` the [`act::Simd`] type, the
+/// dense batch tile `$items` x `$vectors`).
+macro_rules! entries {
+    ($features:literal, $vector:ty, dense tile $items:literal x $vectors:literal,
+     $conv:ident, $dense:ident, $input:ident, $channels:ident) => {
+        /// # Safety
+        #[doc = concat!("The CPU must have ", $features, "; as for `conv::body`.")]
+        #[target_feature(enable = $features)]
+        unsafe fn $conv(
+            layer: $crate::ConvParams<'_>,
+            input: &[f32],
+            output: *mut f32,
+            channels: core::ops::Range<usize>,
+            pass: $crate::simd::conv::Pass,
+        ) {
+            $crate::simd::conv::body::<$vector>(layer, input, output, channels, pass)
+        }
+
+        /// # Safety
+        #[doc = concat!("The CPU must have ", $features, "; as for `dense::body`.")]
+        #[target_feature(enable = $features)]
+        unsafe fn $dense<T: $crate::simd::dense::Weight>(w: &[T], args: $crate::simd::dense::Args<'_>) {
+            $crate::simd::dense::body::<$vector, T, $items, $vectors>(w, args)
+        }
+
+        /// # Safety
+        #[doc = concat!("The CPU must have ", $features, "; as for `winograd::input_body`.")]
+        #[target_feature(enable = $features)]
+        unsafe fn $input(w: &$crate::winograd::Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
+            $crate::simd::winograd::input_body::<$vector>(w, phase, input, v)
+        }
+
+        /// # Safety
+        #[doc = concat!("The CPU must have ", $features, "; as for `winograd::channels_body`.")]
+        #[target_feature(enable = $features)]
+        unsafe fn $channels(
+            w: &$crate::winograd::Winograd,
+            layer: $crate::ConvParams<'_>,
+            v: &[f32],
+            scratch: &mut [f32],
+            output: *mut f32,
+            channels: core::ops::Range<usize>,
+        ) {
+            $crate::simd::winograd::channels_body::<$vector>(w, layer, v, scratch, output, channels)
+        }
+    };
+}
 
 #[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
 mod aarch64;

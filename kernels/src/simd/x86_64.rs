@@ -4,10 +4,8 @@
 use super::act::Simd;
 use super::dense::{Weight, Widen};
 use super::{conv, dense, winograd};
-use crate::winograd::Winograd;
-use crate::{f16, ConvParams, IsaLevel};
+use crate::{f16, IsaLevel};
 use core::arch::x86_64::*;
-use core::ops::Range;
 
 /// Mask of the first `n` of 8 lanes (all bits set in those lanes).
 #[inline(always)]
@@ -200,53 +198,6 @@ impl Widen for __m512 {
     unsafe fn load_f16(p: *const f16) -> __m512 {
         _mm512_cvtph_ps(_mm256_loadu_si256(p.cast()))
     }
-}
-
-/// Every kernel's generic body compiled for one instruction set.
-macro_rules! entries {
-    ($features:literal, $vector:ty, dense tile $items:literal x $vectors:literal,
-     $conv:ident, $dense:ident, $input:ident, $channels:ident) => {
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, "; as for `conv::body`.")]
-        #[target_feature(enable = $features)]
-        unsafe fn $conv(
-            layer: ConvParams<'_>,
-            input: &[f32],
-            output: *mut f32,
-            channels: Range<usize>,
-            pass: conv::Pass,
-        ) {
-            conv::body::<$vector>(layer, input, output, channels, pass)
-        }
-
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, "; as for `dense::body`.")]
-        #[target_feature(enable = $features)]
-        unsafe fn $dense<T: Weight>(w: &[T], args: dense::Args<'_>) {
-            dense::body::<$vector, T, $items, $vectors>(w, args)
-        }
-
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, "; as for `winograd::input_body`.")]
-        #[target_feature(enable = $features)]
-        unsafe fn $input(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-            winograd::input_body::<$vector>(w, phase, input, v)
-        }
-
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, "; as for `winograd::channels_body`.")]
-        #[target_feature(enable = $features)]
-        unsafe fn $channels(
-            w: &Winograd,
-            layer: ConvParams<'_>,
-            v: &[f32],
-            scratch: &mut [f32],
-            output: *mut f32,
-            channels: Range<usize>,
-        ) {
-            winograd::channels_body::<$vector>(w, layer, v, scratch, output, channels)
-        }
-    };
 }
 
 // The dense batch tile on AVX2 takes 14 of the 16 registers: 4 x 2 accumulators, 2 weight
