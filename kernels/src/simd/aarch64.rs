@@ -3,8 +3,8 @@
 //! entries need no run-time check.
 
 use super::act::Simd;
-use super::dense::{Weight, Widen};
-use super::{conv, dense, winograd};
+use super::dense::Widen;
+use super::Entries;
 use crate::{f16, IsaLevel};
 use core::arch::aarch64::*;
 use core::arch::asm;
@@ -111,22 +111,11 @@ impl Widen for float32x4_t {
 
 // The dense batch tile: 4 items x 4 vectors (one panel of rows), 16 of the 32 registers as
 // accumulators, 4 for the weights and 4 for the broadcasts. Not tuned on hardware.
-entries!("neon", float32x4_t, dense tile 4 x 4, conv_neon, dense_neon, input_neon, channels_neon);
+entries!(NEON, "neon", float32x4_t, dense tile 4 x 4);
 
-pub(super) fn conv_entry(level: IsaLevel) -> Option<conv::Entry> {
-    (level == IsaLevel::Neon).then_some(conv_neon as conv::Entry)
-}
-
-pub(super) fn dense_entry<T: Weight>(level: IsaLevel) -> Option<dense::Entry<T>> {
-    (level == IsaLevel::Neon).then_some(dense_neon::<T> as dense::Entry<T>)
-}
-
-pub(super) fn winograd_input_entry(level: IsaLevel) -> Option<winograd::InputEntry> {
-    (level == IsaLevel::Neon).then_some(input_neon as winograd::InputEntry)
-}
-
-pub(super) fn winograd_channels_entry(level: IsaLevel) -> Option<winograd::ChannelsEntry> {
-    (level == IsaLevel::Neon).then_some(channels_neon as winograd::ChannelsEntry)
+/// The entry points of `level`, if it is NEON.
+pub(super) fn entries(level: IsaLevel) -> Option<&'static Entries> {
+    (level == IsaLevel::Neon).then_some(&NEON)
 }
 
 #[cfg(all(test, feature = "std"))]

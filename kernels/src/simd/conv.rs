@@ -82,7 +82,7 @@ pub(super) struct Block<V, const NV: usize> {
     pub valid: usize,
 }
 
-/// An instruction set's instance of [`body`] (see [`arch::conv_entry`]).
+/// An instruction set's instance of [`body`] (see [`super::Entries`]).
 pub(super) type Entry = unsafe fn(ConvParams<'_>, &[f32], *mut f32, Range<usize>, Pass);
 
 /// See [`crate::conv_channels`].
@@ -96,8 +96,8 @@ pub(crate) unsafe fn conv(
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    let entry = match arch::conv_entry(level) {
-        Some(entry) if layer.shape.kernel * layer.shape.kernel <= MAX_SEGS => entry,
+    let entry = match arch::entries(level) {
+        Some(entries) if layer.shape.kernel * layer.shape.kernel <= MAX_SEGS => entries.conv,
         _ => return scalar::conv_channels(layer, input, output, channels),
     };
     let shape = &layer.shape;

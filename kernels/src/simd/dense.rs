@@ -6,21 +6,22 @@
 //! [`act::apply`].
 //!
 //! The weights are in the panels of [`Matrix`]: one column of a panel is the weight of that
-//! column for [`OC_ALIGN`] consecutive rows, one vector (AVX-512) or two (AVX2). So outputs go
+//! column for [`OC_ALIGN`] consecutive rows, one vector (AVX-512), two (AVX2) or four (NEON).
+//! So outputs go
 //! across the vector lanes: a register tile of `NI` items by `NV` vectors of rows loads `NV`
 //! weight vectors per column, broadcasts each item's input value, and multiplies every pair,
 //! `NI * NV` multiply-adds for `NV + NI` loads, with no sums across lanes.
 //! - A single input uses `NI = 1` and eight vectors, their panels a part of the matrix apart:
-//!   the weights stream once, as four or eight long runs, with a software prefetch (single-core
-//!   DRAM streaming is latency-bound without it).
+//!   the weights stream once, as two to eight long runs (one per panel of the tile), with a
+//!   software prefetch (single-core DRAM streaming is latency-bound without it).
 //! - A batch is split into balanced blocks of up to `NI` items (8 x 3 vectors for AVX-512,
-//!   4 x 2 for AVX2, 4 x 4 for NEON). Long rows are cut into chunks of at most [`CHUNK`] columns, so that a
-//!   tile's weights stay in L2 while every block of items reuses them; later chunks add to
-//!   what earlier ones stored.
+//!   4 x 2 for AVX2, 4 x 4 for NEON). Long rows are cut into chunks of at most [`CHUNK`]
+//!   columns, so that a tile's weights stay in L2 while every block of items reuses them;
+//!   later chunks add to what earlier ones stored.
 
 use super::act::{self, Simd};
-use super::arch;
 use super::conv::{load_n, store_n};
+use super::{arch, Entries};
 use crate::{f16, Activation, IsaLevel, Matrix, MatrixData, OC_ALIGN};
 
 /// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row of `w` (see
@@ -56,15 +57,15 @@ pub(crate) unsafe fn dense(
 /// # Safety
 /// As for [`dense`].
 unsafe fn run<T: Weight>(level: IsaLevel, w: Matrix<'_>, d: &[T], args: Args<'_>) {
-    match arch::dense_entry::<T>(level) {
+    match arch::entries(level) {
         // SAFETY: `level` comes from an `Isa`, which proves that the CPU has the entry's
         // features; the caller vouches for `y`.
-        Some(entry) => entry(d, args),
+        Some(entries) => T::entry(entries)(d, args),
         None => crate::scalar::dense_rows(w, args.bias, args.act, args.x, args.y, args.ldy),
     }
 }
 
-/// An instruction set's instance of [`body`] (see [`arch::dense_entry`]).
+/// An instruction set's instance of [`body`] (see [`super::Entries`]).
 pub(super) type Entry<T> = unsafe fn(&[T], Args<'_>);
 
 /// The arguments of one call besides the weights: output item `n` starts at `y + n * ldy`.
@@ -95,6 +96,8 @@ pub(super) trait Widen: Simd {
 /// A stored weight type: loads `LANES` of them as f32 lanes.
 pub(super) trait Weight: Copy {
     unsafe fn load<S: Widen>(p: *const Self) -> S;
+    /// The instruction set's dense entry for weights of this type.
+    fn entry(entries: &Entries) -> Entry<Self>;
 }
 
 impl Weight for f32 {
@@ -102,12 +105,18 @@ impl Weight for f32 {
     unsafe fn load<S: Widen>(p: *const f32) -> S {
         S::load(p)
     }
+    fn entry(entries: &Entries) -> Entry<f32> {
+        entries.dense_f32
+    }
 }
 
 impl Weight for f16 {
     #[inline(always)]
     unsafe fn load<S: Widen>(p: *const f16) -> S {
         S::load_f16(p)
+    }
+    fn entry(entries: &Entries) -> Entry<f16> {
+        entries.dense_f16
     }
 }
 

@@ -18,52 +18,71 @@ mod conv;
 mod dense;
 pub(crate) mod winograd;
 
-/// Every kernel's generic body compiled for one instruction set: the architecture modules'
-/// entry points (`$features` for `#[target_feature]`, `$vector` the [`act::Simd`] type, the
-/// dense batch tile `$items` x `$vectors`).
+/// One instruction set's entry points: each generic body compiled inside a
+/// `#[target_feature]` function. Made by `entries!` below; each architecture's `entries(level)`
+/// returns the set for a level of its own.
+pub(super) struct Entries {
+    conv: conv::Entry,
+    dense_f32: dense::Entry<f32>,
+    dense_f16: dense::Entry<crate::f16>,
+    winograd_input: winograd::InputEntry,
+    winograd_channels: winograd::ChannelsEntry,
+}
+
+/// `static $name: Entries` for the vector type `$vector` under the target features
+/// `$features`, with the dense batch tile `$items` x `$vectors`.
 macro_rules! entries {
-    ($features:literal, $vector:ty, dense tile $items:literal x $vectors:literal,
-     $conv:ident, $dense:ident, $input:ident, $channels:ident) => {
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, "; as for `conv::body`.")]
-        #[target_feature(enable = $features)]
-        unsafe fn $conv(
-            layer: $crate::ConvParams<'_>,
-            input: &[f32],
-            output: *mut f32,
-            channels: core::ops::Range<usize>,
-            pass: $crate::simd::conv::Pass,
-        ) {
-            $crate::simd::conv::body::<$vector>(layer, input, output, channels, pass)
-        }
+    ($name:ident, $features:literal, $vector:ty, dense tile $items:literal x $vectors:literal) => {
+        static $name: $crate::simd::Entries = {
+            /// # Safety
+            /// The CPU must have the features; as for `conv::body`.
+            #[target_feature(enable = $features)]
+            unsafe fn conv(
+                layer: $crate::ConvParams<'_>,
+                input: &[f32],
+                output: *mut f32,
+                channels: core::ops::Range<usize>,
+                pass: $crate::simd::conv::Pass,
+            ) {
+                $crate::simd::conv::body::<$vector>(layer, input, output, channels, pass)
+            }
 
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, "; as for `dense::body`.")]
-        #[target_feature(enable = $features)]
-        unsafe fn $dense<T: $crate::simd::dense::Weight>(w: &[T], args: $crate::simd::dense::Args<'_>) {
-            $crate::simd::dense::body::<$vector, T, $items, $vectors>(w, args)
-        }
+            /// # Safety
+            /// The CPU must have the features; as for `dense::body`.
+            #[target_feature(enable = $features)]
+            unsafe fn dense<T: $crate::simd::dense::Weight>(w: &[T], args: $crate::simd::dense::Args<'_>) {
+                $crate::simd::dense::body::<$vector, T, $items, $vectors>(w, args)
+            }
 
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, "; as for `winograd::input_body`.")]
-        #[target_feature(enable = $features)]
-        unsafe fn $input(w: &$crate::winograd::Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-            $crate::simd::winograd::input_body::<$vector>(w, phase, input, v)
-        }
+            /// # Safety
+            /// The CPU must have the features; as for `winograd::input_body`.
+            #[target_feature(enable = $features)]
+            unsafe fn input(w: &$crate::winograd::Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
+                $crate::simd::winograd::input_body::<$vector>(w, phase, input, v)
+            }
 
-        /// # Safety
-        #[doc = concat!("The CPU must have ", $features, "; as for `winograd::channels_body`.")]
-        #[target_feature(enable = $features)]
-        unsafe fn $channels(
-            w: &$crate::winograd::Winograd,
-            layer: $crate::ConvParams<'_>,
-            v: &[f32],
-            scratch: &mut [f32],
-            output: *mut f32,
-            channels: core::ops::Range<usize>,
-        ) {
-            $crate::simd::winograd::channels_body::<$vector>(w, layer, v, scratch, output, channels)
-        }
+            /// # Safety
+            /// The CPU must have the features; as for `winograd::channels_body`.
+            #[target_feature(enable = $features)]
+            unsafe fn channels(
+                w: &$crate::winograd::Winograd,
+                layer: $crate::ConvParams<'_>,
+                v: &[f32],
+                scratch: &mut [f32],
+                output: *mut f32,
+                channels: core::ops::Range<usize>,
+            ) {
+                $crate::simd::winograd::channels_body::<$vector>(w, layer, v, scratch, output, channels)
+            }
+
+            $crate::simd::Entries {
+                conv,
+                dense_f32: dense::<f32>,
+                dense_f16: dense::<$crate::f16>,
+                winograd_input: input,
+                winograd_channels: channels,
+            }
+        };
     };
 }
 
@@ -82,19 +101,7 @@ use x86_64 as arch;
     all(target_arch = "x86_64", target_feature = "sse2")
 )))]
 mod arch {
-    use super::{conv, dense, winograd};
-    use crate::IsaLevel;
-
-    pub(super) fn conv_entry(_: IsaLevel) -> Option<conv::Entry> {
-        None
-    }
-    pub(super) fn dense_entry<T>(_: IsaLevel) -> Option<dense::Entry<T>> {
-        None
-    }
-    pub(super) fn winograd_input_entry(_: IsaLevel) -> Option<winograd::InputEntry> {
-        None
-    }
-    pub(super) fn winograd_channels_entry(_: IsaLevel) -> Option<winograd::ChannelsEntry> {
+    pub(super) fn entries(_: crate::IsaLevel) -> Option<&'static super::Entries> {
         None
     }
 }

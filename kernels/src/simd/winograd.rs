@@ -101,9 +101,9 @@ impl<V: Simd> Product for Microkernel<V> {
     }
 }
 
-/// An instruction set's instance of [`input_body`] (see [`arch::winograd_input_entry`]).
+/// An instruction set's instance of [`input_body`] (see [`super::Entries`]).
 pub(super) type InputEntry = unsafe fn(&Winograd, usize, &[f32], &mut [f32]);
-/// An instruction set's instance of [`channels_body`] (see [`arch::winograd_channels_entry`]).
+/// An instruction set's instance of [`channels_body`] (see [`super::Entries`]).
 pub(super) type ChannelsEntry = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mut [f32], *mut f32, Range<usize>);
 
 /// See [`crate::winograd_input`].
@@ -111,9 +111,9 @@ pub(super) type ChannelsEntry = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mu
 /// # Safety
 /// `level` must come from an `Isa`; the buffers are checked by the caller.
 pub(crate) unsafe fn input(level: IsaLevel, w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-    match arch::winograd_input_entry(level) {
+    match arch::entries(level) {
         // SAFETY: `level` comes from an `Isa`, which proves the CPU has the entry's features.
-        Some(entry) => entry(w, phase, input, v),
+        Some(entries) => (entries.winograd_input)(w, phase, input, v),
         None => scalar::winograd_input(w, phase, input, v),
     }
 }
@@ -131,9 +131,9 @@ pub(crate) unsafe fn channels(
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    match arch::winograd_channels_entry(level) {
+    match arch::entries(level) {
         // SAFETY: `level` comes from an `Isa`, which proves the CPU has the entry's features.
-        Some(entry) => entry(w, layer, v, scratch, output, channels),
+        Some(entries) => (entries.winograd_channels)(w, layer, v, scratch, output, channels),
         None => scalar::winograd_channels(w, layer, v, scratch, output, channels),
     }
 }

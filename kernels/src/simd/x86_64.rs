@@ -2,8 +2,8 @@
 //! kernels' `#[target_feature]` entry points for each.
 
 use super::act::Simd;
-use super::dense::{Weight, Widen};
-use super::{conv, dense, winograd};
+use super::dense::Widen;
+use super::Entries;
 use crate::{f16, IsaLevel};
 use core::arch::x86_64::*;
 
@@ -203,40 +203,17 @@ impl Widen for __m512 {
 // The dense batch tile on AVX2 takes 14 of the 16 registers: 4 x 2 accumulators, 2 weight
 // vectors and the 4 broadcasts, which the compiler loads all at once (with more items, an
 // accumulator spills to the stack and the loop waits on it).
-entries!("avx2,fma,f16c", __m256, dense tile 4 x 2, conv_avx2, dense_avx2, input_avx2, channels_avx2);
+entries!(AVX2, "avx2,fma,f16c", __m256, dense tile 4 x 2);
 // On AVX-512, 8 x 3 accumulators and 3 weight vectors; the broadcasts fold into the
 // multiply-adds' memory operands. On a Xeon this measured level with or ahead of 8 x 2 and
 // 12 x 2.
-entries!("avx512f,avx2,fma,f16c", __m512, dense tile 8 x 3, conv_avx512, dense_avx512, input_avx512, channels_avx512);
+entries!(AVX512, "avx512f,avx2,fma,f16c", __m512, dense tile 8 x 3);
 
-pub(super) fn conv_entry(level: IsaLevel) -> Option<conv::Entry> {
+/// The entry points of `level`, if it is one of this architecture's.
+pub(super) fn entries(level: IsaLevel) -> Option<&'static Entries> {
     match level {
-        IsaLevel::Avx2 => Some(conv_avx2),
-        IsaLevel::Avx512 => Some(conv_avx512),
-        _ => None,
-    }
-}
-
-pub(super) fn dense_entry<T: Weight>(level: IsaLevel) -> Option<dense::Entry<T>> {
-    match level {
-        IsaLevel::Avx2 => Some(dense_avx2::<T>),
-        IsaLevel::Avx512 => Some(dense_avx512::<T>),
-        _ => None,
-    }
-}
-
-pub(super) fn winograd_input_entry(level: IsaLevel) -> Option<winograd::InputEntry> {
-    match level {
-        IsaLevel::Avx2 => Some(input_avx2),
-        IsaLevel::Avx512 => Some(input_avx512),
-        _ => None,
-    }
-}
-
-pub(super) fn winograd_channels_entry(level: IsaLevel) -> Option<winograd::ChannelsEntry> {
-    match level {
-        IsaLevel::Avx2 => Some(channels_avx2),
-        IsaLevel::Avx512 => Some(channels_avx512),
+        IsaLevel::Avx2 => Some(&AVX2),
+        IsaLevel::Avx512 => Some(&AVX512),
         _ => None,
     }
 }
