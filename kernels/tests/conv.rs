@@ -208,8 +208,8 @@ fn large_panels_take_several_passes() {
     }
 }
 
-/// `DRIVESIM_REQUIRE_ISA=avx2` (or `avx512`, `neon`) makes CI fail when the CPU cannot run that level,
-/// so a green run proves the SIMD path was tested rather than skipped.
+/// `DRIVESIM_REQUIRE_ISA=avx2` (or `avx512`, `neon`) makes CI fail when the CPU cannot run that
+/// level, so a green run proves the SIMD path was tested rather than skipped.
 #[test]
 fn required_isa_is_present() {
     let Ok(name) = std::env::var("DRIVESIM_REQUIRE_ISA") else {
