@@ -26,9 +26,10 @@ pub struct Simulator<'m> {
     generator: GeneratorBuffers,
     /// The transition's `[h | z | c]` input for each element of a batch.
     concat: Vec<f32>,
-    /// Hidden state and codes of a rollout.
+    /// A rollout's hidden state, encoded seed frame and latest prediction.
     rollout_h: Vec<f32>,
-    rollout_z: [Vec<f32>; 2],
+    rollout_seed: Vec<f32>,
+    rollout_z: Vec<f32>,
 }
 
 impl<'m> Simulator<'m> {
@@ -51,7 +52,8 @@ impl<'m> Simulator<'m> {
             generator: model.generator.buffers(max_batch, 1, 1),
             concat: alloc::vec![0.0; max_batch * model.transition.concat_len()],
             rollout_h: alloc::vec![0.0; c.hidden_dim],
-            rollout_z: [alloc::vec![0.0; c.z_dim], alloc::vec![0.0; c.z_dim]],
+            rollout_seed: alloc::vec![0.0; c.z_dim],
+            rollout_z: alloc::vec![0.0; c.z_dim],
         }
     }
 
@@ -98,7 +100,7 @@ impl<'m> Simulator<'m> {
     /// Bytes of the buffers this simulator allocated when it was planned: all the memory its
     /// calls use besides the model's weights (and a few hundred bytes of bookkeeping).
     pub fn buffer_bytes(&self) -> usize {
-        let rollout = self.rollout_h.len() + self.rollout_z.iter().map(Vec::len).sum::<usize>();
+        let rollout = self.rollout_h.len() + self.rollout_seed.len() + self.rollout_z.len();
         let floats = self.encoder.len() + self.generator.len() + self.concat.len() + rollout;
         floats * core::mem::size_of::<f32>()
     }
@@ -170,12 +172,29 @@ impl<'m> Simulator<'m> {
     /// One transition step per code: updates the hidden states `h` in place and writes the
     /// predicted next codes to `z_next`. Start a sequence with `h` all zeros.
     pub fn transition(&mut self, z: &[f32], h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
+        let n = self.batch_of("z", z, self.config().z_dim)?;
+        expect_finite("z", z)?;
+        self.step(n, Some(z), h, action, z_next)
+    }
+
+    /// One transition step per hidden state, from the code that state predicted (`z = A h + a`,
+    /// the `z_next` of the step that wrote `h`): the same step as [`Simulator::transition`] given
+    /// that code, reading a third fewer weights, since the model folds `V` into `W` at load
+    /// (`h' = tanh((W + V A) h + U c + b + V a)`). The results differ from the two-product
+    /// form by rounding, or for f16 weights by rounding `W + V A` to f16.
+    ///
+    /// This is how a rollout hallucinates: start each sequence with [`Simulator::transition`]
+    /// from a real code, then feed the model its own predictions with this.
+    pub fn transition_fed_back(&mut self, h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
+        let n = self.batch_of("h", h, self.config().hidden_dim)?;
+        self.step(n, None, h, action, z_next)
+    }
+
+    fn step(&mut self, n: usize, z: Option<&[f32]>, h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
         let c = *self.config();
-        let n = self.batch_of("z", z, c.z_dim)?;
         expect_len("h", h, n * c.hidden_dim)?;
         expect_len("action", action, n * c.action_dim)?;
         expect_len("z_next", z_next, n * c.z_dim)?;
-        expect_finite("z", z)?;
         expect_finite("h", h)?;
         expect_finite("action", action)?;
         let exec = Exec {
@@ -265,17 +284,19 @@ impl<'m> Simulator<'m> {
             pool: self.pool.as_ref(),
         };
         self.rollout_h.fill(0.0);
-        let [z, z_next] = &mut self.rollout_z;
         for (step, action) in actions.chunks_exact(c.action_dim).enumerate() {
-            match seeds {
-                _ if step >= seed_count => core::mem::swap(z, z_next),
+            // Seeds are teacher-forced; later steps start from the code `h` predicted.
+            let z = match seeds {
+                _ if step >= seed_count => None,
                 Seeds::Frames(f) => {
-                    self.model
-                        .encoder
-                        .forward(exec, &mut self.encoder, &f[step * item_len..][..item_len], z, None)
+                    let frame = &f[step * item_len..][..item_len];
+                    let z = &mut self.rollout_seed;
+                    self.model.encoder.forward(exec, &mut self.encoder, frame, z, None);
+                    Some(&z[..])
                 }
-                Seeds::Codes(codes) => z.copy_from_slice(&codes[step * item_len..][..item_len]),
-            }
+                Seeds::Codes(codes) => Some(&codes[step * item_len..][..item_len]),
+            };
+            let z_next = &mut self.rollout_z;
             self.model
                 .transition
                 .step(exec, &mut self.concat, &mut self.rollout_h, z, action, z_next);

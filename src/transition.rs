@@ -5,11 +5,15 @@ use crate::pool::Exec;
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::{Config, Result};
 use alloc::vec::Vec;
-use drivesim_kernels::{Activation, Rnn};
+use drivesim_kernels::{Activation, Isa, Rnn};
 
 pub(crate) struct Transition {
-    /// `[W | V | U]` and `b`.
+    /// `[W | V | U]` and `b`: a step from any code.
     input: DenseLayer,
+    /// `[W + V A | U]` and `b + V a`: a step from the code `h` itself predicted (see [`Rnn`]).
+    /// Always f32: rounded to f16, `W + V A` would no longer be the weights' own product (and
+    /// in f32 it is as many bytes as `W` and `V` in f16).
+    fed_back: DenseLayer,
     /// `A` and `a`.
     output: DenseLayer,
 }
@@ -24,6 +28,8 @@ impl Transition {
         let b = src.f32("transition.b", &[hd], fan_in)?;
         let big_a = src.tensor("transition.A", &[z, hd], Init::FanIn(hd))?;
         let small_a = src.f32("transition.a", &[z], Init::FanIn(hd))?;
+        let (folded, folded_bias) = fold_feedback(&w.to_f32(), &v.to_f32(), &b, &big_a.to_f32(), &small_a, z);
+        let fed_back = DenseWeights::F32(concat_cols(&[(&folded, hd), (&u.to_f32(), a)]));
         let input = match (w, v, u) {
             // All three in f16: keep f16, the kernel widens it.
             (Tensor::F16(w), Tensor::F16(v), Tensor::F16(u)) => {
@@ -37,6 +43,7 @@ impl Transition {
         };
         Ok(Transition {
             input: DenseLayer::new(input, b, hd, hd + z + a, Activation::Tanh),
+            fed_back: DenseLayer::new(fed_back, folded_bias, hd, hd + a, Activation::Tanh),
             output: DenseLayer::new(big_a.into(), small_a, z, hd, Activation::Identity),
         })
     }
@@ -46,32 +53,68 @@ impl Transition {
         self.input.cols
     }
 
-    /// One step for a batch (see [`drivesim_kernels::rnn_step`]). With threads, each product
-    /// is split between them by rows ([`DenseLayer::run`]), so the two products are two tasks,
-    /// the second waiting for all of `h'`.
+    /// One step for a batch (see [`drivesim_kernels::rnn_step`]); without `z`, a step from the
+    /// codes `h` predicted. With threads, each product is split between them by rows
+    /// ([`DenseLayer::run`]), so the two products are two tasks, the second waiting for all of
+    /// `h'`.
     pub fn step(
         &self,
         exec: Exec<'_>,
         concat: &mut [f32],
         h: &mut [f32],
-        z: &[f32],
+        z: Option<&[f32]>,
         action: &[f32],
         z_next: &mut [f32],
     ) {
+        let input = if z.is_some() { &self.input } else { &self.fed_back };
         let rnn = Rnn {
-            input: self.input.matrix(),
-            input_bias: &self.input.bias,
+            input: input.matrix(),
+            input_bias: &input.bias,
             output: self.output.matrix(),
             output_bias: &self.output.bias,
         };
-        let concat = &mut concat[..h.len() / self.input.rows * self.input.cols];
+        let concat = &mut concat[..h.len() / input.rows * input.cols];
         if exec.threads() == 1 {
             return drivesim_kernels::rnn_step(exec.isa, &rnn, concat, h, z, action, z_next);
         }
         rnn.gather(concat, h, z, action);
-        self.input.run(exec, concat, h);
+        input.run(exec, concat, h);
         self.output.run(exec, h, z_next);
     }
+}
+
+/// `W + V A` (row-major) and `b + V a`: the input weights of a step fed its own prediction.
+/// Computed once, at load, by the dense kernel of this CPU: `V` times the columns of `A`, and
+/// then times `a`, as one batch.
+fn fold_feedback(w: &[f32], v: &[f32], b: &[f32], big_a: &[f32], small_a: &[f32], z: usize) -> (Vec<f32>, Vec<f32>) {
+    let hd = b.len();
+    let mut x = alloc::vec![0.0; (hd + 1) * z];
+    for (k, row) in big_a.chunks_exact(hd).enumerate() {
+        for (j, &value) in row.iter().enumerate() {
+            x[j * z + k] = value;
+        }
+    }
+    x[hd * z..].copy_from_slice(small_a);
+    let v = DenseLayer::new(
+        DenseWeights::F32(v.to_vec()),
+        alloc::vec![0.0; hd],
+        hd,
+        z,
+        Activation::Identity,
+    );
+    let mut y = alloc::vec![0.0; (hd + 1) * hd];
+    v.run(
+        Exec {
+            isa: Isa::best(),
+            pool: None,
+        },
+        &x,
+        &mut y,
+    );
+    // `y[j]` is column `j` of `V A`; the last is `V a`.
+    let folded = (0..hd * hd).map(|i| w[i] + y[i % hd * hd + i / hd]).collect();
+    let bias = b.iter().zip(&y[hd * hd..]).map(|(b, va)| b + va).collect();
+    (folded, bias)
 }
 
 /// Places row-major matrices with the same row count side by side: `(values, cols)` each.

@@ -18,6 +18,13 @@ impl Tensor {
     pub(crate) fn into_f32(self) -> Vec<f32> {
         match self {
             Tensor::F32(v) => v,
+            t => t.to_f32(),
+        }
+    }
+
+    pub(crate) fn to_f32(&self) -> Vec<f32> {
+        match self {
+            Tensor::F32(v) => v.clone(),
             Tensor::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
         }
     }

@@ -83,6 +83,8 @@ fn hot_paths_allocate_nothing() {
                 sim.encode_with_logsigma(&frames, &mut z, &mut logsigma).unwrap();
                 sim.transition(&z, &mut h, &actions[..3 * config.action_dim], &mut z_next)
                     .unwrap();
+                sim.transition_fed_back(&mut h, &actions[..3 * config.action_dim], &mut z_next)
+                    .unwrap();
                 sim.generate(&z_next, &mut out).unwrap();
                 sim.rollout(
                     &frames,

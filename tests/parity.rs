@@ -4,7 +4,7 @@
 mod common;
 
 use common::{fixture_path, relative_error, tolerance, Io, FIXTURES};
-use drivesim::{Isa, IsaLevel, Model, Simulator};
+use drivesim::{Config, Isa, IsaLevel, Model, Simulator, WeightDtype};
 
 fn check(what: &str, name: &str, isa: Isa, found: &[f32], expected: &[f32]) {
     let err = relative_error(found, expected);
@@ -71,28 +71,65 @@ fn generate_matches_pytorch() {
 fn thirty_step_transition_matches_pytorch() {
     each_fixture(|name, model, io, mut sim| {
         let c = model.config();
-        let mut z = io.values("transition.z0");
-        let mut h = io.values("transition.h0");
-        let (mut zs, mut hs) = (Vec::new(), Vec::new());
-        for action in io.values("transition.actions").chunks_exact(c.action_dim) {
-            let mut z_next = vec![0.0; c.z_dim];
-            sim.transition(&z, &mut h, action, &mut z_next).unwrap();
-            z = z_next;
-            zs.extend_from_slice(&z);
-            hs.extend_from_slice(&h);
+        // Each step fed the previous prediction: as a code, and folded into `W + V A`.
+        for fed_back in [false, true] {
+            let what = |output| format!("{output}{}", if fed_back { " fed back" } else { "" });
+            let mut z = io.values("transition.z0");
+            let mut h = io.values("transition.h0");
+            let (mut zs, mut hs) = (Vec::new(), Vec::new());
+            for (step, action) in io.values("transition.actions").chunks_exact(c.action_dim).enumerate() {
+                let mut z_next = vec![0.0; c.z_dim];
+                if fed_back && step > 0 {
+                    sim.transition_fed_back(&mut h, action, &mut z_next).unwrap();
+                } else {
+                    sim.transition(&z, &mut h, action, &mut z_next).unwrap();
+                }
+                z = z_next;
+                zs.extend_from_slice(&z);
+                hs.extend_from_slice(&h);
+            }
+            check(&what("transition z"), name, sim.isa(), &zs, &io.values("transition.z"));
+            check(&what("transition h"), name, sim.isa(), &hs, &io.values("transition.h"));
+            let mut frame = vec![0.0; c.frame_len()];
+            sim.generate(&z, &mut frame).unwrap();
+            check(
+                &what("frame after 30"),
+                name,
+                sim.isa(),
+                &frame,
+                &io.values("transition.frame"),
+            );
         }
-        check("transition z", name, sim.isa(), &zs, &io.values("transition.z"));
-        check("transition h", name, sim.isa(), &hs, &io.values("transition.h"));
-        let mut frame = vec![0.0; c.frame_len()];
-        sim.generate(&z, &mut frame).unwrap();
-        check(
-            "frame after 30",
-            name,
-            sim.isa(),
-            &frame,
-            &io.values("transition.frame"),
-        );
     });
+}
+
+/// Folding `V` into `W` changes only rounding, in f32 for f16 weights too: over a long drive on
+/// the comma config, steps fed back stay with steps given the predicted code.
+#[test]
+fn fed_back_steps_follow_the_two_product_step() {
+    for dtype in [WeightDtype::F32, WeightDtype::F16] {
+        let model = Model::random(&Config::COMMA, 5, dtype).unwrap();
+        let c = model.config();
+        let mut sim = Simulator::with_batch(&model, 2);
+        let mut z = vec![0.5; 2 * c.z_dim];
+        let (mut h, mut h_fed) = (vec![0.0; 2 * c.hidden_dim], vec![0.0; 2 * c.hidden_dim]);
+        let (mut z_next, mut z_fed) = (vec![0.0; 2 * c.z_dim], vec![0.0; 2 * c.z_dim]);
+        let mut worst = 0.0f32;
+        for step in 0..200 {
+            let action = [(step as f32 / 10.0).sin(), 0.2, -0.4, (step as f32 / 7.0).cos()];
+            sim.transition(&z, &mut h, &action, &mut z_next).unwrap();
+            match step {
+                0 => sim.transition(&z, &mut h_fed, &action, &mut z_fed).unwrap(),
+                _ => sim.transition_fed_back(&mut h_fed, &action, &mut z_fed).unwrap(),
+            }
+            worst = worst
+                .max(relative_error(&z_fed, &z_next))
+                .max(relative_error(&h_fed, &h));
+            z.copy_from_slice(&z_next);
+        }
+        println!("{dtype:?}: worst relative error over 200 steps {worst:.2e}");
+        assert!(worst <= 1e-5, "{dtype:?}: fed-back steps drifted by {worst:e}");
+    }
 }
 
 #[test]
