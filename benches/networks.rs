@@ -56,25 +56,29 @@ fn networks(c: &mut Criterion) {
                         b.iter(|| sim.generate(black_box(&codes), &mut out_frames).unwrap())
                     });
                 }
-                g.throughput(Throughput::Elements(batch as u64 * transition_flops(&cfg)));
-                g.bench_function(format!("transition/{tag}/batch{batch}"), |b| {
-                    b.iter(|| {
-                        h.fill(0.0);
-                        sim.transition(black_box(&codes), &mut h, &actions, &mut out_codes)
-                            .unwrap()
-                    })
-                });
                 // The step is the one part short enough for the threads' hand-off to matter.
                 let mut sim2 = Simulator::with_batch(&model, batch)
                     .with_threads(2)
                     .expect("threads start");
-                g.bench_function(format!("transition/{tag}/batch{batch}/threads2"), |b| {
-                    b.iter(|| {
-                        h.fill(0.0);
-                        sim2.transition(black_box(&codes), &mut h, &actions, &mut out_codes)
-                            .unwrap()
-                    })
-                });
+                for (sim, threads) in [(&mut sim, ""), (&mut sim2, "/threads2")] {
+                    g.throughput(Throughput::Elements(batch as u64 * transition_flops(&cfg)));
+                    g.bench_function(format!("transition/{tag}/batch{batch}{threads}"), |b| {
+                        b.iter(|| {
+                            h.fill(0.0);
+                            sim.transition(black_box(&codes), &mut h, &actions, &mut out_codes)
+                                .unwrap()
+                        })
+                    });
+                    // Fed the previous prediction, as in a rollout after its seeds: for f32
+                    // weights, the folded step.
+                    let mut z = codes.clone();
+                    g.bench_function(format!("transition_fed_back/{tag}/batch{batch}{threads}"), |b| {
+                        b.iter(|| {
+                            sim.transition(black_box(&z), &mut h, &actions, &mut out_codes).unwrap();
+                            std::mem::swap(&mut z, &mut out_codes);
+                        })
+                    });
+                }
             }
         }
     }

@@ -1,10 +1,11 @@
-//! Times encode, generate and one transition step and prints one
+//! Times encode, generate and one transition step (from a given code, and fed back) and prints one
 //! machine-readable line per measurement (read by `weights/compare.py`), plus the FMA peak
 //! of this core per vector width.
 //!
 //! ```text
 //! cargo run --release --example bench_report -- [--weights FILE | --z N] [--dtype f32|f16]
-//!     [--batch 1,16] [--threads 1,2] [--networks encode,generate,transition] [--seconds S]
+//!     [--batch 1,16] [--threads 1,2] [--networks encode,generate,transition,transition_fed_back]
+//!     [--seconds S]
 //!     [--serve]
 //! ```
 //! Lines: `isa level=avx2`, `peak width=256 threads=1 gflops=…` (for 1 and each `--threads`
@@ -27,7 +28,10 @@ use std::hint::black_box;
 use std::io::Write;
 use std::time::{Duration, Instant};
 
-const NETWORKS: [&str; 3] = ["encode", "generate", "transition"];
+/// `transition_fed_back` is a step fed the previous step's prediction, as in a rollout after
+/// its seeds (the folded step of [`Simulator::transition`] for f32 weights). Both steps count
+/// the model's FLOPs.
+const NETWORKS: [&str; 4] = ["encode", "generate", "transition", "transition_fed_back"];
 
 fn arg<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
     args.iter()
@@ -156,7 +160,7 @@ fn measure(sim: &mut Simulator<'_>, network: &str, batch: usize, budget: Duratio
             generate_flops(&cfg),
             median_ms(budget, || sim.generate(black_box(&codes), &mut out_frames).unwrap()),
         ),
-        _ => (
+        "transition" => (
             transition_flops(&cfg),
             median_ms(budget, || {
                 h.fill(0.0);
@@ -164,6 +168,16 @@ fn measure(sim: &mut Simulator<'_>, network: &str, batch: usize, budget: Duratio
                     .unwrap()
             }),
         ),
+        _ => {
+            let mut z = codes.clone();
+            (
+                transition_flops(&cfg),
+                median_ms(budget, || {
+                    sim.transition(black_box(&z), &mut h, &actions, &mut out_codes).unwrap();
+                    std::mem::swap(&mut z, &mut out_codes);
+                }),
+            )
+        }
     }
 }
 

@@ -4,6 +4,7 @@ use crate::encoder::EncoderBuffers;
 use crate::error::{expect_finite, expect_len};
 use crate::generator::GeneratorBuffers;
 use crate::pool::{Exec, Pool};
+use crate::transition::TransitionBuffers;
 use crate::{Config, Error, Model, Result};
 use alloc::vec::Vec;
 use drivesim_kernels::Isa;
@@ -24,12 +25,10 @@ pub struct Simulator<'m> {
     max_batch: usize,
     encoder: EncoderBuffers,
     generator: GeneratorBuffers,
-    /// The transition's `[h | z | c]` input for each element of a batch.
-    concat: Vec<f32>,
-    /// A rollout's hidden state, encoded seed frame and latest prediction.
+    transition: TransitionBuffers,
+    /// Hidden state and codes of a rollout.
     rollout_h: Vec<f32>,
-    rollout_seed: Vec<f32>,
-    rollout_z: Vec<f32>,
+    rollout_z: [Vec<f32>; 2],
 }
 
 impl<'m> Simulator<'m> {
@@ -50,10 +49,9 @@ impl<'m> Simulator<'m> {
             max_batch,
             encoder: model.encoder.buffers(max_batch, 1, 1),
             generator: model.generator.buffers(max_batch, 1, 1),
-            concat: alloc::vec![0.0; max_batch * model.transition.concat_len()],
+            transition: model.transition.buffers(max_batch),
             rollout_h: alloc::vec![0.0; c.hidden_dim],
-            rollout_seed: alloc::vec![0.0; c.z_dim],
-            rollout_z: alloc::vec![0.0; c.z_dim],
+            rollout_z: [alloc::vec![0.0; c.z_dim], alloc::vec![0.0; c.z_dim]],
         }
     }
 
@@ -100,8 +98,8 @@ impl<'m> Simulator<'m> {
     /// Bytes of the buffers this simulator allocated when it was planned: all the memory its
     /// calls use besides the model's weights (and a few hundred bytes of bookkeeping).
     pub fn buffer_bytes(&self) -> usize {
-        let rollout = self.rollout_h.len() + self.rollout_seed.len() + self.rollout_z.len();
-        let floats = self.encoder.len() + self.generator.len() + self.concat.len() + rollout;
+        let rollout = self.rollout_h.len() + self.rollout_z.iter().map(Vec::len).sum::<usize>();
+        let floats = self.encoder.len() + self.generator.len() + self.transition.len() + rollout;
         floats * core::mem::size_of::<f32>()
     }
 
@@ -171,37 +169,28 @@ impl<'m> Simulator<'m> {
 
     /// One transition step per code: updates the hidden states `h` in place and writes the
     /// predicted next codes to `z_next`. Start a sequence with `h` all zeros.
-    pub fn transition(&mut self, z: &[f32], h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
-        let n = self.batch_of("z", z, self.config().z_dim)?;
-        expect_finite("z", z)?;
-        self.step(n, Some(z), h, action, z_next)
-    }
-
-    /// One transition step per hidden state, from the code that state predicted (`z = A h + a`,
-    /// the `z_next` of the step that wrote `h`): the same step as [`Simulator::transition`] given
-    /// that code, reading a third fewer weights, since the model folds `V` into `W` at load
-    /// (`h' = tanh((W + V A) h + U c + b + V a)`). The results differ from the two-product
-    /// form by rounding, or for f16 weights by rounding `W + V A` to f16.
     ///
-    /// This is how a rollout hallucinates: start each sequence with [`Simulator::transition`]
-    /// from a real code, then feed the model its own predictions with this.
-    pub fn transition_fed_back(&mut self, h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
-        let n = self.batch_of("h", h, self.config().hidden_dim)?;
-        self.step(n, None, h, action, z_next)
-    }
-
-    fn step(&mut self, n: usize, z: Option<&[f32]>, h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
+    /// A model fed its own predictions (`z` is the `z_next` of this simulator's last call, and
+    /// `h` what that call left) needs no `V`: `V z = V (A h + a)`, so with f32 weights the model
+    /// folds `V A` into `W` at load and such a step reads a third fewer weights. The simulator
+    /// recognises these steps by comparing `h` and `z` with what its last step wrote. The
+    /// result differs from the two-product step only by rounding.
+    pub fn transition(&mut self, z: &[f32], h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
         let c = *self.config();
+        let n = self.batch_of("z", z, c.z_dim)?;
         expect_len("h", h, n * c.hidden_dim)?;
         expect_len("action", action, n * c.action_dim)?;
         expect_len("z_next", z_next, n * c.z_dim)?;
+        expect_finite("z", z)?;
         expect_finite("h", h)?;
         expect_finite("action", action)?;
         let exec = Exec {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
-        self.model.transition.step(exec, &mut self.concat, h, z, action, z_next);
+        self.model
+            .transition
+            .step(exec, &mut self.transition, h, z, action, z_next);
         Ok(())
     }
 
@@ -213,7 +202,8 @@ impl<'m> Simulator<'m> {
     /// teacher-forced (their input is the encoded seed frame), step `S - 1` starts from the
     /// last seed frame's code, and every later step from the previous prediction. The `T`
     /// predicted codes (frames `S .. S + T`) go to `codes`; if `frames` is given, the generated
-    /// frames go there too. The hidden state starts at zero.
+    /// frames go there too. The hidden state starts at zero. Steps from a prediction take the
+    /// folded form described at [`Simulator::transition`].
     pub fn rollout(
         &mut self,
         seed_frames: &[f32],
@@ -284,22 +274,20 @@ impl<'m> Simulator<'m> {
             pool: self.pool.as_ref(),
         };
         self.rollout_h.fill(0.0);
+        let [z, z_next] = &mut self.rollout_z;
         for (step, action) in actions.chunks_exact(c.action_dim).enumerate() {
-            // Seeds are teacher-forced; later steps start from the code `h` predicted.
-            let z = match seeds {
-                _ if step >= seed_count => None,
+            match seeds {
+                _ if step >= seed_count => core::mem::swap(z, z_next),
                 Seeds::Frames(f) => {
-                    let frame = &f[step * item_len..][..item_len];
-                    let z = &mut self.rollout_seed;
-                    self.model.encoder.forward(exec, &mut self.encoder, frame, z, None);
-                    Some(&z[..])
+                    self.model
+                        .encoder
+                        .forward(exec, &mut self.encoder, &f[step * item_len..][..item_len], z, None)
                 }
-                Seeds::Codes(codes) => Some(&codes[step * item_len..][..item_len]),
-            };
-            let z_next = &mut self.rollout_z;
+                Seeds::Codes(codes) => z.copy_from_slice(&codes[step * item_len..][..item_len]),
+            }
             self.model
                 .transition
-                .step(exec, &mut self.concat, &mut self.rollout_h, z, action, z_next);
+                .step(exec, &mut self.transition, &mut self.rollout_h, z, action, z_next);
             if let Some(t) = (step + 1).checked_sub(seed_count) {
                 codes[t * c.z_dim..][..c.z_dim].copy_from_slice(z_next);
                 if let Some(frames) = frames.as_deref_mut() {

@@ -10,12 +10,41 @@ use drivesim_kernels::{Activation, Isa, Rnn};
 pub(crate) struct Transition {
     /// `[W | V | U]` and `b`: a step from any code.
     input: DenseLayer,
-    /// `[W + V A | U]` and `b + V a`: a step from the code `h` itself predicted (see [`Rnn`]).
-    /// Always f32: rounded to f16, `W + V A` would no longer be the weights' own product (and
-    /// in f32 it is as many bytes as `W` and `V` in f16).
-    fed_back: DenseLayer,
+    /// `[W + V A | U]` and `b + V a`: a step from the code `h` itself predicted (see [`Rnn`]),
+    /// a third fewer weights to read. Only for f32 weights: for f16 ones it would have to be
+    /// f32 to stay the weights' own product, and then it reads as many bytes as `[W | V]`.
+    fed_back: Option<DenseLayer>,
     /// `A` and `a`.
     output: DenseLayer,
+}
+
+/// Per-simulator scratch of the transition, sized once.
+pub(crate) struct TransitionBuffers {
+    /// Each batch element's input, `[h | z | c]` or `[h | c]`.
+    concat: Vec<f32>,
+    /// `[h' | z']` of the last step (with `fed_back` only), and how many of its floats are set.
+    /// A step given exactly these is fed its own prediction.
+    last: Vec<f32>,
+    last_len: usize,
+}
+
+impl TransitionBuffers {
+    /// Floats held.
+    pub fn len(&self) -> usize {
+        self.concat.len() + self.last.len()
+    }
+
+    /// Whether `z` is the code the last step predicted along with `h`.
+    fn predicted(&self, h: &[f32], z: &[f32]) -> bool {
+        let (last_h, last_z) = self.last[..self.last_len].split_at(self.last_len.min(h.len()));
+        last_h == h && last_z == z
+    }
+
+    fn remember(&mut self, h: &[f32], z: &[f32]) {
+        self.last_len = h.len() + z.len();
+        self.last[..h.len()].copy_from_slice(h);
+        self.last[h.len()..self.last_len].copy_from_slice(z);
+    }
 }
 
 impl Transition {
@@ -28,58 +57,75 @@ impl Transition {
         let b = src.f32("transition.b", &[hd], fan_in)?;
         let big_a = src.tensor("transition.A", &[z, hd], Init::FanIn(hd))?;
         let small_a = src.f32("transition.a", &[z], Init::FanIn(hd))?;
-        let (folded, folded_bias) = fold_feedback(&w.to_f32(), &v.to_f32(), &b, &big_a.to_f32(), &small_a, z);
-        let fed_back = DenseWeights::F32(concat_cols(&[(&folded, hd), (&u.to_f32(), a)]));
-        let input = match (w, v, u) {
+        let (input, fed_back) = match (w, v, u) {
             // All three in f16: keep f16, the kernel widens it.
             (Tensor::F16(w), Tensor::F16(v), Tensor::F16(u)) => {
-                DenseWeights::F16(concat_cols(&[(&w, hd), (&v, z), (&u, a)]))
+                (DenseWeights::F16(concat_cols(&[(&w, hd), (&v, z), (&u, a)])), None)
             }
-            (w, v, u) => DenseWeights::F32(concat_cols(&[
-                (&w.into_f32(), hd),
-                (&v.into_f32(), z),
-                (&u.into_f32(), a),
-            ])),
+            (w, v, u) => {
+                let (w, v, u) = (w.into_f32(), v.into_f32(), u.into_f32());
+                let (folded, bias) = fold_feedback(&w, &v, &b, &big_a.to_f32(), &small_a, z);
+                let weights = DenseWeights::F32(concat_cols(&[(&folded, hd), (&u, a)]));
+                let fed_back = DenseLayer::new(weights, bias, hd, hd + a, Activation::Tanh);
+                let input = DenseWeights::F32(concat_cols(&[(&w, hd), (&v, z), (&u, a)]));
+                (input, Some(fed_back))
+            }
         };
         Ok(Transition {
             input: DenseLayer::new(input, b, hd, hd + z + a, Activation::Tanh),
-            fed_back: DenseLayer::new(fed_back, folded_bias, hd, hd + a, Activation::Tanh),
+            fed_back,
             output: DenseLayer::new(big_a.into(), small_a, z, hd, Activation::Identity),
         })
     }
 
-    /// Floats of scratch one step needs per batch element.
-    pub fn concat_len(&self) -> usize {
-        self.input.cols
+    pub fn buffers(&self, max_batch: usize) -> TransitionBuffers {
+        let last = match self.fed_back {
+            Some(_) => self.input.rows + self.output.rows,
+            None => 0,
+        };
+        TransitionBuffers {
+            concat: alloc::vec![0.0; max_batch * self.input.cols],
+            last: alloc::vec![0.0; max_batch * last],
+            last_len: 0,
+        }
     }
 
-    /// One step for a batch (see [`drivesim_kernels::rnn_step`]); without `z`, a step from the
-    /// codes `h` predicted. With threads, each product is split between them by rows
-    /// ([`DenseLayer::run`]), so the two products are two tasks, the second waiting for all of
-    /// `h'`.
+    /// One step for a batch (see [`drivesim_kernels::rnn_step`]): from `[W + V A | U]` when
+    /// `z` is what the last step predicted with `h` (as in a rollout), else from `[W | V | U]`.
+    /// The prediction is recognised rather than declared by the caller, so that a wrong claim
+    /// cannot change the result. With threads, each product is split between them by rows
+    /// ([`DenseLayer::run`]), so the two products are two tasks, the second waiting for all
+    /// of `h'`.
     pub fn step(
         &self,
         exec: Exec<'_>,
-        concat: &mut [f32],
+        buf: &mut TransitionBuffers,
         h: &mut [f32],
-        z: Option<&[f32]>,
+        z: &[f32],
         action: &[f32],
         z_next: &mut [f32],
     ) {
-        let input = if z.is_some() { &self.input } else { &self.fed_back };
+        let (input, z) = match &self.fed_back {
+            Some(fed_back) if buf.predicted(h, z) => (fed_back, None),
+            _ => (&self.input, Some(z)),
+        };
         let rnn = Rnn {
             input: input.matrix(),
             input_bias: &input.bias,
             output: self.output.matrix(),
             output_bias: &self.output.bias,
         };
-        let concat = &mut concat[..h.len() / input.rows * input.cols];
+        let concat = &mut buf.concat[..h.len() / input.rows * input.cols];
         if exec.threads() == 1 {
-            return drivesim_kernels::rnn_step(exec.isa, &rnn, concat, h, z, action, z_next);
+            drivesim_kernels::rnn_step(exec.isa, &rnn, concat, h, z, action, z_next);
+        } else {
+            rnn.gather(concat, h, z, action);
+            input.run(exec, concat, h);
+            self.output.run(exec, h, z_next);
         }
-        rnn.gather(concat, h, z, action);
-        input.run(exec, concat, h);
-        self.output.run(exec, h, z_next);
+        if self.fed_back.is_some() {
+            buf.remember(h, z_next);
+        }
     }
 }
 

@@ -83,7 +83,8 @@ fn hot_paths_allocate_nothing() {
                 sim.encode_with_logsigma(&frames, &mut z, &mut logsigma).unwrap();
                 sim.transition(&z, &mut h, &actions[..3 * config.action_dim], &mut z_next)
                     .unwrap();
-                sim.transition_fed_back(&mut h, &actions[..3 * config.action_dim], &mut z_next)
+                // Fed its own prediction: the folded step.
+                sim.transition(&z_next, &mut h, &actions[..3 * config.action_dim], &mut z)
                     .unwrap();
                 sim.generate(&z_next, &mut out).unwrap();
                 sim.rollout(

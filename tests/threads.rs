@@ -30,15 +30,16 @@ fn threads_agree_with_one_thread() {
         sim.generate(&z, &mut out).unwrap();
         let mut single = vec![0.0; config.z_dim];
         sim.encode(&frames[..config.frame_len()], &mut single).unwrap();
-        // Two steps and one fed back, so that later steps start from a hidden state the
-        // threads wrote.
+        // Two steps from the same code, then one fed its own prediction (the folded step), so
+        // that later steps start from a hidden state the threads wrote.
         let actions: Vec<f32> = (0..batch * config.action_dim).map(|i| i as f32 / 4.0 - 0.5).collect();
         let mut h = vec![0.0; batch * config.hidden_dim];
         let mut z_next = vec![0.0; batch * config.z_dim];
         for _ in 0..2 {
             sim.transition(&z, &mut h, &actions, &mut z_next).unwrap();
         }
-        sim.transition_fed_back(&mut h, &actions, &mut z_next).unwrap();
+        let predicted = z_next.clone();
+        sim.transition(&predicted, &mut h, &actions, &mut z_next).unwrap();
         // Batch 1 splits each product by rows: two tasks per step.
         let mut h1 = vec![0.0; config.hidden_dim];
         let mut z1 = vec![0.0; config.z_dim];
@@ -46,7 +47,8 @@ fn threads_agree_with_one_thread() {
             sim.transition(&single, &mut h1, &actions[..config.action_dim], &mut z1)
                 .unwrap();
         }
-        sim.transition_fed_back(&mut h1, &actions[..config.action_dim], &mut z1)
+        let predicted = z1.clone();
+        sim.transition(&predicted, &mut h1, &actions[..config.action_dim], &mut z1)
             .unwrap();
         (z, out, single, [h, z_next, h1, z1])
     };

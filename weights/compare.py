@@ -16,6 +16,9 @@ median is the median of its rounds' medians; "peer/drivesim" is the median of th
 ratios of the peer's median time over drivesim's (above 1: drivesim is faster), with their
 range across rounds.
 
+drivesim alone also times a transition step fed the previous step's prediction, as in a
+rollout (for f32 weights it folds `V A` into `W`), against its own and ONNX Runtime's step.
+
 FLOPs count every kernel tap (`benches/common/mod.rs`): about 1.04 GFLOP per frame for the
 encoder and the generator at the comma config. "of peak" is GFLOP/s over the FMA peak of the
 widest vector measured with as many threads at once.
@@ -41,6 +44,9 @@ from model import Config, DriveSim, save_drivesim
 
 ROOT = Path(__file__).resolve().parent.parent
 NETWORKS = ("encode", "generate", "transition")
+# Timed for drivesim alone: a transition step fed the previous step's prediction, as in a rollout,
+# which drivesim recognises and runs with `V A` folded into `W` (the peers' graphs take the code).
+FED_BACK = "transition_fed_back"
 
 
 def comma(z: int) -> Config:
@@ -198,10 +204,12 @@ def time_rounds(runtimes: dict, cfg, batches, threads, seconds, rounds) -> dict:
     names = list(runtimes)
     for r in range(rounds):
         for t in threads:
-            for net in NETWORKS:
+            for net in NETWORKS + (FED_BACK,):
                 for b in batches:
                     # Alternate the order, so that no runtime always follows the same one.
                     for name in names if r % 2 == 0 else names[::-1]:
+                        if net == FED_BACK and name != "drivesim":
+                            continue
                         ms = runtimes[name].time(cfg, net, b, t, seconds)
                         samples.setdefault((name, net, b, t), []).append(ms)
         print(f"round {r + 1} of {rounds} done", file=sys.stderr)
@@ -280,6 +288,14 @@ def main() -> int:
                     gf = gflop.get((net, b), float("nan")) / (ms / 1e3)
                     ratio = "" if rt == "drivesim" else spread([p / d for p, d in zip(times, own)])
                     print(f"| {net} | {b} | {rt} | {t} | {ms:.3f} | {gf:.1f} | {gf / peak(t):.0%} | {ratio} |")
+    print(f"\ndrivesim's step fed its own prediction ({FED_BACK}), median ms, and per round its step from")
+    print("a code and ONNX Runtime's step over it (above 1: the fed-back step is faster):")
+    for b in batches:
+        for t in threads:
+            fed = samples[("drivesim", FED_BACK, b, t)]
+            own, ort = samples[("drivesim", "transition", b, t)], samples[("onnxruntime", "transition", b, t)]
+            ratios = [spread([o / f for o, f in zip(step, fed)]) for step in (own, ort)]
+            print(f"- batch {b}, {t} thread(s): {statistics.median(fed):.4f} ms; own step {ratios[0]}; ONNX Runtime {ratios[1]}")
     if 1 in batches and len(batches) > 1:
         print("\ndrivesim per item at the largest batch against batch 1, per round (above 1: batching helps):")
         big = max(batches)
