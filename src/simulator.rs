@@ -175,6 +175,20 @@ impl<'m> Simulator<'m> {
     /// folds `V A` into `W` at load and such a step reads a third fewer weights. The simulator
     /// recognises these steps by comparing `h` and `z` with what its last step wrote. The
     /// result differs from the two-product step only by rounding.
+    ///
+    /// ```
+    /// # use drivesim::{Config, Model, Simulator, WeightDtype};
+    /// # let config = Config { height: 16, width: 32, base_channels: 2, z_dim: 8, hidden_dim: 8, ..Config::COMMA };
+    /// # let model = Model::random(&config, 1, WeightDtype::F32)?;
+    /// let mut sim = Simulator::new(&model);
+    /// let (mut z, mut z_next, mut h) = (vec![0.1; 8], vec![0.0; 8], vec![0.0; 8]);
+    /// for steering in [0.0, 0.1, 0.2] {
+    ///     sim.transition(&z, &mut h, &[10.0, steering], &mut z_next)?;
+    ///     // Fed back: every step after the first is the folded one.
+    ///     std::mem::swap(&mut z, &mut z_next);
+    /// }
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
     pub fn transition(&mut self, z: &[f32], h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
         let c = *self.config();
         let n = self.batch_of("z", z, c.z_dim)?;
