@@ -352,3 +352,42 @@ fn row_ranges_match_whole() {
         }
     }
 }
+
+/// Every output is summed in one order whatever the batch and the rows asked for: one item at
+/// a time and any split of the rows into panels give the bits of the whole batch, on every
+/// level (what makes a simulator bit-identical across thread counts and batches).
+#[test]
+fn dense_is_bit_identical_across_batches_and_row_splits() {
+    let mut levels = simd_levels();
+    levels.push(Isa::SCALAR);
+    // Columns past the kernels' chunk of 1024 and rows past a single input's spread tile.
+    for (rows, cols) in [(129, 2500), (300, 1026), (33, 3000), (512, 4097)] {
+        let w32 = dense_weights(&values(rows as u64, rows * cols, 0.05), rows, cols);
+        let w16 = halves(&w32);
+        let bias = values(7, rows, 0.5);
+        let batch = 5;
+        let x = values(cols as u64, batch * cols, 1.0);
+        for data in [MatrixData::F32(&w32), MatrixData::F16(&w16)] {
+            let w = Matrix { data, rows, cols };
+            for &isa in &levels {
+                let mut whole = vec![0.0; batch * rows];
+                dense(isa, w, &bias, Activation::Tanh, &x, &mut whole);
+                for (n, item) in x.chunks_exact(cols).enumerate() {
+                    let mut one = vec![0.0; rows];
+                    dense(isa, w, &bias, Activation::Tanh, item, &mut one);
+                    assert_eq!(one, whole[n * rows..][..rows], "{isa:?} {rows}x{cols}: item {n} alone");
+                }
+                for split in [16, 48, 64, 272] {
+                    let mut parts = vec![0.0; batch * rows];
+                    for start in (0..rows).step_by(split) {
+                        // SAFETY: `parts` holds the whole output; the ranges are disjoint and
+                        // written one after another.
+                        let end = (start + split).min(rows);
+                        unsafe { dense_rows(isa, w, &bias, Activation::Tanh, &x, parts.as_mut_ptr(), start..end) };
+                    }
+                    assert_eq!(parts, whole, "{isa:?} {rows}x{cols}: rows in parts of {split}");
+                }
+            }
+        }
+    }
+}

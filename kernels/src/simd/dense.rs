@@ -11,13 +11,16 @@
 //! across the vector lanes: a register tile of `NI` items by `NV` vectors of rows loads `NV`
 //! weight vectors per column, broadcasts each item's input value, and multiplies every pair,
 //! `NI * NV` multiply-adds for `NV + NI` loads, with no sums across lanes.
+//! - Long rows are cut into chunks of at most [`CHUNK`] columns; later chunks add to what
+//!   earlier ones stored. The chunks depend on the column count alone, so every output is
+//!   summed in the same order whatever the batch or the rows asked for (bit-identical results
+//!   across thread counts and batches).
 //! - A single input uses `NI = 1` and eight vectors, their panels a part of the matrix apart:
-//!   the weights stream once, as two to eight long runs (one per panel of the tile), with a
+//!   the weights stream as two to eight long runs (one per panel of the tile), with a
 //!   software prefetch (single-core DRAM streaming is latency-bound without it).
 //! - A batch is split into balanced blocks of up to `NI` items (8 x 3 vectors for AVX-512,
-//!   4 x 2 for AVX2, 4 x 4 for NEON). Long rows are cut into chunks of at most [`CHUNK`]
-//!   columns, so that a tile's weights stay in L2 while every block of items reuses them;
-//!   later chunks add to what earlier ones stored.
+//!   4 x 2 for AVX2, 4 x 4 for NEON), so that a chunk of a tile's weights stays in L2 while
+//!   every block of items reuses it.
 
 use super::act::{self, Simd};
 use super::conv::{load_n, store_n};
@@ -194,32 +197,32 @@ pub(super) unsafe fn body<S: Widen, T: Weight, const NI: usize, const NV: usize>
     debug_assert!(OC_ALIGN.is_multiple_of(S::LANES) && (NV * S::LANES).is_multiple_of(OC_ALIGN));
     let padded = rows.next_multiple_of(OC_ALIGN);
     let items = args.x.len() / cols;
-    let mut first_row = 0;
-    if items == 1 {
-        // Each tile's panels a part of the matrix apart, so that the weights stream from memory
-        // as several long runs.
-        let groups = SINGLE_NV * S::LANES / OC_ALIGN;
-        let spread = padded / OC_ALIGN / groups;
-        for panel in 0..spread {
-            let at = Tile {
-                row: panel * OC_ALIGN,
-                stride: spread,
-                item: 0,
-                col: 0,
-                len: cols,
-            };
-            tile::<S, T, 1, SINGLE_NV>(w, &args, at);
-        }
-        first_row = spread * groups * OC_ALIGN;
-    }
-    // The rows left (all of them for a batch) in chunks of at most CHUNK columns: in each chunk,
-    // every tile of NV vectors of rows (then of one vector) meets every block of items while its
-    // weights are in cache.
+    // Every row sums its columns in the same chunks, in the same order, whatever the batch or
+    // the range of rows asked for: results are bit-identical however threads split the work.
     let chunks = cols.div_ceil(CHUNK);
     for chunk in 0..chunks {
         let col = chunk * cols / chunks;
         let len = (chunk + 1) * cols / chunks - col;
-        let mut row = first_row;
+        let mut row = 0;
+        if items == 1 {
+            // Each tile's panels a part of the matrix apart, so that the weights stream from
+            // memory as several long runs.
+            let groups = SINGLE_NV * S::LANES / OC_ALIGN;
+            let spread = padded / OC_ALIGN / groups;
+            for panel in 0..spread {
+                let at = Tile {
+                    row: panel * OC_ALIGN,
+                    stride: spread,
+                    item: 0,
+                    col,
+                    len,
+                };
+                tile::<S, T, 1, SINGLE_NV>(w, &args, at);
+            }
+            row = spread * groups * OC_ALIGN;
+        }
+        // The rows left (all of them for a batch): every tile of NV vectors of rows (then of
+        // one vector) meets every block of items while its weights are in cache.
         while row + NV * S::LANES <= padded {
             item_blocks::<S, T, NI, NV>(w, &args, items, (row, col, len));
             row += NV * S::LANES;
