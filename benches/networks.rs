@@ -38,7 +38,7 @@ fn networks(c: &mut Criterion) {
             let model = Model::random(&cfg, SEED, dtype).expect("valid config");
             let tag = format!("z{z}_{}", if dtype == WeightDtype::F16 { "f16" } else { "f32" });
             for batch in BATCHES {
-                let mut sim = Simulator::with_batch(&model, batch);
+                let mut sim = Simulator::with_batch(&model, batch).expect("simulator planned");
                 let frames = values(1, batch * cfg.frame_len(), 1.0);
                 let codes = values(2, batch * z, 1.0);
                 let actions = values(3, batch * cfg.action_dim, 1.0);
@@ -58,8 +58,8 @@ fn networks(c: &mut Criterion) {
                 }
                 // The step is the one part short enough for the threads' hand-off to matter.
                 let mut sim2 = Simulator::with_batch(&model, batch)
-                    .with_threads(2)
-                    .expect("threads start");
+                    .and_then(|sim| sim.with_threads(2))
+                    .expect("simulator planned and threads started");
                 for (sim, threads) in [(&mut sim, ""), (&mut sim2, "/threads2")] {
                     g.throughput(Throughput::Elements(batch as u64 * transition_flops(&cfg)));
                     g.bench_function(format!("transition/{tag}/batch{batch}{threads}"), |b| {
@@ -71,11 +71,10 @@ fn networks(c: &mut Criterion) {
                     });
                     // Fed the previous prediction, as in a rollout after its seeds: for f32
                     // weights, the folded step.
-                    let mut z = codes.clone();
                     g.bench_function(format!("transition_fed_back/{tag}/batch{batch}{threads}"), |b| {
                         b.iter(|| {
-                            sim.transition(black_box(&z), &mut h, &actions, &mut out_codes).unwrap();
-                            std::mem::swap(&mut z, &mut out_codes);
+                            sim.transition_fed_back(&mut h, black_box(&actions), &mut out_codes)
+                                .unwrap()
                         })
                     });
                 }

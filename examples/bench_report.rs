@@ -29,7 +29,7 @@ use std::io::Write;
 use std::time::{Duration, Instant};
 
 /// `transition_fed_back` is a step fed the previous step's prediction, as in a rollout after
-/// its seeds (the folded step of [`Simulator::transition`] for f32 weights). Both steps count
+/// its seeds ([`Simulator::transition_fed_back`]: the folded step for f32 weights). Both steps count
 /// the model's FLOPs.
 const NETWORKS: [&str; 4] = ["encode", "generate", "transition", "transition_fed_back"];
 
@@ -133,8 +133,8 @@ fn answer<'m>(
 ) {
     let sim = sims.entry((threads, batch)).or_insert_with(|| {
         Simulator::with_batch(model, batch)
-            .with_threads(threads)
-            .expect("threads start")
+            .and_then(|sim| sim.with_threads(threads))
+            .expect("simulator planned and threads started")
     });
     let (flops, ms) = measure(sim, network, batch, budget);
     let gflop = (batch as u64 * flops) as f64 / 1e9;
@@ -168,16 +168,13 @@ fn measure(sim: &mut Simulator<'_>, network: &str, batch: usize, budget: Duratio
                     .unwrap()
             }),
         ),
-        _ => {
-            let mut z = codes.clone();
-            (
-                transition_flops(&cfg),
-                median_ms(budget, || {
-                    sim.transition(black_box(&z), &mut h, &actions, &mut out_codes).unwrap();
-                    std::mem::swap(&mut z, &mut out_codes);
-                }),
-            )
-        }
+        _ => (
+            transition_flops(&cfg),
+            median_ms(budget, || {
+                sim.transition_fed_back(&mut h, black_box(&actions), &mut out_codes)
+                    .unwrap()
+            }),
+        ),
     }
 }
 

@@ -110,7 +110,7 @@ fn run(args: &Args) -> Result<(), String> {
         episode.frame_f32(i, frame).map_err(|e| e.to_string())?;
     }
 
-    let mut sim = Simulator::new(&model);
+    let mut sim = Simulator::new(&model).map_err(|e| e.to_string())?;
     let mut codes = vec![0.0; steps * config.z_dim];
     if args.sample {
         let seed_codes = sample_codes(&mut sim, &seed_frames, args.seed).map_err(|e| e.to_string())?;

@@ -9,29 +9,33 @@ use alloc::string::{String, ToString};
 /// Stored in a weight file as the JSON metadata `drivesim.config` (see `weights/README.md`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct Config {
-    /// Frame height in pixels; a multiple of 16.
+    /// Frame height in pixels; a multiple of 16, at most 4096.
     pub height: usize,
-    /// Frame width in pixels; a multiple of 16.
+    /// Frame width in pixels; a multiple of 16, at most 4096.
     pub width: usize,
-    /// Colour channels of a frame (3 for RGB).
+    /// Colour channels of a frame (3 for RGB); at most 16.
     pub channels: usize,
-    /// Channels of the first encoder convolution (`b`); later layers use 2b, 4b, 8b.
+    /// Channels of the first encoder convolution (`b`); later layers use 2b, 4b, 8b. At most 1024.
     pub base_channels: usize,
     /// Convolutions in the encoder and the generator; must be 4.
     pub layers: usize,
     /// Convolution kernel size; must be 5.
     pub kernel: usize,
-    /// Size of the latent code z.
+    /// Size of the latent code z; at most 8192.
     pub z_dim: usize,
-    /// Size of the transition RNN's hidden state h.
+    /// Size of the transition RNN's hidden state h; at most 8192.
     pub hidden_dim: usize,
-    /// Size of the control vector c; 2 for (speed, steering).
+    /// Size of the control vector c; 2 for (speed, steering). At most 64.
     pub action_dim: usize,
 }
 
-/// Upper bounds that keep every buffer size far from overflow and absurd allocations.
+/// Upper bounds, far above any sensible model, that keep every size of the model and of a
+/// frame's buffers within 64-bit arithmetic; batch sizes are checked by [`crate::Plan`].
 const MAX_SIDE: usize = 4096;
-const MAX_WIDTH: usize = 1 << 16;
+const MAX_CHANNELS: usize = 16;
+const MAX_BASE_CHANNELS: usize = 1024;
+const MAX_CODE: usize = 8192;
+const MAX_ACTIONS: usize = 64;
 
 impl Config {
     /// The comma.ai configuration: 80x160 RGB frames, b = 64, z = hidden = 512, 2 controls.
@@ -106,15 +110,14 @@ impl Config {
             check(field, side > 0 && side % 16 == 0, "a positive multiple of 16", side)?;
             check(field, side <= MAX_SIDE, "at most 4096", side)?;
         }
-        for (field, n) in [
-            ("channels", self.channels),
-            ("base_channels", self.base_channels),
-            ("z_dim", self.z_dim),
-            ("hidden_dim", self.hidden_dim),
-            ("action_dim", self.action_dim),
+        for (field, n, max, expected) in [
+            ("channels", self.channels, MAX_CHANNELS, "1 to 16"),
+            ("base_channels", self.base_channels, MAX_BASE_CHANNELS, "1 to 1024"),
+            ("z_dim", self.z_dim, MAX_CODE, "1 to 8192"),
+            ("hidden_dim", self.hidden_dim, MAX_CODE, "1 to 8192"),
+            ("action_dim", self.action_dim, MAX_ACTIONS, "1 to 64"),
         ] {
-            check(field, n > 0, "at least 1", n)?;
-            check(field, n <= MAX_WIDTH, "at most 65536", n)?;
+            check(field, (1..=max).contains(&n), expected, n)?;
         }
         Ok(())
     }

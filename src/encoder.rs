@@ -1,6 +1,6 @@
 //! The encoder: a frame to the VAE's mean and log-sigma.
 
-use crate::layers::{for_each_item, plane_sets, run_convs, ConvLayer, DenseLayer, DenseWeights, Planes};
+use crate::layers::{for_each_item, run_convs, ConvLayer, DenseLayer, DenseWeights, StackBuffers};
 use crate::pool::Exec;
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::{Config, Result};
@@ -18,42 +18,31 @@ pub(crate) struct Encoder {
     logsigma: DenseLayer,
 }
 
-/// Per-simulator scratch of the encoder, sized once.
-pub(crate) struct EncoderBuffers {
-    /// The padded input plane of every convolution: one set, or one per thread when threads
-    /// take whole frames of a batch.
-    planes: Vec<Planes>,
-    /// The last convolution's output for each frame of a batch: the dense heads' input.
-    flat: Vec<f32>,
-}
-
-impl EncoderBuffers {
-    /// Floats held.
-    pub fn len(&self) -> usize {
-        self.planes.iter().map(Planes::len).sum::<usize>() + self.flat.len()
-    }
+/// The shapes of the encoder's convolutions for `config`.
+pub(crate) fn conv_shapes(config: &Config) -> impl Iterator<Item = ConvShape> {
+    let config = *config;
+    let (k, b) = (config.kernel, config.base_channels);
+    let halo = ConvKind::Down.input_halo(k);
+    let mut input = Plane::new(config.height, config.width, config.channels, halo);
+    (0..config.layers).map(move |i| {
+        // The last output feeds the dense heads, which need no border.
+        let last = i + 1 == config.layers;
+        let shape = ConvShape::new(ConvKind::Down, k, input, b << i, if last { 0 } else { halo });
+        input = shape.output;
+        shape
+    })
 }
 
 impl Encoder {
     pub fn load(config: &Config, src: &mut dyn TensorSource) -> Result<Self> {
-        let (k, b) = (config.kernel, config.base_channels);
-        let halo = ConvKind::Down.input_halo(k);
-        let mut input = Plane::new(config.height, config.width, config.channels, halo);
-        let mut convs = Vec::with_capacity(config.layers);
-        for i in 0..config.layers {
-            let last = i + 1 == config.layers;
-            // The last output feeds the dense heads, which need no border.
-            let shape = ConvShape::new(ConvKind::Down, k, input, b << i, if last { 0 } else { halo });
-            let bn = (i > 0).then(|| format!("encoder.bn{i}"));
-            convs.push(ConvLayer::load(
-                src,
-                &format!("encoder.conv{i}"),
-                bn.as_deref(),
-                shape,
-                Activation::LeakyRelu(LEAKY_SLOPE),
-            )?);
-            input = shape.output;
-        }
+        let convs = conv_shapes(config)
+            .enumerate()
+            .map(|(i, shape)| {
+                let bn = (i > 0).then(|| format!("encoder.bn{i}"));
+                let act = Activation::LeakyRelu(LEAKY_SLOPE);
+                ConvLayer::load(src, &format!("encoder.conv{i}"), bn.as_deref(), shape, act)
+            })
+            .collect::<Result<Vec<_>>>()?;
         let (flat, z) = (config.flat_len(), config.z_dim);
         let (c, (h, w)) = (config.top_channels(), config.top_size());
         let mut head = |name: &str, act| -> Result<DenseLayer> {
@@ -70,20 +59,11 @@ impl Encoder {
         Ok(Encoder { convs, mean, logsigma })
     }
 
-    /// Scratch for batches of up to `max_batch` frames, with `sets` sets of
-    /// planes, the first shared by `threads` threads.
-    pub fn buffers(&self, max_batch: usize, sets: usize, threads: usize) -> EncoderBuffers {
-        EncoderBuffers {
-            planes: plane_sets(&self.convs, sets, threads),
-            flat: alloc::vec![0.0; max_batch * self.mean.cols],
-        }
-    }
-
     /// Encodes `frames` (whole HWC frames, at most the planned batch, already validated).
     pub fn forward(
         &self,
         exec: Exec<'_>,
-        buf: &mut EncoderBuffers,
+        buf: &mut StackBuffers,
         frames: &[f32],
         mean: &mut [f32],
         logsigma: Option<&mut [f32]>,

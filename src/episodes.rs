@@ -44,11 +44,15 @@ impl Episode<'_> {
     pub fn frame_f32(&self, i: usize, out: &mut [f32]) -> Result<()> {
         let len = self.height * self.width * Episodes::CHANNELS;
         crate::error::expect_len("out", out, len)?;
-        let frame = self.frames.get(i * len..(i + 1) * len).ok_or(Error::OutOfRange {
+        let out_of_range = Error::OutOfRange {
             what: "frame",
             index: i,
             len: self.len(),
-        })?;
+        };
+        if i >= self.len() {
+            return Err(out_of_range);
+        }
+        let frame = &self.frames[i * len..][..len];
         for (o, &p) in out.iter_mut().zip(frame) {
             *o = p as f32 / 127.5 - 1.0;
         }
@@ -72,6 +76,7 @@ impl Episodes {
 
     pub fn from_bytes(bytes: &[u8]) -> Result<Episodes> {
         let file = SafeTensors::deserialize(bytes).map_err(|e| Error::Malformed {
+            what: "episodes file",
             reason: format!("{e:?}"),
         })?;
         let get = |name: &str, dtype: Dtype, rank: usize| {

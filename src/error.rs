@@ -10,7 +10,11 @@ use core::fmt;
 #[non_exhaustive]
 pub enum Error {
     /// The bytes are not a readable safetensors file (truncated, bad header, bad offsets).
-    Malformed { reason: String },
+    Malformed {
+        /// Which file: "weight file" or "episodes file".
+        what: &'static str,
+        reason: String,
+    },
     /// The `drivesim.config` metadata is missing or is not the expected JSON object.
     Metadata { reason: String },
     /// A config value the model does not support.
@@ -29,6 +33,23 @@ pub enum Error {
     },
     /// A tensor is stored in a dtype other than F32, F16 or BF16.
     Dtype { name: String, found: String },
+    /// A weight file's tensors do not all share one dtype.
+    MixedDtypes {
+        name: String,
+        found: String,
+        /// The dtype of the file's other tensors.
+        expected: String,
+    },
+    /// A weight file holds a tensor the config does not use.
+    UnexpectedTensor { name: String },
+    /// A weight that no model can have: not finite, or a negative BatchNorm variance.
+    BadWeight {
+        name: String,
+        /// The first bad value's index in the tensor, row-major.
+        index: usize,
+        value: f32,
+        expected: &'static str,
+    },
     /// A caller buffer has the wrong number of values.
     BufferLength {
         buffer: &'static str,
@@ -57,6 +78,18 @@ pub enum Error {
         index: usize,
         value: f32,
     },
+    /// A frame value outside [-1, 1].
+    FrameValue {
+        buffer: &'static str,
+        index: usize,
+        value: f32,
+    },
+    /// A result overflowed to an infinity or NaN although every input was finite: the
+    /// weights or the inputs are too large for f32. The output buffer holds no valid result.
+    NonFiniteOutput { buffer: &'static str, index: usize },
+    /// The memory a plan needs could not be allocated: `bytes` in all, or, with `None`, more
+    /// than the address space holds.
+    OutOfMemory { what: &'static str, bytes: Option<usize> },
     /// The weight file could not be read.
     #[cfg(feature = "std")]
     Io { path: String, source: std::io::Error },
@@ -71,9 +104,7 @@ pub type Result<T> = core::result::Result<T, Error>;
 impl fmt::Display for Error {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            Error::Malformed { reason } => {
-                write!(f, "not a readable safetensors weight file: {reason}")
-            }
+            Error::Malformed { what, reason } => write!(f, "not a readable safetensors {what}: {reason}"),
             Error::Metadata { reason } => write!(f, "bad `drivesim.config` metadata: {reason}"),
             Error::Config { field, expected, found } => {
                 write!(f, "config `{field}`: expected {expected}, found {found}")
@@ -85,6 +116,19 @@ impl fmt::Display for Error {
             Error::Dtype { name, found } => {
                 write!(f, "tensor `{name}`: expected dtype F32, F16 or BF16, found {found}")
             }
+            Error::MixedDtypes { name, found, expected } => write!(
+                f,
+                "tensor `{name}` is {found} but the file's other tensors are {expected}: a weight file has one dtype"
+            ),
+            Error::UnexpectedTensor { name } => {
+                write!(f, "weight file has a tensor `{name}` that the config does not use")
+            }
+            Error::BadWeight {
+                name,
+                index,
+                value,
+                expected,
+            } => write!(f, "tensor `{name}`[{index}] is {value}: expected {expected}"),
             Error::BufferLength {
                 buffer,
                 expected,
@@ -110,6 +154,26 @@ impl fmt::Display for Error {
             Error::OutOfRange { what, index, len } => write!(f, "{what} {index} does not exist: there are {len}"),
             Error::NonFinite { buffer, index, value } => {
                 write!(f, "`{buffer}`[{index}] is {value}: expected a finite number")
+            }
+            Error::FrameValue { buffer, index, value } => {
+                write!(f, "`{buffer}`[{index}] is {value}: frame values lie in [-1, 1]")
+            }
+            Error::NonFiniteOutput { buffer, index } => write!(
+                f,
+                "`{buffer}`[{index}] overflowed to a non-finite value: the inputs or weights are too large for f32"
+            ),
+            Error::OutOfMemory {
+                what,
+                bytes: Some(bytes),
+            } => {
+                write!(
+                    f,
+                    "cannot allocate {what}: {bytes} bytes ({:.1} GiB)",
+                    *bytes as f64 / (1u64 << 30) as f64
+                )
+            }
+            Error::OutOfMemory { what, bytes: None } => {
+                write!(f, "cannot allocate {what}: their size overflows the address space")
             }
             #[cfg(feature = "std")]
             Error::Io { path, source } => write!(f, "cannot read `{path}`: {source}"),
@@ -151,5 +215,26 @@ pub(crate) fn expect_finite(buffer: &'static str, data: &[f32]) -> Result<()> {
             index,
             value: data[index],
         }),
+    }
+}
+
+/// Checks that every value of a frame is finite and within [-1, 1].
+pub(crate) fn expect_frames(buffer: &'static str, data: &[f32]) -> Result<()> {
+    expect_finite(buffer, data)?;
+    match data.iter().position(|v| !(-1.0..=1.0).contains(v)) {
+        None => Ok(()),
+        Some(index) => Err(Error::FrameValue {
+            buffer,
+            index,
+            value: data[index],
+        }),
+    }
+}
+
+/// Checks that a result is finite.
+pub(crate) fn expect_finite_output(buffer: &'static str, data: &[f32]) -> Result<()> {
+    match data.iter().position(|v| !v.is_finite()) {
+        None => Ok(()),
+        Some(index) => Err(Error::NonFiniteOutput { buffer, index }),
     }
 }

@@ -1,8 +1,6 @@
 //! The generator: a latent code to a frame.
 
-use crate::layers::{
-    for_each_item, plane_sets, read_batch_norm, run_convs, ConvLayer, DenseLayer, DenseWeights, Planes,
-};
+use crate::layers::{for_each_item, read_batch_norm, run_convs, ConvLayer, DenseLayer, DenseWeights, StackBuffers};
 use crate::pool::Exec;
 use crate::weights::{Init, TensorSource};
 use crate::{Config, Result};
@@ -17,25 +15,29 @@ pub(crate) struct Generator {
     deconvs: Vec<ConvLayer>,
 }
 
-/// Per-simulator scratch of the generator, sized once.
-pub(crate) struct GeneratorBuffers {
-    /// `fc`'s output for each code of a batch.
-    flat: Vec<f32>,
-    /// The padded input plane of every transposed convolution: one set, or one per thread
-    /// when threads take whole codes of a batch.
-    planes: Vec<Planes>,
-}
-
-impl GeneratorBuffers {
-    /// Floats held.
-    pub fn len(&self) -> usize {
-        self.planes.iter().map(Planes::len).sum::<usize>() + self.flat.len()
-    }
+/// The shapes of the generator's transposed convolutions for `config`.
+pub(crate) fn conv_shapes(config: &Config) -> impl Iterator<Item = ConvShape> {
+    let config = *config;
+    let k = config.kernel;
+    let (c, (h, w)) = (config.top_channels(), config.top_size());
+    let halo = ConvKind::Up.input_halo(k);
+    let mut input = Plane::new(h, w, c, halo);
+    (1..=config.layers).map(move |i| {
+        // The last layer writes the frame: no border.
+        let (out_channels, out_halo) = if i == config.layers {
+            (config.channels, 0)
+        } else {
+            (c >> i, halo)
+        };
+        let shape = ConvShape::new(ConvKind::Up, k, input, out_channels, out_halo);
+        input = shape.output;
+        shape
+    })
 }
 
 impl Generator {
     pub fn load(config: &Config, src: &mut dyn TensorSource) -> Result<Self> {
-        let (k, z, flat) = (config.kernel, config.z_dim, config.flat_len());
+        let (z, flat) = (config.z_dim, config.flat_len());
         let (c, (h, w)) = (config.top_channels(), config.top_size());
         // fc is followed by a reshape to CHW and bn0: fold bn0 in, reorder rows to HWC. The
         // fold changes the values, so this matrix is kept in f32 whatever the file stores.
@@ -45,41 +47,20 @@ impl Generator {
         let (weight, bias) = permute_rows_chw_to_hwc(&weight, &bias, z, c, h, w, Some(bn0.view()));
         let fc = DenseLayer::new(DenseWeights::F32(weight), bias, flat, z, Activation::Relu);
 
-        let halo = ConvKind::Up.input_halo(k);
-        let mut input = Plane::new(h, w, c, halo);
-        let mut deconvs = Vec::with_capacity(config.layers);
-        for i in 1..=config.layers {
-            let last = i == config.layers;
-            let (out_channels, out_halo, act) = if last {
-                (config.channels, 0, Activation::Tanh)
-            } else {
-                (c >> i, halo, Activation::Relu)
-            };
-            let shape = ConvShape::new(ConvKind::Up, k, input, out_channels, out_halo);
-            let bn = (!last).then(|| format!("generator.bn{i}"));
-            deconvs.push(ConvLayer::load(
-                src,
-                &format!("generator.deconv{i}"),
-                bn.as_deref(),
-                shape,
-                act,
-            )?);
-            input = shape.output;
-        }
+        let deconvs = conv_shapes(config)
+            .enumerate()
+            .map(|(i, shape)| {
+                let last = i + 1 == config.layers;
+                let bn = (!last).then(|| format!("generator.bn{}", i + 1));
+                let act = if last { Activation::Tanh } else { Activation::Relu };
+                ConvLayer::load(src, &format!("generator.deconv{}", i + 1), bn.as_deref(), shape, act)
+            })
+            .collect::<Result<Vec<_>>>()?;
         Ok(Generator { fc, deconvs })
     }
 
-    /// Scratch for batches of up to `max_batch` codes, with `sets` sets of
-    /// planes, the first shared by `threads` threads.
-    pub fn buffers(&self, max_batch: usize, sets: usize, threads: usize) -> GeneratorBuffers {
-        GeneratorBuffers {
-            flat: alloc::vec![0.0; max_batch * self.fc.rows],
-            planes: plane_sets(&self.deconvs, sets, threads),
-        }
-    }
-
     /// Generates one frame per code of `z` (at most the planned batch, already validated).
-    pub fn forward(&self, exec: Exec<'_>, buf: &mut GeneratorBuffers, z: &[f32], frames: &mut [f32]) {
+    pub fn forward(&self, exec: Exec<'_>, buf: &mut StackBuffers, z: &[f32], frames: &mut [f32]) {
         let flat = &mut buf.flat[..z.len() / self.fc.cols * self.fc.rows];
         self.fc.run(exec, z, flat);
         let frame_len = self.deconvs.last().map_or(0, |d| d.shape.output.len());

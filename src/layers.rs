@@ -1,8 +1,9 @@
 //! The two kinds of layer the networks are made of, loaded and packed once.
 
+use crate::plan::{zeros, StackPlan};
 use crate::pool::{share, Disjoint, Exec};
 use crate::weights::{Init, Tensor, TensorSource};
-use crate::Result;
+use crate::{Error, Result};
 use alloc::format;
 use alloc::vec::Vec;
 use core::sync::atomic::{AtomicUsize, Ordering};
@@ -137,24 +138,47 @@ pub(crate) struct Planes {
 }
 
 impl Planes {
-    /// Zeroed buffers for `convs`, shared by up to `threads` threads.
-    pub fn new(convs: &[ConvLayer], threads: usize) -> Self {
-        let transformed = convs.iter().filter_map(|c| c.winograd.map(|w| w.input_len())).max();
-        Planes {
-            inputs: convs.iter().map(|c| alloc::vec![0.0; c.shape.input.len()]).collect(),
-            transformed: alloc::vec![0.0; transformed.unwrap_or(0)],
-            products: alloc::vec![0.0; if transformed.is_some() { threads * winograd::SCRATCH_LEN } else { 0 }],
-        }
-    }
-
-    /// Floats held.
-    pub fn len(&self) -> usize {
-        self.inputs.iter().map(Vec::len).sum::<usize>() + self.transformed.len() + self.products.len()
+    /// The zeroed buffers of set `set` of `stack`.
+    fn new(stack: &StackPlan, set: usize, plan_bytes: usize) -> Result<Self> {
+        let products = if set == 0 {
+            stack.products_first
+        } else {
+            stack.products_other
+        };
+        Ok(Planes {
+            inputs: stack
+                .inputs
+                .iter()
+                .map(|&len| zeros(len, plan_bytes))
+                .collect::<Result<_>>()?,
+            transformed: zeros(stack.transformed, plan_bytes)?,
+            products: zeros(products, plan_bytes)?,
+        })
     }
 
     /// The first layer's input plane.
     pub fn input(&mut self) -> &mut [f32] {
         &mut self.inputs[0]
+    }
+}
+
+/// Per-simulator buffers of a convolution stack (the encoder's or the generator's), as planned.
+pub(crate) struct StackBuffers {
+    /// The padded input plane of every convolution: one set, or one per thread when threads
+    /// take whole items of a batch.
+    pub planes: Vec<Planes>,
+    /// The flat features between the convolutions and the dense layer, for a whole batch.
+    pub flat: Vec<f32>,
+}
+
+impl StackBuffers {
+    pub fn new(stack: &StackPlan, flat: usize, plan_bytes: usize) -> Result<Self> {
+        Ok(StackBuffers {
+            planes: (0..stack.sets)
+                .map(|set| Planes::new(stack, set, plan_bytes))
+                .collect::<Result<_>>()?,
+            flat: zeros(flat, plan_bytes)?,
+        })
     }
 }
 
@@ -209,14 +233,6 @@ pub(crate) fn for_each_item(
     });
 }
 
-/// Sets of planes for `convs`: the first shared by `threads` threads, the others (one per
-/// further thread, when threads take whole items of a batch) used by one each.
-pub(crate) fn plane_sets(convs: &[ConvLayer], sets: usize, threads: usize) -> Vec<Planes> {
-    (0..sets)
-        .map(|s| Planes::new(convs, if s == 0 { threads } else { 1 }))
-        .collect()
-}
-
 /// BatchNorm parameters as read from a source.
 pub(crate) struct BatchNormParams([Vec<f32>; 4]);
 
@@ -232,14 +248,24 @@ impl BatchNormParams {
     }
 }
 
+/// Reads BatchNorm `name`'s four tensors; a negative running variance is an error.
 pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: usize) -> Result<BatchNormParams> {
     let mut read = |part: &str, init| src.f32(&format!("{name}.{part}"), &[channels], init);
-    Ok(BatchNormParams([
+    let params = [
         read("weight", Init::Ones)?,
         read("bias", Init::Zeros)?,
         read("running_mean", Init::Zeros)?,
         read("running_var", Init::Ones)?,
-    ]))
+    ];
+    if let Some(index) = params[3].iter().position(|&v| v < 0.0) {
+        return Err(Error::BadWeight {
+            name: format!("{name}.running_var"),
+            index,
+            value: params[3][index],
+            expected: "a variance, at least 0",
+        });
+    }
+    Ok(BatchNormParams(params))
 }
 
 /// Below this many weights a dense layer is not worth sharing between threads: the pool's

@@ -25,7 +25,7 @@
 //! // A small config with seeded random weights; real use: `Model::load("weights/default.safetensors")`.
 //! let config = Config { height: 32, width: 64, base_channels: 4, z_dim: 16, hidden_dim: 16, ..Config::COMMA };
 //! let model = Model::random(&config, 7, WeightDtype::F32)?;
-//! let mut sim = Simulator::new(&model);
+//! let mut sim = Simulator::new(&model)?;
 //!
 //! let frame = vec![0.0f32; config.frame_len()]; // HWC, values in [-1, 1]
 //! let mut z = vec![0.0; config.z_dim];
@@ -52,6 +52,7 @@ mod error;
 mod generator;
 mod layers;
 mod model;
+mod plan;
 mod pool;
 mod simulator;
 mod transition;
@@ -62,5 +63,6 @@ pub use drivesim_kernels::{Isa, IsaLevel};
 pub use episodes::{Episode, Episodes};
 pub use error::{Error, Result};
 pub use model::Model;
+pub use plan::Plan;
 pub use simulator::Simulator;
 pub use weights::WeightDtype;

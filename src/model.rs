@@ -8,7 +8,8 @@ use crate::{Config, Result};
 
 /// The encoder, transition and generator of "Learning a Driving Simulator", ready to run.
 ///
-/// Loading validates every tensor against the config, folds BatchNorm (PyTorch eval semantics:
+/// Loading validates every tensor against the config (shape, one dtype for the file, no
+/// tensor the config does not use, every value finite, BatchNorm variances non-negative), folds BatchNorm (PyTorch eval semantics:
 /// running statistics, eps 1e-5) into the neighbouring layers and repacks weights into the
 /// kernels' layouts, once. A `Model` is immutable; run it through a [`crate::Simulator`].
 pub struct Model {
@@ -45,14 +46,17 @@ impl Model {
     }
 
     fn build(config: Config, src: &mut dyn TensorSource) -> Result<Model> {
-        Ok(Model {
+        let model = Model {
             encoder: Encoder::load(&config, src)?,
             generator: Generator::load(&config, src)?,
             transition: Transition::load(&config, src)?,
             config,
-        })
+        };
+        src.finish()?;
+        Ok(model)
     }
 
+    /// The architecture the weights were built for.
     pub fn config(&self) -> &Config {
         &self.config
     }

@@ -1,8 +1,8 @@
 //! Running the networks in buffers planned once.
 
-use crate::encoder::EncoderBuffers;
-use crate::error::{expect_finite, expect_len};
-use crate::generator::GeneratorBuffers;
+use crate::error::{expect_finite, expect_finite_output, expect_frames, expect_len};
+use crate::layers::StackBuffers;
+use crate::plan::{zeros, Plan};
 use crate::pool::{Exec, Pool};
 use crate::transition::TransitionBuffers;
 use crate::{Config, Error, Model, Result};
@@ -12,19 +12,25 @@ use drivesim_kernels::Isa;
 /// Runs a [`Model`]: encodes frames, steps the transition model, generates frames, and rolls
 /// the three together into a hallucinated drive.
 ///
-/// Every buffer is allocated by [`Simulator::new`] / [`Simulator::with_batch`]; after that no
-/// method allocates. Frames are `&[f32]` of `height * width * channels` values in HWC order
-/// (pixel-interleaved RGB) scaled to [-1, 1]; codes are `z_dim` values; actions are
-/// `action_dim` values, (speed, steering) for the comma config. Methods that take several
+/// Every buffer is sized by a [`Plan`] and allocated by [`Simulator::new`] /
+/// [`Simulator::with_batch`] (an unaffordable plan is an [`Error::OutOfMemory`], never an
+/// abort); after that no method allocates. Frames are `&[f32]` of `height * width * channels`
+/// values in HWC order (pixel-interleaved RGB) in [-1, 1]; codes are `z_dim` values; actions
+/// are `action_dim` values, (speed, steering) for the comma config. Methods that take several
 /// frames, codes or actions take them back to back in one slice, up to the planned batch.
+///
+/// Results are bit-identical for the same inputs whatever the thread count, the batch an item
+/// is computed in and what the simulator did before, on one machine and instruction set. Every
+/// `Ok` result is finite: inputs must be finite (frames within [-1, 1]), and an output that
+/// overflowed is an [`Error::NonFiniteOutput`].
 pub struct Simulator<'m> {
     model: &'m Model,
     isa: Isa,
     /// Threads that share each convolution and large dense layer (none: the caller's alone).
     pool: Option<Pool>,
-    max_batch: usize,
-    encoder: EncoderBuffers,
-    generator: GeneratorBuffers,
+    plan: Plan,
+    encoder: StackBuffers,
+    generator: StackBuffers,
     transition: TransitionBuffers,
     /// Hidden state and codes of a rollout.
     rollout_h: Vec<f32>,
@@ -33,26 +39,33 @@ pub struct Simulator<'m> {
 
 impl<'m> Simulator<'m> {
     /// A simulator for one frame or code per call.
-    pub fn new(model: &'m Model) -> Self {
+    pub fn new(model: &'m Model) -> Result<Self> {
         Simulator::with_batch(model, 1)
     }
 
     /// A simulator for up to `max_batch` frames or codes per call (at least 1). Batches
     /// share each pass over the dense layers' weights, which dominate at batch 1.
-    pub fn with_batch(model: &'m Model, max_batch: usize) -> Self {
-        let max_batch = max_batch.max(1);
+    /// [`Plan::new`] tells the memory this needs without allocating it.
+    pub fn with_batch(model: &'m Model, max_batch: usize) -> Result<Self> {
+        let plan = Plan::new(model.config(), max_batch, 1)?;
+        Simulator::from_plan(model, plan, None)
+    }
+
+    /// Allocates the buffers of `plan`, for `pool`'s threads.
+    fn from_plan(model: &'m Model, plan: Plan, pool: Option<Pool>) -> Result<Self> {
         let c = model.config();
-        Simulator {
+        let bytes = plan.bytes();
+        Ok(Simulator {
             model,
             isa: Isa::best(),
-            pool: None,
-            max_batch,
-            encoder: model.encoder.buffers(max_batch, 1, 1),
-            generator: model.generator.buffers(max_batch, 1, 1),
-            transition: model.transition.buffers(max_batch),
-            rollout_h: alloc::vec![0.0; c.hidden_dim],
-            rollout_z: [alloc::vec![0.0; c.z_dim], alloc::vec![0.0; c.z_dim]],
-        }
+            pool,
+            encoder: StackBuffers::new(&plan.encoder, plan.encoder_flat, bytes)?,
+            generator: StackBuffers::new(&plan.generator, plan.generator_flat, bytes)?,
+            transition: TransitionBuffers::new(&plan)?,
+            rollout_h: zeros(c.hidden_dim, bytes)?,
+            rollout_z: [zeros(c.z_dim, bytes)?, zeros(c.z_dim, bytes)?],
+            plan,
+        })
     }
 
     /// Uses the kernels of `isa` instead of the best this CPU has (e.g. to compare paths).
@@ -66,19 +79,21 @@ impl<'m> Simulator<'m> {
     ///
     /// A single frame or code is shared layer by layer: each convolution by blocks of output
     /// channels, each large dense layer (the transition's included) by rows. A batch of at
-    /// least `threads` items is shared item by item instead, so this also plans a set of
-    /// activation planes per thread when the planned batch is above 1 (see
-    /// [`Simulator::buffer_bytes`]).
+    /// least `threads` items is shared item by item instead, so this plans again, with a set
+    /// of activation planes per thread when the planned batch is above 1 (see
+    /// [`Simulator::buffer_bytes`]). If the threads cannot be started, those that were are
+    /// stopped and joined before the error returns.
     #[cfg(feature = "std")]
-    pub fn with_threads(mut self, threads: usize) -> Result<Self> {
-        self.pool = match threads {
-            0 | 1 => None,
+    pub fn with_threads(self, threads: usize) -> Result<Self> {
+        let plan = Plan::new(self.model.config(), self.plan.max_batch(), threads)?;
+        let pool = match plan.threads() {
+            1 => None,
             n => Some(Pool::new(n).map_err(|source| Error::Threads { requested: n, source })?),
         };
-        let sets = if self.max_batch > 1 { self.threads() } else { 1 };
-        self.encoder = self.model.encoder.buffers(self.max_batch, sets, self.threads());
-        self.generator = self.model.generator.buffers(self.max_batch, sets, self.threads());
-        Ok(self)
+        // The old buffers go before the new ones are allocated.
+        let (model, isa) = (self.model, self.isa);
+        drop(self);
+        Ok(Simulator::from_plan(model, plan, pool)?.with_isa(isa))
     }
 
     /// Threads that share each frame's work, the caller's included.
@@ -91,21 +106,21 @@ impl<'m> Simulator<'m> {
         self.isa
     }
 
+    /// The model's config.
     pub fn config(&self) -> &Config {
         self.model.config()
     }
 
-    /// Bytes of the buffers this simulator allocated when it was planned: all the memory its
-    /// calls use besides the model's weights (and a few hundred bytes of bookkeeping).
+    /// Bytes of the buffers this simulator allocated when it was planned ([`Plan::bytes`]):
+    /// all the memory its calls use besides the model's weights (and a few hundred bytes of
+    /// bookkeeping).
     pub fn buffer_bytes(&self) -> usize {
-        let rollout = self.rollout_h.len() + self.rollout_z.iter().map(Vec::len).sum::<usize>();
-        let floats = self.encoder.len() + self.generator.len() + self.transition.len() + rollout;
-        floats * core::mem::size_of::<f32>()
+        self.plan.bytes()
     }
 
     /// The largest batch one call takes.
     pub fn max_batch(&self) -> usize {
-        self.max_batch
+        self.plan.max_batch()
     }
 
     /// How many items of `item_len` values `data` holds: a whole, non-zero number, at most the batch.
@@ -118,9 +133,9 @@ impl<'m> Simulator<'m> {
             });
         }
         let n = data.len() / item_len;
-        if n > self.max_batch {
+        if n > self.max_batch() {
             return Err(Error::BatchTooLarge {
-                max: self.max_batch,
+                max: self.max_batch(),
                 found: n,
             });
         }
@@ -145,13 +160,13 @@ impl<'m> Simulator<'m> {
         if let Some(logsigma) = logsigma.as_deref() {
             expect_len("logsigma", logsigma, codes_len)?;
         }
-        expect_finite("frames", frames)?;
+        expect_frames("frames", frames)?;
         let exec = Exec {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
         self.model.encoder.forward(exec, &mut self.encoder, frames, z, logsigma);
-        Ok(())
+        expect_finite_output("z", z)
     }
 
     /// Generates one frame per code, with values in [-1, 1].
@@ -164,38 +179,52 @@ impl<'m> Simulator<'m> {
             pool: self.pool.as_ref(),
         };
         self.model.generator.forward(exec, &mut self.generator, z, frames);
-        Ok(())
+        expect_finite_output("frames", frames)
     }
 
     /// One transition step per code: updates the hidden states `h` in place and writes the
     /// predicted next codes to `z_next`. Start a sequence with `h` all zeros.
+    pub fn transition(&mut self, z: &[f32], h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
+        let c = *self.config();
+        let n = self.batch_of("z", z, c.z_dim)?;
+        expect_len("h", h, n * c.hidden_dim)?;
+        expect_finite("z", z)?;
+        self.step(n, h, Some(z), action, z_next)
+    }
+
+    /// One transition step per code fed its own prediction: the input code is the one `h`
+    /// predicts, `A h + a` (what the step that left `h` wrote to its `z_next`), so `z` is
+    /// not read but written: the predicted next codes. This is the step of a rollout after its
+    /// seeds and of a controller's closed loop.
     ///
-    /// A model fed its own predictions (`z` is the `z_next` of this simulator's last call, and
-    /// `h` what that call left) needs no `V`: `V z = V (A h + a)`, so with f32 weights the model
-    /// folds `V A` into `W` at load and such a step reads a third fewer weights. The simulator
-    /// recognises these steps by comparing `h` and `z` with what its last step wrote. The
-    /// result differs from the two-product step only by rounding.
+    /// `V z = V (A h + a)`, so with f32 weights the model folds `V A` into `W` at load and
+    /// such a step reads a third fewer weights; with f16 weights it computes `A h + a` first.
+    /// The result differs from [`Simulator::transition`] given that code only by rounding.
     ///
     /// ```
     /// # use drivesim::{Config, Model, Simulator, WeightDtype};
     /// # let config = Config { height: 16, width: 32, base_channels: 2, z_dim: 8, hidden_dim: 8, ..Config::COMMA };
     /// # let model = Model::random(&config, 1, WeightDtype::F32)?;
-    /// let mut sim = Simulator::new(&model);
-    /// let (mut z, mut z_next, mut h) = (vec![0.1; 8], vec![0.0; 8], vec![0.0; 8]);
-    /// for steering in [0.0, 0.1, 0.2] {
-    ///     sim.transition(&z, &mut h, &[10.0, steering], &mut z_next)?;
-    ///     // Fed back: every step after the first is the folded one.
-    ///     std::mem::swap(&mut z, &mut z_next);
+    /// let mut sim = Simulator::new(&model)?;
+    /// let (seed, mut z, mut h) = (vec![0.1; 8], vec![0.0; 8], vec![0.0; 8]);
+    /// sim.transition(&seed, &mut h, &[10.0, 0.0], &mut z)?; // from an encoded frame
+    /// for steering in [0.1, 0.2, 0.3] {
+    ///     sim.transition_fed_back(&mut h, &[10.0, steering], &mut z)?; // from its own prediction
     /// }
     /// # Ok::<(), drivesim::Error>(())
     /// ```
-    pub fn transition(&mut self, z: &[f32], h: &mut [f32], action: &[f32], z_next: &mut [f32]) -> Result<()> {
+    pub fn transition_fed_back(&mut self, h: &mut [f32], action: &[f32], z: &mut [f32]) -> Result<()> {
         let c = *self.config();
-        let n = self.batch_of("z", z, c.z_dim)?;
-        expect_len("h", h, n * c.hidden_dim)?;
+        let n = self.batch_of("h", h, c.hidden_dim)?;
+        self.step(n, h, None, action, z)
+    }
+
+    /// The checks and the step shared by [`Simulator::transition`] and
+    /// [`Simulator::transition_fed_back`], for `n` items.
+    fn step(&mut self, n: usize, h: &mut [f32], z: Option<&[f32]>, action: &[f32], z_next: &mut [f32]) -> Result<()> {
+        let c = *self.config();
         expect_len("action", action, n * c.action_dim)?;
         expect_len("z_next", z_next, n * c.z_dim)?;
-        expect_finite("z", z)?;
         expect_finite("h", h)?;
         expect_finite("action", action)?;
         let exec = Exec {
@@ -205,7 +234,8 @@ impl<'m> Simulator<'m> {
         self.model
             .transition
             .step(exec, &mut self.transition, h, z, action, z_next);
-        Ok(())
+        expect_finite_output("h", h)?;
+        expect_finite_output("z_next", z_next)
     }
 
     /// Hallucinates a drive: seeds the transition model with real frames, then feeds its own
@@ -216,8 +246,8 @@ impl<'m> Simulator<'m> {
     /// teacher-forced (their input is the encoded seed frame), step `S - 1` starts from the
     /// last seed frame's code, and every later step from the previous prediction. The `T`
     /// predicted codes (frames `S .. S + T`) go to `codes`; if `frames` is given, the generated
-    /// frames go there too. The hidden state starts at zero. Steps from a prediction take the
-    /// folded form described at [`Simulator::transition`].
+    /// frames go there too. The hidden state starts at zero. Steps from a prediction are
+    /// [`Simulator::transition_fed_back`]'s.
     pub fn rollout(
         &mut self,
         seed_frames: &[f32],
@@ -280,18 +310,25 @@ impl<'m> Simulator<'m> {
         if let Some(frames) = frames.as_deref() {
             expect_len("frames", frames, predicted * c.frame_len())?;
         }
-        expect_finite(buffer, data)?;
+        match seeds {
+            Seeds::Frames(f) => expect_frames(buffer, f)?,
+            Seeds::Codes(z) => expect_finite(buffer, z)?,
+        }
         expect_finite("actions", actions)?;
 
         let exec = Exec {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
+        // An unfolded model's fed-back step would recompute `A h + a`: the last prediction,
+        // bit for bit (the kernels sum in one order whatever the split), so give it that.
+        let folds = self.model.transition.folds();
         self.rollout_h.fill(0.0);
         let [z, z_next] = &mut self.rollout_z;
         for (step, action) in actions.chunks_exact(c.action_dim).enumerate() {
+            let fed_back = step >= seed_count;
             match seeds {
-                _ if step >= seed_count => core::mem::swap(z, z_next),
+                _ if fed_back => core::mem::swap(z, z_next),
                 Seeds::Frames(f) => {
                     self.model
                         .encoder
@@ -299,16 +336,19 @@ impl<'m> Simulator<'m> {
                 }
                 Seeds::Codes(codes) => z.copy_from_slice(&codes[step * item_len..][..item_len]),
             }
+            let input = if fed_back && folds { None } else { Some(&z[..]) };
             self.model
                 .transition
-                .step(exec, &mut self.transition, &mut self.rollout_h, z, action, z_next);
+                .step(exec, &mut self.transition, &mut self.rollout_h, input, action, z_next);
             if let Some(t) = (step + 1).checked_sub(seed_count) {
                 codes[t * c.z_dim..][..c.z_dim].copy_from_slice(z_next);
                 if let Some(frames) = frames.as_deref_mut() {
                     let frame = &mut frames[t * c.frame_len()..][..c.frame_len()];
                     self.model.generator.forward(exec, &mut self.generator, z_next, frame);
+                    expect_finite_output("frames", frame)?;
                 }
             }
+            expect_finite_output("codes", z_next)?;
         }
         Ok(())
     }

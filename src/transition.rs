@@ -1,6 +1,7 @@
 //! The transition model: `h' = tanh(W h + V z + U c + b)`, `z' = A h' + a`.
 
 use crate::layers::{DenseLayer, DenseWeights};
+use crate::plan::{zeros, Plan};
 use crate::pool::Exec;
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::{Config, Result};
@@ -18,32 +19,20 @@ pub(crate) struct Transition {
     output: DenseLayer,
 }
 
-/// Per-simulator scratch of the transition, sized once.
+/// Per-simulator scratch of the transition, as planned.
 pub(crate) struct TransitionBuffers {
     /// Each batch element's input, `[h | z | c]` or `[h | c]`.
     concat: Vec<f32>,
-    /// `[h' | z']` of the last step (with `fed_back` only), and how many of its floats are set.
-    /// A step given exactly these is fed its own prediction.
-    last: Vec<f32>,
-    last_len: usize,
+    /// The code `A h + a` that a fed-back step of an unfolded (f16) model recomputes.
+    code: Vec<f32>,
 }
 
 impl TransitionBuffers {
-    /// Floats held.
-    pub fn len(&self) -> usize {
-        self.concat.len() + self.last.len()
-    }
-
-    /// Whether `z` is the code the last step predicted along with `h`.
-    fn predicted(&self, h: &[f32], z: &[f32]) -> bool {
-        let (last_h, last_z) = self.last[..self.last_len].split_at(self.last_len.min(h.len()));
-        last_h == h && last_z == z
-    }
-
-    fn remember(&mut self, h: &[f32], z: &[f32]) {
-        self.last_len = h.len() + z.len();
-        self.last[..h.len()].copy_from_slice(h);
-        self.last[h.len()..self.last_len].copy_from_slice(z);
+    pub fn new(plan: &Plan) -> Result<Self> {
+        Ok(TransitionBuffers {
+            concat: zeros(plan.transition_concat, plan.bytes())?,
+            code: zeros(plan.transition_code, plan.bytes())?,
+        })
     }
 }
 
@@ -78,36 +67,34 @@ impl Transition {
         })
     }
 
-    pub fn buffers(&self, max_batch: usize) -> TransitionBuffers {
-        let last = match self.fed_back {
-            Some(_) => self.input.rows + self.output.rows,
-            None => 0,
-        };
-        TransitionBuffers {
-            concat: alloc::vec![0.0; max_batch * self.input.cols],
-            last: alloc::vec![0.0; max_batch * last],
-            last_len: 0,
-        }
+    /// Whether steps fed their own prediction run on `[W + V A | U]` (f32 weights).
+    pub fn folds(&self) -> bool {
+        self.fed_back.is_some()
     }
 
-    /// One step for a batch (see [`drivesim_kernels::rnn_step`]): from `[W + V A | U]` when
-    /// `z` is what the last step predicted with `h` (as in a rollout), else from `[W | V | U]`.
-    /// The prediction is recognised rather than declared by the caller, so that a wrong claim
-    /// cannot change the result. With threads, each product is split between them by rows
-    /// ([`DenseLayer::run`]), so the two products are two tasks, the second waiting for all
-    /// of `h'`.
+    /// One step for a batch (see [`drivesim_kernels::rnn_step`]) from the codes `z`, or, with
+    /// `z` `None`, from the codes `h` itself predicts (`A h + a`, as in a rollout): then from
+    /// `[W + V A | U]` where the model folds, else from `A h + a` computed here. The caller
+    /// chooses: the result depends on the arguments alone. With threads, each product is split
+    /// between them by rows ([`DenseLayer::run`]), so the two products are two tasks, the
+    /// second waiting for all of `h'`.
     pub fn step(
         &self,
         exec: Exec<'_>,
         buf: &mut TransitionBuffers,
         h: &mut [f32],
-        z: &[f32],
+        z: Option<&[f32]>,
         action: &[f32],
         z_next: &mut [f32],
     ) {
-        let (input, z) = match &self.fed_back {
-            Some(fed_back) if buf.predicted(h, z) => (fed_back, None),
-            _ => (&self.input, Some(z)),
+        let (input, z) = match (&self.fed_back, z) {
+            (_, Some(z)) => (&self.input, Some(z)),
+            (Some(fed_back), None) => (fed_back, None),
+            (None, None) => {
+                let code = &mut buf.code[..h.len() / self.input.rows * self.output.rows];
+                self.output.run(exec, h, code);
+                (&self.input, Some(&*code))
+            }
         };
         let rnn = Rnn {
             input: input.matrix(),
@@ -122,9 +109,6 @@ impl Transition {
             rnn.gather(concat, h, z, action);
             input.run(exec, concat, h);
             self.output.run(exec, h, z_next);
-        }
-        if self.fed_back.is_some() {
-            buf.remember(h, z_next);
         }
     }
 }

@@ -3,7 +3,7 @@
 
 use crate::{Config, Error, Result};
 use alloc::format;
-use alloc::string::ToString;
+use alloc::string::{String, ToString};
 use alloc::vec::Vec;
 use drivesim_kernels::f16;
 use safetensors::{Dtype, SafeTensors};
@@ -46,19 +46,45 @@ pub(crate) trait TensorSource {
     fn f32(&mut self, name: &str, shape: &[usize], init: Init) -> Result<Vec<f32>> {
         Ok(self.tensor(name, shape, init)?.into_f32())
     }
+
+    /// Called once every tensor was read: a file must hold no others.
+    fn finish(&self) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// A parsed safetensors weight file, borrowing its bytes.
 pub(crate) struct SafetensorsSource<'a> {
     file: SafeTensors<'a>,
+    /// The tensors handed out so far.
+    read: Vec<String>,
+}
+
+fn malformed(e: safetensors::SafeTensorError) -> Error {
+    Error::Malformed {
+        what: "weight file",
+        reason: format!("{e:?}"),
+    }
+}
+
+/// The index and value of the first non-finite value, as a [`Error::BadWeight`].
+fn expect_finite_weights(name: &str, values: impl Iterator<Item = f32>) -> Result<()> {
+    for (index, value) in values.enumerate() {
+        if !value.is_finite() {
+            return Err(Error::BadWeight {
+                name: name.to_string(),
+                index,
+                value,
+                expected: "a finite number",
+            });
+        }
+    }
+    Ok(())
 }
 
 impl<'a> SafetensorsSource<'a> {
     /// Parses the header and the config; tensors are read on demand.
     pub(crate) fn parse(bytes: &'a [u8]) -> Result<(Config, Self)> {
-        let malformed = |e: safetensors::SafeTensorError| Error::Malformed {
-            reason: format!("{e:?}"),
-        };
         let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
         let json = metadata
             .metadata()
@@ -69,7 +95,27 @@ impl<'a> SafetensorsSource<'a> {
             })?;
         let config = Config::from_json(json)?;
         let file = SafeTensors::deserialize(bytes).map_err(malformed)?;
-        Ok((config, SafetensorsSource { file }))
+        // One supported dtype per file (`weights/README.md`): name the first tensor, in name
+        // order, that breaks it.
+        let mut tensors = file.tensors();
+        tensors.sort_by(|a, b| a.0.cmp(&b.0));
+        let supported = [Dtype::F32, Dtype::F16, Dtype::BF16];
+        if let Some((name, view)) = tensors.iter().find(|(_, v)| !supported.contains(&v.dtype())) {
+            return Err(Error::Dtype {
+                name: name.clone(),
+                found: format!("{:?}", view.dtype()),
+            });
+        }
+        if let Some((_, view)) = tensors.first() {
+            if let Some((name, other)) = tensors.iter().find(|(_, v)| v.dtype() != view.dtype()) {
+                return Err(Error::MixedDtypes {
+                    name: name.clone(),
+                    found: format!("{:?}", other.dtype()),
+                    expected: format!("{:?}", view.dtype()),
+                });
+            }
+        }
+        Ok((config, SafetensorsSource { file, read: Vec::new() }))
     }
 }
 
@@ -86,9 +132,10 @@ impl TensorSource for SafetensorsSource<'_> {
                 found: view.shape().to_vec(),
             });
         }
+        self.read.push(name.to_string());
         // The bytes carry no alignment guarantee: decode little-endian values one by one.
         let data = view.data();
-        Ok(match view.dtype() {
+        let tensor = match view.dtype() {
             Dtype::F32 => Tensor::F32(
                 data.chunks_exact(4)
                     .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
@@ -110,7 +157,21 @@ impl TensorSource for SafetensorsSource<'_> {
                     found: format!("{other:?}"),
                 })
             }
-        })
+        };
+        match &tensor {
+            Tensor::F32(v) => expect_finite_weights(name, v.iter().copied())?,
+            Tensor::F16(v) => expect_finite_weights(name, v.iter().map(|x| x.to_f32()))?,
+        }
+        Ok(tensor)
+    }
+
+    fn finish(&self) -> Result<()> {
+        let mut names = self.file.names();
+        names.sort();
+        match names.into_iter().find(|n| !self.read.iter().any(|r| r == *n)) {
+            Some(name) => Err(Error::UnexpectedTensor { name: name.to_string() }),
+            None => Ok(()),
+        }
     }
 }
 
@@ -146,15 +207,21 @@ impl RandomSource {
 
 impl TensorSource for RandomSource {
     fn tensor(&mut self, _name: &str, shape: &[usize], init: Init) -> Result<Tensor> {
-        let len = shape.iter().product();
-        let values: Vec<f32> = match init {
-            Init::Zeros => alloc::vec![0.0; len],
-            Init::Ones => alloc::vec![1.0; len],
+        // The config's bounds keep the product from overflowing; the allocator may still refuse.
+        let len: usize = shape.iter().product();
+        let mut values: Vec<f32> = Vec::new();
+        values.try_reserve_exact(len).map_err(|_| Error::OutOfMemory {
+            what: "the model's weights",
+            bytes: len.checked_mul(4),
+        })?;
+        match init {
+            Init::Zeros => values.resize(len, 0.0),
+            Init::Ones => values.resize(len, 1.0),
             Init::FanIn(fan_in) => {
                 let bound = (1.0 / drivesim_kernels::math::sqrt(fan_in.max(1) as f64)) as f32;
-                (0..len).map(|_| bound * self.next_signed()).collect()
+                values.extend((0..len).map(|_| bound * self.next_signed()));
             }
-        };
+        }
         Ok(match self.dtype {
             WeightDtype::F32 => Tensor::F32(values),
             WeightDtype::F16 => Tensor::F16(values.iter().map(|&v| f16::from_f32(v)).collect()),

@@ -191,7 +191,7 @@ fn wrong_buffers_and_non_finite_inputs_are_rejected() {
         ..Config::COMMA
     };
     let model = Model::random(&config, 1, WeightDtype::F32).unwrap();
-    let mut sim = Simulator::with_batch(&model, 2);
+    let mut sim = Simulator::with_batch(&model, 2).unwrap();
     let (frame, z) = (config.frame_len(), config.z_dim);
     let mut code = vec![0.0; z];
 

@@ -57,10 +57,11 @@ fn hot_paths_allocate_nothing() {
         let model = Model::random(&config, 3, dtype).unwrap();
         for isa in drivesim::Isa::supported() {
             // Planning allocates the buffers it reports, and little else.
-            let (sim, bytes) = bytes_during(|| Simulator::with_batch(&model, 3).with_isa(isa));
+            let (sim, bytes) = bytes_during(|| Simulator::with_batch(&model, 3).unwrap().with_isa(isa));
             assert!(
                 bytes >= sim.buffer_bytes() && bytes <= sim.buffer_bytes() + 1024,
-                "{bytes} bytes allocated"
+                "{bytes} bytes allocated, {} planned",
+                sim.buffer_bytes()
             );
             // Worker threads are started here, before counting; dispatching to them is free.
             let mut sim = sim.with_threads(2).unwrap();
@@ -83,8 +84,8 @@ fn hot_paths_allocate_nothing() {
                 sim.encode_with_logsigma(&frames, &mut z, &mut logsigma).unwrap();
                 sim.transition(&z, &mut h, &actions[..3 * config.action_dim], &mut z_next)
                     .unwrap();
-                // Fed its own prediction: the folded step.
-                sim.transition(&z_next, &mut h, &actions[..3 * config.action_dim], &mut z)
+                // Fed its own prediction: the folded step with f32 weights.
+                sim.transition_fed_back(&mut h, &actions[..3 * config.action_dim], &mut z_next)
                     .unwrap();
                 sim.generate(&z_next, &mut out).unwrap();
                 sim.rollout(

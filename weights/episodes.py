@@ -25,6 +25,9 @@ class Episodes:
     episode_starts: np.ndarray
 
     def __post_init__(self):
+        self.frames = as_array(self.frames, np.uint8, "frames")
+        self.actions = as_array(self.actions, np.float32, "actions")
+        self.episode_starts = as_array(self.episode_starts, np.int64, "episode_starts")
         validate(self.frames, self.actions, self.episode_starts)
 
     def __len__(self):
@@ -52,12 +55,30 @@ class Episodes:
         )
 
 
+def as_array(x, dtype, name):
+    """Lists (and other array-likes) become arrays of the format's dtype, if no value changes.
+    An ndarray is passed through as is: a wrong dtype there is a caller's bug, left to validate()."""
+    if isinstance(x, np.ndarray):
+        return x
+    try:
+        a = np.asarray(x)
+    except ValueError as e:  # ragged nested lists
+        raise EpisodesError(f"{name}: not a regular array ({e})") from e
+    if a.dtype.kind not in "iuf":
+        raise EpisodesError(f"{name} must be numbers, got {type(x).__name__} of {a.dtype}")
+    with np.errstate(invalid="ignore"):  # NaN to int: caught by the comparison below
+        b = a.astype(dtype)
+    if b.dtype.kind != "f" and not np.array_equal(a, b):
+        raise EpisodesError(f"{name}: values do not fit {b.dtype}")
+    return b
+
+
 def validate(frames, actions, starts):
     def need(ok, what):
         if not ok:
             raise EpisodesError(what)
 
-    need(isinstance(frames, np.ndarray) and frames.dtype == np.uint8, "frames must be uint8")
+    need(frames.dtype == np.uint8, f"frames must be uint8, got {frames.dtype}")
     need(frames.ndim == 4 and frames.shape[3] == 3, f"frames must be [N,H,W,3], got {frames.shape}")
     need(len(frames) > 0, "no frames")
     need(actions.dtype == np.float32, f"actions must be float32, got {actions.dtype}")

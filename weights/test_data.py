@@ -1,5 +1,7 @@
 """Tests of the data tools: episodes format, comma converter, CarRacing recorder."""
 
+import re
+
 import h5py
 import numpy as np
 import pytest
@@ -45,6 +47,23 @@ def test_episodes_reject_bad_arrays():
         episodes.Episodes(e.frames, e.actions[:5], e.episode_starts)
 
 
+def test_episodes_from_lists():
+    # Lists are converted to the format's dtypes when no value changes, and rejected otherwise.
+    e = make_episodes()
+    back = episodes.Episodes(e.frames.tolist(), e.actions.tolist(), [0, 4])
+    for k in ("frames", "actions", "episode_starts"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(e, k))
+        assert getattr(back, k).dtype == getattr(e, k).dtype
+    with pytest.raises(episodes.EpisodesError, match="frames: values do not fit uint8"):
+        episodes.Episodes((e.frames.astype(np.int64) + 256).tolist(), e.actions, e.episode_starts)
+    with pytest.raises(episodes.EpisodesError, match="episode_starts: values do not fit int64"):
+        episodes.Episodes(e.frames, e.actions, [0, 4.5])
+    with pytest.raises(episodes.EpisodesError, match="actions: not a regular array"):
+        episodes.Episodes(e.frames, [[1.0, 2.0], [3.0]], e.episode_starts)
+    with pytest.raises(episodes.EpisodesError, match="actions must be numbers"):
+        episodes.Episodes(e.frames, [["a", "b"]] * 6, e.episode_starts)
+
+
 def test_episodes_read_errors(tmp_path):
     with pytest.raises(episodes.EpisodesError, match="no such file"):
         episodes.read(tmp_path / "missing.safetensors")
@@ -56,8 +75,8 @@ def test_episodes_read_errors(tmp_path):
 def write_drive(root, rows_per_frame, n_frames=10):
     """A synthetic camera/log pair. Frame f is filled with the value 10*f; every log row of
     frame f has speed f and steering 2*f, except one glitch row with steering 999."""
-    (root / "camera").mkdir(exist_ok=True)
-    (root / "log").mkdir(exist_ok=True)
+    (root / "camera").mkdir(parents=True, exist_ok=True)
+    (root / "log").mkdir(parents=True, exist_ok=True)
     x = np.repeat(np.arange(n_frames, dtype=np.uint8) * 10, 3 * 160 * 320).reshape(n_frames, 3, 160, 320)
     ptr = np.concatenate([np.full(k, f, dtype=np.float64) for f, k in enumerate(rows_per_frame)])
     speed, steer = ptr.copy(), 2 * ptr
@@ -67,6 +86,12 @@ def write_drive(root, rows_per_frame, n_frames=10):
     with h5py.File(root / "log" / "d.h5", "w") as f:
         f["cam1_ptr"], f["speed"], f["steering_angle"] = ptr, speed, steer
     return root / "camera" / "d.h5"
+
+
+def set_log(root, name, values):
+    with h5py.File(root / "log" / "d.h5", "a") as f:
+        del f[name]
+        f[name] = values
 
 
 def test_comma_aligns_through_cam1_ptr(tmp_path):
@@ -91,6 +116,57 @@ def test_comma_splits_at_frames_without_rows(tmp_path):
     np.testing.assert_allclose(e.actions[:, 0], [5, 7, 9])
 
 
+def test_comma_accepts_column_logs(tmp_path):
+    # Log datasets stored as [R,1] convert exactly as [R] ones.
+    flat = convert_comma.convert_drive(write_drive(tmp_path / "a", [5] * 10), min_frames=1)
+    cam = write_drive(tmp_path / "b", [5] * 10)
+    for name in ("cam1_ptr", "speed", "steering_angle"):
+        with h5py.File(tmp_path / "b" / "log" / "d.h5", "r") as f:
+            column = f[name][:][:, None]
+        set_log(tmp_path / "b", name, column)
+    e = convert_comma.convert_drive(cam, min_frames=1)
+    np.testing.assert_array_equal(e.frames, flat.frames)
+    np.testing.assert_array_equal(e.actions, flat.actions)
+
+
+@pytest.mark.parametrize("name, shape", [
+    ("cam1_ptr", (50, 2)), ("speed", (25, 2)), ("steering_angle", (50, 1, 1)), ("speed", ()),
+])
+def test_comma_rejects_bad_log_shapes(tmp_path, name, shape):
+    cam = write_drive(tmp_path, [5] * 10)
+    set_log(tmp_path, name, np.zeros(shape))
+    message = f"log/d.h5: {name} must be [R] or [R,1], got {shape}"
+    with pytest.raises(ValueError, match=re.escape(message)):
+        convert_comma.convert_drive(cam, min_frames=1)
+
+
+def test_comma_main_checks_every_input_first(tmp_path, capsys):
+    # A bad log in the second drive stops the run before the first drive is converted,
+    # with one line on stderr and exit status 2.
+    good = write_drive(tmp_path / "a", [5] * 10)
+    bad = write_drive(tmp_path / "b", [5] * 10)
+    set_log(tmp_path / "b", "cam1_ptr", np.zeros((50, 2)))
+    with pytest.raises(SystemExit) as exit_:
+        convert_comma.main([str(good), str(bad), "--min-frames", "1", "--out", str(tmp_path / "e.safetensors")])
+    assert exit_.value.code == 2
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err.startswith("convert_comma: error: ") and "cam1_ptr" in err and err.count("\n") == 1
+
+
+def test_comma_main_out_folder(tmp_path, capsys):
+    cam = write_drive(tmp_path, [5] * 10)
+    with pytest.raises(SystemExit) as exit_:
+        convert_comma.main([str(cam), "--min-frames", "1", "--out", str(tmp_path / "missing" / "e.safetensors")])
+    assert exit_.value.code == 2
+    out, err = capsys.readouterr()
+    assert out == ""  # nothing was converted
+    assert err == f"convert_comma: error: --out {tmp_path / 'missing' / 'e.safetensors'}: " \
+                  f"folder {tmp_path / 'missing'} does not exist\n"
+    convert_comma.main([str(cam), "--min-frames", "1", "--out", str(tmp_path / "e.safetensors")])
+    assert len(episodes.read(tmp_path / "e.safetensors").frames) == 10
+
+
 def test_comma_downsample_averages_blocks():
     x = np.zeros((1, 3, 160, 320), dtype=np.uint8)
     x[0, 0, 0, 0] = 200  # one bright pixel of a 2x2 block -> a quarter of it
@@ -110,6 +186,10 @@ def test_comma_errors(tmp_path):
     with h5py.File(tmp_path / "log" / "d.h5", "w") as f:
         f["speed"] = np.zeros(3)
     with pytest.raises(ValueError, match="missing datasets"):
+        convert_comma.convert_drive(cam)
+    write_drive(tmp_path, [5] * 10)
+    set_log(tmp_path, "speed", np.zeros(40))
+    with pytest.raises(ValueError, match="log/d.h5: log datasets differ in length"):
         convert_comma.convert_drive(cam)
 
 

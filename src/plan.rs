@@ -1,0 +1,177 @@
+//! The simulator's memory, planned before anything is allocated: every buffer's size from the
+//! config, the batch and the thread count, in checked arithmetic, so that an impossible or
+//! unaffordable plan is an [`Error`] naming its size instead of an overflow or an abort.
+
+use crate::{encoder, generator, Config, Error, Result};
+use alloc::vec::Vec;
+use drivesim_kernels::{winograd, ConvShape, Winograd};
+
+/// The sizes of every buffer a [`crate::Simulator`] allocates, computed without allocating
+/// them. [`Plan::bytes`] is what the simulator will hold besides the model's weights.
+///
+/// ```
+/// use drivesim::{Config, Plan};
+///
+/// let plan = Plan::new(&Config::COMMA, 16, 2)?;
+/// assert!(plan.bytes() < 64 << 20);
+/// // Sizes that overflow or that no machine could allocate are errors, not aborts.
+/// assert!(Plan::new(&Config::COMMA, usize::MAX, 1).is_err());
+/// # Ok::<(), drivesim::Error>(())
+/// ```
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Plan {
+    pub(crate) max_batch: usize,
+    pub(crate) threads: usize,
+    pub(crate) encoder: StackPlan,
+    pub(crate) generator: StackPlan,
+    /// Floats of the encoder's last convolution output (its dense heads' input) for a batch.
+    pub(crate) encoder_flat: usize,
+    /// Floats of the generator's first (dense) layer output for a batch.
+    pub(crate) generator_flat: usize,
+    /// Floats of the transition's gathered input `[h | z | c]` for a batch.
+    pub(crate) transition_concat: usize,
+    /// Floats of the code an f16 model's fed-back step recomputes from `h` for a batch.
+    pub(crate) transition_code: usize,
+    /// Floats of a rollout's hidden state and two codes.
+    pub(crate) rollout: usize,
+    bytes: usize,
+}
+
+/// The buffers of a stack of convolutions: sets of planes, each one image's worth.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub(crate) struct StackPlan {
+    /// The padded input plane of each layer.
+    pub inputs: Vec<usize>,
+    /// The transformed input of the largest Winograd layer (0 without one).
+    pub transformed: usize,
+    /// Winograd product scratch of the first set, shared by every thread; the other sets, one
+    /// thread each, hold [`winograd::SCRATCH_LEN`] (0 without a Winograd layer).
+    pub products_first: usize,
+    pub products_other: usize,
+    /// One set, or one per thread when threads take whole items of a batch.
+    pub sets: usize,
+}
+
+impl StackPlan {
+    fn new(shapes: impl Iterator<Item = ConvShape>, sets: usize, threads: usize) -> Result<StackPlan> {
+        let (mut inputs, mut transformed) = (Vec::new(), None);
+        for shape in shapes {
+            inputs.push(shape.input.len());
+            transformed = transformed.max(Winograd::new(shape).map(|w| w.input_len()));
+        }
+        let scratch = if transformed.is_some() {
+            winograd::SCRATCH_LEN
+        } else {
+            0
+        };
+        Ok(StackPlan {
+            inputs,
+            transformed: transformed.unwrap_or(0),
+            products_first: mul(scratch, threads)?,
+            products_other: scratch,
+            sets,
+        })
+    }
+
+    /// Floats held by set `set`.
+    pub fn set_floats(&self, set: usize) -> Result<usize> {
+        let products = if set == 0 {
+            self.products_first
+        } else {
+            self.products_other
+        };
+        self.inputs
+            .iter()
+            .try_fold(add(self.transformed, products)?, |sum, &n| add(sum, n))
+    }
+
+    fn floats(&self) -> Result<usize> {
+        let others = mul(self.set_floats(1)?, self.sets - 1)?;
+        add(self.set_floats(0)?, others)
+    }
+}
+
+impl Plan {
+    /// The buffers of a simulator for `config` taking up to `max_batch` (at least 1) frames or
+    /// codes per call with `threads` threads (the caller's included; 0 counts as 1).
+    pub fn new(config: &Config, max_batch: usize, threads: usize) -> Result<Plan> {
+        config.validate()?;
+        let (max_batch, threads) = (max_batch.max(1), threads.max(1));
+        // Threads take whole items of a batch on planes of their own.
+        let sets = if max_batch > 1 { threads } else { 1 };
+        let c = config;
+        let mut plan = Plan {
+            max_batch,
+            threads,
+            encoder: StackPlan::new(encoder::conv_shapes(c), sets, threads)?,
+            generator: StackPlan::new(generator::conv_shapes(c), sets, threads)?,
+            encoder_flat: mul(max_batch, c.flat_len())?,
+            generator_flat: mul(max_batch, c.flat_len())?,
+            transition_concat: mul(max_batch, c.hidden_dim + c.z_dim + c.action_dim)?,
+            transition_code: mul(max_batch, c.z_dim)?,
+            rollout: c.hidden_dim + 2 * c.z_dim,
+            bytes: 0,
+        };
+        let floats = [
+            plan.encoder.floats()?,
+            plan.generator.floats()?,
+            plan.encoder_flat,
+            plan.generator_flat,
+            plan.transition_concat,
+            plan.transition_code,
+            plan.rollout,
+        ]
+        .into_iter()
+        .try_fold(0, add)?;
+        plan.bytes = mul(floats, core::mem::size_of::<f32>())?;
+        // A Vec holds at most isize::MAX bytes.
+        if plan.bytes > isize::MAX as usize {
+            return Err(Error::OutOfMemory {
+                what: "the simulator's buffers",
+                bytes: Some(plan.bytes),
+            });
+        }
+        Ok(plan)
+    }
+
+    /// Bytes of every buffer of the plan together.
+    pub fn bytes(&self) -> usize {
+        self.bytes
+    }
+
+    /// The largest batch one call takes.
+    pub fn max_batch(&self) -> usize {
+        self.max_batch
+    }
+
+    /// Threads that share each call, the caller's included.
+    pub fn threads(&self) -> usize {
+        self.threads
+    }
+}
+
+fn overflow() -> Error {
+    Error::OutOfMemory {
+        what: "the simulator's buffers",
+        bytes: None,
+    }
+}
+
+fn mul(a: usize, b: usize) -> Result<usize> {
+    a.checked_mul(b).ok_or_else(overflow)
+}
+
+fn add(a: usize, b: usize) -> Result<usize> {
+    a.checked_add(b).ok_or_else(overflow)
+}
+
+/// `len` zeros, or [`Error::OutOfMemory`] naming the plan's `bytes` if the allocator refuses.
+pub(crate) fn zeros(len: usize, plan_bytes: usize) -> Result<Vec<f32>> {
+    let mut v = Vec::new();
+    v.try_reserve_exact(len).map_err(|_| Error::OutOfMemory {
+        what: "the simulator's buffers",
+        bytes: Some(plan_bytes),
+    })?;
+    v.resize(len, 0.0);
+    Ok(v)
+}
