@@ -60,10 +60,14 @@ impl Episode<'_> {
     }
 }
 
+/// The first two bytes of a gzip stream.
+const GZIP_MAGIC: [u8; 2] = [0x1f, 0x8b];
+
 impl Episodes {
     pub const CHANNELS: usize = 3;
     pub const ACTION_DIM: usize = 2;
 
+    /// Reads an episodes file (`weights/README.md`), gzipped or not.
     #[cfg(feature = "std")]
     pub fn load(path: impl AsRef<std::path::Path>) -> Result<Episodes> {
         let path = path.as_ref();
@@ -74,7 +78,11 @@ impl Episodes {
         Episodes::from_bytes(&bytes)
     }
 
+    /// Reads an episodes file from its bytes: safetensors, or (with std) safetensors gzipped.
     pub fn from_bytes(bytes: &[u8]) -> Result<Episodes> {
+        if bytes.starts_with(&GZIP_MAGIC) {
+            return Episodes::from_gzip(bytes);
+        }
         let file = SafeTensors::deserialize(bytes).map_err(|e| Error::Malformed {
             what: "episodes file",
             reason: format!("{e:?}"),
@@ -144,6 +152,33 @@ impl Episodes {
             frames: frames.data().to_vec(),
             actions,
             starts: starts.into_iter().map(|s| s as usize).collect(),
+        })
+    }
+
+    #[cfg(feature = "std")]
+    fn from_gzip(bytes: &[u8]) -> Result<Episodes> {
+        use std::io::Read;
+        let mut inflated = Vec::new();
+        flate2::read::MultiGzDecoder::new(bytes)
+            .read_to_end(&mut inflated)
+            .map_err(|e| Error::Malformed {
+                what: "gzipped episodes file",
+                reason: e.to_string(),
+            })?;
+        if inflated.starts_with(&GZIP_MAGIC) {
+            return Err(Error::Malformed {
+                what: "gzipped episodes file",
+                reason: "gzipped twice".into(),
+            });
+        }
+        Episodes::from_bytes(&inflated)
+    }
+
+    #[cfg(not(feature = "std"))]
+    fn from_gzip(_: &[u8]) -> Result<Episodes> {
+        Err(Error::Malformed {
+            what: "episodes file",
+            reason: "it is gzipped, and this build has no gzip reader: decompress it first (gunzip) or enable the `std` feature".into(),
         })
     }
 

@@ -52,6 +52,9 @@ mod workers {
     /// A closure every thread runs with its index (`0` is the caller).
     type Task<'a> = dyn Fn(usize) + Sync + 'a;
 
+    /// What a worker thread runs from start to shutdown.
+    type Work = Box<dyn FnOnce() + Send>;
+
     /// How long a worker polls for the next task, and the caller for the workers to finish,
     /// before sleeping on a condition variable. The layers of one network call follow each
     /// other within microseconds, and waking a sleeping thread costs tens of microseconds on a
@@ -112,8 +115,21 @@ mod workers {
     }
 
     impl Pool {
-        /// A pool in which `threads` threads (the caller included) share each task.
+        /// A pool in which `threads` threads (the caller included) share each task. If a thread
+        /// cannot be started, those that were are stopped and joined before the error returns.
         pub fn new(threads: usize) -> std::io::Result<Pool> {
+            Pool::start(threads, |index, work| {
+                std::thread::Builder::new()
+                    .name(format!("drivesim-{index}"))
+                    .spawn(work)
+            })
+        }
+
+        /// [`Pool::new`] with the worker threads started by `spawn`.
+        fn start(
+            threads: usize,
+            spawn: impl Fn(usize, Work) -> std::io::Result<JoinHandle<()>>,
+        ) -> std::io::Result<Pool> {
             let shared = Arc::new(Shared {
                 generation: AtomicU64::new(0),
                 running: AtomicUsize::new(0),
@@ -127,22 +143,24 @@ mod workers {
                 posted: Condvar::new(),
                 finished: Condvar::new(),
             });
-            let workers = (1..threads.max(1))
-                .map(|index| {
-                    let shared = Arc::clone(&shared);
-                    std::thread::Builder::new()
-                        .name(format!("drivesim-{index}"))
-                        .spawn(move || worker(&shared, index))
-                })
-                .collect::<std::io::Result<Vec<_>>>()?;
+            let mut pool = Pool {
+                shared,
+                workers: Vec::with_capacity(threads.saturating_sub(1)),
+            };
+            for index in 1..threads.max(1) {
+                let shared = Arc::clone(&pool.shared);
+                // On failure, dropping `pool` shuts down and joins the workers started so far.
+                pool.workers
+                    .push(spawn(index, Box::new(move || worker(&shared, index)))?);
+            }
             // Wait until every worker is parked: a thread's start-up allocates, and it must not
             // do so during the simulator's first call.
-            let mut state = lock(&shared.state);
-            while state.ready < workers.len() {
-                state = shared.finished.wait(state).unwrap_or_else(|e| e.into_inner());
+            let mut state = lock(&pool.shared.state);
+            while state.ready < pool.workers.len() {
+                state = pool.shared.finished.wait(state).unwrap_or_else(|e| e.into_inner());
             }
             drop(state);
-            Ok(Pool { shared, workers })
+            Ok(pool)
         }
 
         /// Threads that share a task, the caller included.
@@ -251,6 +269,29 @@ mod workers {
     /// A poisoned lock only means another thread panicked mid-task; the state is still consistent.
     fn lock(m: &Mutex<State>) -> MutexGuard<'_, State> {
         m.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+
+        /// A pool whose third worker cannot start stops and joins the two that did.
+        #[test]
+        fn failed_start_joins_the_started_workers() {
+            let exited = Arc::new(AtomicUsize::new(0));
+            let result = Pool::start(5, |index, work| {
+                if index == 3 {
+                    return Err(std::io::Error::other("no more threads"));
+                }
+                let exited = Arc::clone(&exited);
+                std::thread::Builder::new().spawn(move || {
+                    work();
+                    exited.fetch_add(1, Ordering::SeqCst);
+                })
+            });
+            assert!(result.is_err());
+            assert_eq!(exited.load(Ordering::SeqCst), 2, "workers left running");
+        }
     }
 }
 

@@ -3,7 +3,7 @@
 mod common;
 
 use common::fixture_path;
-use drivesim::{Config, Error, Model, Simulator, WeightDtype};
+use drivesim::{Config, Error, Model, Plan, Simulator, WeightDtype};
 use safetensors::{Dtype, SafeTensors, View};
 use std::borrow::Cow;
 use std::collections::HashMap;
@@ -282,4 +282,167 @@ fn wrong_buffers_and_non_finite_inputs_are_rejected() {
 
     // Random models validate their config too.
     assert!(Model::random(&Config { height: 40, ..config }, 1, WeightDtype::F32).is_err());
+}
+
+/// Plans that overflow or that no allocator can serve are errors naming their size, not
+/// aborts, wrapped sizes or panics (`with_batch(1 << 63)` once wrapped to empty buffers).
+#[test]
+fn unaffordable_plans_are_errors() {
+    let model = Model::from_bytes(&fixture_bytes()).unwrap();
+    for batch in [1 << 40, 1 << 63, usize::MAX] {
+        let err = Simulator::with_batch(&model, batch).err().unwrap();
+        assert!(matches!(err, Error::OutOfMemory { .. }), "batch {batch}: {err}");
+        assert!(Plan::new(model.config(), batch, 1).is_err() || batch == 1 << 40);
+    }
+    let err = Simulator::with_batch(&model, 1 << 40).err().unwrap();
+    assert!(
+        matches!(err, Error::OutOfMemory { bytes: Some(b), .. } if b > 1 << 50),
+        "{err}"
+    );
+    // What a plan needs is known before anything is allocated.
+    let plan = Plan::new(model.config(), 4, 2).unwrap();
+    let sim = Simulator::with_batch(&model, 4).unwrap().with_threads(2).unwrap();
+    assert_eq!(sim.buffer_bytes(), plan.bytes());
+    // Configs past the bounds never reach planning: the 4096x4096 file with 1000
+    // channels, and a random model with z = hidden = 65536 (17 GB of weights).
+    let (tensors, mut meta) = fixture_parts();
+    let good = Config::from_json(&meta["drivesim.config"]).unwrap();
+    let huge = Config {
+        height: 4096,
+        width: 4096,
+        channels: 1000,
+        ..good
+    };
+    meta.insert("drivesim.config".into(), huge.to_json());
+    let err = load_err(&write(&tensors, meta));
+    assert!(matches!(err, Error::Config { field: "channels", .. }), "{err}");
+    let wide = Config {
+        z_dim: 65536,
+        hidden_dim: 65536,
+        ..good
+    };
+    let err = Model::random(&wide, 1, WeightDtype::F32).err().unwrap();
+    assert!(matches!(err, Error::Config { field: "z_dim", .. }), "{err}");
+}
+
+/// Values no trained model has are refused at load, naming the tensor and the first bad index.
+#[test]
+fn impossible_weights_are_rejected() {
+    let cases: [(&str, usize, f32); 4] = [
+        ("encoder.conv1.weight", 7, f32::NAN),
+        ("generator.deconv2.bias", 0, f32::INFINITY),
+        ("transition.W", 3, f32::NAN),
+        ("encoder.bn2.running_var", 5, -0.5),
+    ];
+    for (name, index, value) in cases {
+        let (mut tensors, meta) = fixture_parts();
+        let t = tensors.get_mut(name).unwrap();
+        t.data[index * 4..][..4].copy_from_slice(&value.to_le_bytes());
+        let err = load_err(&write(&tensors, meta));
+        assert!(
+            matches!(&err, Error::BadWeight { name: n, index: i, .. } if n == name && *i == index),
+            "{name}: {err}"
+        );
+    }
+}
+
+/// `weights/README.md`: exactly the config's tensors, all in one dtype.
+#[test]
+fn extra_tensors_and_mixed_dtypes_are_rejected() {
+    let (mut tensors, meta) = fixture_parts();
+    tensors.insert(
+        "encoder.extra".into(),
+        Tensor {
+            dtype: Dtype::F32,
+            shape: vec![1],
+            data: vec![0; 4],
+        },
+    );
+    let err = load_err(&write(&tensors, meta.clone()));
+    assert!(
+        matches!(&err, Error::UnexpectedTensor { name } if name == "encoder.extra"),
+        "{err}"
+    );
+
+    let (mut tensors, _) = fixture_parts();
+    let t = tensors.get_mut("transition.b").unwrap();
+    t.dtype = Dtype::BF16;
+    t.data = t.data.chunks_exact(4).flat_map(|b| [b[2], b[3]]).collect();
+    let err = load_err(&write(&tensors, meta));
+    assert!(
+        matches!(&err, Error::MixedDtypes { name, found, expected } if name == "transition.b" && found == "BF16" && expected == "F32"),
+        "{err}"
+    );
+}
+
+/// Frames lie in [-1, 1]; a finite value outside (one `f32::MAX` pixel once gave NaN codes
+/// with `Ok`) is an error, and an overflowing result is never returned as `Ok`.
+#[test]
+fn out_of_range_frames_and_overflowing_results_are_errors() {
+    let model = Model::from_bytes(&fixture_bytes()).unwrap();
+    let c = *model.config();
+    let mut sim = Simulator::new(&model).unwrap();
+    let mut frame = vec![0.5; c.frame_len()];
+    frame[9] = f32::MAX;
+    let mut z = vec![0.0; c.z_dim];
+    let err = sim.encode(&frame, &mut z).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            Error::FrameValue {
+                buffer: "frames",
+                index: 9,
+                ..
+            }
+        ),
+        "{err}"
+    );
+    frame[9] = -1.0001;
+    assert!(matches!(sim.encode(&frame, &mut z), Err(Error::FrameValue { .. })));
+    let err = sim.rollout(&frame, &[0.0; 2], &mut z, None).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            Error::FrameValue {
+                buffer: "seed_frames",
+                ..
+            }
+        ),
+        "{err}"
+    );
+    frame[9] = 1.0;
+    sim.encode(&frame, &mut z).unwrap();
+
+    // Codes have no documented range: huge ones overflow inside the networks, whose tanh and
+    // ReLU may turn that into finite values. Either way, an `Ok` result is finite.
+    let huge: Vec<f32> = (0..c.z_dim)
+        .map(|i| if i % 2 == 0 { f32::MAX } else { -f32::MAX })
+        .collect();
+    let (mut h, mut next) = (vec![0.0; c.hidden_dim], vec![0.0; c.z_dim]);
+    let mut out = vec![0.0; c.frame_len()];
+    for result in [
+        sim.transition(&huge, &mut h, &[1.0, 0.0], &mut next),
+        sim.generate(&huge, &mut out),
+    ] {
+        match result {
+            Ok(()) => assert!(next.iter().chain(&h).chain(&out).all(|v| v.is_finite())),
+            Err(err) => assert!(matches!(err, Error::NonFiniteOutput { .. }), "{err}"),
+        }
+    }
+
+    // Finite but huge weights overflow the encoder's linear mean and the transition's `A h`.
+    let (mut tensors, meta) = fixture_parts();
+    for name in ["encoder.mean.weight", "transition.A"] {
+        let t = tensors.get_mut(name).unwrap();
+        t.data = (0..t.data.len() / 4).flat_map(|_| f32::MAX.to_le_bytes()).collect();
+    }
+    let model = Model::from_bytes(&write(&tensors, meta)).unwrap();
+    let mut sim = Simulator::new(&model).unwrap();
+    let err = sim.encode(&frame, &mut z).unwrap_err();
+    assert!(matches!(err, Error::NonFiniteOutput { buffer: "z", .. }), "{err}");
+    h.fill(0.5);
+    let err = sim
+        .transition(&vec![0.0; c.z_dim], &mut h, &[1.0, 0.0], &mut next)
+        .unwrap_err();
+    assert!(matches!(err, Error::NonFiniteOutput { buffer: "z_next", .. }), "{err}");
 }

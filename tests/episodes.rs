@@ -92,3 +92,58 @@ fn bad_episode_files_are_rejected() {
         Err(Error::Malformed { .. })
     ));
 }
+
+/// `weights/record.py` and `convert_comma.py` write `.safetensors.gz` by default.
+#[test]
+fn gzipped_episodes_load() {
+    use flate2::{write::GzEncoder, Compression};
+    use std::io::Write;
+    let bytes = file(5, &[0, 2], |_| {});
+    let mut gz = GzEncoder::new(Vec::new(), Compression::fast());
+    gz.write_all(&bytes).unwrap();
+    let gz = gz.finish().unwrap();
+    let episodes = Episodes::from_bytes(&gz).unwrap();
+    assert_eq!((episodes.len(), episodes.episode(1).unwrap().len()), (2, 3));
+    let path = std::env::temp_dir().join(format!("drivesim-episodes-{}.safetensors.gz", std::process::id()));
+    std::fs::write(&path, &gz).unwrap();
+    let loaded = Episodes::load(&path);
+    std::fs::remove_file(&path).unwrap();
+    assert_eq!(
+        loaded.unwrap().episode(0).unwrap().frames,
+        episodes.episode(0).unwrap().frames
+    );
+    // A cut stream says what it is.
+    let err = Episodes::from_bytes(&gz[..gz.len() - 9]).err().unwrap();
+    assert!(
+        matches!(
+            err,
+            Error::Malformed {
+                what: "gzipped episodes file",
+                ..
+            }
+        ),
+        "{err}"
+    );
+}
+
+/// Indices that would wrap when multiplied by the frame length are out of range, not frame 0.
+#[test]
+fn huge_frame_index_is_out_of_range() {
+    let episodes = Episodes::from_bytes(&file(5, &[0], |_| {})).unwrap();
+    let episode = episodes.episode(0).unwrap();
+    let mut out = vec![0.0; 4 * 6 * 3];
+    // 72 << 61 wraps to 0.
+    for i in [5, 1 << 55, 1 << 61, usize::MAX] {
+        assert!(
+            matches!(
+                episode.frame_f32(i, &mut out),
+                Err(Error::OutOfRange {
+                    what: "frame",
+                    len: 5,
+                    ..
+                })
+            ),
+            "frame {i}"
+        );
+    }
+}
