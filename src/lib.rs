@@ -8,8 +8,9 @@
 //!
 //! - [`Model`] loads weights exported from PyTorch as safetensors (`weights/README.md` gives
 //!   the format) and packs them for the kernels once.
-//! - [`Simulator`] allocates every buffer up front; encoding, stepping and generating
-//!   allocate nothing.
+//! - [`Simulator`] allocates every buffer up front, as its [`Plan`] computed (an unaffordable
+//!   plan is an error, never an abort); encoding, stepping and generating allocate nothing,
+//!   and give the same bits whatever the thread count, batch or call history.
 //! - The arithmetic lives in the `drivesim-kernels` crate: scalar reference kernels and
 //!   AVX2/AVX-512 (x86-64) or NEON (aarch64) versions, chosen at run time (cap with
 //!   `DRIVESIM_ISA=scalar|neon|avx2|avx512`).
@@ -66,3 +67,8 @@ pub use model::Model;
 pub use plan::Plan;
 pub use simulator::Simulator;
 pub use weights::WeightDtype;
+
+/// The README's Rust snippet, compiled and run as a doctest so that it stays true.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;
