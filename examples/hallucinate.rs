@@ -16,8 +16,8 @@ use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-const DEFAULT_WEIGHTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/weights/default.safetensors");
-const DEFAULT_EPISODES: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/weights/seed_clip.safetensors");
+const DEFAULT_WEIGHTS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../weights/default.safetensors");
+const DEFAULT_EPISODES: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../weights/seed_clip.safetensors");
 
 #[derive(Parser)]
 #[command(about = "Roll the learned driving simulator forward from real frames and write what it dreams")]
