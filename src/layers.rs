@@ -145,12 +145,12 @@ impl Planes {
         } else {
             stack.products_other
         };
+        let mut inputs = Vec::with_capacity(stack.inputs.len());
+        for &len in &stack.inputs {
+            inputs.push(zeros(len, plan_bytes)?);
+        }
         Ok(Planes {
-            inputs: stack
-                .inputs
-                .iter()
-                .map(|&len| zeros(len, plan_bytes))
-                .collect::<Result<_>>()?,
+            inputs,
             transformed: zeros(stack.transformed, plan_bytes)?,
             products: zeros(products, plan_bytes)?,
         })
@@ -173,10 +173,12 @@ pub(crate) struct StackBuffers {
 
 impl StackBuffers {
     pub fn new(stack: &StackPlan, flat: usize, plan_bytes: usize) -> Result<Self> {
+        let mut planes = Vec::with_capacity(stack.sets);
+        for set in 0..stack.sets {
+            planes.push(Planes::new(stack, set, plan_bytes)?);
+        }
         Ok(StackBuffers {
-            planes: (0..stack.sets)
-                .map(|set| Planes::new(stack, set, plan_bytes))
-                .collect::<Result<_>>()?,
+            planes,
             flat: zeros(flat, plan_bytes)?,
         })
     }

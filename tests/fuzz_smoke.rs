@@ -32,7 +32,11 @@ fn mutate(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
     let header = (8 + u64::from_le_bytes(seed[..8].try_into().unwrap()) as usize).min(seed.len());
     for _ in 0..1 + rng.below(4) {
         let header = header.min(bytes.len());
-        let at = if rng.below(4) > 0 { rng.below(header) } else { rng.below(bytes.len()) };
+        let at = if rng.below(4) > 0 {
+            rng.below(header)
+        } else {
+            rng.below(bytes.len())
+        };
         match rng.below(5) {
             0 => bytes[at] ^= 1 << rng.below(8),
             1 => bytes[at] = [0, 1, 0x7f, 0x80, 0xff][rng.below(5)],
@@ -56,7 +60,9 @@ fn mutate(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
 }
 
 fn corpus(kind: &str) -> Vec<Vec<u8>> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz/corpus").join(kind);
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fuzz/corpus")
+        .join(kind);
     let mut files: Vec<_> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
     files.sort();
     files.into_iter().map(|p| std::fs::read(p).unwrap()).collect()

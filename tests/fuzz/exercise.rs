@@ -7,7 +7,9 @@ use drivesim::{Episodes, Model, Simulator};
 /// Loads `bytes` as a weight file and, if that succeeds, runs every network once. Returns
 /// whether the networks ran.
 pub fn weights(bytes: &[u8]) -> bool {
-    let Ok(model) = Model::from_bytes(bytes) else { return false };
+    let Ok(model) = Model::from_bytes(bytes) else {
+        return false;
+    };
     let c = *model.config();
     // A file small enough to fuzz can still describe frames too large to run quickly: the
     // plan must succeed or fail cleanly, but only small ones are run.
@@ -32,7 +34,9 @@ pub fn weights(bytes: &[u8]) -> bool {
 /// Reads `bytes` as an episodes file (gzipped or not) and, if that succeeds, every episode's
 /// first and last frame and an index past the end. Returns whether it loaded.
 pub fn episodes(bytes: &[u8]) -> bool {
-    let Ok(episodes) = Episodes::from_bytes(bytes) else { return false };
+    let Ok(episodes) = Episodes::from_bytes(bytes) else {
+        return false;
+    };
     let (height, width) = episodes.frame_size();
     let mut frame = vec![0.0; height * width * Episodes::CHANNELS];
     for i in 0..=episodes.len() {

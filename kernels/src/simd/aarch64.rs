@@ -2,8 +2,7 @@
 //! part of every aarch64 target this module is compiled for (`target_feature = "neon"`), so the
 //! entries need no run-time check.
 
-use super::act::Simd;
-use super::dense::Widen;
+use super::vector::{Simd, Widen};
 use super::Entries;
 use crate::{f16, IsaLevel};
 use core::arch::aarch64::*;

@@ -1,54 +1,12 @@
-//! The vector trait every SIMD kernel is written over ([`Simd`]), and the activations on it.
-//! The architecture modules implement it: `__m256` (AVX2 + FMA) and `__m512` (AVX-512F) on
-//! x86-64, `float32x4_t` (NEON) on aarch64.
+//! The activations on vectors ([`Simd`]).
 //!
 //! Tanh evaluates exactly the formula of [`crate::math::tanh`] lane by lane, with the same
 //! constants and the same (unfused) operation order, so SIMD and scalar agree bit for bit on the
 //! same input (up to the sign of a zero).
-//!
-//! The trait's methods are `#[inline(always)]` and call target-feature intrinsics: they are only
-//! meant to be used inside a `#[target_feature]` function that enables the features of the type
-//! (`avx2,fma` for `__m256`, `avx512f` for `__m512`, `neon` for `float32x4_t`), where they
-//! inline into plain instructions.
 
+use super::vector::Simd;
 use crate::math::{EXP_POLY, LN2_HI, LN2_LO, TANH_CLAMP, TANH_SERIES, TANH_SERIES_LIMIT};
 use crate::Activation;
-
-/// A vector of `LANES` f32. Every method is unsafe: the caller must run on a CPU with the
-/// type's features (see the module comment) and pass pointers valid for the lanes touched.
-#[allow(clippy::missing_safety_doc)]
-pub(crate) trait Simd: Copy {
-    const LANES: usize;
-    unsafe fn splat(x: f32) -> Self;
-    /// Loads `LANES` floats from `p` (no alignment needed).
-    unsafe fn load(p: *const f32) -> Self;
-    /// Loads the first `n < LANES` floats from `p`, the other lanes are zero; reads only `n`.
-    unsafe fn load_partial(p: *const f32, n: usize) -> Self;
-    unsafe fn store(self, p: *mut f32);
-    /// Stores the first `n < LANES` lanes to `p`; writes only `n` floats.
-    unsafe fn store_partial(self, p: *mut f32, n: usize);
-    unsafe fn add(self, b: Self) -> Self;
-    unsafe fn sub(self, b: Self) -> Self;
-    unsafe fn mul(self, b: Self) -> Self;
-    unsafe fn div(self, b: Self) -> Self;
-    unsafe fn max(self, b: Self) -> Self;
-    unsafe fn min(self, b: Self) -> Self;
-    /// `self * b + c` with one rounding.
-    unsafe fn mul_add(self, b: Self, c: Self) -> Self;
-    unsafe fn abs(self) -> Self;
-    /// `self` (assumed >= 0) negated in the lanes where `sign_of < 0`.
-    unsafe fn neg_where_negative(self, sign_of: Self) -> Self;
-    /// Per lane: `if self < limit { then } else { other }`.
-    unsafe fn select_lt(self, limit: Self, then: Self, other: Self) -> Self;
-    /// Per lane `x as i32 as f32` (truncation toward zero).
-    unsafe fn trunc(self) -> Self;
-    /// Per lane `2^n` for integral `n` in the normal exponent range.
-    unsafe fn pow2(self) -> Self;
-    /// The sum of the lanes.
-    unsafe fn reduce_add(self) -> f32;
-    /// Hints that the cache line at `p` will be read soon; `p` need not be valid.
-    unsafe fn prefetch(p: *const u8);
-}
 
 /// [`crate::math::exp`] lane by lane (valid for `0 <= x <= 2 * TANH_CLAMP`).
 #[inline(always)]

@@ -22,8 +22,9 @@
 //! and does `T * NV` fused multiply-adds into register accumulators. Taps that fall outside the
 //! image horizontally read the zero border; rows of taps outside the image are skipped.
 
-use super::act::{self, Simd};
+use super::act;
 use super::arch;
+use super::vector::{load_n, store_n, Simd};
 use crate::{scalar, Activation, ConvKind, ConvParams, ConvShape, IsaLevel, OC_ALIGN};
 use core::ops::Range;
 
@@ -181,26 +182,6 @@ pub(super) unsafe fn body<V: Simd>(
                 act::apply_slice::<V>(act, core::slice::from_raw_parts_mut(at, channels.len()));
             }
         }
-    }
-}
-
-#[inline(always)]
-pub(super) unsafe fn load_n<V: Simd>(p: *const f32, n: usize) -> V {
-    if n >= V::LANES {
-        V::load(p)
-    } else if n > 0 {
-        V::load_partial(p, n)
-    } else {
-        V::splat(0.0)
-    }
-}
-
-#[inline(always)]
-pub(super) unsafe fn store_n<V: Simd>(v: V, p: *mut f32, n: usize) {
-    if n >= V::LANES {
-        v.store(p)
-    } else if n > 0 {
-        v.store_partial(p, n)
     }
 }
 

@@ -22,8 +22,8 @@
 //!   4 x 2 for AVX2, 4 x 4 for NEON), so that a chunk of a tile's weights stays in L2 while
 //!   every block of items reuses it.
 
-use super::act::{self, Simd};
-use super::conv::{load_n, store_n};
+use super::act;
+use super::vector::{load_n, store_n, Simd, Widen};
 use super::{arch, Entries};
 use crate::{f16, Activation, IsaLevel, Matrix, MatrixData, OC_ALIGN};
 
@@ -88,13 +88,6 @@ const SINGLE_NV: usize = 8;
 const CHUNK: usize = 1024;
 /// Bytes ahead of the current weights to prefetch, in each panel.
 const PREFETCH: usize = 1024;
-
-/// What the dense kernel needs on top of [`Simd`]: loading halves widened.
-/// Methods are `inline(always)`, to compile inside the caller's `#[target_feature]` function.
-pub(super) trait Widen: Simd {
-    /// Loads `LANES` halves and widens them.
-    unsafe fn load_f16(p: *const f16) -> Self;
-}
 
 /// A stored weight type: loads `LANES` of them as f32 lanes.
 pub(super) trait Weight: Copy {

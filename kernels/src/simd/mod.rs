@@ -1,5 +1,5 @@
-//! The SIMD kernels, one file per operation: each a generic body over the vector trait
-//! [`act::Simd`]. The architecture's module implements the trait for its vectors and compiles
+//! The SIMD kernels, one file per operation: each a generic body over the vector traits of
+//! [`vector`]. The architecture's module implements the trait for its vectors and compiles
 //! each body once per instruction set inside a `#[target_feature]` entry point
 //! (`x86_64`: AVX2 + FMA + F16C and AVX-512F; `aarch64`: NEON); the operations look their entry
 //! up by [`crate::IsaLevel`] and fall back to the scalar kernels where there is none.
@@ -16,6 +16,7 @@
 pub(crate) mod act;
 mod conv;
 mod dense;
+pub(crate) mod vector;
 pub(crate) mod winograd;
 
 /// One instruction set's entry points: each generic body compiled inside a

@@ -2,45 +2,12 @@
 //! matrix products on the direct convolution's microkernel (a product is a row of "pixels"
 //! (tiles) with one segment of input channels).
 
-use super::act::{self, Simd};
 use super::arch;
-use super::conv::{load_n, run_row, store_n, Block, Row, Seg};
-use crate::winograd::{self, InputTransform, Lane, Product, Products, Winograd};
+use super::conv::{run_row, Block, Row, Seg};
+use super::vector::Simd;
+use crate::winograd::{self, InputTransform, Product, Products, Winograd};
 use crate::{scalar, Activation, ConvParams, IsaLevel, OC_ALIGN};
 use core::ops::Range;
-
-impl<V: Simd> Lane for V {
-    const LANES: usize = V::LANES;
-    const BLOCK: usize = 2 * V::LANES;
-    #[inline(always)]
-    unsafe fn zero() -> V {
-        V::splat(0.0)
-    }
-    #[inline(always)]
-    unsafe fn load_n(p: *const f32, n: usize) -> V {
-        load_n(p, n)
-    }
-    #[inline(always)]
-    unsafe fn store_n(self, p: *mut f32, n: usize) {
-        store_n(self, p, n)
-    }
-    #[inline(always)]
-    unsafe fn add(self, b: V) -> V {
-        Simd::add(self, b)
-    }
-    #[inline(always)]
-    unsafe fn sub(self, b: V) -> V {
-        Simd::sub(self, b)
-    }
-    #[inline(always)]
-    unsafe fn mul_add(self, c: f32, acc: V) -> V {
-        Simd::mul_add(self, V::splat(c), acc)
-    }
-    #[inline(always)]
-    unsafe fn activate(self, act: Activation) -> V {
-        act::apply(act, self)
-    }
-}
 
 /// Steps of input channels ahead to prefetch the weights: they stream from L3 or memory (twice
 /// the direct weights) and each step is only a few cycles.

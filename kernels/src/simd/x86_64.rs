@@ -1,8 +1,7 @@
 //! x86-64: the vector types of AVX2 + FMA + F16C (`__m256`) and AVX-512F (`__m512`), and the
 //! kernels' `#[target_feature]` entry points for each.
 
-use super::act::Simd;
-use super::dense::Widen;
+use super::vector::{Simd, Widen};
 use super::Entries;
 use crate::{f16, IsaLevel};
 use core::arch::x86_64::*;
