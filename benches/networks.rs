@@ -11,8 +11,7 @@ use common::*;
 use criterion::{criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput};
 use drivesim::{Model, Simulator, WeightDtype};
 use drivesim_kernels::{
-    conv, dense, f16, pack, winograd, winograd_conv, Activation, ConvParams, ConvShape, Isa, Matrix, MatrixData,
-    Winograd,
+    conv, dense, f16, pack, winograd_conv, Activation, ConvParams, ConvShape, Isa, Matrix, MatrixData, Winograd,
 };
 use std::hint::black_box;
 use std::time::Duration;
@@ -121,7 +120,7 @@ fn conv_layers(c: &mut Criterion) {
         if let Some(wino) = Winograd::new(shape) {
             let u = values(5, wino.packed_len(), 0.05);
             let mut v = vec![0.0; wino.input_len()];
-            let mut scratch = vec![0.0; winograd::SCRATCH_LEN];
+            let mut scratch = vec![0.0; wino.scratch_len()];
             let layer = ConvParams { weights: &u, ..layer };
             g.bench_function(format!("{name}.winograd"), |b| {
                 b.iter(|| winograd_conv(isa, &wino, layer, black_box(&x), &mut v, &mut scratch, &mut y))

@@ -1,14 +1,13 @@
 //! The two kinds of layer the networks are made of, loaded and packed once.
 
 use crate::plan::{zeros, StackPlan};
-use crate::pool::{share, Disjoint, Exec};
+use crate::pool::{Exec, Parts};
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::{Error, Result};
 use alloc::format;
 use alloc::vec::Vec;
-use core::sync::atomic::{AtomicUsize, Ordering};
 use drivesim_kernels::pack::{self, BatchNorm};
-use drivesim_kernels::{f16, winograd, Activation, ConvParams, ConvShape, Matrix, MatrixData, Winograd, OC_ALIGN};
+use drivesim_kernels::{f16, Activation, ConvParams, ConvShape, Matrix, MatrixData, OutputParts, Winograd, OC_ALIGN};
 
 /// A convolution with its BatchNorm folded in and its activation fused, computed directly or,
 /// where [`Winograd::new`] takes the layer, by Winograd's algorithm (with its weights packed
@@ -54,10 +53,10 @@ impl ConvLayer {
     }
 
     /// Runs the layer; with threads, a direct layer has each take blocks of output channels
-    /// from a shared counter until none is left (and so read only the weights of its blocks).
-    /// Taking blocks as they come, rather than a fixed share, keeps both busy when one core runs
-    /// slower (a busy neighbour, a lower clock). A Winograd layer shares its input transform by
-    /// stride phases, then gives each thread a fixed share of the output channels.
+    /// until none is left (and so read only the weights of its blocks). Taking blocks as they
+    /// come, rather than a fixed share, keeps both busy when one core runs slower (a busy
+    /// neighbour, a lower clock). A Winograd layer shares its input transform by stride
+    /// phases, then gives each thread a share of the output channels.
     pub fn run(&self, exec: Exec<'_>, input: &[f32], output: &mut [f32], scratch: Scratch<'_>) {
         let (isa, threads, channels) = (exec.isa, exec.threads(), self.shape.output.channels);
         let layer = ConvParams {
@@ -72,47 +71,35 @@ impl ConvLayer {
             if single {
                 return drivesim_kernels::conv(isa, layer, input, output);
             }
-            let out = Disjoint::new(output);
-            let next = AtomicUsize::new(0);
-            return exec.run(&|_| loop {
-                let block = next.fetch_add(1, Ordering::Relaxed);
-                if block >= blocks {
-                    break;
+            let parts = OutputParts::new(output, channels, blocks);
+            return exec.run(&|_| {
+                while let Some(part) = parts.take() {
+                    drivesim_kernels::conv_channels(isa, layer, input, part);
                 }
-                let mine = block * BLOCK_CHANNELS..((block + 1) * BLOCK_CHANNELS).min(channels);
-                // SAFETY: `out` is the whole output plane, borrowed mutably, and each block of
-                // channels goes to one thread only.
-                unsafe { drivesim_kernels::conv_channels(isa, layer, input, out.as_mut_ptr(), mine) }
             });
         };
         let v = &mut scratch.transformed[..w.input_len()];
         if single {
-            let products = &mut scratch.products[..winograd::SCRATCH_LEN];
+            let products = &mut scratch.products[..w.scratch_len()];
             return drivesim_kernels::winograd_conv(isa, w, layer, input, v, products, output);
         }
-        {
-            let v = Disjoint::new(&mut *v);
-            exec.run(&|t| {
-                for phase in share(4, threads, t) {
-                    // SAFETY: the phases' spans of `v` are disjoint, and each goes to one thread.
-                    let span = unsafe { v.range(w.phase_span(phase)) };
-                    drivesim_kernels::winograd_input(isa, w, phase, input, span);
-                }
-            });
-        }
+        let spans: [_; 4] = core::array::from_fn(|phase| w.phase_span(phase));
+        let phases = Parts::spans(&mut *v, &spans);
+        exec.run(&|_| {
+            while let Some((phase, span)) = phases.take() {
+                drivesim_kernels::winograd_input(isa, w, phase, input, span);
+            }
+        });
         let v = &*v;
-        assert!(scratch.products.len() >= threads * winograd::SCRATCH_LEN);
-        let products = Disjoint::new(scratch.products);
-        let out = Disjoint::new(output);
-        // A fixed share of whole panels per thread, in one call: the kernel then reads the
-        // larger of weights and transformed input once per call (see `winograd_channels`),
-        // where blocks taken one at a time would each read it again.
-        exec.run(&|t| {
-            let mine = share_panels(channels, threads, t);
-            // SAFETY: thread `t` alone uses product scratch `t` and writes channels `mine`.
-            unsafe {
-                let scratch = products.range(t * winograd::SCRATCH_LEN..(t + 1) * winograd::SCRATCH_LEN);
-                drivesim_kernels::winograd_channels(isa, w, layer, v, scratch, out.as_mut_ptr(), mine)
+        let products = Parts::chunks(scratch.products, w.scratch_len());
+        // A share of whole panels per thread, in one call: the kernel then reads the larger of
+        // weights and transformed input once per call (see `winograd_channels`), where blocks
+        // taken one at a time would each read it again.
+        let parts = OutputParts::new(output, channels, threads);
+        exec.run(&|_| {
+            let (_, scratch) = products.take().expect("product scratch for every thread");
+            while let Some(part) = parts.take() {
+                drivesim_kernels::winograd_channels(isa, w, layer, v, scratch, part);
             }
         });
     }
@@ -218,19 +205,17 @@ pub(crate) fn for_each_item(
         }
         return;
     }
-    let planes = Disjoint::new(planes);
-    let output = Disjoint::new(&mut output[..items * out_len]);
-    exec.run(&|t| {
+    // Each thread takes a set of planes, then items until none is left.
+    let planes = Parts::chunks(planes, 1);
+    let outputs = Parts::chunks(&mut output[..items * out_len], out_len);
+    exec.run(&|_| {
         let alone = Exec {
             isa: exec.isa,
             pool: None,
         };
-        // SAFETY: thread `t` alone takes set `t` of planes (`planes.len() >= threads`).
-        let planes = unsafe { &mut planes.range(t..t + 1)[0] };
-        for i in share(items, threads, t) {
-            // SAFETY: the threads' shares of the items are disjoint.
-            let y = unsafe { output.range(i * out_len..(i + 1) * out_len) };
-            f(alone, planes, &input[i * in_len..][..in_len], y);
+        let (_, planes) = planes.take().expect("a set of planes for every thread");
+        while let Some((i, y)) = outputs.take() {
+            f(alone, &mut planes[0], &input[i * in_len..][..in_len], y);
         }
     });
 }
@@ -273,13 +258,6 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
 /// Below this many weights a dense layer is not worth sharing between threads: the pool's
 /// hand-off costs about a microsecond, the product of a 256 x 256 matrix not much more.
 const PARALLEL_MIN_WEIGHTS: usize = 1 << 16;
-
-/// Thread `index`'s part of `0..len` outputs in whole panels of [`OC_ALIGN`]: the kernels
-/// then read only that thread's panels of the weights.
-fn share_panels(len: usize, threads: usize, index: usize) -> core::ops::Range<usize> {
-    let panels = share(len.div_ceil(OC_ALIGN), threads, index);
-    panels.start * OC_ALIGN..(panels.end * OC_ALIGN).min(len)
-}
 
 /// Weights of a dense layer: row-major as loaded, packed by [`DenseLayer::new`].
 pub(crate) enum DenseWeights {
@@ -340,12 +318,11 @@ impl DenseLayer {
         if threads == 1 || self.rows * self.cols < PARALLEL_MIN_WEIGHTS {
             return drivesim_kernels::dense(isa, self.matrix(), &self.bias, self.act, x, y);
         }
-        assert_eq!(y.len(), x.len() / self.cols * self.rows);
-        let out = Disjoint::new(y);
-        exec.run(&|t| {
-            let rows = share_panels(self.rows, threads, t);
-            // SAFETY: `out` is all of `y`, borrowed mutably, and the threads' rows are disjoint.
-            unsafe { drivesim_kernels::dense_rows(isa, self.matrix(), &self.bias, self.act, x, out.as_mut_ptr(), rows) }
+        let parts = OutputParts::new(y, self.rows, threads);
+        exec.run(&|_| {
+            while let Some(part) = parts.take() {
+                drivesim_kernels::dense_rows(isa, self.matrix(), &self.bias, self.act, x, part);
+            }
         });
     }
 }

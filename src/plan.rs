@@ -4,7 +4,7 @@
 
 use crate::{encoder, generator, Config, Error, Result};
 use alloc::vec::Vec;
-use drivesim_kernels::{winograd, ConvShape, Winograd};
+use drivesim_kernels::{ConvShape, Winograd};
 
 /// The sizes of every buffer a [`crate::Simulator`] allocates, computed without allocating
 /// them. [`Plan::bytes`] is what the simulator will hold besides the model's weights.
@@ -44,8 +44,8 @@ pub(crate) struct StackPlan {
     pub inputs: Vec<usize>,
     /// The transformed input of the largest Winograd layer (0 without one).
     pub transformed: usize,
-    /// Winograd product scratch of the first set, shared by every thread; the other sets, one
-    /// thread each, hold [`winograd::SCRATCH_LEN`] (0 without a Winograd layer).
+    /// Winograd product scratch of the first set, one per thread; the other sets, one thread
+    /// each, hold one ([`Winograd::scratch_len`] of the largest; 0 without a Winograd layer).
     pub products_first: usize,
     pub products_other: usize,
     /// One set, or one per thread when threads take whole items of a batch.
@@ -54,19 +54,18 @@ pub(crate) struct StackPlan {
 
 impl StackPlan {
     fn new(shapes: impl Iterator<Item = ConvShape>, sets: usize, threads: usize) -> Result<StackPlan> {
-        let (mut inputs, mut transformed) = (Vec::new(), None);
+        // Each Winograd layer reports its transformed input and product scratch: plan the largest.
+        let (mut inputs, mut transformed, mut scratch) = (Vec::new(), 0, 0);
         for shape in shapes {
             inputs.push(shape.input.len());
-            transformed = transformed.max(Winograd::new(shape).map(|w| w.input_len()));
+            if let Some(w) = Winograd::new(shape) {
+                transformed = transformed.max(w.input_len());
+                scratch = scratch.max(w.scratch_len());
+            }
         }
-        let scratch = if transformed.is_some() {
-            winograd::SCRATCH_LEN
-        } else {
-            0
-        };
         Ok(StackPlan {
             inputs,
-            transformed: transformed.unwrap_or(0),
+            transformed,
             products_first: mul(scratch, threads)?,
             products_other: scratch,
             sets,

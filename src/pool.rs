@@ -2,6 +2,9 @@
 //! closure at a time. Dispatching allocates nothing: the closure stays on the caller's stack and
 //! the workers only ever see a pointer to it while the caller waits for them.
 
+use core::marker::PhantomData;
+use core::ops::Range;
+use core::sync::atomic::{AtomicUsize, Ordering};
 use drivesim_kernels::Isa;
 
 /// How a network runs: the kernels' instruction set and, optionally, threads to share it.
@@ -295,44 +298,72 @@ mod workers {
     }
 }
 
-/// The part of `0..len` that thread `index` of `threads` takes: contiguous, sizes within one.
-pub(crate) fn share(len: usize, threads: usize, index: usize) -> core::ops::Range<usize> {
-    (len * index / threads)..(len * (index + 1) / threads)
-}
-
-/// A mutable slice that the threads of one task write at disjoint ranges.
-pub(crate) struct Disjoint<'a, T = f32> {
+/// A slice cut into parts that the threads of one task take, each part once: whole items of a
+/// batch, sets of planes, scratch per thread, spans of a buffer. Taking is safe: the parts are
+/// disjoint by construction and handed out by an atomic counter.
+pub(crate) struct Parts<'a, T> {
     ptr: *mut T,
-    len: usize,
-    _borrow: core::marker::PhantomData<&'a mut [T]>,
+    cut: Cut<'a>,
+    count: usize,
+    next: AtomicUsize,
+    _borrow: PhantomData<&'a mut [T]>,
 }
 
-// SAFETY: threads only reach the data through `Disjoint::range`, whose callers keep the ranges
-// of concurrent threads apart; the values move between threads, so they must be `Send`.
-unsafe impl<T: Send> Send for Disjoint<'_, T> {}
-unsafe impl<T: Send> Sync for Disjoint<'_, T> {}
+/// How [`Parts`] cuts its slice.
+enum Cut<'a> {
+    /// Consecutive chunks of this length.
+    Chunks(usize),
+    /// These ranges, increasing and disjoint (checked).
+    Spans(&'a [Range<usize>]),
+}
 
-impl<'a, T> Disjoint<'a, T> {
-    pub fn new(data: &'a mut [T]) -> Self {
-        Disjoint {
+// SAFETY: threads reach the data only through `take`, which hands each disjoint part out once;
+// the values move between threads, so they must be `Send`.
+unsafe impl<T: Send> Sync for Parts<'_, T> {}
+
+impl<'a, T> Parts<'a, T> {
+    /// `data` in whole chunks of `len` (a shorter tail is left out).
+    pub fn chunks(data: &'a mut [T], len: usize) -> Self {
+        let count = data.len().checked_div(len).unwrap_or(0);
+        Parts::new(data, Cut::Chunks(len), count)
+    }
+
+    /// The `spans` of `data`: they must increase, not overlap, and lie inside it.
+    pub fn spans(data: &'a mut [T], spans: &'a [Range<usize>]) -> Self {
+        let mut end = 0;
+        for span in spans {
+            assert!(end <= span.start && span.start <= span.end, "spans overlap");
+            end = span.end;
+        }
+        assert!(end <= data.len(), "span past the end");
+        Parts::new(data, Cut::Spans(spans), spans.len())
+    }
+
+    fn new(data: &'a mut [T], cut: Cut<'a>, count: usize) -> Self {
+        Parts {
             ptr: data.as_mut_ptr(),
-            len: data.len(),
-            _borrow: core::marker::PhantomData,
+            cut,
+            count,
+            next: AtomicUsize::new(0),
+            _borrow: PhantomData,
         }
     }
 
-    /// The start of the data, for kernels that write their share through a pointer.
-    pub fn as_mut_ptr(&self) -> *mut T {
-        self.ptr
-    }
-
-    /// The values in `range`.
-    ///
-    /// # Safety
-    /// No other live reference from this `Disjoint` may overlap `range`.
-    #[allow(clippy::mut_from_ref)] // the point of the type; callers keep ranges apart
-    pub unsafe fn range(&self, range: core::ops::Range<usize>) -> &mut [T] {
-        assert!(range.start <= range.end && range.end <= self.len);
-        core::slice::from_raw_parts_mut(self.ptr.add(range.start), range.len())
+    /// The next part no thread has taken, with its index, or `None` when all were.
+    #[allow(clippy::mut_from_ref)] // the point of the type: each part is handed out once
+    pub fn take(&self) -> Option<(usize, &mut [T])> {
+        let i = self.next.fetch_add(1, Ordering::Relaxed);
+        if i >= self.count {
+            return None;
+        }
+        let range = match self.cut {
+            Cut::Chunks(len) => i * len..(i + 1) * len,
+            Cut::Spans(spans) => spans[i].clone(),
+        };
+        // SAFETY: the range lies in the borrowed slice (checked at construction), is disjoint
+        // from every other part's, and `next` gives index `i` to one caller only.
+        Some((i, unsafe {
+            core::slice::from_raw_parts_mut(self.ptr.add(range.start), range.len())
+        }))
     }
 }

@@ -6,12 +6,12 @@ use crate::pool::Exec;
 use crate::weights::{Init, Tensor, TensorSource};
 use crate::{Config, Result};
 use alloc::vec::Vec;
-use drivesim_kernels::{Activation, Isa, Rnn};
+use drivesim_kernels::{Activation, Isa};
 
 pub(crate) struct Transition {
     /// `[W | V | U]` and `b`: a step from any code.
     input: DenseLayer,
-    /// `[W + V A | U]` and `b + V a`: a step from the code `h` itself predicted (see [`Rnn`]),
+    /// `[W + V A | U]` and `b + V a`: a step from the code `h` itself predicted (`V z = V A h + V a`),
     /// a third fewer weights to read. Only for f32 weights: for f16 ones it would have to be
     /// f32 to stay the weights' own product, and then it reads as many bytes as `[W | V]`.
     fed_back: Option<DenseLayer>,
@@ -72,8 +72,9 @@ impl Transition {
         self.fed_back.is_some()
     }
 
-    /// One step for a batch (see [`drivesim_kernels::rnn_step`]) from the codes `z`, or, with
-    /// `z` `None`, from the codes `h` itself predicts (`A h + a`, as in a rollout): then from
+    /// One step for a batch, `h' = tanh([W | V | U] [h | z | c] + b)` then `z' = A h' + a`, from
+    /// the codes `z`, or, with `z` `None`, from the codes `h` itself predicts (`A h + a`, as in
+    /// a rollout): then from
     /// `[W + V A | U]` where the model folds, else from `A h + a` computed here. The caller
     /// chooses: the result depends on the arguments alone. With threads, each product is split
     /// between them by rows ([`DenseLayer::run`]), so the two products are two tasks, the
@@ -96,20 +97,24 @@ impl Transition {
                 (&self.input, Some(&*code))
             }
         };
-        let rnn = Rnn {
-            input: input.matrix(),
-            input_bias: &input.bias,
-            output: self.output.matrix(),
-            output_bias: &self.output.bias,
-        };
         let concat = &mut buf.concat[..h.len() / input.rows * input.cols];
-        if exec.threads() == 1 {
-            drivesim_kernels::rnn_step(exec.isa, &rnn, concat, h, z, action, z_next);
-        } else {
-            rnn.gather(concat, h, z, action);
-            input.run(exec, concat, h);
-            self.output.run(exec, h, z_next);
+        gather(concat, input.rows, h, z, action);
+        input.run(exec, concat, h);
+        self.output.run(exec, h, z_next);
+    }
+}
+
+/// Writes each batch item's `[h | z | c]` (or `[h | c]` without `z`) to `concat`, the input of
+/// the step's first product.
+fn gather(concat: &mut [f32], hidden: usize, h: &[f32], z: Option<&[f32]>, action: &[f32]) {
+    let batch = h.len() / hidden;
+    let (zd, ad) = (z.map_or(0, |z| z.len() / batch), action.len() / batch);
+    for (n, row) in concat.chunks_exact_mut(hidden + zd + ad).enumerate() {
+        row[..hidden].copy_from_slice(&h[n * hidden..][..hidden]);
+        if let Some(z) = z {
+            row[hidden..hidden + zd].copy_from_slice(&z[n * zd..][..zd]);
         }
+        row[hidden + zd..].copy_from_slice(&action[n * ad..][..ad]);
     }
 }
 

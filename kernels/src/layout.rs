@@ -277,18 +277,6 @@ impl<'a> Matrix<'a> {
             "matrix is not packed whole"
         );
     }
-
-    pub(crate) fn check(&self, bias: &[f32], x: &[f32], y: &[f32]) -> usize {
-        self.check_packed();
-        assert_eq!(bias.len(), self.rows);
-        assert!(
-            self.cols > 0 && x.len().is_multiple_of(self.cols),
-            "input is not whole rows"
-        );
-        let batch = x.len() / self.cols;
-        assert_eq!(y.len(), batch * self.rows);
-        batch
-    }
 }
 
 /// A convolution layer as the kernels take it: its shape, packed weights (see [`ConvShape`]),

@@ -6,7 +6,8 @@
 //! - [`ops`]: one entry point per operation ([`conv`], [`dense`], [`winograd_conv`], and the
 //!   parts of them that threads share: [`conv_channels`], [`dense_rows`], [`winograd_input`],
 //!   [`winograd_channels`]), each checking its arguments and then running the kernel of an
-//!   [`Isa`] chosen once at run time;
+//!   [`Isa`] chosen once at run time; all safe: threads write their parts of one output
+//!   through [`OutputParts`], which hands each part out once;
 //! - [`winograd`]: a second algorithm for the convolutions, Winograd's minimal filtering, with
 //!   its own weight layout and caller-provided scratch; its scalar path is tested against the
 //!   direct scalar convolution;
@@ -27,8 +28,8 @@ mod isa;
 pub mod layout;
 pub mod math;
 pub mod ops;
+mod output;
 pub mod pack;
-mod rnn;
 pub mod scalar;
 mod simd;
 pub mod winograd;
@@ -38,5 +39,5 @@ pub use half::f16;
 pub use isa::{Isa, IsaLevel};
 pub use layout::{ConvKind, ConvParams, ConvShape, Matrix, MatrixData, Plane, NARROW_OC, OC_ALIGN};
 pub use ops::{conv, conv_channels, dense, dense_rows, winograd_channels, winograd_conv, winograd_input};
-pub use rnn::{rnn_step, Rnn};
+pub use output::{OutputPart, OutputParts};
 pub use winograd::Winograd;

@@ -1,81 +1,68 @@
 //! The operations' entry points: each checks its arguments against the layouts, then runs the
-//! kernel of the caller's instruction set.
+//! kernel of the caller's instruction set (see `simd::entries`: the scalar kernels are the
+//! fallback of every operation, in one place).
+//!
+//! The parts of an operation that threads share take an [`OutputPart`] of the output buffer
+//! (from [`OutputParts::take`](crate::OutputParts::take), which hands each part out once), so
+//! every entry point here is safe.
 
-use crate::winograd::{self, Winograd};
-use crate::{scalar, simd, Activation, ConvParams, Isa, IsaLevel, Matrix};
+use crate::winograd::Winograd;
+use crate::{simd, Activation, ConvParams, Isa, Matrix, OutputPart};
 
-/// `output = act(conv(input) + bias)` for one image: see [`ConvShape`] for the layouts.
+/// `output = act(conv(input) + bias)` for one image: see [`crate::ConvShape`] for the layouts.
 /// Only the interior of `output` is written; its border stays as it was (zero).
 pub fn conv(isa: Isa, layer: ConvParams<'_>, input: &[f32], output: &mut [f32]) {
-    assert_eq!(output.len(), layer.shape.output.len());
-    let all = 0..layer.shape.output.channels;
-    // SAFETY: `output` holds the whole output plane and is borrowed mutably for the call.
-    unsafe { conv_channels(isa, layer, input, output.as_mut_ptr(), all) }
+    let channels = layer.shape.output.channels;
+    conv_channels(isa, layer, input, OutputPart::whole(output, channels));
 }
 
-/// [`conv`] for the output channels `channels` only, written through a pointer so that
-/// threads can fill disjoint channel ranges of one output plane at once. `channels.start` must
-/// be a multiple of [`OC_ALIGN`]: each thread then reads only its own panels of weights.
-///
-/// # Safety
-/// `output` must point to `shape.output.len()` floats, valid for writes, and no other thread
-/// may read or write channels `channels` of its interior during the call.
-pub unsafe fn conv_channels(
-    isa: Isa,
-    layer: ConvParams<'_>,
-    input: &[f32],
-    output: *mut f32,
-    channels: core::ops::Range<usize>,
-) {
+/// [`conv`] for the output channels of `part` only (its units), so that threads can fill
+/// disjoint channel ranges of one output plane at once; each reads only its own panels of
+/// weights.
+pub fn conv_channels(isa: Isa, layer: ConvParams<'_>, input: &[f32], part: OutputPart<'_>) {
     layer.shape.check(input, layer.weights, layer.bias);
+    assert_eq!(part.buffer_len(), layer.shape.output.len());
+    let channels = part.units();
     layer.shape.check_channels(&channels);
-    match isa.level() {
-        IsaLevel::Scalar => scalar::conv_channels(layer, input, output, channels),
-        level => simd::conv(level, layer, input, output, channels),
-    }
+    // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer is the whole
+    // output plane (checked), and its channels are this call's alone.
+    unsafe { (simd::entries(isa).conv)(layer, input, part.ptr(), channels) }
 }
 
-/// Step 1 of a Winograd convolution (see [`winograd`]): writes the transformed input of stride
-/// phase `phase` (0 to 3) to `v`, the span [`Winograd::phase_span`] of the whole transformed
-/// input. Threads may fill different phases at once.
+/// Step 1 of a Winograd convolution (see [`crate::winograd`]): writes the transformed input
+/// of stride phase `phase` (0 to 3) to `v`, the span [`Winograd::phase_span`] of the whole
+/// transformed input. Threads may fill different phases at once.
 pub fn winograd_input(isa: Isa, w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
     assert!(phase < 4);
     assert_eq!(input.len(), w.shape.input.len());
     assert_eq!(v.len(), w.phase_span(phase).len());
-    match isa.level() {
-        IsaLevel::Scalar => scalar::winograd_input(w, phase, input, v),
-        // SAFETY: `level` comes from an `Isa`; the lengths are checked above.
-        level => unsafe { simd::winograd::input(level, w, phase, input, v) },
-    }
+    // SAFETY: `isa` proves the CPU has the kernel's features; the lengths are checked above.
+    unsafe { (simd::entries(isa).winograd_input)(w, phase, input, v) }
 }
 
-/// Steps 2 and 3 of a Winograd convolution (see [`winograd`]) for the output channels
-/// `channels`: `output = act(conv(input) + bias)` from the transformed input `v` (all four
-/// phases) and weights packed by [`pack::winograd_weights`] for the same `w`, using `scratch`
-/// ([`winograd::SCRATCH_LEN`] floats, one per thread). `channels.start` must be a multiple of
-/// [`OC_ALIGN`]. Only those channels of the output's interior are written.
-///
-/// # Safety
-/// As for [`conv_channels`].
-pub unsafe fn winograd_channels(
+/// Steps 2 and 3 of a Winograd convolution (see [`crate::winograd`]) for the output channels
+/// of `part`: `output = act(conv(input) + bias)` from the transformed input `v` (all four
+/// phases) and weights packed by [`crate::pack::winograd_weights`] for the same `w`, using
+/// `scratch` ([`Winograd::scratch_len`] floats, one per thread). Only those channels of the
+/// output's interior are written.
+pub fn winograd_channels(
     isa: Isa,
     w: &Winograd,
     layer: ConvParams<'_>,
     v: &[f32],
     scratch: &mut [f32],
-    output: *mut f32,
-    channels: core::ops::Range<usize>,
+    part: OutputPart<'_>,
 ) {
     assert_eq!(w.shape, layer.shape);
     assert_eq!(layer.weights.len(), w.packed_len());
     assert_eq!(layer.bias.len(), layer.shape.output.channels);
     assert_eq!(v.len(), w.input_len());
-    assert!(scratch.len() >= winograd::SCRATCH_LEN);
+    assert!(scratch.len() >= w.scratch_len());
+    assert_eq!(part.buffer_len(), layer.shape.output.len());
+    let channels = part.units();
     layer.shape.check_channels(&channels);
-    match isa.level() {
-        IsaLevel::Scalar => scalar::winograd_channels(w, layer, v, scratch, output, channels),
-        level => simd::winograd::channels(level, w, layer, v, scratch, output, channels),
-    }
+    // SAFETY: as in `conv_channels`.
+    unsafe { (simd::entries(isa).winograd_channels)(w, layer, v, scratch, part.ptr(), channels) }
 }
 
 /// A whole Winograd convolution on one thread: [`winograd_input`] for every phase into `v`
@@ -89,47 +76,33 @@ pub fn winograd_conv(
     scratch: &mut [f32],
     output: &mut [f32],
 ) {
-    assert_eq!(output.len(), layer.shape.output.len());
     assert_eq!(v.len(), w.input_len());
     for phase in 0..4 {
         winograd_input(isa, w, phase, input, &mut v[w.phase_span(phase)]);
     }
-    let all = 0..layer.shape.output.channels;
-    // SAFETY: `output` holds the whole output plane and is borrowed mutably for the call.
-    unsafe { winograd_channels(isa, w, layer, v, scratch, output.as_mut_ptr(), all) }
+    let channels = layer.shape.output.channels;
+    winograd_channels(isa, w, layer, v, scratch, OutputPart::whole(output, channels));
 }
 
 /// `y[n] = act(W x[n] + bias)` for a batch of `x.len() / W.cols` inputs stored one after another.
 pub fn dense(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
-    w.check(bias, x, y);
-    // SAFETY: `y` holds every row of every item and is borrowed mutably for the call.
-    unsafe { dense_rows(isa, w, bias, act, x, y.as_mut_ptr(), 0..w.rows) }
+    dense_rows(isa, w, bias, act, x, OutputPart::whole(y, w.rows));
 }
 
-/// [`dense`] for the rows `rows` only (`y[n * W.rows + r]` for `r` in `rows`), written through
-/// a pointer so that threads can fill disjoint row ranges of one batch's output at once (each
-/// reading only its rows of the weights). `rows.start` must be a multiple of [`OC_ALIGN`].
-///
-/// # Safety
-/// `y` must point to `batch * W.rows` floats valid for writes, and no other thread may read or
-/// write rows `rows` of any item during the call.
-pub unsafe fn dense_rows(
-    isa: Isa,
-    w: Matrix<'_>,
-    bias: &[f32],
-    act: Activation,
-    x: &[f32],
-    y: *mut f32,
-    rows: core::ops::Range<usize>,
-) {
-    assert!(rows.start <= rows.end && rows.end <= w.rows && bias.len() == w.rows);
+/// [`dense`] for the rows of `part` only (`y[n * W.rows + r]` for `r` in its units), so that
+/// threads can fill disjoint row ranges of one batch's output at once, each reading only its
+/// rows of the weights.
+pub fn dense_rows(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], part: OutputPart<'_>) {
+    let rows = part.units();
+    assert!(rows.start.is_multiple_of(crate::OC_ALIGN) && rows.end <= w.rows && bias.len() == w.rows);
     w.check_packed();
-    let (ldy, part) = (w.rows, w.row_range(rows.clone()));
-    let (bias, y) = (&bias[rows.clone()], y.add(rows.start));
-    let batch = x.len() / w.cols;
-    assert!(w.cols > 0 && batch * w.cols == x.len(), "input is not whole rows");
-    match isa.level() {
-        IsaLevel::Scalar => scalar::dense_rows(part, bias, act, x, y, ldy),
-        level => simd::dense(level, part, bias, act, x, y, ldy),
+    assert!(w.cols > 0 && x.len().is_multiple_of(w.cols), "input is not whole rows");
+    assert_eq!(part.buffer_len(), x.len() / w.cols * w.rows);
+    let (ldy, sub) = (w.rows, w.row_range(rows.clone()));
+    // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer holds every row
+    // of every item (checked), and its rows are this call's alone.
+    unsafe {
+        let y = part.ptr().add(rows.start);
+        (simd::entries(isa).dense)(sub, &bias[rows], act, x, y, ldy)
     }
 }

@@ -1,5 +1,6 @@
 //! Reference kernels: written straight from the definitions, with explicit bounds instead of
-//! relying on the zero border, so they check the SIMD kernels' use of it too.
+//! relying on the zero border, so they check the SIMD kernels' use of it too. The public ones
+//! are the test oracle; the others are the scalar entries of every operation's dispatch.
 
 use crate::winograd::{self, Winograd};
 use crate::{Activation, ConvParams, ConvShape, Matrix, MatrixData};
@@ -15,8 +16,9 @@ pub fn conv(layer: ConvParams<'_>, input: &[f32], output: &mut [f32]) {
 /// See [`crate::conv_channels`].
 ///
 /// # Safety
-/// As for [`crate::conv_channels`].
-pub unsafe fn conv_channels(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
+/// `output` must point to the whole output plane (`shape.output.len()` floats), valid for
+/// writes, and no other thread may read or write channels `channels` of it during the call.
+pub(crate) unsafe fn conv_channels(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
     let ConvParams {
         shape,
         weights,
@@ -68,8 +70,8 @@ pub fn winograd_input(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) 
 /// transform one float at a time.
 ///
 /// # Safety
-/// As for [`crate::winograd_channels`].
-pub unsafe fn winograd_channels(
+/// As for [`conv_channels`].
+pub(crate) unsafe fn winograd_channels(
     w: &Winograd,
     layer: ConvParams<'_>,
     v: &[f32],
@@ -90,8 +92,8 @@ pub fn dense(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f
 /// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row `r` of `w` and item `n`.
 ///
 /// # Safety
-/// `y` must be valid for those writes.
-pub unsafe fn dense_rows(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: *mut f32, ldy: usize) {
+/// `y` must be valid for those writes, and no other thread may read or write them.
+pub(crate) unsafe fn dense_rows(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: *mut f32, ldy: usize) {
     let weight = |r: usize, c: usize| {
         let at = Matrix::packed_index(r, c, w.cols);
         match w.data {

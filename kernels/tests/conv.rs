@@ -2,7 +2,7 @@
 //! instruction-set level this CPU supports.
 
 use drivesim_kernels::{
-    conv, conv_channels, pack, scalar, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, Plane,
+    conv, conv_channels, pack, scalar, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, OutputParts, Plane,
 };
 
 /// A small xorshift generator: uniform floats in [-1, 1).
@@ -94,9 +94,9 @@ fn check_with_gain(
         // Threads compute blocks of output channels with `conv_channels`: the same values.
         if oc > 32 {
             let mut split = vec![0.0; shape.output.len()];
-            for channels in [0..32, 32..oc] {
-                // SAFETY: `split` holds the whole output plane and is not shared.
-                unsafe { conv_channels(isa, layer, &input, split.as_mut_ptr(), channels) };
+            let parts = OutputParts::new(&mut split, oc, 2);
+            while let Some(part) = parts.take() {
+                conv_channels(isa, layer, &input, part);
             }
             assert!(
                 split == got,

@@ -1,10 +1,10 @@
-//! The SIMD dense kernels and `rnn_step` against the scalar reference, on awkward shapes.
+//! The SIMD dense kernels against the scalar reference, on awkward shapes.
 
 mod common;
 
 use common::values;
 use drivesim_kernels::pack::dense_weights;
-use drivesim_kernels::{dense, dense_rows, f16, rnn_step, Activation, Isa, IsaLevel, Matrix, MatrixData, Rnn};
+use drivesim_kernels::{dense, dense_rows, f16, Activation, Isa, IsaLevel, Matrix, MatrixData, OutputParts};
 
 const ROWS: [usize; 10] = [1, 2, 3, 5, 7, 8, 9, 17, 33, 129];
 const COLS: [usize; 14] = [1, 2, 3, 7, 8, 9, 15, 16, 17, 31, 33, 100, 1000, 2500];
@@ -41,14 +41,6 @@ fn normwise_error(got: &[f32], want: &[f32], terms: &[f32]) -> f32 {
     assert!(got.iter().all(|v| v.is_finite()), "non-finite output");
     let scale = terms.iter().fold(1e-6f32, |m, &v| m.max(v));
     let diff = got.iter().zip(want).fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
-    diff / scale
-}
-
-/// max|got - want| / max(|want|_inf, 1e-6).
-fn relative_error(got: &[f32], want: &[f32]) -> f32 {
-    let scale = want.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
-    let diff = got.iter().zip(want).fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
-    assert!(got.iter().all(|v| v.is_finite()), "non-finite output");
     diff / scale
 }
 
@@ -157,176 +149,6 @@ fn packed_matrix_computes_row_major_product() {
     }
 }
 
-/// An RNN's weights, row-major: `[W | V | U]` (`hd x (hd + zd + ad)`), `b`, `A` and `a`.
-struct RnnWeights {
-    dims: (usize, usize, usize),
-    wvu: Vec<f32>,
-    b: Vec<f32>,
-    big_a: Vec<f32>,
-    small_a: Vec<f32>,
-}
-
-impl RnnWeights {
-    fn random(hd: usize, zd: usize, ad: usize) -> Self {
-        let cols = hd + zd + ad;
-        let seed = (hd * 7 + zd) as u64;
-        RnnWeights {
-            dims: (hd, zd, ad),
-            wvu: values(seed, hd * cols, 1.0 / (cols as f32).sqrt()),
-            b: values(seed + 2, hd, 0.1),
-            big_a: values(seed + 1, zd * hd, 1.0 / (hd as f32).sqrt()),
-            small_a: values(seed + 3, zd, 0.1),
-        }
-    }
-
-    /// `[W + V A | U]` and `b + V a`, the input of a step fed its own prediction, summed in f64.
-    fn fed_back(&self) -> (Vec<f32>, Vec<f32>) {
-        let (hd, zd, ad) = self.dims;
-        let cols = hd + zd + ad;
-        let mut input = Vec::with_capacity(hd * (hd + ad));
-        let mut bias = Vec::with_capacity(hd);
-        for (row, &b) in self.wvu.chunks_exact(cols).zip(&self.b) {
-            let v = &row[hd..hd + zd];
-            let v_times = |column: &dyn Fn(usize) -> f32| (0..zd).map(|k| v[k] as f64 * column(k) as f64).sum::<f64>();
-            input.extend((0..hd).map(|j| (row[j] as f64 + v_times(&|k| self.big_a[k * hd + j])) as f32));
-            input.extend_from_slice(&row[hd + zd..]);
-            bias.push((b as f64 + v_times(&|k| self.small_a[k])) as f32);
-        }
-        (input, bias)
-    }
-}
-
-/// Runs `rnn_step` on `isa`: from `z`, or fed back without it.
-fn run_rnn(isa: Isa, rnn: &Rnn<'_>, h0: &[f32], z: Option<&[f32]>, action: &[f32]) -> (Vec<f32>, Vec<f32>) {
-    let batch = h0.len() / rnn.hidden();
-    let mut concat = vec![0.0; batch * rnn.input.cols];
-    let mut h = h0.to_vec();
-    let mut z_next = vec![f32::NAN; batch * rnn.z_dim()];
-    rnn_step(isa, rnn, &mut concat, &mut h, z, action, &mut z_next);
-    (h, z_next)
-}
-
-#[test]
-fn rnn_step_matches_scalar() {
-    let levels = simd_levels();
-    // (hidden, z, action): tiny, odd, and one that crosses the column panels.
-    for (hd, zd, ad) in [
-        (1, 1, 1),
-        (3, 5, 2),
-        (17, 9, 2),
-        (33, 16, 3),
-        (64, 32, 2),
-        (40, 1000, 2),
-    ] {
-        let weights = RnnWeights::random(hd, zd, ad);
-        let (fed_back, fed_back_bias) = weights.fed_back();
-        // Both forms of the input, packed: from a given code, and fed back.
-        let inputs = [
-            (
-                dense_weights(&weights.wvu, hd, hd + zd + ad),
-                &weights.b,
-                hd + zd + ad,
-                true,
-            ),
-            (dense_weights(&fed_back, hd, hd + ad), &fed_back_bias, hd + ad, false),
-        ];
-        let a = dense_weights(&weights.big_a, zd, hd);
-        let a16 = halves(&a);
-        for batch in [1, 2, 5, 16, 17] {
-            let h0 = values(7, batch * hd, 0.9);
-            let z = values(8, batch * zd, 1.0);
-            let action = values(9, batch * ad, 1.0);
-            for &(ref input, input_bias, cols, from_code) in &inputs {
-                let input16 = halves(input);
-                for half in [false, true] {
-                    let (input, output) = if half {
-                        (MatrixData::F16(&input16), MatrixData::F16(&a16))
-                    } else {
-                        (MatrixData::F32(input), MatrixData::F32(&a))
-                    };
-                    let rnn = Rnn {
-                        input: Matrix {
-                            data: input,
-                            rows: hd,
-                            cols,
-                        },
-                        input_bias,
-                        output: Matrix {
-                            data: output,
-                            rows: zd,
-                            cols: hd,
-                        },
-                        output_bias: &weights.small_a,
-                    };
-                    let z = from_code.then_some(&z[..]);
-                    let (want_h, want_z) = run_rnn(Isa::SCALAR, &rnn, &h0, z, &action);
-                    for &isa in &levels {
-                        let (h, z_next) = run_rnn(isa, &rnn, &h0, z, &action);
-                        let (eh, ez) = (relative_error(&h, &want_h), relative_error(&z_next, &want_z));
-                        assert!(
-                            eh <= TOLERANCE && ez <= TOLERANCE,
-                            "{:?} hd {hd} z {zd} a {ad} batch {batch} f16 {half} from code {from_code}: \
-                             h error {eh}, z error {ez}",
-                            isa.level()
-                        );
-                    }
-                }
-            }
-        }
-    }
-}
-
-#[test]
-fn fed_back_step_is_the_step_from_the_predicted_code() {
-    for (hd, zd, ad) in [(1, 1, 1), (17, 9, 2), (40, 1000, 2), (64, 32, 3)] {
-        let weights = RnnWeights::random(hd, zd, ad);
-        let (fed_back, fed_back_bias) = weights.fed_back();
-        let a = dense_weights(&weights.big_a, zd, hd);
-        let matrix = |data, rows, cols| Matrix {
-            data: MatrixData::F32(data),
-            rows,
-            cols,
-        };
-        let output = matrix(&a, zd, hd);
-        let wvu = dense_weights(&weights.wvu, hd, hd + zd + ad);
-        let from_code = Rnn {
-            input: matrix(&wvu, hd, hd + zd + ad),
-            input_bias: &weights.b,
-            output,
-            output_bias: &weights.small_a,
-        };
-        let fed_back = dense_weights(&fed_back, hd, hd + ad);
-        let fed_back = Rnn {
-            input: matrix(&fed_back, hd, hd + ad),
-            input_bias: &fed_back_bias,
-            ..from_code
-        };
-        for batch in [1, 3] {
-            let h0 = values(10, batch * hd, 0.9);
-            let action = values(11, batch * ad, 1.0);
-            let mut predicted = vec![0.0; batch * zd];
-            dense(
-                Isa::SCALAR,
-                output,
-                &weights.small_a,
-                Activation::Identity,
-                &h0,
-                &mut predicted,
-            );
-            let (want_h, want_z) = run_rnn(Isa::SCALAR, &from_code, &h0, Some(&predicted), &action);
-            for isa in Isa::supported() {
-                let (h, z) = run_rnn(isa, &fed_back, &h0, None, &action);
-                let (eh, ez) = (relative_error(&h, &want_h), relative_error(&z, &want_z));
-                assert!(
-                    eh <= TOLERANCE && ez <= TOLERANCE,
-                    "{:?} hd {hd} z {zd} a {ad} batch {batch}: h error {eh}, z error {ez}",
-                    isa.level()
-                );
-            }
-        }
-    }
-}
-
 #[test]
 fn row_ranges_match_whole() {
     // Threads each take a range of rows of every item: together they write what one call does.
@@ -342,10 +164,10 @@ fn row_ranges_match_whole() {
                 let mut whole = vec![0.0; batch * rows];
                 dense(isa, w, &bias, Activation::Tanh, &x, &mut whole);
                 let mut parts = vec![f32::NAN; batch * rows];
-                // Ranges start at panels, as threads' shares do.
-                for range in [0..16, 16..16, 16..32, 32..37] {
-                    // SAFETY: `parts` holds every row of every item and is not shared.
-                    unsafe { dense_rows(isa, w, &bias, Activation::Tanh, &x, parts.as_mut_ptr(), range) };
+                // Ranges start at panels, as threads' shares do: 0..16, 16..32 and 32..37.
+                let ranges = OutputParts::new(&mut parts, rows, 3);
+                while let Some(part) = ranges.take() {
+                    dense_rows(isa, w, &bias, Activation::Tanh, &x, part);
                 }
                 assert_eq!(parts, whole, "{:?} batch {batch}", isa.level());
             }
@@ -377,15 +199,13 @@ fn dense_is_bit_identical_across_batches_and_row_splits() {
                     dense(isa, w, &bias, Activation::Tanh, item, &mut one);
                     assert_eq!(one, whole[n * rows..][..rows], "{isa:?} {rows}x{cols}: item {n} alone");
                 }
-                for split in [16, 48, 64, 272] {
-                    let mut parts = vec![0.0; batch * rows];
-                    for start in (0..rows).step_by(split) {
-                        // SAFETY: `parts` holds the whole output; the ranges are disjoint and
-                        // written one after another.
-                        let end = (start + split).min(rows);
-                        unsafe { dense_rows(isa, w, &bias, Activation::Tanh, &x, parts.as_mut_ptr(), start..end) };
+                for count in [2, 3, 7, 20] {
+                    let mut split = vec![0.0; batch * rows];
+                    let parts = OutputParts::new(&mut split, rows, count);
+                    while let Some(part) = parts.take() {
+                        dense_rows(isa, w, &bias, Activation::Tanh, &x, part);
                     }
-                    assert_eq!(parts, whole, "{isa:?} {rows}x{cols}: rows in parts of {split}");
+                    assert_eq!(split, whole, "{isa:?} {rows}x{cols}: rows in {count} parts");
                 }
             }
         }

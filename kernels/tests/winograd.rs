@@ -5,10 +5,9 @@
 mod common;
 
 use common::values;
-use drivesim_kernels::winograd::SCRATCH_LEN;
 use drivesim_kernels::{
-    pack, scalar, winograd_channels, winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, Plane,
-    Winograd,
+    pack, scalar, winograd_channels, winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel,
+    OutputParts, Plane, Winograd,
 };
 
 /// Every level this CPU supports, scalar included, saying which are skipped.
@@ -65,7 +64,7 @@ fn check(
     let mut worst_all = 0.0f32;
     for isa in levels() {
         let mut v = vec![f32::NAN; wino.input_len()];
-        let mut scratch = vec![f32::NAN; SCRATCH_LEN];
+        let mut scratch = vec![f32::NAN; wino.scratch_len()];
         let mut got = vec![0.0; shape.output.len()];
         winograd_conv(isa, &wino, layer, &input, &mut v, &mut scratch, &mut got);
         let worst = got.iter().zip(&want).fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
@@ -86,12 +85,9 @@ fn check(
                 nan_filled[at..at + op.channels].fill(f32::NAN);
             }
         }
-        // SAFETY: `nan_filled` holds the whole output plane and is not shared.
-        unsafe {
-            let split = if oc > 16 { 16 } else { 0 };
-            for channels in [0..split, split..oc] {
-                winograd_channels(isa, &wino, layer, &v, &mut scratch, nan_filled.as_mut_ptr(), channels);
-            }
+        let parts = OutputParts::new(&mut nan_filled, oc, 2);
+        while let Some(part) = parts.take() {
+            winograd_channels(isa, &wino, layer, &v, &mut scratch, part);
         }
         assert!(
             nan_filled.iter().zip(&got).all(|(a, b)| a == b),

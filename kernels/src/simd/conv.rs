@@ -23,9 +23,8 @@
 //! image horizontally read the zero border; rows of taps outside the image are skipped.
 
 use super::act;
-use super::arch;
 use super::vector::{load_n, store_n, Simd};
-use crate::{scalar, Activation, ConvKind, ConvParams, ConvShape, IsaLevel, OC_ALIGN};
+use crate::{scalar, Activation, ConvKind, ConvParams, ConvShape, OC_ALIGN};
 use core::ops::Range;
 
 /// The most segments one row can have (`k` for `Down`, `ceil(k / 2)^2` for `Up`); kernels with
@@ -83,29 +82,21 @@ pub(super) struct Block<V, const NV: usize> {
     pub valid: usize,
 }
 
-/// An instruction set's instance of [`body`] (see [`super::Entries`]).
-pub(super) type Entry = unsafe fn(ConvParams<'_>, &[f32], *mut f32, Range<usize>, Pass);
-
-/// See [`crate::conv_channels`].
+/// See [`crate::conv_channels`]: the weights in passes of whole kernel rows that stay in cache,
+/// each summed by [`body`] on top of the last.
 ///
 /// # Safety
-/// As for [`crate::conv_channels`]; `level` must come from an `Isa`.
-pub(crate) unsafe fn conv(
-    level: IsaLevel,
-    layer: ConvParams<'_>,
-    input: &[f32],
-    output: *mut f32,
-    channels: Range<usize>,
-) {
-    let entry = match arch::entries(level) {
-        Some(entries) if layer.shape.kernel * layer.shape.kernel <= MAX_SEGS => entries.conv,
-        _ => return scalar::conv_channels(layer, input, output, channels),
-    };
+/// As for [`crate::scalar::conv_channels`]; the CPU must have `V`'s features.
+#[inline(always)]
+pub(super) unsafe fn conv<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
     let shape = &layer.shape;
+    if shape.kernel * shape.kernel > MAX_SEGS {
+        return scalar::conv_channels(layer, input, output, channels);
+    }
     // Panel rows of one kernel row (`ky`): every tap `kx` and input channel.
     let ky_rows = shape.kernel * shape.input.channels;
     let rows = shape.kernel * ky_rows;
-    let row_bytes = 2 * level.lanes() * core::mem::size_of::<f32>();
+    let row_bytes = 2 * V::LANES * core::mem::size_of::<f32>();
     let window = if shape.is_narrow() || rows * row_bytes <= SINGLE_PASS_BYTES {
         rows
     } else {
@@ -117,9 +108,7 @@ pub(crate) unsafe fn conv(
             first: start == 0,
             last: start + window >= rows,
         };
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has the entry's features;
-        // `crate::conv_channels` checked the buffer lengths against `shape`.
-        entry(layer, input, output, channels.clone(), pass);
+        body::<V>(layer, input, output, channels.clone(), pass);
     }
 }
 

@@ -24,16 +24,15 @@
 
 use super::act;
 use super::vector::{load_n, store_n, Simd, Widen};
-use super::{arch, Entries};
-use crate::{f16, Activation, IsaLevel, Matrix, MatrixData, OC_ALIGN};
+use crate::{f16, Activation, Matrix, MatrixData, OC_ALIGN};
 
 /// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row of `w` (see
-/// [`crate::dense_rows`]).
+/// [`crate::dense_rows`]), with a batch tile of `NI` items by `NV` vectors.
 ///
 /// # Safety
-/// `y` must be valid for those writes; `level` must come from an `Isa`.
-pub(crate) unsafe fn dense(
-    level: IsaLevel,
+/// As for [`crate::scalar::dense_rows`]; the CPU must have `S`'s features.
+#[inline(always)]
+pub(super) unsafe fn dense<S: Widen, const NI: usize, const NV: usize>(
     w: Matrix<'_>,
     bias: &[f32],
     act: Activation,
@@ -50,26 +49,10 @@ pub(crate) unsafe fn dense(
         ldy,
     };
     match w.data {
-        MatrixData::F32(d) => run(level, w, d, args),
-        MatrixData::F16(d) => run(level, w, d, args),
+        MatrixData::F32(d) => body::<S, f32, NI, NV>(d, args),
+        MatrixData::F16(d) => body::<S, f16, NI, NV>(d, args),
     }
 }
-
-/// [`dense`] on the weights `d` of `w`, stored as `T`.
-///
-/// # Safety
-/// As for [`dense`].
-unsafe fn run<T: Weight>(level: IsaLevel, w: Matrix<'_>, d: &[T], args: Args<'_>) {
-    match arch::entries(level) {
-        // SAFETY: `level` comes from an `Isa`, which proves that the CPU has the entry's
-        // features; the caller vouches for `y`.
-        Some(entries) => T::entry(entries)(d, args),
-        None => crate::scalar::dense_rows(w, args.bias, args.act, args.x, args.y, args.ldy),
-    }
-}
-
-/// An instruction set's instance of [`body`] (see [`super::Entries`]).
-pub(super) type Entry<T> = unsafe fn(&[T], Args<'_>);
 
 /// The arguments of one call besides the weights: output item `n` starts at `y + n * ldy`.
 pub(super) struct Args<'a> {
@@ -92,8 +75,6 @@ const PREFETCH: usize = 1024;
 /// A stored weight type: loads `LANES` of them as f32 lanes.
 pub(super) trait Weight: Copy {
     unsafe fn load<S: Widen>(p: *const Self) -> S;
-    /// The instruction set's dense entry for weights of this type.
-    fn entry(entries: &Entries) -> Entry<Self>;
 }
 
 impl Weight for f32 {
@@ -101,18 +82,12 @@ impl Weight for f32 {
     unsafe fn load<S: Widen>(p: *const f32) -> S {
         S::load(p)
     }
-    fn entry(entries: &Entries) -> Entry<f32> {
-        entries.dense_f32
-    }
 }
 
 impl Weight for f16 {
     #[inline(always)]
     unsafe fn load<S: Widen>(p: *const f16) -> S {
         S::load_f16(p)
-    }
-    fn entry(entries: &Entries) -> Entry<f16> {
-        entries.dense_f16
     }
 }
 

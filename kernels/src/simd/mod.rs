@@ -1,8 +1,8 @@
 //! The SIMD kernels, one file per operation: each a generic body over the vector traits of
 //! [`vector`]. The architecture's module implements the trait for its vectors and compiles
 //! each body once per instruction set inside a `#[target_feature]` entry point
-//! (`x86_64`: AVX2 + FMA + F16C and AVX-512F; `aarch64`: NEON); the operations look their entry
-//! up by [`crate::IsaLevel`] and fall back to the scalar kernels where there is none.
+//! (`x86_64`: AVX2 + FMA + F16C and AVX-512F; `aarch64`: NEON). [`entries`] gives the kernels of
+//! an [`Isa`]: those, or the scalar kernels where there are none.
 
 // Without a vector unit the kernels know, nothing instantiates the generic bodies.
 #![cfg_attr(
@@ -13,21 +13,46 @@
     allow(dead_code, unused_macros)
 )]
 
+use crate::winograd::Winograd;
+use crate::{scalar, Activation, ConvParams, Isa, Matrix};
+use core::ops::Range;
+
 pub(crate) mod act;
 mod conv;
 mod dense;
 pub(crate) mod vector;
 pub(crate) mod winograd;
 
-/// One instruction set's entry points: each generic body compiled inside a
-/// `#[target_feature]` function. Made by `entries!` below; each architecture's `entries(level)`
-/// returns the set for a level of its own.
-pub(super) struct Entries {
-    conv: conv::Entry,
-    dense_f32: dense::Entry<f32>,
-    dense_f16: dense::Entry<crate::f16>,
-    winograd_input: winograd::InputEntry,
-    winograd_channels: winograd::ChannelsEntry,
+/// One instruction set's kernels, one per operation, behind the checks of [`crate::ops`]:
+/// each architecture's `entries!` instances (each generic body compiled inside a
+/// `#[target_feature]` function), or [`SCALAR`], the reference kernels. [`entries`] picks the
+/// set of an [`Isa`], so that the scalar fallback of every operation is written once.
+pub(crate) struct Entries {
+    /// See [`crate::scalar::conv_channels`].
+    pub conv: unsafe fn(ConvParams<'_>, &[f32], *mut f32, Range<usize>),
+    /// See [`crate::scalar::dense_rows`].
+    pub dense: unsafe fn(Matrix<'_>, &[f32], Activation, &[f32], *mut f32, usize),
+    /// See [`crate::scalar::winograd_input`].
+    pub winograd_input: unsafe fn(&Winograd, usize, &[f32], &mut [f32]),
+    /// See [`crate::scalar::winograd_channels`].
+    pub winograd_channels: WinogradChannels,
+}
+
+/// `(w, layer, v, scratch, output, channels)`.
+type WinogradChannels = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mut [f32], *mut f32, Range<usize>);
+
+/// The reference kernels, for [`crate::IsaLevel::Scalar`] and every CPU without a vector unit
+/// the kernels know.
+static SCALAR: Entries = Entries {
+    conv: scalar::conv_channels,
+    dense: scalar::dense_rows,
+    winograd_input: scalar::winograd_input,
+    winograd_channels: scalar::winograd_channels,
+};
+
+/// The kernels of `isa`. Calling them is sound on this CPU: an [`Isa`] proves its features.
+pub(crate) fn entries(isa: Isa) -> &'static Entries {
+    arch::entries(isa.level()).unwrap_or(&SCALAR)
 }
 
 /// `static $name: Entries` for the vector type `$vector` under the target features
@@ -36,23 +61,29 @@ macro_rules! entries {
     ($name:ident, $features:literal, $vector:ty, dense tile $items:literal x $vectors:literal) => {
         static $name: $crate::simd::Entries = {
             /// # Safety
-            /// The CPU must have the features; as for `conv::body`.
+            /// The CPU must have the features; as for `conv::conv`.
             #[target_feature(enable = $features)]
             unsafe fn conv(
                 layer: $crate::ConvParams<'_>,
                 input: &[f32],
                 output: *mut f32,
                 channels: core::ops::Range<usize>,
-                pass: $crate::simd::conv::Pass,
             ) {
-                $crate::simd::conv::body::<$vector>(layer, input, output, channels, pass)
+                $crate::simd::conv::conv::<$vector>(layer, input, output, channels)
             }
 
             /// # Safety
-            /// The CPU must have the features; as for `dense::body`.
+            /// The CPU must have the features; as for `dense::dense`.
             #[target_feature(enable = $features)]
-            unsafe fn dense<T: $crate::simd::dense::Weight>(w: &[T], args: $crate::simd::dense::Args<'_>) {
-                $crate::simd::dense::body::<$vector, T, $items, $vectors>(w, args)
+            unsafe fn dense(
+                w: $crate::Matrix<'_>,
+                bias: &[f32],
+                act: $crate::Activation,
+                x: &[f32],
+                y: *mut f32,
+                ldy: usize,
+            ) {
+                $crate::simd::dense::dense::<$vector, $items, $vectors>(w, bias, act, x, y, ldy)
             }
 
             /// # Safety
@@ -78,8 +109,7 @@ macro_rules! entries {
 
             $crate::simd::Entries {
                 conv,
-                dense_f32: dense::<f32>,
-                dense_f16: dense::<$crate::f16>,
+                dense,
                 winograd_input: input,
                 winograd_channels: channels,
             }
@@ -106,6 +136,3 @@ mod arch {
         None
     }
 }
-
-pub(crate) use conv::conv;
-pub(crate) use dense::dense;

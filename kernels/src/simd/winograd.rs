@@ -2,11 +2,10 @@
 //! matrix products on the direct convolution's microkernel (a product is a row of "pixels"
 //! (tiles) with one segment of input channels).
 
-use super::arch;
 use super::conv::{run_row, Block, Row, Seg};
 use super::vector::Simd;
 use crate::winograd::{self, InputTransform, Product, Products, Winograd};
-use crate::{scalar, Activation, ConvParams, IsaLevel, OC_ALIGN};
+use crate::{Activation, ConvParams, OC_ALIGN};
 use core::ops::Range;
 
 /// Steps of input channels ahead to prefetch the weights: they stream from L3 or memory (twice
@@ -65,43 +64,6 @@ impl<V: Simd> Product for Microkernel<V> {
             };
             run_row::<V, 1, PREFETCH_STEPS>(&row, &block, Activation::Identity)
         }
-    }
-}
-
-/// An instruction set's instance of [`input_body`] (see [`super::Entries`]).
-pub(super) type InputEntry = unsafe fn(&Winograd, usize, &[f32], &mut [f32]);
-/// An instruction set's instance of [`channels_body`] (see [`super::Entries`]).
-pub(super) type ChannelsEntry = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mut [f32], *mut f32, Range<usize>);
-
-/// See [`crate::winograd_input`].
-///
-/// # Safety
-/// `level` must come from an `Isa`; the buffers are checked by the caller.
-pub(crate) unsafe fn input(level: IsaLevel, w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-    match arch::entries(level) {
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has the entry's features.
-        Some(entries) => (entries.winograd_input)(w, phase, input, v),
-        None => scalar::winograd_input(w, phase, input, v),
-    }
-}
-
-/// See [`crate::winograd_channels`].
-///
-/// # Safety
-/// As for [`crate::winograd_channels`]; `level` must come from an `Isa`.
-pub(crate) unsafe fn channels(
-    level: IsaLevel,
-    w: &Winograd,
-    layer: ConvParams<'_>,
-    v: &[f32],
-    scratch: &mut [f32],
-    output: *mut f32,
-    channels: Range<usize>,
-) {
-    match arch::entries(level) {
-        // SAFETY: `level` comes from an `Isa`, which proves the CPU has the entry's features.
-        Some(entries) => (entries.winograd_channels)(w, layer, v, scratch, output, channels),
-        None => scalar::winograd_channels(w, layer, v, scratch, output, channels),
     }
 }
 

@@ -21,7 +21,7 @@
 //!    phase at a time (tiles row-major over the phase grid, see [`Winograd::tiles`]);
 //! 2. and 3. [`crate::winograd_channels`] multiplies a group of tiles by the packed weights
 //!    `U` (`[out_channel / 16][point][in_channel][out_channel % 16]`, see
-//!    [`Winograd::packed_index`]) into a scratch of [`SCRATCH_LEN`] floats, then transforms the
+//!    [`Winograd::packed_index`]) into a scratch of [`Winograd::scratch_len`] floats, then transforms the
 //!    products back, adds the bias, applies the activation and stores the output pixels.
 //!
 //! The input and output transforms are written out (their coefficients are small integers), so
@@ -45,11 +45,6 @@ pub(crate) use transform::{InputTransform, WeightTransform};
 use crate::{ConvKind, ConvShape, OC_ALIGN};
 use core::ops::Range;
 
-/// Floats of the product scratch [`crate::winograd_channels`] needs: the products of one group
-/// of tiles ([`Winograd::group_tiles`]) at every transform point, for a block of up to 32 output
-/// channels (two AVX-512 vectors). 4x4 tiles (121 points, groups of 25) need more than 2x2
-/// tiles (49 points, groups of 20).
-pub const SCRATCH_LEN: usize = 121 * GROUP_4X4 * 2 * OC_ALIGN;
 /// Tiles per group (see [`Winograd::group_tiles`]).
 const GROUP_2X2: usize = 20;
 const GROUP_4X4: usize = 25;
@@ -111,7 +106,7 @@ impl Winograd {
     /// The most tiles whose products are kept at once (see [`crate::winograd_channels`]): 20
     /// of 2x2 (tried from 12 to 64: as good as any), 25 of 4x4 (the encoder's conv1 on Zen 3:
     /// 1.74 ms in groups of 12, 1.49-1.58 of 17, 1.43-1.48 of 25, 1.37 in one group of 50,
-    /// whose scratch would be as large as L2). Their products fit [`SCRATCH_LEN`].
+    /// whose scratch would be as large as L2).
     pub fn group_tiles(&self) -> usize {
         if self.tile == 2 {
             GROUP_2X2
@@ -154,6 +149,13 @@ impl Winograd {
     /// is packed.
     pub fn packed_index(&self, point: usize, ic: usize, oc: usize) -> usize {
         (oc / OC_ALIGN) * self.panel_len() + (point * self.shape.input.channels + ic) * OC_ALIGN + oc % OC_ALIGN
+    }
+
+    /// Floats of the product scratch [`crate::winograd_channels`] needs (one per thread): the
+    /// products of one group of tiles ([`Winograd::group_tiles`]) at every transform point, for
+    /// a block of up to 32 output channels (two AVX-512 vectors).
+    pub fn scratch_len(&self) -> usize {
+        self.points() * self.group_tiles() * 2 * OC_ALIGN
     }
 
     /// Floats of the transformed input `V`.
