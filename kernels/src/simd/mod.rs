@@ -19,6 +19,7 @@ use core::ops::Range;
 
 pub(crate) mod act;
 mod conv;
+mod conv_narrow;
 mod dense;
 pub(crate) mod vector;
 pub(crate) mod winograd;
