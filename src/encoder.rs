@@ -1,13 +1,14 @@
 //! The encoder: a frame to the VAE's mean and log-sigma.
 
-use crate::layers::{for_each_item, run_convs, ConvLayer, DenseLayer, DenseWeights, StackBuffers};
+use crate::layers::{for_each_item, run_convs, ConvLayer, DenseLayer};
+use crate::plan::StackBuffers;
 use crate::pool::Exec;
-use crate::weights::{Init, Tensor, TensorSource};
+use crate::weights::{Init, TensorSource};
 use crate::{Config, Result};
 use alloc::format;
 use alloc::vec::Vec;
 use drivesim_kernels::pack::permute_cols_chw_to_hwc;
-use drivesim_kernels::{Activation, ConvKind, ConvShape, Plane};
+use drivesim_kernels::{Activation, ConvKind, ConvShape, Plane, Tensor};
 
 /// `LeakyReLU(0.2)` after every encoder convolution.
 const LEAKY_SLOPE: f32 = 0.2;
@@ -48,8 +49,8 @@ impl Encoder {
         let mut head = |name: &str, act| -> Result<DenseLayer> {
             // PyTorch flattens CHW; the convolutions leave HWC: permute the columns once.
             let weights = match src.tensor(&format!("encoder.{name}.weight"), &[z, flat], Init::FanIn(flat))? {
-                Tensor::F32(v) => DenseWeights::F32(permute_cols_chw_to_hwc(&v, z, c, h, w)),
-                Tensor::F16(v) => DenseWeights::F16(permute_cols_chw_to_hwc(&v, z, c, h, w)),
+                Tensor::F32(v) => Tensor::F32(permute_cols_chw_to_hwc(&v, z, c, h, w)),
+                Tensor::F16(v) => Tensor::F16(permute_cols_chw_to_hwc(&v, z, c, h, w)),
             };
             let bias = src.f32(&format!("encoder.{name}.bias"), &[z], Init::FanIn(flat))?;
             Ok(DenseLayer::new(weights, bias, z, flat, act))

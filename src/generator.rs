@@ -1,13 +1,14 @@
 //! The generator: a latent code to a frame.
 
-use crate::layers::{for_each_item, read_batch_norm, run_convs, ConvLayer, DenseLayer, DenseWeights, StackBuffers};
+use crate::layers::{for_each_item, run_convs, ConvLayer, DenseLayer};
+use crate::plan::StackBuffers;
 use crate::pool::Exec;
-use crate::weights::{Init, TensorSource};
+use crate::weights::{read_batch_norm, Init, TensorSource};
 use crate::{Config, Result};
 use alloc::format;
 use alloc::vec::Vec;
 use drivesim_kernels::pack::permute_rows_chw_to_hwc;
-use drivesim_kernels::{Activation, ConvKind, ConvShape, Plane};
+use drivesim_kernels::{Activation, ConvKind, ConvShape, Plane, Tensor};
 
 pub(crate) struct Generator {
     /// `fc` with `bn0` folded in and ReLU fused; rows permuted to HWC order.
@@ -45,7 +46,7 @@ impl Generator {
         let bias = src.f32("generator.fc.bias", &[flat], Init::FanIn(z))?;
         let bn0 = read_batch_norm(src, "generator.bn0", c)?;
         let (weight, bias) = permute_rows_chw_to_hwc(&weight, &bias, z, c, h, w, Some(bn0.view()));
-        let fc = DenseLayer::new(DenseWeights::F32(weight), bias, flat, z, Activation::Relu);
+        let fc = DenseLayer::new(Tensor::F32(weight), bias, flat, z, Activation::Relu);
 
         let deconvs = conv_shapes(config)
             .enumerate()

@@ -1,13 +1,13 @@
 //! The two kinds of layer the networks are made of, loaded and packed once.
 
-use crate::plan::{zeros, StackPlan};
+use crate::plan::Planes;
 use crate::pool::{Exec, Parts};
-use crate::weights::{Init, Tensor, TensorSource};
-use crate::{Error, Result};
+use crate::weights::{read_batch_norm, Init, TensorSource};
+use crate::Result;
 use alloc::format;
 use alloc::vec::Vec;
-use drivesim_kernels::pack::{self, BatchNorm};
-use drivesim_kernels::{f16, Activation, ConvParams, ConvShape, Matrix, MatrixData, OutputParts, Winograd, OC_ALIGN};
+use drivesim_kernels::pack;
+use drivesim_kernels::{Activation, ConvParams, ConvShape, Matrix, OutputParts, Tensor, Winograd, OC_ALIGN};
 
 /// A convolution with its BatchNorm folded in and its activation fused, computed directly or,
 /// where [`Winograd::new`] takes the layer, by Winograd's algorithm (with its weights packed
@@ -114,63 +114,6 @@ pub(crate) struct Scratch<'a> {
 /// Output channels threads take at a time: two panels, the kernels' widest block of channels.
 const BLOCK_CHANNELS: usize = 2 * OC_ALIGN;
 
-/// The buffers of a chain of convolutions running one image at a time.
-pub(crate) struct Planes {
-    /// The padded input plane of each layer.
-    inputs: Vec<Vec<f32>>,
-    /// The transformed input of the largest Winograd layer.
-    transformed: Vec<f32>,
-    /// Winograd product scratch, one per thread that may share a layer on these planes.
-    products: Vec<f32>,
-}
-
-impl Planes {
-    /// The zeroed buffers of set `set` of `stack`.
-    fn new(stack: &StackPlan, set: usize, plan_bytes: usize) -> Result<Self> {
-        let products = if set == 0 {
-            stack.products_first
-        } else {
-            stack.products_other
-        };
-        let mut inputs = Vec::with_capacity(stack.inputs.len());
-        for &len in &stack.inputs {
-            inputs.push(zeros(len, plan_bytes)?);
-        }
-        Ok(Planes {
-            inputs,
-            transformed: zeros(stack.transformed, plan_bytes)?,
-            products: zeros(products, plan_bytes)?,
-        })
-    }
-
-    /// The first layer's input plane.
-    pub fn input(&mut self) -> &mut [f32] {
-        &mut self.inputs[0]
-    }
-}
-
-/// Per-simulator buffers of a convolution stack (the encoder's or the generator's), as planned.
-pub(crate) struct StackBuffers {
-    /// The padded input plane of every convolution: one set, or one per thread when threads
-    /// take whole items of a batch.
-    pub planes: Vec<Planes>,
-    /// The flat features between the convolutions and the dense layer, for a whole batch.
-    pub flat: Vec<f32>,
-}
-
-impl StackBuffers {
-    pub fn new(stack: &StackPlan, flat: usize, plan_bytes: usize) -> Result<Self> {
-        let mut planes = Vec::with_capacity(stack.sets);
-        for set in 0..stack.sets {
-            planes.push(Planes::new(stack, set, plan_bytes)?);
-        }
-        Ok(StackBuffers {
-            planes,
-            flat: zeros(flat, plan_bytes)?,
-        })
-    }
-}
-
 /// Runs `convs` in turn: the first input plane (already filled) through the others to `output`.
 pub(crate) fn run_convs(exec: Exec<'_>, convs: &[ConvLayer], planes: &mut Planes, output: &mut [f32]) {
     for (i, conv) in convs.iter().enumerate() {
@@ -220,63 +163,13 @@ pub(crate) fn for_each_item(
     });
 }
 
-/// BatchNorm parameters as read from a source.
-pub(crate) struct BatchNormParams([Vec<f32>; 4]);
-
-impl BatchNormParams {
-    pub fn view(&self) -> BatchNorm<'_> {
-        let [weight, bias, running_mean, running_var] = &self.0;
-        BatchNorm {
-            weight,
-            bias,
-            running_mean,
-            running_var,
-        }
-    }
-}
-
-/// Reads BatchNorm `name`'s four tensors; a negative running variance is an error.
-pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: usize) -> Result<BatchNormParams> {
-    let mut read = |part: &str, init| src.f32(&format!("{name}.{part}"), &[channels], init);
-    let params = [
-        read("weight", Init::Ones)?,
-        read("bias", Init::Zeros)?,
-        read("running_mean", Init::Zeros)?,
-        read("running_var", Init::Ones)?,
-    ];
-    if let Some(index) = params[3].iter().position(|&v| v < 0.0) {
-        return Err(Error::BadWeight {
-            name: format!("{name}.running_var"),
-            index,
-            value: params[3][index],
-            expected: "a variance, at least 0",
-        });
-    }
-    Ok(BatchNormParams(params))
-}
-
 /// Below this many weights a dense layer is not worth sharing between threads: the pool's
 /// hand-off costs about a microsecond, the product of a 256 x 256 matrix not much more.
 const PARALLEL_MIN_WEIGHTS: usize = 1 << 16;
 
-/// Weights of a dense layer: row-major as loaded, packed by [`DenseLayer::new`].
-pub(crate) enum DenseWeights {
-    F32(Vec<f32>),
-    F16(Vec<f16>),
-}
-
-impl From<Tensor> for DenseWeights {
-    fn from(t: Tensor) -> Self {
-        match t {
-            Tensor::F32(v) => DenseWeights::F32(v),
-            Tensor::F16(v) => DenseWeights::F16(v),
-        }
-    }
-}
-
 /// `y = act(W x + b)` with `W` `rows x cols`, packed in the kernels' panels ([`Matrix`]).
 pub(crate) struct DenseLayer {
-    weights: DenseWeights,
+    weights: Tensor,
     pub bias: Vec<f32>,
     pub rows: usize,
     pub cols: usize,
@@ -285,11 +178,9 @@ pub(crate) struct DenseLayer {
 
 impl DenseLayer {
     /// A layer from row-major weights, which it packs.
-    pub fn new(weights: DenseWeights, bias: Vec<f32>, rows: usize, cols: usize, act: Activation) -> Self {
-        let weights = match weights {
-            DenseWeights::F32(w) => DenseWeights::F32(pack::dense_weights(&w, rows, cols)),
-            DenseWeights::F16(w) => DenseWeights::F16(pack::dense_weights(&w, rows, cols)),
-        };
+    pub fn new(weights: Tensor, bias: Vec<f32>, rows: usize, cols: usize, act: Activation) -> Self {
+        let pack = |w: &[_]| pack::dense_weights(w, rows, cols);
+        let weights = weights.map(pack, |w| pack::dense_weights(w, rows, cols));
         DenseLayer {
             weights,
             bias,
@@ -300,12 +191,8 @@ impl DenseLayer {
     }
 
     pub fn matrix(&self) -> Matrix<'_> {
-        let data = match &self.weights {
-            DenseWeights::F32(w) => MatrixData::F32(w),
-            DenseWeights::F16(w) => MatrixData::F16(w),
-        };
         Matrix {
-            data,
+            data: self.weights.as_data(),
             rows: self.rows,
             cols: self.cols,
         }

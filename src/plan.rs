@@ -174,3 +174,60 @@ pub(crate) fn zeros(len: usize, plan_bytes: usize) -> Result<Vec<f32>> {
     v.resize(len, 0.0);
     Ok(v)
 }
+
+/// The buffers of a chain of convolutions running one image at a time.
+pub(crate) struct Planes {
+    /// The padded input plane of each layer.
+    pub inputs: Vec<Vec<f32>>,
+    /// The transformed input of the largest Winograd layer.
+    pub transformed: Vec<f32>,
+    /// Winograd product scratch, one per thread that may share a layer on these planes.
+    pub products: Vec<f32>,
+}
+
+impl Planes {
+    /// The zeroed buffers of set `set` of `stack`.
+    fn new(stack: &StackPlan, set: usize, plan_bytes: usize) -> Result<Self> {
+        let products = if set == 0 {
+            stack.products_first
+        } else {
+            stack.products_other
+        };
+        let mut inputs = Vec::with_capacity(stack.inputs.len());
+        for &len in &stack.inputs {
+            inputs.push(zeros(len, plan_bytes)?);
+        }
+        Ok(Planes {
+            inputs,
+            transformed: zeros(stack.transformed, plan_bytes)?,
+            products: zeros(products, plan_bytes)?,
+        })
+    }
+
+    /// The first layer's input plane.
+    pub fn input(&mut self) -> &mut [f32] {
+        &mut self.inputs[0]
+    }
+}
+
+/// Per-simulator buffers of a convolution stack (the encoder's or the generator's), as planned.
+pub(crate) struct StackBuffers {
+    /// The padded input plane of every convolution: one set, or one per thread when threads
+    /// take whole items of a batch.
+    pub planes: Vec<Planes>,
+    /// The flat features between the convolutions and the dense layer, for a whole batch.
+    pub flat: Vec<f32>,
+}
+
+impl StackBuffers {
+    pub fn new(stack: &StackPlan, flat: usize, plan_bytes: usize) -> Result<Self> {
+        let mut planes = Vec::with_capacity(stack.sets);
+        for set in 0..stack.sets {
+            planes.push(Planes::new(stack, set, plan_bytes)?);
+        }
+        Ok(StackBuffers {
+            planes,
+            flat: zeros(flat, plan_bytes)?,
+        })
+    }
+}

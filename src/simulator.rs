@@ -1,8 +1,7 @@
 //! Running the networks in buffers planned once.
 
 use crate::error::{expect_finite, expect_finite_output, expect_frames, expect_len};
-use crate::layers::StackBuffers;
-use crate::plan::{zeros, Plan};
+use crate::plan::{zeros, Plan, StackBuffers};
 use crate::pool::{Exec, Pool};
 use crate::transition::TransitionBuffers;
 use crate::{Config, Error, Model, Result};

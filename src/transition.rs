@@ -1,12 +1,12 @@
 //! The transition model: `h' = tanh(W h + V z + U c + b)`, `z' = A h' + a`.
 
-use crate::layers::{DenseLayer, DenseWeights};
+use crate::layers::DenseLayer;
 use crate::plan::{zeros, Plan};
 use crate::pool::Exec;
-use crate::weights::{Init, Tensor, TensorSource};
+use crate::weights::{Init, TensorSource};
 use crate::{Config, Result};
 use alloc::vec::Vec;
-use drivesim_kernels::{Activation, Isa};
+use drivesim_kernels::{Activation, Isa, Tensor};
 
 pub(crate) struct Transition {
     /// `[W | V | U]` and `b`: a step from any code.
@@ -49,21 +49,21 @@ impl Transition {
         let (input, fed_back) = match (w, v, u) {
             // All three in f16: keep f16, the kernel widens it.
             (Tensor::F16(w), Tensor::F16(v), Tensor::F16(u)) => {
-                (DenseWeights::F16(concat_cols(&[(&w, hd), (&v, z), (&u, a)])), None)
+                (Tensor::F16(concat_cols(&[(&w, hd), (&v, z), (&u, a)])), None)
             }
             (w, v, u) => {
                 let (w, v, u) = (w.into_f32(), v.into_f32(), u.into_f32());
-                let (folded, bias) = fold_feedback(&w, &v, &b, &big_a.to_f32(), &small_a, z);
-                let weights = DenseWeights::F32(concat_cols(&[(&folded, hd), (&u, a)]));
+                let (folded, bias) = fold_feedback(&w, &v, &b, &big_a.clone().into_f32(), &small_a, z);
+                let weights = Tensor::F32(concat_cols(&[(&folded, hd), (&u, a)]));
                 let fed_back = DenseLayer::new(weights, bias, hd, hd + a, Activation::Tanh);
-                let input = DenseWeights::F32(concat_cols(&[(&w, hd), (&v, z), (&u, a)]));
+                let input = Tensor::F32(concat_cols(&[(&w, hd), (&v, z), (&u, a)]));
                 (input, Some(fed_back))
             }
         };
         Ok(Transition {
             input: DenseLayer::new(input, b, hd, hd + z + a, Activation::Tanh),
             fed_back,
-            output: DenseLayer::new(big_a.into(), small_a, z, hd, Activation::Identity),
+            output: DenseLayer::new(big_a, small_a, z, hd, Activation::Identity),
         })
     }
 
@@ -126,7 +126,7 @@ fn fold_feedback(w: &[f32], v: &[f32], b: &[f32], big_a: &[f32], small_a: &[f32]
     // `V` times `A` as the dense kernel's batch: the rows of `V` are the items and `A^T` the
     // matrix, so that the output is `V A` row-major.
     let a_t = DenseLayer::new(
-        DenseWeights::F32(transpose(big_a, z, hd)),
+        Tensor::F32(transpose(big_a, z, hd)),
         alloc::vec![0.0; hd],
         hd,
         z,

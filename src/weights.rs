@@ -6,29 +6,10 @@ use alloc::format;
 use alloc::string::{String, ToString};
 use alloc::vec::Vec;
 use drivesim_kernels::f16;
+use drivesim_kernels::pack::BatchNorm;
+use drivesim_kernels::Tensor;
+use half::slice::HalfFloatSliceExt;
 use safetensors::{Dtype, SafeTensors};
-
-/// Tensor values as loaded: F16 stays F16 (dense layers may keep it), BF16 and F32 become F32.
-pub(crate) enum Tensor {
-    F32(Vec<f32>),
-    F16(Vec<f16>),
-}
-
-impl Tensor {
-    pub(crate) fn into_f32(self) -> Vec<f32> {
-        match self {
-            Tensor::F32(v) => v,
-            t => t.to_f32(),
-        }
-    }
-
-    pub(crate) fn to_f32(&self) -> Vec<f32> {
-        match self {
-            Tensor::F32(v) => v.clone(),
-            Tensor::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
-        }
-    }
-}
 
 /// How a random source draws a tensor (PyTorch's default initialisation, roughly).
 #[derive(Clone, Copy)]
@@ -65,6 +46,14 @@ fn malformed(e: safetensors::SafeTensorError) -> Error {
         what: "weight file",
         reason: format!("{e:?}"),
     }
+}
+
+/// Little-endian values from tensor bytes, which carry no alignment guarantee: one copy
+/// (safetensors stores little-endian, which is what every target of the kernels is).
+fn values<T: bytemuck::Pod>(bytes: &[u8]) -> Vec<T> {
+    #[cfg(target_endian = "big")]
+    compile_error!("safetensors are little-endian; drivesim reads them on little-endian targets only");
+    bytemuck::pod_collect_to_vec(bytes)
 }
 
 /// The index and value of the first non-finite value, as a [`Error::BadWeight`].
@@ -133,24 +122,16 @@ impl TensorSource for SafetensorsSource<'_> {
             });
         }
         self.read.push(name.to_string());
-        // The bytes carry no alignment guarantee: decode little-endian values one by one.
         let data = view.data();
         let tensor = match view.dtype() {
-            Dtype::F32 => Tensor::F32(
-                data.chunks_exact(4)
-                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                    .collect(),
-            ),
-            Dtype::F16 => Tensor::F16(
-                data.chunks_exact(2)
-                    .map(|b| f16::from_bits(u16::from_le_bytes([b[0], b[1]])))
-                    .collect(),
-            ),
-            Dtype::BF16 => Tensor::F32(
-                data.chunks_exact(2)
-                    .map(|b| half::bf16::from_bits(u16::from_le_bytes([b[0], b[1]])).to_f32())
-                    .collect(),
-            ),
+            Dtype::F32 => Tensor::F32(values(data)),
+            Dtype::F16 => Tensor::F16(values(data)),
+            Dtype::BF16 => {
+                let halves: Vec<half::bf16> = values(data);
+                let mut v = alloc::vec![0.0; halves.len()];
+                halves.convert_to_f32_slice(&mut v);
+                Tensor::F32(v)
+            }
             other => {
                 return Err(Error::Dtype {
                     name: name.to_string(),
@@ -227,4 +208,39 @@ impl TensorSource for RandomSource {
             WeightDtype::F16 => Tensor::F16(values.iter().map(|&v| f16::from_f32(v)).collect()),
         })
     }
+}
+
+/// BatchNorm parameters as read from a source.
+pub(crate) struct BatchNormParams([Vec<f32>; 4]);
+
+impl BatchNormParams {
+    pub fn view(&self) -> BatchNorm<'_> {
+        let [weight, bias, running_mean, running_var] = &self.0;
+        BatchNorm {
+            weight,
+            bias,
+            running_mean,
+            running_var,
+        }
+    }
+}
+
+/// Reads BatchNorm `name`'s four tensors; a negative running variance is an error.
+pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: usize) -> Result<BatchNormParams> {
+    let mut read = |part: &str, init| src.f32(&format!("{name}.{part}"), &[channels], init);
+    let params = [
+        read("weight", Init::Ones)?,
+        read("bias", Init::Zeros)?,
+        read("running_mean", Init::Zeros)?,
+        read("running_var", Init::Ones)?,
+    ];
+    if let Some(index) = params[3].iter().position(|&v| v < 0.0) {
+        return Err(Error::BadWeight {
+            name: format!("{name}.running_var"),
+            index,
+            value: params[3][index],
+            expected: "a variance, at least 0",
+        });
+    }
+    Ok(BatchNormParams(params))
 }

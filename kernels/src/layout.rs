@@ -2,6 +2,7 @@
 //! ([`ConvShape`], [`ConvParams`]) and packed dense matrices ([`Matrix`]).
 
 use crate::Activation;
+use alloc::vec::Vec;
 use half::f16;
 
 /// Packed convolution and dense weights come in panels of this many output channels or rows
@@ -220,12 +221,45 @@ impl ConvShape {
     }
 }
 
-/// The stored values of a packed weight matrix (see [`Matrix`]).
-#[derive(Clone, Copy, Debug)]
-pub enum MatrixData<'a> {
-    F32(&'a [f32]),
+/// Weights stored in f32 or f16: the one weight-dtype type, borrowed ([`MatrixData`]: the
+/// values of a packed matrix) or owned ([`Tensor`]: as loaded). BF16 files load as f32.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Weights<F32, F16> {
+    F32(F32),
     /// Kept in half precision and widened inside the kernel: half the memory traffic.
-    F16(&'a [f16]),
+    F16(F16),
+}
+
+/// The stored values of a packed weight matrix (see [`Matrix`]).
+pub type MatrixData<'a> = Weights<&'a [f32], &'a [f16]>;
+
+/// Weights as loaded or packed, owned.
+pub type Tensor = Weights<Vec<f32>, Vec<f16>>;
+
+impl Tensor {
+    /// The values as f32 (f16 ones widened exactly).
+    pub fn into_f32(self) -> Vec<f32> {
+        match self {
+            Weights::F32(v) => v,
+            Weights::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+        }
+    }
+
+    /// The same function of both dtypes' values, keeping the dtype (packing, permuting).
+    pub fn map(&self, f32s: impl FnOnce(&[f32]) -> Vec<f32>, f16s: impl FnOnce(&[f16]) -> Vec<f16>) -> Tensor {
+        match self {
+            Weights::F32(v) => Weights::F32(f32s(v)),
+            Weights::F16(v) => Weights::F16(f16s(v)),
+        }
+    }
+
+    /// Borrowed.
+    pub fn as_data(&self) -> MatrixData<'_> {
+        match self {
+            Weights::F32(v) => Weights::F32(v),
+            Weights::F16(v) => Weights::F16(v),
+        }
+    }
 }
 
 /// A `rows x cols` matrix for `y = W x`, packed by [`pack::dense_weights`] in panels of

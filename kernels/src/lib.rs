@@ -37,7 +37,7 @@ pub mod winograd;
 pub use activation::Activation;
 pub use half::f16;
 pub use isa::{Isa, IsaLevel};
-pub use layout::{ConvKind, ConvParams, ConvShape, Matrix, MatrixData, Plane, NARROW_OC, OC_ALIGN};
+pub use layout::{ConvKind, ConvParams, ConvShape, Matrix, MatrixData, Plane, Tensor, Weights, NARROW_OC, OC_ALIGN};
 pub use ops::{conv, conv_channels, dense, dense_rows, winograd_channels, winograd_conv, winograd_input};
 pub use output::{OutputPart, OutputParts};
 pub use winograd::Winograd;
