@@ -2,36 +2,13 @@
 
 mod common;
 
-use common::fixture_path;
+use common::{fixture_path, Tensor};
 use drivesim::{Config, Error, Model, Plan, Simulator, WeightDtype};
-use safetensors::{Dtype, SafeTensors, View};
-use std::borrow::Cow;
+use safetensors::{Dtype, SafeTensors};
 use std::collections::HashMap;
 
 fn fixture_bytes() -> Vec<u8> {
     std::fs::read(fixture_path("small_f32.safetensors")).unwrap()
-}
-
-/// One tensor of a rebuilt weight file.
-struct Tensor {
-    dtype: Dtype,
-    shape: Vec<usize>,
-    data: Vec<u8>,
-}
-
-impl View for &Tensor {
-    fn dtype(&self) -> Dtype {
-        self.dtype
-    }
-    fn shape(&self) -> &[usize] {
-        &self.shape
-    }
-    fn data(&self) -> Cow<'_, [u8]> {
-        Cow::Borrowed(&self.data)
-    }
-    fn data_len(&self) -> usize {
-        self.data.len()
-    }
 }
 
 /// The fixture's tensors and metadata, to be edited and written back.

@@ -2,7 +2,10 @@
 //! in, and what the simulator did before, on every instruction set this CPU has, for f32 and
 //! f16 models.
 
-use drivesim::{Config, Isa, Model, Simulator, WeightDtype};
+mod common;
+
+use common::levels;
+use drivesim::{Config, Model, Simulator, WeightDtype};
 
 /// Large enough that the encoder's heads cut their 1280 columns in two chunks and split their
 /// rows between threads, and that the transition's product is split too.
@@ -98,7 +101,7 @@ fn run(sim: &mut Simulator<'_>, one_at_a_time: bool) -> Outputs {
 fn same_bits_whatever_threads_batch_or_history() {
     for dtype in [WeightDtype::F32, WeightDtype::F16] {
         let model = Model::random(&CONFIG, 11, dtype).unwrap();
-        for isa in Isa::supported() {
+        for isa in levels() {
             let what = format!("{dtype:?} on {isa:?}");
             let fresh = |threads| {
                 Simulator::with_batch(&model, BATCH)

@@ -1,41 +1,26 @@
 //! Reading the episodes format (`weights/README.md`), with typed errors for bad files.
 
+mod common;
+
+use common::Tensor;
 use drivesim::{Episodes, Error};
-use safetensors::{Dtype, View};
-use std::borrow::Cow;
-
-struct Tensor(Dtype, Vec<usize>, Vec<u8>);
-
-impl View for &Tensor {
-    fn dtype(&self) -> Dtype {
-        self.0
-    }
-    fn shape(&self) -> &[usize] {
-        &self.1
-    }
-    fn data(&self) -> Cow<'_, [u8]> {
-        Cow::Borrowed(&self.2)
-    }
-    fn data_len(&self) -> usize {
-        self.2.len()
-    }
-}
+use safetensors::Dtype;
 
 /// An episodes file of `n` 4x6 frames where pixel bytes count up and action i is (i, -i).
 fn file(n: usize, starts: &[i64], edit: impl FnOnce(&mut Vec<(&str, Tensor)>)) -> Vec<u8> {
-    let frames = Tensor(Dtype::U8, vec![n, 4, 6, 3], (0..n * 72).map(|i| i as u8).collect());
+    let frames = Tensor::new(Dtype::U8, vec![n, 4, 6, 3], (0..n * 72).map(|i| i as u8).collect());
     let actions: Vec<u8> = (0..n)
         .flat_map(|i| [i as f32, -(i as f32)])
         .flat_map(f32::to_le_bytes)
         .collect();
-    let starts = Tensor(
+    let starts = Tensor::new(
         Dtype::I64,
         vec![starts.len()],
         starts.iter().flat_map(|s| s.to_le_bytes()).collect(),
     );
     let mut tensors = vec![
         ("frames", frames),
-        ("actions", Tensor(Dtype::F32, vec![n, 2], actions)),
+        ("actions", Tensor::new(Dtype::F32, vec![n, 2], actions)),
         ("episode_starts", starts),
     ];
     edit(&mut tensors);
@@ -78,13 +63,15 @@ fn bad_episode_files_are_rejected() {
     assert!(matches!(err(file(5, &[0, 2, 2], |_| {})), Error::Episodes { .. }));
     assert!(matches!(err(file(5, &[0, 5], |_| {})), Error::Episodes { .. }));
     assert!(matches!(err(file(5, &[], |_| {})), Error::Episodes { .. }));
-    let e = err(file(5, &[0], |t| t[1].1 = Tensor(Dtype::F32, vec![5, 1], vec![0; 20])));
+    let e = err(file(5, &[0], |t| {
+        t[1].1 = Tensor::new(Dtype::F32, vec![5, 1], vec![0; 20])
+    }));
     assert!(matches!(&e, Error::Shape { name, .. } if name == "actions"), "{e}");
     let e = err(file(5, &[0], |t| {
         t.remove(1);
     }));
     assert!(matches!(&e, Error::MissingTensor { name } if name == "actions"), "{e}");
-    let e = err(file(5, &[0], |t| t[0].1 .0 = Dtype::I8));
+    let e = err(file(5, &[0], |t| t[0].1.dtype = Dtype::I8));
     assert!(matches!(&e, Error::Dtype { name, .. } if name == "frames"), "{e}");
     let bytes = file(5, &[0], |_| {});
     assert!(matches!(

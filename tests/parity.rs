@@ -3,8 +3,8 @@
 
 mod common;
 
-use common::{fixture_path, relative_error, tolerance, Io, FIXTURES};
-use drivesim::{Config, Isa, IsaLevel, Model, Simulator, WeightDtype};
+use common::{fixture_path, levels, relative_error, tolerance, Io, FIXTURES};
+use drivesim::{Config, Isa, Model, Simulator, WeightDtype};
 
 fn check(what: &str, name: &str, isa: Isa, found: &[f32], expected: &[f32]) {
     let err = relative_error(found, expected);
@@ -18,13 +18,11 @@ fn check(what: &str, name: &str, isa: Isa, found: &[f32], expected: &[f32]) {
 
 /// Runs `f` for every fixture on every instruction set this CPU has.
 fn each_fixture(f: impl Fn(&str, &Model, &Io, Simulator<'_>)) {
-    for level in IsaLevel::ALL.into_iter().filter(|&l| Isa::new(l).is_none()) {
-        eprintln!("skipping {}: CPU lacks it", level.name());
-    }
+    let levels = levels();
     for name in FIXTURES {
         let model = Model::load(fixture_path(&format!("{name}.safetensors"))).expect("fixture weights load");
         let io = Io::load(name);
-        for isa in Isa::supported() {
+        for &isa in &levels {
             f(
                 name,
                 &model,

@@ -1,41 +1,12 @@
 //! The SIMD convolution kernels against the scalar reference, on awkward shapes, at every
 //! instruction-set level this CPU supports.
 
+mod common;
+
+use common::{simd_levels, Rng, ACTS};
 use drivesim_kernels::{
     conv, conv_channels, pack, scalar, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel, OutputParts, Plane,
 };
-
-/// A small xorshift generator: uniform floats in [-1, 1).
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> f32 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        ((self.0 >> 40) as f32 / (1u64 << 23) as f32) - 1.0
-    }
-    fn fill(&mut self, n: usize) -> Vec<f32> {
-        (0..n).map(|_| self.next()).collect()
-    }
-}
-
-const ACTS: [Activation; 4] = [
-    Activation::Identity,
-    Activation::Relu,
-    Activation::LeakyRelu(0.2),
-    Activation::Tanh,
-];
-
-/// The SIMD levels to test: every supported one above scalar, saying which are skipped.
-fn simd_levels() -> Vec<Isa> {
-    for level in IsaLevel::ALL {
-        if Isa::new(level).is_none() {
-            eprintln!("skipping {}: CPU lacks it", level.name());
-        }
-    }
-    Isa::supported().filter(|isa| isa.level() != IsaLevel::Scalar).collect()
-}
 
 /// Runs one shape at every level and compares with the scalar kernel; `extra_halo` widens both
 /// borders beyond the minimum.
@@ -69,10 +40,10 @@ fn check_with_gain(
     let ip = Plane::new(h, w, ic, kind.input_halo(k) + extra_halo);
     let shape = ConvShape::new(kind, k, ip, oc, extra_halo);
     let mut input = vec![0.0; ip.len()];
-    ip.write_interior(&mut input, &rng.fill(ip.interior_len()));
+    ip.write_interior(&mut input, &rng.fill(ip.interior_len(), 1.0));
     // Random PyTorch-layout weights times `gain`, packed as the model packs them.
-    let torch: Vec<f32> = rng.fill(ic * oc * k * k).iter().map(|w| w * gain).collect();
-    let (weights, bias) = pack::conv_weights(&shape, &torch, &rng.fill(oc), None);
+    let torch: Vec<f32> = rng.fill(ic * oc * k * k, 1.0).iter().map(|w| w * gain).collect();
+    let (weights, bias) = pack::conv_weights(&shape, &torch, &rng.fill(oc, 1.0), None);
     let mut want = vec![0.0; shape.output.len()];
     let layer = ConvParams {
         shape,
@@ -129,7 +100,7 @@ const CHANNELS: [usize; 10] = [1, 2, 3, 5, 7, 8, 9, 16, 17, 33];
 #[test]
 fn channel_counts_match_scalar() {
     let levels = simd_levels();
-    let mut rng = Rng(0x9E37_79B9_7F4A_7C15);
+    let mut rng = Rng::new(1);
     for kind in [ConvKind::Down, ConvKind::Up] {
         let size = match kind {
             ConvKind::Down => (7, 10),
@@ -147,7 +118,7 @@ fn channel_counts_match_scalar() {
 #[test]
 fn sizes_match_scalar() {
     let levels = simd_levels();
-    let mut rng = Rng(0x0123_4567_89AB_CDEF);
+    let mut rng = Rng::new(2);
     let sizes = [1, 2, 3, 5, 7, 10, 13];
     for kind in [ConvKind::Down, ConvKind::Up] {
         for k in [5, 3, 1, 7] {
@@ -168,7 +139,7 @@ fn sizes_match_scalar() {
 #[test]
 fn every_activation_and_wide_rows() {
     let levels = simd_levels();
-    let mut rng = Rng(0xDEAD_BEEF_CAFE_F00D);
+    let mut rng = Rng::new(3);
     for act in ACTS {
         // Rows longer than a tile, both channel-block widths, and a 1x1 output.
         check(&mut rng, &levels, ConvKind::Down, 5, (6, 58), (4, 40), 0, act);
@@ -189,7 +160,7 @@ fn every_activation_and_wide_rows() {
 #[test]
 fn large_panels_take_several_passes() {
     let levels = simd_levels();
-    let mut rng = Rng(0x5EED_0FFA_55E5);
+    let mut rng = Rng::new(4);
     for act in ACTS {
         // Panels of weights over 256 KiB are summed a few kernel rows at a time (see
         // `x86_64::conv`): uneven windows, rows with no taps in a window, partial sums.

@@ -2,38 +2,14 @@
 
 mod common;
 
-use common::values;
+use common::{simd_levels, values, ACTS};
 use drivesim_kernels::pack::dense_weights;
-use drivesim_kernels::{dense, dense_rows, f16, Activation, Isa, IsaLevel, Matrix, MatrixData, OutputParts};
+use drivesim_kernels::{dense, dense_rows, f16, Activation, Isa, Matrix, MatrixData, OutputParts};
 
 const ROWS: [usize; 10] = [1, 2, 3, 5, 7, 8, 9, 17, 33, 129];
 const COLS: [usize; 14] = [1, 2, 3, 7, 8, 9, 15, 16, 17, 31, 33, 100, 1000, 2500];
 const BATCHES: [usize; 6] = [1, 2, 3, 5, 16, 17];
-const ACTS: [Activation; 4] = [
-    Activation::Identity,
-    Activation::Relu,
-    Activation::LeakyRelu(0.2),
-    Activation::Tanh,
-];
 const TOLERANCE: f32 = 1e-5;
-
-/// The SIMD levels this CPU has; fails when `DRIVESIM_REQUIRE_ISA` names one it lacks.
-fn simd_levels() -> Vec<Isa> {
-    let supported: Vec<Isa> = Isa::supported().filter(|i| i.level() != IsaLevel::Scalar).collect();
-    for level in IsaLevel::ALL {
-        if !supported.iter().any(|i| i.level() == level) {
-            eprintln!("skipping {}: not supported by this CPU", level.name());
-        }
-    }
-    if let Ok(required) = std::env::var("DRIVESIM_REQUIRE_ISA") {
-        let level = IsaLevel::from_name(&required).unwrap_or_else(|| panic!("unknown DRIVESIM_REQUIRE_ISA={required}"));
-        assert!(
-            level == IsaLevel::Scalar || supported.iter().any(|i| i.level() == level),
-            "DRIVESIM_REQUIRE_ISA={required} but this CPU lacks it"
-        );
-    }
-    supported
-}
 
 /// max|got - want| / max(terms): the error relative to the largest sum of absolute terms.
 /// Activations are 1-Lipschitz, so they do not enlarge the bound.

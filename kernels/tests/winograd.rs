@@ -4,21 +4,11 @@
 
 mod common;
 
-use common::values;
+use common::{levels, values, ACTS};
 use drivesim_kernels::{
-    pack, scalar, winograd_channels, winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, IsaLevel,
-    OutputParts, Plane, Winograd,
+    pack, scalar, winograd_channels, winograd_conv, Activation, ConvKind, ConvParams, ConvShape, OutputParts, Plane,
+    Winograd,
 };
-
-/// Every level this CPU supports, scalar included, saying which are skipped.
-fn levels() -> Vec<Isa> {
-    for level in IsaLevel::ALL {
-        if Isa::new(level).is_none() {
-            eprintln!("skipping {}: CPU lacks it", level.name());
-        }
-    }
-    Isa::supported().collect()
-}
 
 /// The largest error of `got` against `want` with tiles of `tile` outputs per axis, relative
 /// to the size of the terms each output sums (`sum |w| |x| + |b|`, bounded here by the largest
@@ -97,13 +87,6 @@ fn check(
     }
     worst_all
 }
-
-const ACTS: [Activation; 4] = [
-    Activation::Identity,
-    Activation::Relu,
-    Activation::LeakyRelu(0.2),
-    Activation::Tanh,
-];
 
 /// Checks `kind` with both tile sizes on every shape with every activation (output border
 /// `halo`), and one shape with wider borders than the minimum; prints the largest errors.

@@ -1,8 +1,14 @@
 //! Shared by the integration tests: reading the PyTorch fixtures and comparing outputs.
 #![allow(dead_code)] // each test binary uses a different part
 
-use safetensors::{Dtype, SafeTensors};
+use safetensors::{Dtype, SafeTensors, View};
+use std::borrow::Cow;
 use std::path::PathBuf;
+
+#[path = "../../kernels/tests/common/mod.rs"]
+mod kernel_common;
+#[allow(unused_imports)] // not every test binary runs on every level
+pub use kernel_common::levels;
 
 pub const FIXTURES: [&str; 5] = ["small_f32", "small_f16", "tiny_bf16", "tall_f32", "wide_f32"];
 
@@ -59,4 +65,32 @@ pub fn relative_error(found: &[f32], expected: &[f32]) -> f32 {
         .zip(expected)
         .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()))
         / scale
+}
+
+/// One tensor of a safetensors file a test writes.
+pub struct Tensor {
+    pub dtype: Dtype,
+    pub shape: Vec<usize>,
+    pub data: Vec<u8>,
+}
+
+impl Tensor {
+    pub fn new(dtype: Dtype, shape: Vec<usize>, data: Vec<u8>) -> Tensor {
+        Tensor { dtype, shape, data }
+    }
+}
+
+impl View for &Tensor {
+    fn dtype(&self) -> Dtype {
+        self.dtype
+    }
+    fn shape(&self) -> &[usize] {
+        &self.shape
+    }
+    fn data(&self) -> Cow<'_, [u8]> {
+        Cow::Borrowed(&self.data)
+    }
+    fn data_len(&self) -> usize {
+        self.data.len()
+    }
 }
