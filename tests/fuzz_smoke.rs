@@ -5,23 +5,14 @@
 #[path = "fuzz/exercise.rs"]
 mod exercise;
 
+mod common;
+
+use common::Rng;
 use std::path::PathBuf;
 
-/// SplitMix64: a tiny, seeded source of mutations.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    fn below(&mut self, n: usize) -> usize {
-        (self.next() % n.max(1) as u64) as usize
-    }
+/// A number below `n` (at least 1) from the shared seeded generator.
+fn below(rng: &mut Rng, n: usize) -> usize {
+    ((rng.next() * 0.5 + 0.5) * n.max(1) as f32) as usize % n.max(1)
 }
 
 /// One to four edits of `seed`: a flipped bit, a byte set to an edge value, a digit of the JSON
@@ -30,23 +21,23 @@ impl Rng {
 fn mutate(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
     let mut bytes = seed.to_vec();
     let header = (8 + u64::from_le_bytes(seed[..8].try_into().unwrap()) as usize).min(seed.len());
-    for _ in 0..1 + rng.below(4) {
+    for _ in 0..1 + below(rng, 4) {
         let header = header.min(bytes.len());
-        let at = if rng.below(4) > 0 {
-            rng.below(header)
+        let at = if below(rng, 4) > 0 {
+            below(rng, header)
         } else {
-            rng.below(bytes.len())
+            below(rng, bytes.len())
         };
-        match rng.below(5) {
-            0 => bytes[at] ^= 1 << rng.below(8),
-            1 => bytes[at] = [0, 1, 0x7f, 0x80, 0xff][rng.below(5)],
+        match below(rng, 5) {
+            0 => bytes[at] ^= 1 << below(rng, 8),
+            1 => bytes[at] = [0, 1, 0x7f, 0x80, 0xff][below(rng, 5)],
             2 => {
                 if let Some(d) = bytes[at..header.max(at)].iter().position(u8::is_ascii_digit) {
-                    bytes[at + d] = b"0123456789"[rng.below(10)];
+                    bytes[at + d] = b"0123456789"[below(rng, 10)];
                 }
             }
             3 => {
-                let v = [f32::NAN, f32::INFINITY, -f32::MAX, 1e30, -1.0][rng.below(5)];
+                let v = [f32::NAN, f32::INFINITY, -f32::MAX, 1e30, -1.0][below(rng, 5)];
                 let at = at.min(bytes.len().saturating_sub(4));
                 bytes[at..at + 4].copy_from_slice(&v.to_le_bytes());
             }
@@ -71,7 +62,7 @@ fn corpus(kind: &str) -> Vec<Vec<u8>> {
 /// Runs `check` on every seed (each must load) and on `per_seed` mutations of each plain seed;
 /// returns the fraction of mutations that loaded.
 fn smoke(kind: &str, per_seed: usize, check: fn(&[u8]) -> bool) -> f64 {
-    let mut rng = Rng(0x5EED);
+    let mut rng = Rng::new(0x5EED);
     let (mut tried, mut loaded) = (0, 0);
     for seed in corpus(kind) {
         assert!(check(&seed), "a {kind} seed does not load");

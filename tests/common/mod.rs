@@ -8,7 +8,7 @@ use std::path::PathBuf;
 #[path = "../../kernels/tests/common/mod.rs"]
 mod kernel_common;
 #[allow(unused_imports)] // not every test binary runs on every level
-pub use kernel_common::levels;
+pub use kernel_common::{levels, Rng};
 
 pub const FIXTURES: [&str; 5] = ["small_f32", "small_f16", "tiny_bf16", "tall_f32", "wide_f32"];
 
