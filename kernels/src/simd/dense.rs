@@ -66,9 +66,9 @@ pub(super) struct Args<'a> {
 
 /// Vectors of rows in the single-input tile.
 const SINGLE_NV: usize = 8;
-/// Most columns per pass over a tile's weights (see the module comment): 64 KiB of f32 weights
-/// per panel.
-const CHUNK: usize = 1024;
+/// Most columns per pass over a tile's weights (see the module comment): 80 KiB of f32 weights
+/// per panel, so that the comma transition's 1026 columns (`[W | V | U]`) take one pass.
+const CHUNK: usize = 1280;
 /// Bytes ahead of the current weights to prefetch, in each panel.
 const PREFETCH: usize = 1024;
 
