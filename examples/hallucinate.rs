@@ -83,9 +83,9 @@ fn main() -> ExitCode {
 }
 
 fn run(args: &Args) -> Result<(), String> {
-    let model = Model::load(&args.weights).map_err(|e| format!("weights: {e}"))?;
+    let model = Model::load(&args.weights).map_err(|e| format!("weights: {}", report(&e)))?;
     let config = *model.config();
-    let episodes = Episodes::load(&args.episodes).map_err(|e| format!("episodes: {e}"))?;
+    let episodes = Episodes::load(&args.episodes).map_err(|e| format!("episodes: {}", report(&e)))?;
     let episode = episodes
         .episode(args.episode)
         .map_err(|e| format!("{}: {e}", args.episodes.display()))?;
@@ -481,4 +481,15 @@ impl Gif {
             .write_frame(&frame)
             .map_err(|e| format!("cannot write {}: {e}", self.path.display()))
     }
+}
+
+/// An error and its sources, one after another ("cannot read `w.safetensors`: No such file").
+fn report(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        text = format!("{text}: {s}");
+        source = s.source();
+    }
+    text
 }

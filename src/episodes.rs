@@ -21,9 +21,11 @@ pub struct Episodes {
 }
 
 /// One episode's frames and actions, borrowed from [`Episodes`].
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy)]
 pub struct Episode<'a> {
+    /// Frame height in pixels.
     pub height: usize,
+    /// Frame width in pixels.
     pub width: usize,
     /// `len() * height * width * 3` bytes, HWC RGB frames back to back.
     pub frames: &'a [u8],
@@ -32,10 +34,12 @@ pub struct Episode<'a> {
 }
 
 impl Episode<'_> {
+    /// Frames in the episode.
     pub fn len(&self) -> usize {
         self.actions.len() / Episodes::ACTION_DIM
     }
 
+    /// Whether the episode has no frame (never, for a loaded file).
     pub fn is_empty(&self) -> bool {
         self.actions.is_empty()
     }
@@ -64,10 +68,26 @@ impl Episode<'_> {
 const GZIP_MAGIC: [u8; 2] = [0x1f, 0x8b];
 
 impl Episodes {
+    /// Colour channels of a frame (RGB).
     pub const CHANNELS: usize = 3;
+    /// Values of an action: (speed, steering).
     pub const ACTION_DIM: usize = 2;
 
     /// Reads an episodes file (`weights/README.md`), gzipped or not.
+    ///
+    /// ```
+    /// use drivesim::Episodes;
+    ///
+    /// // The seed clip `hallucinate` starts from: one episode of CarRacing.
+    /// let clip = Episodes::load("weights/seed_clip.safetensors")?;
+    /// let episode = clip.episode(0)?;
+    /// let (height, width) = clip.frame_size();
+    /// let mut frame = vec![0.0; height * width * Episodes::CHANNELS];
+    /// episode.frame_f32(0, &mut frame)?; // in [-1, 1], ready for Simulator::encode
+    /// let (speed, steering) = (episode.actions[0], episode.actions[1]);
+    /// assert!(speed.is_finite() && steering.abs() <= 1.0);
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
     #[cfg(feature = "std")]
     pub fn load(path: impl AsRef<std::path::Path>) -> Result<Episodes> {
         let path = path.as_ref();
@@ -187,6 +207,7 @@ impl Episodes {
         self.starts.len()
     }
 
+    /// Whether there is no episode (never, for a loaded file).
     pub fn is_empty(&self) -> bool {
         self.starts.is_empty()
     }
@@ -215,5 +236,25 @@ impl Episodes {
             frames: &self.frames[start * frame_len..end * frame_len],
             actions: &self.actions[start * Episodes::ACTION_DIM..end * Episodes::ACTION_DIM],
         })
+    }
+}
+
+/// Sizes, not the megabytes of pixels.
+impl core::fmt::Debug for Episodes {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("Episodes")
+            .field("episodes", &self.len())
+            .field("frames", &(self.actions.len() / Episodes::ACTION_DIM))
+            .field("frame_size", &self.frame_size())
+            .finish_non_exhaustive()
+    }
+}
+
+impl core::fmt::Debug for Episode<'_> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("Episode")
+            .field("frames", &self.len())
+            .field("frame_size", &(self.height, self.width))
+            .finish_non_exhaustive()
     }
 }

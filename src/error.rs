@@ -11,91 +11,159 @@ use core::fmt;
 pub enum Error {
     /// The bytes are not a readable safetensors file (truncated, bad header, bad offsets).
     Malformed {
-        /// Which file: "weight file" or "episodes file".
+        /// Which file: "weight file", "episodes file" or "gzipped episodes file".
         what: &'static str,
+        /// What the parser found wrong.
         reason: String,
     },
     /// The `drivesim.config` metadata is missing or is not the expected JSON object.
-    Metadata { reason: String },
+    Metadata {
+        /// What is missing or wrong, with the JSON found.
+        reason: String,
+    },
     /// A config value the model does not support.
     Config {
+        /// The config key.
         field: &'static str,
+        /// The values allowed.
         expected: &'static str,
+        /// The value given.
         found: usize,
     },
     /// The weight file lacks a tensor the config requires.
-    MissingTensor { name: String },
+    MissingTensor {
+        /// The tensor's name in the file.
+        name: String,
+    },
     /// A tensor has the wrong shape for the config.
     Shape {
+        /// The tensor's name in the file.
         name: String,
+        /// The shape the config implies.
         expected: Vec<usize>,
+        /// The shape stored.
         found: Vec<usize>,
     },
     /// A tensor is stored in a dtype other than F32, F16 or BF16.
-    Dtype { name: String, found: String },
+    Dtype {
+        /// The tensor's name in the file.
+        name: String,
+        /// The dtype stored.
+        found: String,
+    },
     /// A weight file's tensors do not all share one dtype.
     MixedDtypes {
+        /// The first tensor, in name order, whose dtype differs.
         name: String,
+        /// Its dtype.
         found: String,
         /// The dtype of the file's other tensors.
         expected: String,
     },
     /// A weight file holds a tensor the config does not use.
-    UnexpectedTensor { name: String },
+    UnexpectedTensor {
+        /// The tensor's name in the file.
+        name: String,
+    },
     /// A weight that no model can have: not finite, or a negative BatchNorm variance.
     BadWeight {
+        /// The tensor's name in the file.
         name: String,
         /// The first bad value's index in the tensor, row-major.
         index: usize,
+        /// That value.
         value: f32,
+        /// What a value of this tensor must be.
         expected: &'static str,
     },
     /// A caller buffer has the wrong number of values.
     BufferLength {
+        /// The argument's name.
         buffer: &'static str,
+        /// The values it must hold.
         expected: usize,
+        /// The values it holds.
         found: usize,
     },
     /// A caller buffer does not hold a whole number of items (frames, codes, actions).
     NotWholeItems {
+        /// The argument's name.
         buffer: &'static str,
+        /// Values per item.
         item_len: usize,
+        /// The values it holds.
         found: usize,
     },
     /// More items in one call than the simulator was planned for.
-    BatchTooLarge { max: usize, found: usize },
+    BatchTooLarge {
+        /// The planned batch.
+        max: usize,
+        /// The items given.
+        found: usize,
+    },
     /// An episodes file whose episode boundaries are inconsistent.
-    Episodes { reason: String },
+    Episodes {
+        /// The rule broken, with the values found.
+        reason: String,
+    },
     /// An index past the end (an episode or frame number).
     OutOfRange {
+        /// "episode" or "frame".
         what: &'static str,
+        /// The index asked for.
         index: usize,
+        /// How many there are.
         len: usize,
     },
     /// An input holds NaN or an infinity.
     NonFinite {
+        /// The argument's name.
         buffer: &'static str,
+        /// The first such value's index.
         index: usize,
+        /// That value.
         value: f32,
     },
     /// A frame value outside [-1, 1].
     FrameValue {
+        /// The argument's name.
         buffer: &'static str,
+        /// The first such value's index.
         index: usize,
+        /// That value.
         value: f32,
     },
     /// A result overflowed to an infinity or NaN although every input was finite: the
     /// weights or the inputs are too large for f32. The output buffer holds no valid result.
-    NonFiniteOutput { buffer: &'static str, index: usize },
-    /// The memory a plan needs could not be allocated: `bytes` in all, or, with `None`, more
-    /// than the address space holds.
-    OutOfMemory { what: &'static str, bytes: Option<usize> },
-    /// The weight file could not be read.
+    NonFiniteOutput {
+        /// The output's name.
+        buffer: &'static str,
+        /// The first non-finite value's index.
+        index: usize,
+    },
+    /// The memory a plan needs could not be allocated.
+    OutOfMemory {
+        /// What was being allocated.
+        what: &'static str,
+        /// The bytes needed in all, or `None`: more than the address space holds.
+        bytes: Option<usize>,
+    },
+    /// A file could not be read.
     #[cfg(feature = "std")]
-    Io { path: String, source: std::io::Error },
+    Io {
+        /// The file's path.
+        path: String,
+        /// Why (also this error's `source()`).
+        source: std::io::Error,
+    },
     /// The operating system would not start the requested worker threads.
     #[cfg(feature = "std")]
-    Threads { requested: usize, source: std::io::Error },
+    Threads {
+        /// The threads asked for, the caller's included.
+        requested: usize,
+        /// Why (also this error's `source()`).
+        source: std::io::Error,
+    },
 }
 
 /// `Result` with [`Error`].
@@ -176,9 +244,9 @@ impl fmt::Display for Error {
                 write!(f, "cannot allocate {what}: their size overflows the address space")
             }
             #[cfg(feature = "std")]
-            Error::Io { path, source } => write!(f, "cannot read `{path}`: {source}"),
+            Error::Io { path, .. } => write!(f, "cannot read `{path}`"),
             #[cfg(feature = "std")]
-            Error::Threads { requested, source } => write!(f, "cannot start {requested} threads: {source}"),
+            Error::Threads { requested, .. } => write!(f, "cannot start {requested} threads"),
         }
     }
 }

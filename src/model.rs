@@ -21,6 +21,13 @@ pub struct Model {
 
 impl Model {
     /// Reads a drivesim safetensors weight file (format: `weights/README.md`).
+    ///
+    /// ```
+    /// // The trained default model of the repository (13.8 MiB, f16).
+    /// let model = drivesim::Model::load("weights/default.safetensors")?;
+    /// assert_eq!((model.config().height, model.config().width, model.config().z_dim), (80, 160, 128));
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
     #[cfg(feature = "std")]
     pub fn load(path: impl AsRef<std::path::Path>) -> Result<Model> {
         let path = path.as_ref();
@@ -59,5 +66,14 @@ impl Model {
     /// The architecture the weights were built for.
     pub fn config(&self) -> &Config {
         &self.config
+    }
+}
+
+impl core::fmt::Debug for Model {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("Model")
+            .field("config", &self.config)
+            .field("folds_fed_back_steps", &self.transition.folds())
+            .finish_non_exhaustive()
     }
 }

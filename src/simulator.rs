@@ -247,6 +247,21 @@ impl<'m> Simulator<'m> {
     /// predicted codes (frames `S .. S + T`) go to `codes`; if `frames` is given, the generated
     /// frames go there too. The hidden state starts at zero. Steps from a prediction are
     /// [`Simulator::transition_fed_back`]'s.
+    ///
+    /// ```
+    /// # use drivesim::{Config, Model, Simulator, WeightDtype};
+    /// # let config = Config { height: 16, width: 32, base_channels: 2, z_dim: 8, hidden_dim: 8, ..Config::COMMA };
+    /// # let model = Model::random(&config, 1, WeightDtype::F32)?;
+    /// let mut sim = Simulator::new(&model)?;
+    /// let seeds = vec![0.0; 3 * config.frame_len()]; // three frames
+    /// let steps = 10;
+    /// // 2 teacher-forced steps through the seeds, then 10 predictions: 12 (speed, steering).
+    /// let actions: Vec<f32> = (0..2 + steps).flat_map(|t| [25.0, (t as f32 / 4.0).sin()]).collect();
+    /// let mut codes = vec![0.0; steps * config.z_dim];
+    /// let mut frames = vec![0.0; steps * config.frame_len()];
+    /// sim.rollout(&seeds, &actions, &mut codes, Some(&mut frames))?;
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
     pub fn rollout(
         &mut self,
         seed_frames: &[f32],
@@ -350,6 +365,18 @@ impl<'m> Simulator<'m> {
             expect_finite_output("codes", z_next)?;
         }
         Ok(())
+    }
+}
+
+impl core::fmt::Debug for Simulator<'_> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("Simulator")
+            .field("config", self.config())
+            .field("isa", &self.isa)
+            .field("threads", &self.threads())
+            .field("max_batch", &self.max_batch())
+            .field("buffer_bytes", &self.buffer_bytes())
+            .finish_non_exhaustive()
     }
 }
 

@@ -159,6 +159,7 @@ impl TensorSource for SafetensorsSource<'_> {
 /// The dtype a random model stores its weights in.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum WeightDtype {
+    /// Single precision.
     F32,
     /// Values rounded to f16; dense layers keep them as f16 in memory, as for an F16 file.
     F16,

@@ -58,7 +58,7 @@ fn episodes_split_frames_and_actions() {
 
 #[test]
 fn bad_episode_files_are_rejected() {
-    let err = |bytes: Vec<u8>| Episodes::from_bytes(&bytes).err().expect("bad file accepted");
+    let err = |bytes: Vec<u8>| Episodes::from_bytes(&bytes).expect_err("bad file accepted");
     assert!(matches!(err(file(5, &[1, 2], |_| {})), Error::Episodes { .. }));
     assert!(matches!(err(file(5, &[0, 2, 2], |_| {})), Error::Episodes { .. }));
     assert!(matches!(err(file(5, &[0, 5], |_| {})), Error::Episodes { .. }));

@@ -17,8 +17,10 @@ pub enum IsaLevel {
 }
 
 impl IsaLevel {
+    /// Every level, lowest first.
     pub const ALL: [IsaLevel; 4] = [IsaLevel::Scalar, IsaLevel::Neon, IsaLevel::Avx2, IsaLevel::Avx512];
 
+    /// The level's name, as `DRIVESIM_ISA` takes it.
     pub const fn name(self) -> &'static str {
         match self {
             IsaLevel::Scalar => "scalar",
@@ -91,6 +93,7 @@ impl Isa {
         level.cpu_has().then_some(Isa(level))
     }
 
+    /// The level this proves.
     pub const fn level(self) -> IsaLevel {
         self.0
     }

@@ -20,13 +20,18 @@ pub const NARROW_OC: usize = 4;
 /// without bounds checks; it is zeroed once when the buffer is made and never written.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Plane {
+    /// Rows of the image, border excluded.
     pub height: usize,
+    /// Columns of the image, border excluded.
     pub width: usize,
+    /// Values per pixel.
     pub channels: usize,
+    /// Zero pixels around the image on every side.
     pub halo: usize,
 }
 
 impl Plane {
+    /// A plane of `height x width` pixels of `channels` inside a border of `halo`.
     pub const fn new(height: usize, width: usize, channels: usize, halo: usize) -> Self {
         Plane {
             height,
@@ -116,9 +121,13 @@ impl ConvKind {
 /// [`ConvShape::packed_index`]); `bias` has `output.channels` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ConvShape {
+    /// Strided or transposed.
     pub kind: ConvKind,
+    /// Taps per side of the square kernel (odd).
     pub kernel: usize,
+    /// The plane read.
     pub input: Plane,
+    /// The plane written.
     pub output: Plane,
 }
 
@@ -225,6 +234,7 @@ impl ConvShape {
 /// values of a packed matrix) or owned ([`Tensor`]: as loaded). BF16 files load as f32.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Weights<F32, F16> {
+    /// Single precision.
     F32(F32),
     /// Kept in half precision and widened inside the kernel: half the memory traffic.
     F16(F16),
@@ -268,8 +278,11 @@ impl Tensor {
 /// vectors of weights, one per output row, and each panel streams through contiguous memory.
 #[derive(Clone, Copy, Debug)]
 pub struct Matrix<'a> {
+    /// The packed values.
     pub data: MatrixData<'a>,
+    /// Outputs.
     pub rows: usize,
+    /// Inputs.
     pub cols: usize,
 }
 
@@ -317,8 +330,12 @@ impl<'a> Matrix<'a> {
 /// bias and the activation fused into the store.
 #[derive(Clone, Copy, Debug)]
 pub struct ConvParams<'a> {
+    /// The layer's planes and kernel.
     pub shape: ConvShape,
+    /// Packed by [`crate::pack::conv_weights`] (or [`crate::pack::winograd_weights`]).
     pub weights: &'a [f32],
+    /// One per output channel.
     pub bias: &'a [f32],
+    /// Applied before the store.
     pub act: Activation,
 }

@@ -20,6 +20,7 @@
 //! Shapes are the caller's responsibility: a kernel panics on inconsistent lengths, since the
 //! model validates every shape before it ever calls one.
 #![cfg_attr(not(feature = "std"), no_std)]
+#![deny(missing_docs)]
 
 extern crate alloc;
 

@@ -30,6 +30,7 @@ pub fn tanh(x: f32) -> f32 {
 
 /// ln 2 split in a part exact in f32 and a remainder, for exact range reduction.
 pub const LN2_HI: f32 = 0.693_145_75;
+/// ln 2 minus [`LN2_HI`].
 pub const LN2_LO: f32 = 1.428_606_8e-6;
 /// Taylor coefficients 1/k! for k = 2..=6 of exp(r) on |r| <= ln2/2 (error < 2e-7 relative).
 pub const EXP_POLY: [f32; 5] = [1.0 / 2.0, 1.0 / 6.0, 1.0 / 24.0, 1.0 / 120.0, 1.0 / 720.0];

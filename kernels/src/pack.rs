@@ -10,9 +10,13 @@ pub const BN_EPS: f64 = 1e-5;
 /// Eval-mode BatchNorm parameters of one layer (per channel).
 #[derive(Clone, Copy, Debug)]
 pub struct BatchNorm<'a> {
+    /// Scale (gamma).
     pub weight: &'a [f32],
+    /// Shift (beta).
     pub bias: &'a [f32],
+    /// The mean used in eval mode.
     pub running_mean: &'a [f32],
+    /// The variance used in eval mode (eps 1e-5 is added).
     pub running_var: &'a [f32],
 }
 

@@ -57,6 +57,7 @@ pub const MIN_IN_CHANNELS: usize = 8;
 /// channels, and for `Down` an even input size.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Winograd {
+    /// The layer computed.
     pub shape: ConvShape,
     /// Outputs per tile along each axis of a phase grid: 2 or 4.
     tile: usize,
