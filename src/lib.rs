@@ -44,6 +44,9 @@
 //! ```
 #![cfg_attr(not(feature = "std"), no_std)]
 #![deny(missing_docs)]
+// An `unsafe fn`'s body is not an unsafe block: each unsafe operation in one is marked, and its
+// obligations are the function's documented `# Safety` contract.
+#![deny(unsafe_op_in_unsafe_fn)]
 
 extern crate alloc;
 

@@ -19,42 +19,45 @@ pub fn conv(layer: ConvParams<'_>, input: &[f32], output: &mut [f32]) {
 /// `output` must point to the whole output plane (`shape.output.len()` floats), valid for
 /// writes, and no other thread may read or write channels `channels` of it during the call.
 pub(crate) unsafe fn conv_channels(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
-    let ConvParams {
-        shape,
-        weights,
-        bias,
-        act,
-    } = layer;
-    let ConvShape {
-        kind,
-        kernel: k,
-        input: ip,
-        output: op,
-    } = shape;
-    let pad = k / 2;
-    for oy in 0..op.height {
-        for ox in 0..op.width {
-            // SAFETY: the caller gives us these channels of every output pixel.
-            let out = core::slice::from_raw_parts_mut(output.add(op.index(oy, ox) + channels.start), channels.len());
-            out.copy_from_slice(&bias[channels.clone()]);
-            for ky in 0..k {
-                let Some(iy) = kind.source(oy, ky, pad, ip.height) else {
-                    continue;
-                };
-                for kx in 0..k {
-                    let Some(ix) = kind.source(ox, kx, pad, ip.width) else {
+    unsafe {
+        let ConvParams {
+            shape,
+            weights,
+            bias,
+            act,
+        } = layer;
+        let ConvShape {
+            kind,
+            kernel: k,
+            input: ip,
+            output: op,
+        } = shape;
+        let pad = k / 2;
+        for oy in 0..op.height {
+            for ox in 0..op.width {
+                // SAFETY: the caller gives us these channels of every output pixel.
+                let out =
+                    core::slice::from_raw_parts_mut(output.add(op.index(oy, ox) + channels.start), channels.len());
+                out.copy_from_slice(&bias[channels.clone()]);
+                for ky in 0..k {
+                    let Some(iy) = kind.source(oy, ky, pad, ip.height) else {
                         continue;
                     };
-                    let pixel = &input[ip.index(iy, ix)..][..ip.channels];
-                    for (ic, &v) in pixel.iter().enumerate() {
-                        for (o, out) in channels.clone().zip(out.iter_mut()) {
-                            *out += v * weights[shape.packed_index(ky, kx, ic, o)];
+                    for kx in 0..k {
+                        let Some(ix) = kind.source(ox, kx, pad, ip.width) else {
+                            continue;
+                        };
+                        let pixel = &input[ip.index(iy, ix)..][..ip.channels];
+                        for (ic, &v) in pixel.iter().enumerate() {
+                            for (o, out) in channels.clone().zip(out.iter_mut()) {
+                                *out += v * weights[shape.packed_index(ky, kx, ic, o)];
+                            }
                         }
                     }
                 }
-            }
-            for o in out.iter_mut() {
-                *o = act.apply(*o);
+                for o in out.iter_mut() {
+                    *o = act.apply(*o);
+                }
             }
         }
     }
@@ -79,7 +82,7 @@ pub(crate) unsafe fn winograd_channels(
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    winograd::channels::<f32, _>(&winograd::ScalarProduct, w, layer, v, scratch, output, channels)
+    unsafe { winograd::channels::<f32, _>(&winograd::ScalarProduct, w, layer, v, scratch, output, channels) }
 }
 
 /// See [`crate::dense`].
@@ -94,17 +97,19 @@ pub fn dense(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f
 /// # Safety
 /// `y` must be valid for those writes, and no other thread may read or write them.
 pub(crate) unsafe fn dense_rows(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: *mut f32, ldy: usize) {
-    let weight = |r: usize, c: usize| {
-        let at = Matrix::packed_index(r, c, w.cols);
-        match w.data {
-            MatrixData::F32(d) => d[at],
-            MatrixData::F16(d) => d[at].to_f32(),
-        }
-    };
-    for (n, x) in x.chunks_exact(w.cols).enumerate() {
-        for (r, &b) in bias.iter().enumerate() {
-            let dot: f32 = x.iter().enumerate().map(|(c, &x)| weight(r, c) * x).sum();
-            *y.add(n * ldy + r) = act.apply(dot + b);
+    unsafe {
+        let weight = |r: usize, c: usize| {
+            let at = Matrix::packed_index(r, c, w.cols);
+            match w.data {
+                MatrixData::F32(d) => d[at],
+                MatrixData::F16(d) => d[at].to_f32(),
+            }
+        };
+        for (n, x) in x.chunks_exact(w.cols).enumerate() {
+            for (r, &b) in bias.iter().enumerate() {
+                let dot: f32 = x.iter().enumerate().map(|(c, &x)| weight(r, c) * x).sum();
+                *y.add(n * ldy + r) = act.apply(dot + b);
+            }
         }
     }
 }

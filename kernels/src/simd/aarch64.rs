@@ -12,99 +12,111 @@ impl Simd for float32x4_t {
     const LANES: usize = 4;
     #[inline(always)]
     unsafe fn splat(x: f32) -> Self {
-        vdupq_n_f32(x)
+        unsafe { vdupq_n_f32(x) }
     }
     #[inline(always)]
     unsafe fn load(p: *const f32) -> Self {
-        vld1q_f32(p)
+        unsafe { vld1q_f32(p) }
     }
     #[inline(always)]
     unsafe fn load_partial(p: *const f32, n: usize) -> Self {
-        // NEON has no masked loads: gather the `n` floats in a zeroed buffer.
-        let mut lanes = [0.0f32; 4];
-        core::ptr::copy_nonoverlapping(p, lanes.as_mut_ptr(), n);
-        vld1q_f32(lanes.as_ptr())
+        unsafe {
+            // NEON has no masked loads: gather the `n` floats in a zeroed buffer.
+            let mut lanes = [0.0f32; 4];
+            core::ptr::copy_nonoverlapping(p, lanes.as_mut_ptr(), n);
+            vld1q_f32(lanes.as_ptr())
+        }
     }
     #[inline(always)]
     unsafe fn store(self, p: *mut f32) {
-        vst1q_f32(p, self)
+        unsafe { vst1q_f32(p, self) }
     }
     #[inline(always)]
     unsafe fn store_partial(self, p: *mut f32, n: usize) {
-        let mut lanes = [0.0f32; 4];
-        vst1q_f32(lanes.as_mut_ptr(), self);
-        core::ptr::copy_nonoverlapping(lanes.as_ptr(), p, n);
+        unsafe {
+            let mut lanes = [0.0f32; 4];
+            vst1q_f32(lanes.as_mut_ptr(), self);
+            core::ptr::copy_nonoverlapping(lanes.as_ptr(), p, n);
+        }
     }
     #[inline(always)]
     unsafe fn add(self, b: Self) -> Self {
-        vaddq_f32(self, b)
+        unsafe { vaddq_f32(self, b) }
     }
     #[inline(always)]
     unsafe fn sub(self, b: Self) -> Self {
-        vsubq_f32(self, b)
+        unsafe { vsubq_f32(self, b) }
     }
     #[inline(always)]
     unsafe fn mul(self, b: Self) -> Self {
-        vmulq_f32(self, b)
+        unsafe { vmulq_f32(self, b) }
     }
     #[inline(always)]
     unsafe fn div(self, b: Self) -> Self {
-        vdivq_f32(self, b)
+        unsafe { vdivq_f32(self, b) }
     }
     #[inline(always)]
     unsafe fn max(self, b: Self) -> Self {
-        vmaxq_f32(self, b)
+        unsafe { vmaxq_f32(self, b) }
     }
     #[inline(always)]
     unsafe fn min(self, b: Self) -> Self {
-        vminq_f32(self, b)
+        unsafe { vminq_f32(self, b) }
     }
     #[inline(always)]
     unsafe fn mul_add(self, b: Self, c: Self) -> Self {
-        vfmaq_f32(c, self, b)
+        unsafe { vfmaq_f32(c, self, b) }
     }
     #[inline(always)]
     unsafe fn abs(self) -> Self {
-        vabsq_f32(self)
+        unsafe { vabsq_f32(self) }
     }
     #[inline(always)]
     unsafe fn neg_where_negative(self, sign_of: Self) -> Self {
-        let negative = vcltq_f32(sign_of, vdupq_n_f32(0.0));
-        let sign = vandq_u32(negative, vdupq_n_u32(0x8000_0000));
-        vreinterpretq_f32_u32(veorq_u32(vreinterpretq_u32_f32(self), sign))
+        unsafe {
+            let negative = vcltq_f32(sign_of, vdupq_n_f32(0.0));
+            let sign = vandq_u32(negative, vdupq_n_u32(0x8000_0000));
+            vreinterpretq_f32_u32(veorq_u32(vreinterpretq_u32_f32(self), sign))
+        }
     }
     #[inline(always)]
     unsafe fn select_lt(self, limit: Self, then: Self, other: Self) -> Self {
-        vbslq_f32(vcltq_f32(self, limit), then, other)
+        unsafe { vbslq_f32(vcltq_f32(self, limit), then, other) }
     }
     #[inline(always)]
     unsafe fn trunc(self) -> Self {
-        vcvtq_f32_s32(vcvtq_s32_f32(self))
+        unsafe { vcvtq_f32_s32(vcvtq_s32_f32(self)) }
     }
     #[inline(always)]
     unsafe fn pow2(self) -> Self {
-        let n = vaddq_s32(vcvtq_s32_f32(self), vdupq_n_s32(127));
-        vreinterpretq_f32_s32(vshlq_n_s32::<23>(n))
+        unsafe {
+            let n = vaddq_s32(vcvtq_s32_f32(self), vdupq_n_s32(127));
+            vreinterpretq_f32_s32(vshlq_n_s32::<23>(n))
+        }
     }
     #[inline(always)]
     unsafe fn reduce_add(self) -> f32 {
-        vaddvq_f32(self)
+        unsafe { vaddvq_f32(self) }
     }
     #[inline(always)]
     unsafe fn prefetch(p: *const u8) {
-        // A prefetch never faults, whatever the address.
-        asm!("prfm pldl1keep, [{0}]", in(reg) p, options(nostack, preserves_flags, readonly));
+        unsafe {
+            // A prefetch never faults, whatever the address.
+            asm!("prfm pldl1keep, [{0}]", in(reg) p, options(nostack, preserves_flags, readonly));
+        }
     }
 }
 
 impl Widen for float32x4_t {
     #[inline(always)]
     unsafe fn load_f16(p: *const f16) -> float32x4_t {
-        // FCVTL widens exactly, as F16C does; its intrinsic needs the unstable `float16x4_t`.
-        let halves = vld1_u16(p.cast());
-        let widened: float32x4_t;
-        asm!("fcvtl {0:v}.4s, {1:v}.4h", lateout(vreg) widened, in(vreg) halves, options(pure, nomem, nostack, preserves_flags));
-        widened
+        unsafe {
+            // FCVTL widens exactly, as F16C does; its intrinsic needs the unstable `float16x4_t`.
+            let halves = vld1_u16(p.cast());
+            let widened: float32x4_t;
+            asm!("fcvtl {0:v}.4s, {1:v}.4h", lateout(vreg) widened, in(vreg) halves, options(pure, nomem, nostack, preserves_flags));
+            widened
+        }
     }
 }
 

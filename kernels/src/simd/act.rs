@@ -11,54 +11,62 @@ use crate::Activation;
 /// [`crate::math::exp`] lane by lane (valid for `0 <= x <= 2 * TANH_CLAMP`).
 #[inline(always)]
 pub(crate) unsafe fn exp<V: Simd>(x: V) -> V {
-    let n = x.mul(V::splat(core::f32::consts::LOG2_E)).add(V::splat(0.5)).trunc();
-    let r = x.sub(n.mul(V::splat(LN2_HI))).sub(n.mul(V::splat(LN2_LO)));
-    let mut p = V::splat(EXP_POLY[4]);
-    for &c in EXP_POLY[..4].iter().rev() {
-        p = V::splat(c).add(r.mul(p));
+    unsafe {
+        let n = x.mul(V::splat(core::f32::consts::LOG2_E)).add(V::splat(0.5)).trunc();
+        let r = x.sub(n.mul(V::splat(LN2_HI))).sub(n.mul(V::splat(LN2_LO)));
+        let mut p = V::splat(EXP_POLY[4]);
+        for &c in EXP_POLY[..4].iter().rev() {
+            p = V::splat(c).add(r.mul(p));
+        }
+        let p = V::splat(1.0).add(r.mul(V::splat(1.0).add(r.mul(p))));
+        p.mul(n.pow2())
     }
-    let p = V::splat(1.0).add(r.mul(V::splat(1.0).add(r.mul(p))));
-    p.mul(n.pow2())
 }
 
 /// [`crate::math::tanh`] lane by lane.
 #[inline(always)]
 pub(crate) unsafe fn tanh<V: Simd>(x: V) -> V {
-    let a = x.abs().min(V::splat(TANH_CLAMP));
-    let a2 = a.mul(a);
-    let series = V::splat(TANH_SERIES[1]).add(a2.mul(V::splat(TANH_SERIES[2])));
-    let series = V::splat(TANH_SERIES[0]).add(a2.mul(series));
-    let series = a.mul(V::splat(1.0).add(a2.mul(series)));
-    let one = V::splat(1.0);
-    let large = one.sub(V::splat(2.0).div(exp(V::splat(2.0).mul(a)).add(one)));
-    a.select_lt(V::splat(TANH_SERIES_LIMIT), series, large)
-        .neg_where_negative(x)
+    unsafe {
+        let a = x.abs().min(V::splat(TANH_CLAMP));
+        let a2 = a.mul(a);
+        let series = V::splat(TANH_SERIES[1]).add(a2.mul(V::splat(TANH_SERIES[2])));
+        let series = V::splat(TANH_SERIES[0]).add(a2.mul(series));
+        let series = a.mul(V::splat(1.0).add(a2.mul(series)));
+        let one = V::splat(1.0);
+        let large = one.sub(V::splat(2.0).div(exp(V::splat(2.0).mul(a)).add(one)));
+        a.select_lt(V::splat(TANH_SERIES_LIMIT), series, large)
+            .neg_where_negative(x)
+    }
 }
 
 /// [`Activation::apply`] lane by lane, for any [`Simd`] type.
 #[inline(always)]
 pub(crate) unsafe fn apply<V: Simd>(act: Activation, v: V) -> V {
-    match act {
-        Activation::Identity => v,
-        Activation::Relu => v.max(V::splat(0.0)),
-        Activation::LeakyRelu(slope) => v.max(V::splat(slope).mul(v)),
-        Activation::Tanh => tanh(v),
+    unsafe {
+        match act {
+            Activation::Identity => v,
+            Activation::Relu => v.max(V::splat(0.0)),
+            Activation::LeakyRelu(slope) => v.max(V::splat(slope).mul(v)),
+            Activation::Tanh => tanh(v),
+        }
     }
 }
 
 /// [`apply`] to every value of `data` in place.
 #[inline(always)]
 pub(crate) unsafe fn apply_slice<V: Simd>(act: Activation, data: &mut [f32]) {
-    if act == Activation::Identity {
-        return;
-    }
-    let mut chunks = data.chunks_exact_mut(V::LANES);
-    for c in &mut chunks {
-        apply(act, V::load(c.as_ptr())).store(c.as_mut_ptr());
-    }
-    let rest = chunks.into_remainder();
-    if !rest.is_empty() {
-        apply(act, V::load_partial(rest.as_ptr(), rest.len())).store_partial(rest.as_mut_ptr(), rest.len());
+    unsafe {
+        if act == Activation::Identity {
+            return;
+        }
+        let mut chunks = data.chunks_exact_mut(V::LANES);
+        for c in &mut chunks {
+            apply(act, V::load(c.as_ptr())).store(c.as_mut_ptr());
+        }
+        let rest = chunks.into_remainder();
+        if !rest.is_empty() {
+            apply(act, V::load_partial(rest.as_ptr(), rest.len())).store_partial(rest.as_mut_ptr(), rest.len());
+        }
     }
 }
 

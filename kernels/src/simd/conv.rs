@@ -99,26 +99,28 @@ pub(super) struct Block<V, const NV: usize> {
 /// As for [`crate::scalar::conv_channels`]; the CPU must have `V`'s features.
 #[inline(always)]
 pub(super) unsafe fn conv<V: Simd>(layer: ConvParams<'_>, input: &[f32], output: *mut f32, channels: Range<usize>) {
-    let shape = &layer.shape;
-    if shape.kernel * shape.kernel > MAX_SEGS {
-        return scalar::conv_channels(layer, input, output, channels);
-    }
-    // Panel rows of one kernel row (`ky`): every tap `kx` and input channel.
-    let ky_rows = shape.kernel * shape.input.channels;
-    let rows = shape.kernel * ky_rows;
-    let row_bytes = 2 * V::LANES * core::mem::size_of::<f32>();
-    let window = if shape.is_narrow() || rows * row_bytes <= SINGLE_PASS_BYTES {
-        rows
-    } else {
-        (PASS_BYTES / (ky_rows * row_bytes)).max(1) * ky_rows
-    };
-    for start in (0..rows).step_by(window) {
-        let pass = Pass {
-            window: (start, (start + window).min(rows)),
-            first: start == 0,
-            last: start + window >= rows,
+    unsafe {
+        let shape = &layer.shape;
+        if shape.kernel * shape.kernel > MAX_SEGS {
+            return scalar::conv_channels(layer, input, output, channels);
+        }
+        // Panel rows of one kernel row (`ky`): every tap `kx` and input channel.
+        let ky_rows = shape.kernel * shape.input.channels;
+        let rows = shape.kernel * ky_rows;
+        let row_bytes = 2 * V::LANES * core::mem::size_of::<f32>();
+        let window = if shape.is_narrow() || rows * row_bytes <= SINGLE_PASS_BYTES {
+            rows
+        } else {
+            (PASS_BYTES / (ky_rows * row_bytes)).max(1) * ky_rows
         };
-        body::<V>(layer, input, output, channels.clone(), pass);
+        for start in (0..rows).step_by(window) {
+            let pass = Pass {
+                window: (start, (start + window).min(rows)),
+                first: start == 0,
+                last: start + window >= rows,
+            };
+            body::<V>(layer, input, output, channels.clone(), pass);
+        }
     }
 }
 
@@ -137,48 +139,50 @@ pub(super) unsafe fn body<V: Simd>(
     channels: Range<usize>,
     pass: Pass,
 ) {
-    let ConvParams {
-        shape,
-        weights,
-        bias,
-        act,
-    } = layer;
-    let shape = &shape;
-    if channels.is_empty() {
-        return;
-    }
-    // Narrow layers are never split between threads: they are one panel.
-    if shape.is_narrow() {
-        return match shape.output.channels {
-            1 => small::<V, 1>(shape, input, weights, bias, act, output),
-            2 => small::<V, 2>(shape, input, weights, bias, act, output),
-            3 => small::<V, 3>(shape, input, weights, bias, act, output),
-            _ => small::<V, 4>(shape, input, weights, bias, act, output),
-        };
-    }
-    let mut first = channels.start;
-    while first < channels.end {
-        let left = channels.end - first;
-        // Two vectors while more than one is needed: the packed weights are padded to whole
-        // panels, so the second vector's weights exist whenever `left > LANES`.
-        if left > V::LANES {
-            let block = block::<V, 2>(shape, weights, pass.first.then_some(bias), first, left);
-            for_rows(shape, input, output, pass, &Blocked { block: &block, act });
-            first += 2 * V::LANES;
-        } else {
-            let block = block::<V, 1>(shape, weights, pass.first.then_some(bias), first, left);
-            for_rows(shape, input, output, pass, &Blocked { block: &block, act });
-            first += V::LANES;
+    unsafe {
+        let ConvParams {
+            shape,
+            weights,
+            bias,
+            act,
+        } = layer;
+        let shape = &shape;
+        if channels.is_empty() {
+            return;
         }
-    }
-    // With several passes, rows without taps in the last window were stored without the
-    // activation: apply it to the whole range here.
-    if pass.last && !pass.first {
-        let op = shape.output;
-        for y in 0..op.height {
-            for x in 0..op.width {
-                let at = output.add(op.index(y, x) + channels.start);
-                act::apply_slice::<V>(act, core::slice::from_raw_parts_mut(at, channels.len()));
+        // Narrow layers are never split between threads: they are one panel.
+        if shape.is_narrow() {
+            return match shape.output.channels {
+                1 => small::<V, 1>(shape, input, weights, bias, act, output),
+                2 => small::<V, 2>(shape, input, weights, bias, act, output),
+                3 => small::<V, 3>(shape, input, weights, bias, act, output),
+                _ => small::<V, 4>(shape, input, weights, bias, act, output),
+            };
+        }
+        let mut first = channels.start;
+        while first < channels.end {
+            let left = channels.end - first;
+            // Two vectors while more than one is needed: the packed weights are padded to whole
+            // panels, so the second vector's weights exist whenever `left > LANES`.
+            if left > V::LANES {
+                let block = block::<V, 2>(shape, weights, pass.first.then_some(bias), first, left);
+                for_rows(shape, input, output, pass, &Blocked { block: &block, act });
+                first += 2 * V::LANES;
+            } else {
+                let block = block::<V, 1>(shape, weights, pass.first.then_some(bias), first, left);
+                for_rows(shape, input, output, pass, &Blocked { block: &block, act });
+                first += V::LANES;
+            }
+        }
+        // With several passes, rows without taps in the last window were stored without the
+        // activation: apply it to the whole range here.
+        if pass.last && !pass.first {
+            let op = shape.output;
+            for y in 0..op.height {
+                for x in 0..op.width {
+                    let at = output.add(op.index(y, x) + channels.start);
+                    act::apply_slice::<V>(act, core::slice::from_raw_parts_mut(at, channels.len()));
+                }
             }
         }
     }
@@ -193,20 +197,22 @@ unsafe fn block<V: Simd, const NV: usize>(
     first: usize,
     left: usize,
 ) -> Block<V, NV> {
-    let mut b = [V::splat(0.0); NV];
-    let mut w = [weights.as_ptr(); NV];
-    for (v, (b, w)) in b.iter_mut().zip(&mut w).enumerate() {
-        let channel = first + v * V::LANES;
-        if let Some(bias) = bias {
-            *b = load_n(bias.as_ptr().add(channel), left.saturating_sub(v * V::LANES));
+    unsafe {
+        let mut b = [V::splat(0.0); NV];
+        let mut w = [weights.as_ptr(); NV];
+        for (v, (b, w)) in b.iter_mut().zip(&mut w).enumerate() {
+            let channel = first + v * V::LANES;
+            if let Some(bias) = bias {
+                *b = load_n(bias.as_ptr().add(channel), left.saturating_sub(v * V::LANES));
+            }
+            *w = w.add(shape.packed_index(0, 0, 0, channel));
         }
-        *w = w.add(shape.packed_index(0, 0, 0, channel));
-    }
-    Block {
-        weights: w,
-        bias: b,
-        first,
-        valid: left.min(NV * V::LANES),
+        Block {
+            weights: w,
+            bias: b,
+            first,
+            valid: left.min(NV * V::LANES),
+        }
     }
 }
 
@@ -214,66 +220,68 @@ unsafe fn block<V: Simd, const NV: usize>(
 /// window only; after the first pass, rows with none are skipped.
 #[inline(always)]
 pub(super) unsafe fn for_rows(shape: &ConvShape, input: &[f32], output: *mut f32, pass: Pass, f: &impl RowKernel) {
-    let (k, ip, op) = (shape.kernel, shape.input, shape.output);
-    let pad = k / 2;
-    let c = ip.channels;
-    let in0 = input.as_ptr().add(ip.index(0, 0));
-    let irs = ip.row_stride() as isize;
-    let mut segs = [Seg::default(); MAX_SEGS];
-    // Tap (`ky`, `kx`) of input row `iy` for pixel steps `dx` from the row's input base.
-    let seg = |ky: usize, iy: isize, kx: usize, dx: isize, len: usize| Seg {
-        input: iy * irs + dx * c as isize,
-        weight: (ky * k + kx) * c * OC_ALIGN,
-        len,
-    };
-    for oy in 0..op.height {
-        let rows = (0..k).filter_map(|ky| Some((ky, shape.kind.source(oy, ky, pad, ip.height)? as isize)));
-        // Stride-2 outputs of `Down`, or the two stride phases of `Up`.
-        let (phases, in_step, out_step, count) = match shape.kind {
-            ConvKind::Down => (1, 2 * c, op.channels, op.width),
-            ConvKind::Up => (2, c, 2 * op.channels, ip.width),
+    unsafe {
+        let (k, ip, op) = (shape.kernel, shape.input, shape.output);
+        let pad = k / 2;
+        let c = ip.channels;
+        let in0 = input.as_ptr().add(ip.index(0, 0));
+        let irs = ip.row_stride() as isize;
+        let mut segs = [Seg::default(); MAX_SEGS];
+        // Tap (`ky`, `kx`) of input row `iy` for pixel steps `dx` from the row's input base.
+        let seg = |ky: usize, iy: isize, kx: usize, dx: isize, len: usize| Seg {
+            input: iy * irs + dx * c as isize,
+            weight: (ky * k + kx) * c * OC_ALIGN,
+            len,
         };
-        for px in 0..phases {
-            let mut n = 0;
-            for (ky, iy) in rows.clone() {
-                match shape.kind {
-                    // The taps of one `ky` and all their channels are one contiguous run.
-                    ConvKind::Down => {
-                        segs[n] = seg(ky, iy, 0, -(pad as isize), k * c);
-                        n += 1;
-                    }
-                    // Output 2j + px reads input j + (px + pad - kx) / 2 for even differences.
-                    ConvKind::Up => {
-                        for kx in (0..k).filter(|kx| kx % 2 == (px + pad) % 2) {
-                            segs[n] = seg(ky, iy, kx, ((px + pad) as isize - kx as isize) / 2, c);
+        for oy in 0..op.height {
+            let rows = (0..k).filter_map(|ky| Some((ky, shape.kind.source(oy, ky, pad, ip.height)? as isize)));
+            // Stride-2 outputs of `Down`, or the two stride phases of `Up`.
+            let (phases, in_step, out_step, count) = match shape.kind {
+                ConvKind::Down => (1, 2 * c, op.channels, op.width),
+                ConvKind::Up => (2, c, 2 * op.channels, ip.width),
+            };
+            for px in 0..phases {
+                let mut n = 0;
+                for (ky, iy) in rows.clone() {
+                    match shape.kind {
+                        // The taps of one `ky` and all their channels are one contiguous run.
+                        ConvKind::Down => {
+                            segs[n] = seg(ky, iy, 0, -(pad as isize), k * c);
                             n += 1;
+                        }
+                        // Output 2j + px reads input j + (px + pad - kx) / 2 for even differences.
+                        ConvKind::Up => {
+                            for kx in (0..k).filter(|kx| kx % 2 == (px + pad) % 2) {
+                                segs[n] = seg(ky, iy, kx, ((px + pad) as isize - kx as isize) / 2, c);
+                                n += 1;
+                            }
                         }
                     }
                 }
-            }
-            // Keep the segments inside the window (whole kernel rows: a segment is in or out).
-            let (lo, hi) = pass.window;
-            let mut kept = 0;
-            for i in 0..n {
-                let row = segs[i].weight / OC_ALIGN;
-                if (lo..hi).contains(&row) {
-                    segs[kept] = segs[i];
-                    kept += 1;
+                // Keep the segments inside the window (whole kernel rows: a segment is in or out).
+                let (lo, hi) = pass.window;
+                let mut kept = 0;
+                for i in 0..n {
+                    let row = segs[i].weight / OC_ALIGN;
+                    if (lo..hi).contains(&row) {
+                        segs[kept] = segs[i];
+                        kept += 1;
+                    }
                 }
+                if kept == 0 && !pass.first {
+                    continue;
+                }
+                f.run(&Row {
+                    segs: &segs[..kept],
+                    input: in0,
+                    in_step,
+                    output: output.add(op.index(oy, px)),
+                    out_step,
+                    count,
+                    accumulate: !pass.first,
+                    activate: pass.first && pass.last,
+                });
             }
-            if kept == 0 && !pass.first {
-                continue;
-            }
-            f.run(&Row {
-                segs: &segs[..kept],
-                input: in0,
-                in_step,
-                output: output.add(op.index(oy, px)),
-                out_step,
-                count,
-                accumulate: !pass.first,
-                activate: pass.first && pass.last,
-            });
         }
     }
 }
@@ -293,7 +301,7 @@ struct Blocked<'a, V, const NV: usize> {
 impl<V: Simd, const NV: usize> RowKernel for Blocked<'_, V, NV> {
     #[inline(always)]
     unsafe fn run(&self, row: &Row<'_>) {
-        run_row::<V, NV, 0>(row, self.block, self.act)
+        unsafe { run_row::<V, NV, 0>(row, self.block, self.act) }
     }
 }
 
@@ -306,12 +314,13 @@ pub(super) unsafe fn run_row<V: Simd, const NV: usize, const PREFETCH: usize>(
     block: &Block<V, NV>,
     act: Activation,
 ) {
-    let max = MAX_TILE / NV;
-    let tiles = row.count.div_ceil(max);
-    let mut start = 0;
-    for i in 0..tiles {
-        let end = row.count * (i + 1) / tiles;
-        macro_rules! tile_of {
+    unsafe {
+        let max = MAX_TILE / NV;
+        let tiles = row.count.div_ceil(max);
+        let mut start = 0;
+        for i in 0..tiles {
+            let end = row.count * (i + 1) / tiles;
+            macro_rules! tile_of {
             ($($t:literal)+) => {
                 match end - start {
                     $($t => tile::<V, $t, NV, PREFETCH>(row, start, block, act),)+
@@ -319,12 +328,13 @@ pub(super) unsafe fn run_row<V: Simd, const NV: usize, const PREFETCH: usize>(
                 }
             };
         }
-        if NV == 1 {
-            tile_of!(1 2 3 4 5 6 7 8 9 10 11 12)
-        } else {
-            tile_of!(1 2 3 4 5 6)
+            if NV == 1 {
+                tile_of!(1 2 3 4 5 6 7 8 9 10 11 12)
+            } else {
+                tile_of!(1 2 3 4 5 6)
+            }
+            start = end;
         }
-        start = end;
     }
 }
 
@@ -336,38 +346,40 @@ unsafe fn tile<V: Simd, const T: usize, const NV: usize, const PREFETCH: usize>(
     block: &Block<V, NV>,
     act: Activation,
 ) {
-    let out = row.output.add(first * row.out_step + block.first);
-    let mut acc = [block.bias; T];
-    let input = row.input.add(first * row.in_step);
-    for seg in row.segs {
-        // One pointer per pixel and one index shared by all: the loads address `pixel + index`
-        // with no arithmetic per pixel, and `UNROLL` steps share each loop's bookkeeping.
-        let x: [*const f32; T] = core::array::from_fn(|t| input.offset(seg.input).add(t * row.in_step));
-        let w: [*const f32; NV] = core::array::from_fn(|v| block.weights[v].add(seg.weight));
-        let mut i = 0;
-        while i + UNROLL <= seg.len {
-            for u in i..i + UNROLL {
-                if PREFETCH > 0 {
-                    for w in w {
-                        let ahead = w.wrapping_add((u + PREFETCH) * OC_ALIGN);
-                        V::prefetch(ahead.cast());
+    unsafe {
+        let out = row.output.add(first * row.out_step + block.first);
+        let mut acc = [block.bias; T];
+        let input = row.input.add(first * row.in_step);
+        for seg in row.segs {
+            // One pointer per pixel and one index shared by all: the loads address `pixel + index`
+            // with no arithmetic per pixel, and `UNROLL` steps share each loop's bookkeeping.
+            let x: [*const f32; T] = core::array::from_fn(|t| input.offset(seg.input).add(t * row.in_step));
+            let w: [*const f32; NV] = core::array::from_fn(|v| block.weights[v].add(seg.weight));
+            let mut i = 0;
+            while i + UNROLL <= seg.len {
+                for u in i..i + UNROLL {
+                    if PREFETCH > 0 {
+                        for w in w {
+                            let ahead = w.wrapping_add((u + PREFETCH) * OC_ALIGN);
+                            V::prefetch(ahead.cast());
+                        }
                     }
+                    conv_step(&mut acc, &x, &w, u);
                 }
+                i += UNROLL;
+            }
+            for u in i..seg.len {
                 conv_step(&mut acc, &x, &w, u);
             }
-            i += UNROLL;
         }
-        for u in i..seg.len {
-            conv_step(&mut acc, &x, &w, u);
-        }
-    }
-    for (t, acc) in acc.iter().enumerate() {
-        for (v, &a) in acc.iter().enumerate() {
-            let n = block.valid.saturating_sub(v * V::LANES);
-            let at = out.add(t * row.out_step + v * V::LANES);
-            let a = if row.accumulate { a.add(load_n(at, n)) } else { a };
-            let a = if row.activate { act::apply(act, a) } else { a };
-            store_n(a, at, n);
+        for (t, acc) in acc.iter().enumerate() {
+            for (v, &a) in acc.iter().enumerate() {
+                let n = block.valid.saturating_sub(v * V::LANES);
+                let at = out.add(t * row.out_step + v * V::LANES);
+                let a = if row.accumulate { a.add(load_n(at, n)) } else { a };
+                let a = if row.activate { act::apply(act, a) } else { a };
+                store_n(a, at, n);
+            }
         }
     }
 }
@@ -383,14 +395,16 @@ unsafe fn conv_step<V: Simd, const T: usize, const NV: usize>(
     w: &[*const f32; NV],
     i: usize,
 ) {
-    let mut wv = [V::splat(0.0); NV];
-    for (wv, w) in wv.iter_mut().zip(w) {
-        *wv = V::load(w.add(i * OC_ALIGN));
-    }
-    for (acc, x) in acc.iter_mut().zip(x) {
-        let b = V::splat(*x.add(i));
-        for (a, &wv) in acc.iter_mut().zip(&wv) {
-            *a = b.mul_add(wv, *a);
+    unsafe {
+        let mut wv = [V::splat(0.0); NV];
+        for (wv, w) in wv.iter_mut().zip(w) {
+            *wv = V::load(w.add(i * OC_ALIGN));
+        }
+        for (acc, x) in acc.iter_mut().zip(x) {
+            let b = V::splat(*x.add(i));
+            for (a, &wv) in acc.iter_mut().zip(&wv) {
+                *a = b.mul_add(wv, *a);
+            }
         }
     }
 }

@@ -40,17 +40,19 @@ pub(super) unsafe fn dense<S: Widen, const NI: usize, const NV: usize>(
     y: *mut f32,
     ldy: usize,
 ) {
-    let args = Args {
-        cols: w.cols,
-        bias,
-        act,
-        x,
-        y,
-        ldy,
-    };
-    match w.data {
-        MatrixData::F32(d) => body::<S, f32, NI, NV>(d, args),
-        MatrixData::F16(d) => body::<S, f16, NI, NV>(d, args),
+    unsafe {
+        let args = Args {
+            cols: w.cols,
+            bias,
+            act,
+            x,
+            y,
+            ldy,
+        };
+        match w.data {
+            MatrixData::F32(d) => body::<S, f32, NI, NV>(d, args),
+            MatrixData::F16(d) => body::<S, f16, NI, NV>(d, args),
+        }
     }
 }
 
@@ -80,14 +82,14 @@ pub(super) trait Weight: Copy {
 impl Weight for f32 {
     #[inline(always)]
     unsafe fn load<S: Widen>(p: *const f32) -> S {
-        S::load(p)
+        unsafe { S::load(p) }
     }
 }
 
 impl Weight for f16 {
     #[inline(always)]
     unsafe fn load<S: Widen>(p: *const f16) -> S {
-        S::load_f16(p)
+        unsafe { S::load_f16(p) }
     }
 }
 
@@ -119,41 +121,43 @@ impl Tile {
 /// but not stored.
 #[inline(always)]
 unsafe fn tile<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], args: &Args<'_>, tile: Tile) {
-    let Args {
-        cols, bias, x, y, ldy, ..
-    } = *args;
-    // Vector `v` of the tile at column 0: its panel, and its lanes within the panel.
-    let starts: [*const T; NV] =
-        core::array::from_fn(|v| w.as_ptr().add(Matrix::packed_index(tile.row_of::<S>(v), 0, cols)));
-    let inputs: [*const f32; NI] = core::array::from_fn(|i| x.as_ptr().add((tile.item + i) * cols));
-    let mut acc = [[S::splat(0.0); NV]; NI];
-    for k in tile.col..tile.col + tile.len {
-        let at = |v: usize| starts[v].add(k * OC_ALIGN);
-        // A column of a panel is 64 bytes of f32 (one cache line) or 32 of f16: one prefetch
-        // per panel and column.
-        for v in (0..NV).step_by(OC_ALIGN / S::LANES) {
-            S::prefetch(at(v).cast::<u8>().wrapping_add(PREFETCH));
-        }
-        let wv: [S; NV] = core::array::from_fn(|v| T::load::<S>(at(v)));
-        for (acc, input) in acc.iter_mut().zip(&inputs) {
-            let xb = S::splat(*input.add(k));
-            for (a, &wv) in acc.iter_mut().zip(&wv) {
-                *a = wv.mul_add(xb, *a);
+    unsafe {
+        let Args {
+            cols, bias, x, y, ldy, ..
+        } = *args;
+        // Vector `v` of the tile at column 0: its panel, and its lanes within the panel.
+        let starts: [*const T; NV] =
+            core::array::from_fn(|v| w.as_ptr().add(Matrix::packed_index(tile.row_of::<S>(v), 0, cols)));
+        let inputs: [*const f32; NI] = core::array::from_fn(|i| x.as_ptr().add((tile.item + i) * cols));
+        let mut acc = [[S::splat(0.0); NV]; NI];
+        for k in tile.col..tile.col + tile.len {
+            let at = |v: usize| starts[v].add(k * OC_ALIGN);
+            // A column of a panel is 64 bytes of f32 (one cache line) or 32 of f16: one prefetch
+            // per panel and column.
+            for v in (0..NV).step_by(OC_ALIGN / S::LANES) {
+                S::prefetch(at(v).cast::<u8>().wrapping_add(PREFETCH));
+            }
+            let wv: [S; NV] = core::array::from_fn(|v| T::load::<S>(at(v)));
+            for (acc, input) in acc.iter_mut().zip(&inputs) {
+                let xb = S::splat(*input.add(k));
+                for (a, &wv) in acc.iter_mut().zip(&wv) {
+                    *a = wv.mul_add(xb, *a);
+                }
             }
         }
-    }
-    let rows = bias.len();
-    for (i, acc) in acc.iter().enumerate() {
-        let out = y.add((tile.item + i) * ldy);
-        for (v, &sum) in acc.iter().enumerate() {
-            let row = tile.row_of::<S>(v);
-            if row >= rows {
-                break;
+        let rows = bias.len();
+        for (i, acc) in acc.iter().enumerate() {
+            let out = y.add((tile.item + i) * ldy);
+            for (v, &sum) in acc.iter().enumerate() {
+                let row = tile.row_of::<S>(v);
+                if row >= rows {
+                    break;
+                }
+                let n = S::LANES.min(rows - row);
+                let (dst, b) = (out.add(row), bias.as_ptr().add(row));
+                let earlier = if tile.col == 0 { b } else { dst };
+                store_n(load_n::<S>(earlier, n).add(sum), dst, n);
             }
-            let n = S::LANES.min(rows - row);
-            let (dst, b) = (out.add(row), bias.as_ptr().add(row));
-            let earlier = if tile.col == 0 { b } else { dst };
-            store_n(load_n::<S>(earlier, n).add(sum), dst, n);
         }
     }
 }
@@ -161,50 +165,52 @@ unsafe fn tile<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], a
 /// See [`crate::dense`].
 #[inline(always)]
 pub(super) unsafe fn body<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], args: Args<'_>) {
-    let (cols, rows) = (args.cols, args.bias.len());
-    debug_assert!(OC_ALIGN.is_multiple_of(S::LANES) && (NV * S::LANES).is_multiple_of(OC_ALIGN));
-    let padded = rows.next_multiple_of(OC_ALIGN);
-    let items = args.x.len() / cols;
-    // Every row sums its columns in the same chunks, in the same order, whatever the batch or
-    // the range of rows asked for: results are bit-identical however threads split the work.
-    let chunks = cols.div_ceil(CHUNK);
-    for chunk in 0..chunks {
-        let col = chunk * cols / chunks;
-        let len = (chunk + 1) * cols / chunks - col;
-        let mut row = 0;
-        if items == 1 {
-            // Each tile's panels a part of the matrix apart, so that the weights stream from
-            // memory as several long runs.
-            let groups = SINGLE_NV * S::LANES / OC_ALIGN;
-            let spread = padded / OC_ALIGN / groups;
-            for panel in 0..spread {
-                let at = Tile {
-                    row: panel * OC_ALIGN,
-                    stride: spread,
-                    item: 0,
-                    col,
-                    len,
-                };
-                tile::<S, T, 1, SINGLE_NV>(w, &args, at);
+    unsafe {
+        let (cols, rows) = (args.cols, args.bias.len());
+        debug_assert!(OC_ALIGN.is_multiple_of(S::LANES) && (NV * S::LANES).is_multiple_of(OC_ALIGN));
+        let padded = rows.next_multiple_of(OC_ALIGN);
+        let items = args.x.len() / cols;
+        // Every row sums its columns in the same chunks, in the same order, whatever the batch or
+        // the range of rows asked for: results are bit-identical however threads split the work.
+        let chunks = cols.div_ceil(CHUNK);
+        for chunk in 0..chunks {
+            let col = chunk * cols / chunks;
+            let len = (chunk + 1) * cols / chunks - col;
+            let mut row = 0;
+            if items == 1 {
+                // Each tile's panels a part of the matrix apart, so that the weights stream from
+                // memory as several long runs.
+                let groups = SINGLE_NV * S::LANES / OC_ALIGN;
+                let spread = padded / OC_ALIGN / groups;
+                for panel in 0..spread {
+                    let at = Tile {
+                        row: panel * OC_ALIGN,
+                        stride: spread,
+                        item: 0,
+                        col,
+                        len,
+                    };
+                    tile::<S, T, 1, SINGLE_NV>(w, &args, at);
+                }
+                row = spread * groups * OC_ALIGN;
             }
-            row = spread * groups * OC_ALIGN;
+            // The rows left (all of them for a batch): every tile of NV vectors of rows (then of
+            // one vector) meets every block of items while its weights are in cache.
+            while row + NV * S::LANES <= padded {
+                item_blocks::<S, T, NI, NV>(w, &args, items, (row, col, len));
+                row += NV * S::LANES;
+            }
+            while row < rows {
+                item_blocks::<S, T, NI, 1>(w, &args, items, (row, col, len));
+                row += S::LANES;
+            }
         }
-        // The rows left (all of them for a batch): every tile of NV vectors of rows (then of
-        // one vector) meets every block of items while its weights are in cache.
-        while row + NV * S::LANES <= padded {
-            item_blocks::<S, T, NI, NV>(w, &args, items, (row, col, len));
-            row += NV * S::LANES;
+        for n in 0..items {
+            act::apply_slice::<S>(
+                args.act,
+                core::slice::from_raw_parts_mut(args.y.add(n * args.ldy), rows),
+            );
         }
-        while row < rows {
-            item_blocks::<S, T, NI, 1>(w, &args, items, (row, col, len));
-            row += S::LANES;
-        }
-    }
-    for n in 0..items {
-        act::apply_slice::<S>(
-            args.act,
-            core::slice::from_raw_parts_mut(args.y.add(n * args.ldy), rows),
-        );
     }
 }
 
@@ -218,26 +224,28 @@ unsafe fn item_blocks<S: Widen, T: Weight, const NI: usize, const NV: usize>(
     items: usize,
     (row, col, len): (usize, usize, usize),
 ) {
-    let blocks = items.div_ceil(NI);
-    for block in 0..blocks {
-        let item = block * items / blocks;
-        let at = Tile {
-            row,
-            stride: 1,
-            item,
-            col,
-            len,
-        };
-        match (block + 1) * items / blocks - item {
-            1 => tile::<S, T, 1, NV>(w, args, at),
-            2 if NI >= 2 => tile::<S, T, 2, NV>(w, args, at),
-            3 if NI >= 3 => tile::<S, T, 3, NV>(w, args, at),
-            4 if NI >= 4 => tile::<S, T, 4, NV>(w, args, at),
-            5 if NI >= 5 => tile::<S, T, 5, NV>(w, args, at),
-            6 if NI >= 6 => tile::<S, T, 6, NV>(w, args, at),
-            7 if NI >= 7 => tile::<S, T, 7, NV>(w, args, at),
-            8 if NI >= 8 => tile::<S, T, 8, NV>(w, args, at),
-            _ => unreachable!("item blocks hold at most NI items"),
+    unsafe {
+        let blocks = items.div_ceil(NI);
+        for block in 0..blocks {
+            let item = block * items / blocks;
+            let at = Tile {
+                row,
+                stride: 1,
+                item,
+                col,
+                len,
+            };
+            match (block + 1) * items / blocks - item {
+                1 => tile::<S, T, 1, NV>(w, args, at),
+                2 if NI >= 2 => tile::<S, T, 2, NV>(w, args, at),
+                3 if NI >= 3 => tile::<S, T, 3, NV>(w, args, at),
+                4 if NI >= 4 => tile::<S, T, 4, NV>(w, args, at),
+                5 if NI >= 5 => tile::<S, T, 5, NV>(w, args, at),
+                6 if NI >= 6 => tile::<S, T, 6, NV>(w, args, at),
+                7 if NI >= 7 => tile::<S, T, 7, NV>(w, args, at),
+                8 if NI >= 8 => tile::<S, T, 8, NV>(w, args, at),
+                _ => unreachable!("item blocks hold at most NI items"),
+            }
         }
     }
 }

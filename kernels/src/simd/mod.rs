@@ -70,7 +70,7 @@ macro_rules! entries {
                 output: *mut f32,
                 channels: core::ops::Range<usize>,
             ) {
-                $crate::simd::conv::conv::<$vector>(layer, input, output, channels)
+                unsafe { $crate::simd::conv::conv::<$vector>(layer, input, output, channels) }
             }
 
             /// # Safety
@@ -84,14 +84,14 @@ macro_rules! entries {
                 y: *mut f32,
                 ldy: usize,
             ) {
-                $crate::simd::dense::dense::<$vector, $items, $vectors>(w, bias, act, x, y, ldy)
+                unsafe { $crate::simd::dense::dense::<$vector, $items, $vectors>(w, bias, act, x, y, ldy) }
             }
 
             /// # Safety
             /// The CPU must have the features; as for `winograd::input_body`.
             #[target_feature(enable = $features)]
             unsafe fn input(w: &$crate::winograd::Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-                $crate::simd::winograd::input_body::<$vector>(w, phase, input, v)
+                unsafe { $crate::simd::winograd::input_body::<$vector>(w, phase, input, v) }
             }
 
             /// # Safety
@@ -105,7 +105,7 @@ macro_rules! entries {
                 output: *mut f32,
                 channels: core::ops::Range<usize>,
             ) {
-                $crate::simd::winograd::channels_body::<$vector>(w, layer, v, scratch, output, channels)
+                unsafe { $crate::simd::winograd::channels_body::<$vector>(w, layer, v, scratch, output, channels) }
             }
 
             $crate::simd::Entries {

@@ -60,21 +60,25 @@ pub(super) trait Widen: Simd {
 
 #[inline(always)]
 pub(super) unsafe fn load_n<V: Simd>(p: *const f32, n: usize) -> V {
-    if n >= V::LANES {
-        V::load(p)
-    } else if n > 0 {
-        V::load_partial(p, n)
-    } else {
-        V::splat(0.0)
+    unsafe {
+        if n >= V::LANES {
+            V::load(p)
+        } else if n > 0 {
+            V::load_partial(p, n)
+        } else {
+            V::splat(0.0)
+        }
     }
 }
 
 #[inline(always)]
 pub(super) unsafe fn store_n<V: Simd>(v: V, p: *mut f32, n: usize) {
-    if n >= V::LANES {
-        v.store(p)
-    } else if n > 0 {
-        v.store_partial(p, n)
+    unsafe {
+        if n >= V::LANES {
+            v.store(p)
+        } else if n > 0 {
+            v.store_partial(p, n)
+        }
     }
 }
 
@@ -103,15 +107,19 @@ impl Lane for f32 {
         0.0
     }
     unsafe fn load_n(p: *const f32, n: usize) -> f32 {
-        if n > 0 {
-            *p
-        } else {
-            0.0
+        unsafe {
+            if n > 0 {
+                *p
+            } else {
+                0.0
+            }
         }
     }
     unsafe fn store_n(self, p: *mut f32, n: usize) {
-        if n > 0 {
-            *p = self
+        unsafe {
+            if n > 0 {
+                *p = self
+            }
         }
     }
     unsafe fn add(self, b: f32) -> f32 {
@@ -133,30 +141,30 @@ impl<V: Simd> Lane for V {
     const BLOCK: usize = 2 * V::LANES;
     #[inline(always)]
     unsafe fn zero() -> V {
-        V::splat(0.0)
+        unsafe { V::splat(0.0) }
     }
     #[inline(always)]
     unsafe fn load_n(p: *const f32, n: usize) -> V {
-        load_n(p, n)
+        unsafe { load_n(p, n) }
     }
     #[inline(always)]
     unsafe fn store_n(self, p: *mut f32, n: usize) {
-        store_n(self, p, n)
+        unsafe { store_n(self, p, n) }
     }
     #[inline(always)]
     unsafe fn add(self, b: V) -> V {
-        Simd::add(self, b)
+        unsafe { Simd::add(self, b) }
     }
     #[inline(always)]
     unsafe fn sub(self, b: V) -> V {
-        Simd::sub(self, b)
+        unsafe { Simd::sub(self, b) }
     }
     #[inline(always)]
     unsafe fn mul_add(self, c: f32, acc: V) -> V {
-        Simd::mul_add(self, V::splat(c), acc)
+        unsafe { Simd::mul_add(self, V::splat(c), acc) }
     }
     #[inline(always)]
     unsafe fn activate(self, act: Activation) -> V {
-        act::apply(act, self)
+        unsafe { act::apply(act, self) }
     }
 }

@@ -18,51 +18,53 @@ struct Microkernel<V>(core::marker::PhantomData<V>);
 impl<V: Simd> Product for Microkernel<V> {
     #[inline(always)]
     unsafe fn run(&self, p: &Products<'_>) {
-        let Products {
-            w,
-            u,
-            point,
-            v,
-            count,
-            m,
-            first,
-            valid,
-        } = *p;
-        let c = w.shape.input.channels;
-        let segs = [Seg {
-            input: 0,
-            weight: point * c * OC_ALIGN,
-            len: c,
-        }];
-        let row = Row {
-            segs: &segs,
-            input: v,
-            in_step: c,
-            output: m,
-            out_step: 2 * V::LANES,
-            count,
-            accumulate: false,
-            activate: false,
-        };
-        // The lane of channel `first + i` in its panel (panels are whole, so the second vector's
-        // weights exist whenever `valid > LANES`).
-        let lane = |i: usize| u.as_ptr().add(w.packed_index(0, 0, first + i));
-        if valid > V::LANES {
-            let block = Block::<V, 2> {
-                weights: [lane(0), lane(V::LANES)],
-                bias: [V::splat(0.0); 2],
-                first: 0,
+        unsafe {
+            let Products {
+                w,
+                u,
+                point,
+                v,
+                count,
+                m,
+                first,
                 valid,
+            } = *p;
+            let c = w.shape.input.channels;
+            let segs = [Seg {
+                input: 0,
+                weight: point * c * OC_ALIGN,
+                len: c,
+            }];
+            let row = Row {
+                segs: &segs,
+                input: v,
+                in_step: c,
+                output: m,
+                out_step: 2 * V::LANES,
+                count,
+                accumulate: false,
+                activate: false,
             };
-            run_row::<V, 2, PREFETCH_STEPS>(&row, &block, Activation::Identity)
-        } else {
-            let block = Block::<V, 1> {
-                weights: [lane(0)],
-                bias: [V::splat(0.0)],
-                first: 0,
-                valid,
-            };
-            run_row::<V, 1, PREFETCH_STEPS>(&row, &block, Activation::Identity)
+            // The lane of channel `first + i` in its panel (panels are whole, so the second vector's
+            // weights exist whenever `valid > LANES`).
+            let lane = |i: usize| u.as_ptr().add(w.packed_index(0, 0, first + i));
+            if valid > V::LANES {
+                let block = Block::<V, 2> {
+                    weights: [lane(0), lane(V::LANES)],
+                    bias: [V::splat(0.0); 2],
+                    first: 0,
+                    valid,
+                };
+                run_row::<V, 2, PREFETCH_STEPS>(&row, &block, Activation::Identity)
+            } else {
+                let block = Block::<V, 1> {
+                    weights: [lane(0)],
+                    bias: [V::splat(0.0)],
+                    first: 0,
+                    valid,
+                };
+                run_row::<V, 1, PREFETCH_STEPS>(&row, &block, Activation::Identity)
+            }
         }
     }
 }
@@ -70,7 +72,7 @@ impl<V: Simd> Product for Microkernel<V> {
 /// The input transform of one phase, for one instruction set.
 #[inline(always)]
 pub(super) unsafe fn input_body<V: Simd>(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
-    winograd::with_phase(w, phase, &mut InputTransform::<V>::new(w, input, v))
+    unsafe { winograd::with_phase(w, phase, &mut InputTransform::<V>::new(w, input, v)) }
 }
 
 /// The products and output transform of some channels, for one instruction set.
@@ -83,6 +85,8 @@ pub(super) unsafe fn channels_body<V: Simd>(
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    let product = Microkernel::<V>(core::marker::PhantomData);
-    winograd::channels::<V, _>(&product, w, layer, v, scratch, output, channels)
+    unsafe {
+        let product = Microkernel::<V>(core::marker::PhantomData);
+        winograd::channels::<V, _>(&product, w, layer, v, scratch, output, channels)
+    }
 }

@@ -9,90 +9,96 @@ use core::arch::x86_64::*;
 /// Mask of the first `n` of 8 lanes (all bits set in those lanes).
 #[inline(always)]
 unsafe fn mask8(n: usize) -> __m256i {
-    _mm256_cmpgt_epi32(_mm256_set1_epi32(n as i32), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7))
+    unsafe { _mm256_cmpgt_epi32(_mm256_set1_epi32(n as i32), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)) }
 }
 
 impl Simd for __m256 {
     const LANES: usize = 8;
     #[inline(always)]
     unsafe fn splat(x: f32) -> Self {
-        _mm256_set1_ps(x)
+        unsafe { _mm256_set1_ps(x) }
     }
     #[inline(always)]
     unsafe fn load(p: *const f32) -> Self {
-        _mm256_loadu_ps(p)
+        unsafe { _mm256_loadu_ps(p) }
     }
     #[inline(always)]
     unsafe fn load_partial(p: *const f32, n: usize) -> Self {
-        _mm256_maskload_ps(p, mask8(n))
+        unsafe { _mm256_maskload_ps(p, mask8(n)) }
     }
     #[inline(always)]
     unsafe fn store(self, p: *mut f32) {
-        _mm256_storeu_ps(p, self)
+        unsafe { _mm256_storeu_ps(p, self) }
     }
     #[inline(always)]
     unsafe fn store_partial(self, p: *mut f32, n: usize) {
-        _mm256_maskstore_ps(p, mask8(n), self)
+        unsafe { _mm256_maskstore_ps(p, mask8(n), self) }
     }
     #[inline(always)]
     unsafe fn add(self, b: Self) -> Self {
-        _mm256_add_ps(self, b)
+        unsafe { _mm256_add_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn sub(self, b: Self) -> Self {
-        _mm256_sub_ps(self, b)
+        unsafe { _mm256_sub_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn mul(self, b: Self) -> Self {
-        _mm256_mul_ps(self, b)
+        unsafe { _mm256_mul_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn div(self, b: Self) -> Self {
-        _mm256_div_ps(self, b)
+        unsafe { _mm256_div_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn max(self, b: Self) -> Self {
-        _mm256_max_ps(self, b)
+        unsafe { _mm256_max_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn min(self, b: Self) -> Self {
-        _mm256_min_ps(self, b)
+        unsafe { _mm256_min_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn mul_add(self, b: Self, c: Self) -> Self {
-        _mm256_fmadd_ps(self, b, c)
+        unsafe { _mm256_fmadd_ps(self, b, c) }
     }
     #[inline(always)]
     unsafe fn abs(self) -> Self {
-        _mm256_andnot_ps(_mm256_set1_ps(-0.0), self)
+        unsafe { _mm256_andnot_ps(_mm256_set1_ps(-0.0), self) }
     }
     #[inline(always)]
     unsafe fn neg_where_negative(self, sign_of: Self) -> Self {
-        let negative = _mm256_cmp_ps::<_CMP_LT_OQ>(sign_of, _mm256_setzero_ps());
-        _mm256_xor_ps(self, _mm256_and_ps(negative, _mm256_set1_ps(-0.0)))
+        unsafe {
+            let negative = _mm256_cmp_ps::<_CMP_LT_OQ>(sign_of, _mm256_setzero_ps());
+            _mm256_xor_ps(self, _mm256_and_ps(negative, _mm256_set1_ps(-0.0)))
+        }
     }
     #[inline(always)]
     unsafe fn select_lt(self, limit: Self, then: Self, other: Self) -> Self {
-        _mm256_blendv_ps(other, then, _mm256_cmp_ps::<_CMP_LT_OQ>(self, limit))
+        unsafe { _mm256_blendv_ps(other, then, _mm256_cmp_ps::<_CMP_LT_OQ>(self, limit)) }
     }
     #[inline(always)]
     unsafe fn trunc(self) -> Self {
-        _mm256_cvtepi32_ps(_mm256_cvttps_epi32(self))
+        unsafe { _mm256_cvtepi32_ps(_mm256_cvttps_epi32(self)) }
     }
     #[inline(always)]
     unsafe fn pow2(self) -> Self {
-        let n = _mm256_add_epi32(_mm256_cvttps_epi32(self), _mm256_set1_epi32(127));
-        _mm256_castsi256_ps(_mm256_slli_epi32::<23>(n))
+        unsafe {
+            let n = _mm256_add_epi32(_mm256_cvttps_epi32(self), _mm256_set1_epi32(127));
+            _mm256_castsi256_ps(_mm256_slli_epi32::<23>(n))
+        }
     }
     #[inline(always)]
     unsafe fn reduce_add(self) -> f32 {
-        let x = _mm_add_ps(_mm256_castps256_ps128(self), _mm256_extractf128_ps::<1>(self));
-        let x = _mm_add_ps(x, _mm_movehl_ps(x, x));
-        _mm_cvtss_f32(_mm_add_ss(x, _mm_movehdup_ps(x)))
+        unsafe {
+            let x = _mm_add_ps(_mm256_castps256_ps128(self), _mm256_extractf128_ps::<1>(self));
+            let x = _mm_add_ps(x, _mm_movehl_ps(x, x));
+            _mm_cvtss_f32(_mm_add_ss(x, _mm_movehdup_ps(x)))
+        }
     }
     #[inline(always)]
     unsafe fn prefetch(p: *const u8) {
-        _mm_prefetch::<_MM_HINT_T0>(p.cast())
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(p.cast()) }
     }
 }
 
@@ -106,96 +112,100 @@ impl Simd for __m512 {
     const LANES: usize = 16;
     #[inline(always)]
     unsafe fn splat(x: f32) -> Self {
-        _mm512_set1_ps(x)
+        unsafe { _mm512_set1_ps(x) }
     }
     #[inline(always)]
     unsafe fn load(p: *const f32) -> Self {
-        _mm512_loadu_ps(p)
+        unsafe { _mm512_loadu_ps(p) }
     }
     #[inline(always)]
     unsafe fn load_partial(p: *const f32, n: usize) -> Self {
-        _mm512_maskz_loadu_ps(mask16(n), p)
+        unsafe { _mm512_maskz_loadu_ps(mask16(n), p) }
     }
     #[inline(always)]
     unsafe fn store(self, p: *mut f32) {
-        _mm512_storeu_ps(p, self)
+        unsafe { _mm512_storeu_ps(p, self) }
     }
     #[inline(always)]
     unsafe fn store_partial(self, p: *mut f32, n: usize) {
-        _mm512_mask_storeu_ps(p, mask16(n), self)
+        unsafe { _mm512_mask_storeu_ps(p, mask16(n), self) }
     }
     #[inline(always)]
     unsafe fn add(self, b: Self) -> Self {
-        _mm512_add_ps(self, b)
+        unsafe { _mm512_add_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn sub(self, b: Self) -> Self {
-        _mm512_sub_ps(self, b)
+        unsafe { _mm512_sub_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn mul(self, b: Self) -> Self {
-        _mm512_mul_ps(self, b)
+        unsafe { _mm512_mul_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn div(self, b: Self) -> Self {
-        _mm512_div_ps(self, b)
+        unsafe { _mm512_div_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn max(self, b: Self) -> Self {
-        _mm512_max_ps(self, b)
+        unsafe { _mm512_max_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn min(self, b: Self) -> Self {
-        _mm512_min_ps(self, b)
+        unsafe { _mm512_min_ps(self, b) }
     }
     #[inline(always)]
     unsafe fn mul_add(self, b: Self, c: Self) -> Self {
-        _mm512_fmadd_ps(self, b, c)
+        unsafe { _mm512_fmadd_ps(self, b, c) }
     }
     #[inline(always)]
     unsafe fn abs(self) -> Self {
-        _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(self), _mm512_set1_epi32(i32::MAX)))
+        unsafe { _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(self), _mm512_set1_epi32(i32::MAX))) }
     }
     #[inline(always)]
     unsafe fn neg_where_negative(self, sign_of: Self) -> Self {
-        let negative = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(sign_of, _mm512_setzero_ps());
-        let bits = _mm512_castps_si512(self);
-        _mm512_castsi512_ps(_mm512_mask_xor_epi32(bits, negative, bits, _mm512_set1_epi32(i32::MIN)))
+        unsafe {
+            let negative = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(sign_of, _mm512_setzero_ps());
+            let bits = _mm512_castps_si512(self);
+            _mm512_castsi512_ps(_mm512_mask_xor_epi32(bits, negative, bits, _mm512_set1_epi32(i32::MIN)))
+        }
     }
     #[inline(always)]
     unsafe fn select_lt(self, limit: Self, then: Self, other: Self) -> Self {
-        _mm512_mask_blend_ps(_mm512_cmp_ps_mask::<_CMP_LT_OQ>(self, limit), other, then)
+        unsafe { _mm512_mask_blend_ps(_mm512_cmp_ps_mask::<_CMP_LT_OQ>(self, limit), other, then) }
     }
     #[inline(always)]
     unsafe fn trunc(self) -> Self {
-        _mm512_cvtepi32_ps(_mm512_cvttps_epi32(self))
+        unsafe { _mm512_cvtepi32_ps(_mm512_cvttps_epi32(self)) }
     }
     #[inline(always)]
     unsafe fn pow2(self) -> Self {
-        let n = _mm512_add_epi32(_mm512_cvttps_epi32(self), _mm512_set1_epi32(127));
-        _mm512_castsi512_ps(_mm512_slli_epi32::<23>(n))
+        unsafe {
+            let n = _mm512_add_epi32(_mm512_cvttps_epi32(self), _mm512_set1_epi32(127));
+            _mm512_castsi512_ps(_mm512_slli_epi32::<23>(n))
+        }
     }
     #[inline(always)]
     unsafe fn reduce_add(self) -> f32 {
-        _mm512_reduce_add_ps(self)
+        unsafe { _mm512_reduce_add_ps(self) }
     }
     #[inline(always)]
     unsafe fn prefetch(p: *const u8) {
-        _mm_prefetch::<_MM_HINT_T0>(p.cast())
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(p.cast()) }
     }
 }
 
 impl Widen for __m256 {
     #[inline(always)]
     unsafe fn load_f16(p: *const f16) -> __m256 {
-        _mm256_cvtph_ps(_mm_loadu_si128(p.cast()))
+        unsafe { _mm256_cvtph_ps(_mm_loadu_si128(p.cast())) }
     }
 }
 
 impl Widen for __m512 {
     #[inline(always)]
     unsafe fn load_f16(p: *const f16) -> __m512 {
-        _mm512_cvtph_ps(_mm256_loadu_si256(p.cast()))
+        unsafe { _mm512_cvtph_ps(_mm256_loadu_si256(p.cast())) }
     }
 }
 
@@ -230,7 +240,8 @@ mod tests {
     #[inline]
     #[target_feature(enable = "avx2,fma")]
     unsafe fn apply_avx2(act: Activation, v: __m256) -> __m256 {
-        apply(act, v)
+        // SAFETY: this function's features are `__m256`'s.
+        unsafe { apply(act, v) }
     }
 
     /// [`Activation::apply`] on 16 lanes.
@@ -240,7 +251,8 @@ mod tests {
     #[inline]
     #[target_feature(enable = "avx512f,avx2,fma")]
     unsafe fn apply_avx512(act: Activation, v: __m512) -> __m512 {
-        apply(act, v)
+        // SAFETY: this function's features are `__m512`'s.
+        unsafe { apply(act, v) }
     }
 
     #[test]

@@ -38,18 +38,20 @@ pub(crate) struct ScalarProduct;
 
 impl Product for ScalarProduct {
     unsafe fn run(&self, p: &Products<'_>) {
-        let (w, u, point, v, m) = (p.w, p.u, p.point, p.v, p.m);
-        let (count, first, valid) = (p.count, p.first, p.valid);
-        let c = w.shape.input.channels;
-        for t in 0..count {
-            let v = core::slice::from_raw_parts(v.add(t * c), c);
-            for j in 0..valid {
-                let sum = v
-                    .iter()
-                    .enumerate()
-                    .map(|(i, x)| x * u[w.packed_index(point, i, first + j)])
-                    .sum();
-                *m.add(t * <f32 as Lane>::BLOCK + j) = sum;
+        unsafe {
+            let (w, u, point, v, m) = (p.w, p.u, p.point, p.v, p.m);
+            let (count, first, valid) = (p.count, p.first, p.valid);
+            let c = w.shape.input.channels;
+            for t in 0..count {
+                let v = core::slice::from_raw_parts(v.add(t * c), c);
+                for j in 0..valid {
+                    let sum = v
+                        .iter()
+                        .enumerate()
+                        .map(|(i, x)| x * u[w.packed_index(point, i, first + j)])
+                        .sum();
+                    *m.add(t * <f32 as Lane>::BLOCK + j) = sum;
+                }
             }
         }
     }
@@ -69,26 +71,28 @@ pub(crate) unsafe fn channels<L: Lane, P: Product>(
     output: *mut f32,
     channels: Range<usize>,
 ) {
-    let tiles = w.tiles();
-    // The tiles go in groups of nearly equal size; all the products of a group and a block of
-    // output channels (points x group tiles x 16 floats with AVX2, at most 189 KiB) are kept
-    // until the output transform. Of the two operands, the larger streams from L3 and the
-    // smaller is reused from L2: with more weights than transformed input, each block's weights
-    // (points x input channels x 16) serve every group in turn; otherwise each group's
-    // transformed input serves every block.
-    let groups = tiles.div_ceil(w.group_tiles());
-    let group = |g: usize| tiles * g / groups..tiles * (g + 1) / groups;
-    let blocks = channels.clone().step_by(L::BLOCK);
-    if w.packed_len() > w.input_len() {
-        for first in blocks {
-            for g in 0..groups {
-                group_block::<L, P>(product, w, layer, v, scratch, output, group(g), first..channels.end);
+    unsafe {
+        let tiles = w.tiles();
+        // The tiles go in groups of nearly equal size; all the products of a group and a block of
+        // output channels (points x group tiles x 16 floats with AVX2, at most 189 KiB) are kept
+        // until the output transform. Of the two operands, the larger streams from L3 and the
+        // smaller is reused from L2: with more weights than transformed input, each block's weights
+        // (points x input channels x 16) serve every group in turn; otherwise each group's
+        // transformed input serves every block.
+        let groups = tiles.div_ceil(w.group_tiles());
+        let group = |g: usize| tiles * g / groups..tiles * (g + 1) / groups;
+        let blocks = channels.clone().step_by(L::BLOCK);
+        if w.packed_len() > w.input_len() {
+            for first in blocks {
+                for g in 0..groups {
+                    group_block::<L, P>(product, w, layer, v, scratch, output, group(g), first..channels.end);
+                }
             }
-        }
-    } else {
-        for g in 0..groups {
-            for first in blocks.clone() {
-                group_block::<L, P>(product, w, layer, v, scratch, output, group(g), first..channels.end);
+        } else {
+            for g in 0..groups {
+                for first in blocks.clone() {
+                    group_block::<L, P>(product, w, layer, v, scratch, output, group(g), first..channels.end);
+                }
             }
         }
     }
@@ -107,42 +111,44 @@ unsafe fn group_block<L: Lane, P: Product>(
     tiles: Range<usize>,
     channels: Range<usize>,
 ) {
-    let (first, valid) = (channels.start, channels.len().min(L::BLOCK));
-    let c = w.shape.input.channels;
-    let m = scratch.as_mut_ptr();
-    for point in 0..w.points() {
-        let v = v.as_ptr().add((point * w.tiles() + tiles.start) * c);
-        let m = m.add(point * w.group_tiles() * L::BLOCK);
-        let products = Products {
+    unsafe {
+        let (first, valid) = (channels.start, channels.len().min(L::BLOCK));
+        let c = w.shape.input.channels;
+        let m = scratch.as_mut_ptr();
+        for point in 0..w.points() {
+            let v = v.as_ptr().add((point * w.tiles() + tiles.start) * c);
+            let m = m.add(point * w.group_tiles() * L::BLOCK);
+            let products = Products {
+                w,
+                u: layer.weights,
+                point,
+                v,
+                count: tiles.len(),
+                m,
+                first,
+                valid,
+            };
+            product.run(&products);
+        }
+        let mut out = OutputTransform::<L> {
             w,
-            u: layer.weights,
-            point,
-            v,
-            count: tiles.len(),
             m,
-            first,
-            valid,
+            bias: layer.bias.as_ptr().add(first),
+            act: layer.act,
+            output: output.add(first),
+            sum: [[L::zero(); 4]; 4],
+            tile: 0,
+            channel: 0,
+            n: 0,
+            m_at: 0,
         };
-        product.run(&products);
-    }
-    let mut out = OutputTransform::<L> {
-        w,
-        m,
-        bias: layer.bias.as_ptr().add(first),
-        act: layer.act,
-        output: output.add(first),
-        sum: [[L::zero(); 4]; 4],
-        tile: 0,
-        channel: 0,
-        n: 0,
-        m_at: 0,
-    };
-    for tile in tiles.clone() {
-        for channel in (0..valid).step_by(L::LANES) {
-            out.tile = tile;
-            out.channel = channel;
-            out.n = valid - channel;
-            out.finish_tile(tiles.start);
+        for tile in tiles.clone() {
+            for channel in (0..valid).step_by(L::LANES) {
+                out.tile = tile;
+                out.channel = channel;
+                out.n = valid - channel;
+                out.finish_tile(tiles.start);
+            }
         }
     }
 }

@@ -9,13 +9,15 @@ use crate::{Activation, ConvKind};
 /// The tile's columns, each a `PY`-array.
 #[inline(always)]
 unsafe fn columns<L: Lane, const PY: usize, const PX: usize>(x: &[[L; PX]; PY]) -> [[L; PY]; PX] {
-    let mut columns = [[L::zero(); PY]; PX];
-    for (r, row) in x.iter().enumerate() {
-        for (column, &v) in columns.iter_mut().zip(row) {
-            column[r] = v;
+    unsafe {
+        let mut columns = [[L::zero(); PY]; PX];
+        for (r, row) in x.iter().enumerate() {
+            for (column, &v) in columns.iter_mut().zip(row) {
+                column[r] = v;
+            }
         }
+        columns
     }
-    columns
 }
 
 /// `B_y^T d B_x` for a `PY x PX` input tile `d`.
@@ -28,20 +30,22 @@ where
     FY: Filter<M, PY, KY>,
     FX: Filter<M, PX, KX>,
 {
-    let mut out = *d;
-    for c in 0..PX {
-        let mut column = [L::zero(); PY];
-        for (value, row) in column.iter_mut().zip(&out) {
-            *value = row[c];
+    unsafe {
+        let mut out = *d;
+        for c in 0..PX {
+            let mut column = [L::zero(); PY];
+            for (value, row) in column.iter_mut().zip(&out) {
+                *value = row[c];
+            }
+            for (row, value) in out.iter_mut().zip(FY::input(column)) {
+                row[c] = value;
+            }
         }
-        for (row, value) in out.iter_mut().zip(FY::input(column)) {
-            row[c] = value;
+        for row in out.iter_mut() {
+            *row = FX::input(*row);
         }
+        out
     }
-    for row in out.iter_mut() {
-        *row = FX::input(*row);
-    }
-    out
 }
 
 /// `A_y^T m A_x` for a `PY x PX` tile of products `m`: a tile of `M x M` outputs.
@@ -54,17 +58,19 @@ where
     FY: Filter<M, PY, KY>,
     FX: Filter<M, PX, KX>,
 {
-    let mut down = [[L::zero(); M]; PX];
-    for (t, column) in down.iter_mut().zip(columns(m)) {
-        *t = FY::output(column);
+    unsafe {
+        let mut down = [[L::zero(); M]; PX];
+        for (t, column) in down.iter_mut().zip(columns(m)) {
+            *t = FY::output(column);
+        }
+        // Loops, not closures: a closure would not inherit the caller's target features, and
+        // every vector operation in it would become a call.
+        let mut y = [[L::zero(); M]; M];
+        for (y, row) in y.iter_mut().zip(columns(&down)) {
+            *y = FX::output(row);
+        }
+        y
     }
-    // Loops, not closures: a closure would not inherit the caller's target features, and
-    // every vector operation in it would become a call.
-    let mut y = [[L::zero(); M]; M];
-    for (y, row) in y.iter_mut().zip(columns(&down)) {
-        *y = FX::output(row);
-    }
-    y
 }
 
 /// Step 1 for one phase: fills `V`'s span of `phase` (`v` is that span, see
@@ -96,40 +102,42 @@ impl<L: Lane> PhaseFn for InputTransform<'_, L> {
         FY: Filter<M, PY, KY>,
         FX: Filter<M, PX, KX>,
     {
-        let w = self.w;
-        let (ip, (gh, gw)) = (w.shape.input, w.grid());
-        let (py, px) = (phase / 2, phase % 2);
-        let (c, tiles, wide) = (ip.channels, w.tiles(), w.tiles_wide());
-        let input = self.input.as_ptr();
-        let v = self.v.as_mut_ptr();
-        for tile in 0..tiles {
-            let (gy, gx) = (
-                (M * (tile / wide)) as isize + w.lo(py),
-                (M * (tile % wide)) as isize + w.lo(px),
-            );
-            // Each tap's pixel, or none where the grid has no source.
-            let mut pixels = [[None; PX]; PY];
-            for (r, row) in pixels.iter_mut().enumerate() {
-                if let Some(y) = w.source(py, gy + r as isize, gh) {
-                    for (s, pixel) in row.iter_mut().enumerate() {
-                        *pixel = w.source(px, gx + s as isize, gw).map(|x| ip.index(y, x));
-                    }
-                }
-            }
-            for c0 in (0..c).step_by(L::LANES) {
-                let n = c - c0;
-                let mut d = [[L::zero(); PX]; PY];
-                for (d, pixels) in d.iter_mut().zip(&pixels) {
-                    for (d, pixel) in d.iter_mut().zip(pixels) {
-                        if let Some(p) = pixel {
-                            *d = L::load_n(input.add(p + c0), n);
+        unsafe {
+            let w = self.w;
+            let (ip, (gh, gw)) = (w.shape.input, w.grid());
+            let (py, px) = (phase / 2, phase % 2);
+            let (c, tiles, wide) = (ip.channels, w.tiles(), w.tiles_wide());
+            let input = self.input.as_ptr();
+            let v = self.v.as_mut_ptr();
+            for tile in 0..tiles {
+                let (gy, gx) = (
+                    (M * (tile / wide)) as isize + w.lo(py),
+                    (M * (tile % wide)) as isize + w.lo(px),
+                );
+                // Each tap's pixel, or none where the grid has no source.
+                let mut pixels = [[None; PX]; PY];
+                for (r, row) in pixels.iter_mut().enumerate() {
+                    if let Some(y) = w.source(py, gy + r as isize, gh) {
+                        for (s, pixel) in row.iter_mut().enumerate() {
+                            *pixel = w.source(px, gx + s as isize, gw).map(|x| ip.index(y, x));
                         }
                     }
                 }
-                let t = input_tile::<L, M, PY, KY, PX, KX, FY, FX>(&d);
-                for (r, row) in t.iter().enumerate() {
-                    for (s, value) in row.iter().enumerate() {
-                        value.store_n(v.add(((r * PX + s) * tiles + tile) * c + c0), n);
+                for c0 in (0..c).step_by(L::LANES) {
+                    let n = c - c0;
+                    let mut d = [[L::zero(); PX]; PY];
+                    for (d, pixels) in d.iter_mut().zip(&pixels) {
+                        for (d, pixel) in d.iter_mut().zip(pixels) {
+                            if let Some(p) = pixel {
+                                *d = L::load_n(input.add(p + c0), n);
+                            }
+                        }
+                    }
+                    let t = input_tile::<L, M, PY, KY, PX, KX, FY, FX>(&d);
+                    for (r, row) in t.iter().enumerate() {
+                        for (s, value) in row.iter().enumerate() {
+                            value.store_n(v.add(((r * PX + s) * tiles + tile) * c + c0), n);
+                        }
                     }
                 }
             }
@@ -161,16 +169,18 @@ impl<L: Lane> OutputTransform<'_, L> {
     /// Runs every phase for the current tile and channels; `start` is the group's first tile.
     #[inline(always)]
     pub(super) unsafe fn finish_tile(&mut self, start: usize) {
-        self.m_at = (self.tile - start) * L::BLOCK + self.channel;
-        self.sum = [[L::zero(); 4]; 4];
-        for phase in 0..4 {
-            with_phase(self.w, phase, self);
-        }
-        if self.w.shape.kind == ConvKind::Down {
-            let s = self.sum;
-            match self.w.tile {
-                2 => self.store(0, [[s[0][0], s[0][1]], [s[1][0], s[1][1]]]),
-                _ => self.store(0, s),
+        unsafe {
+            self.m_at = (self.tile - start) * L::BLOCK + self.channel;
+            self.sum = [[L::zero(); 4]; 4];
+            for phase in 0..4 {
+                with_phase(self.w, phase, self);
+            }
+            if self.w.shape.kind == ConvKind::Down {
+                let s = self.sum;
+                match self.w.tile {
+                    2 => self.store(0, [[s[0][0], s[0][1]], [s[1][0], s[1][1]]]),
+                    _ => self.store(0, s),
+                }
             }
         }
     }
@@ -179,21 +189,23 @@ impl<L: Lane> OutputTransform<'_, L> {
     /// for `Up`; of all phases for `Down`) that lie in the output.
     #[inline(always)]
     unsafe fn store<const M: usize>(&self, phase: usize, y: [[L; M]; M]) {
-        let (w, op, (gh, gw)) = (self.w, self.w.shape.output, self.w.grid());
-        let (ty, tx) = (self.tile / w.tiles_wide(), self.tile % w.tiles_wide());
-        let bias = L::load_n(self.bias.add(self.channel), self.n);
-        for (dy, row) in y.iter().enumerate() {
-            let gy = M * ty + dy;
-            if gy >= gh {
-                continue;
-            }
-            for (dx, value) in row.iter().enumerate() {
-                let gx = M * tx + dx;
-                if gx >= gw {
+        unsafe {
+            let (w, op, (gh, gw)) = (self.w, self.w.shape.output, self.w.grid());
+            let (ty, tx) = (self.tile / w.tiles_wide(), self.tile % w.tiles_wide());
+            let bias = L::load_n(self.bias.add(self.channel), self.n);
+            for (dy, row) in y.iter().enumerate() {
+                let gy = M * ty + dy;
+                if gy >= gh {
                     continue;
                 }
-                let at = op.index(w.target(phase / 2, gy), w.target(phase % 2, gx)) + self.channel;
-                value.add(bias).activate(self.act).store_n(self.output.add(at), self.n);
+                for (dx, value) in row.iter().enumerate() {
+                    let gx = M * tx + dx;
+                    if gx >= gw {
+                        continue;
+                    }
+                    let at = op.index(w.target(phase / 2, gy), w.target(phase % 2, gx)) + self.channel;
+                    value.add(bias).activate(self.act).store_n(self.output.add(at), self.n);
+                }
             }
         }
     }
@@ -208,24 +220,26 @@ impl<L: Lane> PhaseFn for OutputTransform<'_, L> {
         FY: Filter<M, PY, KY>,
         FX: Filter<M, PX, KX>,
     {
-        let (first, group_tiles) = (self.w.phase_points(phase).0, self.w.group_tiles());
-        let mut m = [[L::zero(); PX]; PY];
-        for (r, row) in m.iter_mut().enumerate() {
-            for (s, m) in row.iter_mut().enumerate() {
-                let point = first + r * PX + s;
-                *m = L::load_n(self.m.add(point * group_tiles * L::BLOCK + self.m_at), self.n);
-            }
-        }
-        let y = output_tile::<L, M, PY, KY, PX, KX, FY, FX>(&m);
-        match self.w.shape.kind {
-            ConvKind::Down => {
-                for (sum, y) in self.sum.iter_mut().zip(&y) {
-                    for (s, &y) in sum.iter_mut().zip(y) {
-                        *s = s.add(y);
-                    }
+        unsafe {
+            let (first, group_tiles) = (self.w.phase_points(phase).0, self.w.group_tiles());
+            let mut m = [[L::zero(); PX]; PY];
+            for (r, row) in m.iter_mut().enumerate() {
+                for (s, m) in row.iter_mut().enumerate() {
+                    let point = first + r * PX + s;
+                    *m = L::load_n(self.m.add(point * group_tiles * L::BLOCK + self.m_at), self.n);
                 }
             }
-            ConvKind::Up => self.store(phase, y),
+            let y = output_tile::<L, M, PY, KY, PX, KX, FY, FX>(&m);
+            match self.w.shape.kind {
+                ConvKind::Down => {
+                    for (sum, y) in self.sum.iter_mut().zip(&y) {
+                        for (s, &y) in sum.iter_mut().zip(y) {
+                            *s = s.add(y);
+                        }
+                    }
+                }
+                ConvKind::Up => self.store(phase, y),
+            }
         }
     }
 }
