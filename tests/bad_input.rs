@@ -397,15 +397,14 @@ fn out_of_range_frames_and_overflowing_results_are_errors() {
         .collect();
     let (mut h, mut next) = (vec![0.0; c.hidden_dim], vec![0.0; c.z_dim]);
     let mut out = vec![0.0; c.frame_len()];
-    for result in [
-        sim.transition(&huge, &mut h, &[1.0, 0.0], &mut next),
-        sim.generate(&huge, &mut out),
-    ] {
-        match result {
-            Ok(()) => assert!(next.iter().chain(&h).chain(&out).all(|v| v.is_finite())),
-            Err(err) => assert!(matches!(err, Error::NonFiniteOutput { .. }), "{err}"),
-        }
-    }
+    let ok_is_finite = |result: Result<(), Error>, outputs: &[&[f32]]| match result {
+        Ok(()) => assert!(outputs.iter().all(|o| o.iter().all(|v| v.is_finite()))),
+        Err(err) => assert!(matches!(err, Error::NonFiniteOutput { .. }), "{err}"),
+    };
+    let result = sim.transition(&huge, &mut h, &[1.0, 0.0], &mut next);
+    ok_is_finite(result, &[&h, &next]);
+    let result = sim.generate(&huge, &mut out);
+    ok_is_finite(result, &[&out]);
 
     // Finite but huge weights overflow the encoder's linear mean and the transition's `A h`.
     let (mut tensors, meta) = fixture_parts();
