@@ -274,35 +274,24 @@ pub(crate) fn expect_len(buffer: &'static str, data: &[f32], expected: usize) ->
     }
 }
 
+/// The index and value of the first of `data` that `ok` rejects.
+fn first_bad(data: &[f32], ok: impl Fn(&f32) -> bool) -> Option<(usize, f32)> {
+    data.iter().position(|v| !ok(v)).map(|index| (index, data[index]))
+}
+
 /// Checks that every value of an input is finite.
 pub(crate) fn expect_finite(buffer: &'static str, data: &[f32]) -> Result<()> {
-    match data.iter().position(|v| !v.is_finite()) {
-        None => Ok(()),
-        Some(index) => Err(Error::NonFinite {
-            buffer,
-            index,
-            value: data[index],
-        }),
-    }
+    first_bad(data, |v| v.is_finite()).map_or(Ok(()), |(index, value)| Err(Error::NonFinite { buffer, index, value }))
 }
 
 /// Checks that every value of a frame is finite and within [-1, 1].
 pub(crate) fn expect_frames(buffer: &'static str, data: &[f32]) -> Result<()> {
     expect_finite(buffer, data)?;
-    match data.iter().position(|v| !(-1.0..=1.0).contains(v)) {
-        None => Ok(()),
-        Some(index) => Err(Error::FrameValue {
-            buffer,
-            index,
-            value: data[index],
-        }),
-    }
+    first_bad(data, |v| (-1.0..=1.0).contains(v))
+        .map_or(Ok(()), |(index, value)| Err(Error::FrameValue { buffer, index, value }))
 }
 
 /// Checks that a result is finite.
 pub(crate) fn expect_finite_output(buffer: &'static str, data: &[f32]) -> Result<()> {
-    match data.iter().position(|v| !v.is_finite()) {
-        None => Ok(()),
-        Some(index) => Err(Error::NonFiniteOutput { buffer, index }),
-    }
+    first_bad(data, |v| v.is_finite()).map_or(Ok(()), |(index, _)| Err(Error::NonFiniteOutput { buffer, index }))
 }
