@@ -72,16 +72,19 @@ impl StackPlan {
         })
     }
 
-    /// Floats held by set `set`.
-    pub fn set_floats(&self, set: usize) -> Result<usize> {
-        let products = if set == 0 {
+    /// Floats of set `set`'s Winograd product scratch.
+    fn products(&self, set: usize) -> usize {
+        if set == 0 {
             self.products_first
         } else {
             self.products_other
-        };
-        self.inputs
-            .iter()
-            .try_fold(add(self.transformed, products)?, |sum, &n| add(sum, n))
+        }
+    }
+
+    /// Floats held by set `set`.
+    fn set_floats(&self, set: usize) -> Result<usize> {
+        let fixed = add(self.transformed, self.products(set))?;
+        self.inputs.iter().try_fold(fixed, |sum, &n| add(sum, n))
     }
 
     fn floats(&self) -> Result<usize> {
@@ -188,11 +191,6 @@ pub(crate) struct Planes {
 impl Planes {
     /// The zeroed buffers of set `set` of `stack`.
     fn new(stack: &StackPlan, set: usize, plan_bytes: usize) -> Result<Self> {
-        let products = if set == 0 {
-            stack.products_first
-        } else {
-            stack.products_other
-        };
         let mut inputs = Vec::with_capacity(stack.inputs.len());
         for &len in &stack.inputs {
             inputs.push(zeros(len, plan_bytes)?);
@@ -200,7 +198,7 @@ impl Planes {
         Ok(Planes {
             inputs,
             transformed: zeros(stack.transformed, plan_bytes)?,
-            products: zeros(products, plan_bytes)?,
+            products: zeros(stack.products(set), plan_bytes)?,
         })
     }
 
