@@ -72,7 +72,7 @@ impl ConvLayer {
                 return drivesim_kernels::conv(isa, layer, input, output);
             }
             let parts = OutputParts::new(output, channels, blocks);
-            return exec.run(&|_| {
+            return exec.run(&|| {
                 while let Some(part) = parts.take() {
                     drivesim_kernels::conv_channels(isa, layer, input, part);
                 }
@@ -85,7 +85,7 @@ impl ConvLayer {
         }
         let spans: [_; 4] = core::array::from_fn(|phase| w.phase_span(phase));
         let phases = Parts::spans(&mut *v, &spans);
-        exec.run(&|_| {
+        exec.run(&|| {
             while let Some((phase, span)) = phases.take() {
                 drivesim_kernels::winograd_input(isa, w, phase, input, span);
             }
@@ -96,7 +96,7 @@ impl ConvLayer {
         // weights and transformed input once per call (see `winograd_channels`), where blocks
         // taken one at a time would each read it again.
         let parts = OutputParts::new(output, channels, threads);
-        exec.run(&|_| {
+        exec.run(&|| {
             let (_, scratch) = products.take().expect("product scratch for every thread");
             while let Some(part) = parts.take() {
                 drivesim_kernels::winograd_channels(isa, w, layer, v, scratch, part);
@@ -151,7 +151,7 @@ pub(crate) fn for_each_item(
     // Each thread takes a set of planes, then items until none is left.
     let planes = Parts::chunks(planes, 1);
     let outputs = Parts::chunks(&mut output[..items * out_len], out_len);
-    exec.run(&|_| {
+    exec.run(&|| {
         let alone = Exec {
             isa: exec.isa,
             pool: None,
@@ -206,7 +206,7 @@ impl DenseLayer {
             return drivesim_kernels::dense(isa, self.matrix(), &self.bias, self.act, x, y);
         }
         let parts = OutputParts::new(y, self.rows, threads);
-        exec.run(&|_| {
+        exec.run(&|| {
             while let Some(part) = parts.take() {
                 drivesim_kernels::dense_rows(isa, self.matrix(), &self.bias, self.act, x, part);
             }

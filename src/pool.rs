@@ -19,11 +19,12 @@ impl Exec<'_> {
         self.pool.map_or(1, Pool::threads)
     }
 
-    /// Runs `task(i)` on every thread `i`, or `task(0)` alone without a pool.
-    pub fn run(&self, task: &(dyn Fn(usize) + Sync)) {
+    /// Runs `task` on every thread at once, or alone on the caller's without a pool. The
+    /// threads share the work by taking [`Parts`] of it.
+    pub fn run(&self, task: &(dyn Fn() + Sync)) {
         match self.pool {
             Some(pool) => pool.run(task),
-            None => task(0),
+            None => task(),
         }
     }
 }
@@ -40,7 +41,7 @@ impl Pool {
     pub fn threads(&self) -> usize {
         match *self {}
     }
-    pub fn run(&self, _task: &(dyn Fn(usize) + Sync)) {
+    pub fn run(&self, _task: &(dyn Fn() + Sync)) {
         match *self {}
     }
 }
@@ -52,8 +53,8 @@ mod workers {
     use std::thread::JoinHandle;
     use std::time::{Duration, Instant};
 
-    /// A closure every thread runs with its index (`0` is the caller).
-    type Task<'a> = dyn Fn(usize) + Sync + 'a;
+    /// A closure every thread runs, the caller's included.
+    type Task<'a> = dyn Fn() + Sync + 'a;
 
     /// What a worker thread runs from start to shutdown.
     type Work = Box<dyn FnOnce() + Send>;
@@ -153,8 +154,7 @@ mod workers {
             for index in 1..threads.max(1) {
                 let shared = Arc::clone(&pool.shared);
                 // On failure, dropping `pool` shuts down and joins the workers started so far.
-                pool.workers
-                    .push(spawn(index, Box::new(move || worker(&shared, index)))?);
+                pool.workers.push(spawn(index, Box::new(move || worker(&shared)))?);
             }
             // Wait until every worker is parked: a thread's start-up allocates, and it must not
             // do so during the simulator's first call.
@@ -171,10 +171,10 @@ mod workers {
             self.workers.len() + 1
         }
 
-        /// Runs `task(i)` for every thread index `i` at once, and returns when all are done.
+        /// Runs `task` on every thread at once, and returns when all are done.
         pub fn run(&self, task: &Task<'_>) {
             if self.workers.is_empty() {
-                return task(0);
+                return task();
             }
             let shared = &*self.shared;
             {
@@ -190,9 +190,9 @@ mod workers {
                     shared.posted.notify_all();
                 }
             }
-            // Waits for the workers even if `task(0)` panics, so none outlives the closure.
+            // Waits for the workers even if the caller's `task` panics, so none outlives it.
             let wait = WaitForWorkers(shared);
-            task(0);
+            task();
             drop(wait);
             if shared.panicked.swap(false, Ordering::Relaxed) {
                 panic!("a drivesim worker thread panicked");
@@ -233,7 +233,7 @@ mod workers {
         }
     }
 
-    fn worker(shared: &Shared, index: usize) {
+    fn worker(shared: &Shared) {
         let mut seen = 0;
         lock(&shared.state).ready += 1;
         shared.finished.notify_all();
@@ -256,7 +256,7 @@ mod workers {
                 state.task.expect("a posted task")
             };
             // SAFETY: `Pool::run` keeps the closure alive until `running` drops to zero below.
-            let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| unsafe { (*task)(index) }));
+            let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| unsafe { (*task)() }));
             if result.is_err() {
                 shared.panicked.store(true, Ordering::Relaxed);
             }
