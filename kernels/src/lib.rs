@@ -8,6 +8,9 @@
 //!   [`winograd_channels`]), each checking its arguments and then running the kernel of an
 //!   [`Isa`] chosen once at run time; all safe: threads write their parts of one output
 //!   through [`OutputParts`], which hands each part out once;
+//! - the backward operations of training, on the same layouts: [`dense_weight_grad`] (the
+//!   data gradient of a dense layer is the forward [`dense`] on the transposed packing,
+//!   [`pack::dense_from_fn`]) and [`tanh_backward`];
 //! - [`winograd`]: a second algorithm for the convolutions, Winograd's minimal filtering, with
 //!   its own weight layout and caller-provided scratch; its scalar path is tested against the
 //!   direct scalar convolution;
@@ -42,6 +45,9 @@ pub use activation::Activation;
 pub use half::f16;
 pub use isa::{Isa, IsaLevel};
 pub use layout::{ConvKind, ConvParams, ConvShape, Matrix, MatrixData, Plane, Tensor, Weights, NARROW_OC, OC_ALIGN};
-pub use ops::{conv, conv_channels, dense, dense_rows, winograd_channels, winograd_conv, winograd_input};
+pub use ops::{
+    conv, conv_channels, dense, dense_rows, dense_weight_grad, dense_weight_grad_rows, tanh_backward,
+    winograd_channels, winograd_conv, winograd_input,
+};
 pub use output::{OutputPart, OutputParts};
 pub use winograd::Winograd;

@@ -106,3 +106,36 @@ pub fn dense_rows(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f
         (simd::entries(isa).dense)(sub, &bias[rows], act, x, y, ldy)
     }
 }
+
+/// The weight gradient of [`dense`] over a batch: `grad = dyᵀ x`, that is
+/// `grad[r][c] = Σ_k dy[k][r] x[k][c]` for `K` items, with `dy` `K x rows` and `x` `K x cols`
+/// item-major (the gradients of the outputs and the inputs of the forward pass). `grad` is
+/// overwritten in the packed layout of a `rows x cols` [`Matrix`] (its padding rows zero), so
+/// that it lines up with the packed weights it updates.
+pub fn dense_weight_grad(isa: Isa, dy: &[f32], x: &[f32], rows: usize, cols: usize, grad: &mut [f32]) {
+    dense_weight_grad_rows(isa, dy, x, rows, cols, OutputPart::whole(grad, rows));
+}
+
+/// [`dense_weight_grad`] for the rows of `part` only, so that threads can fill disjoint panels
+/// of one gradient at once; each item is summed in the same order whatever the split.
+pub fn dense_weight_grad_rows(isa: Isa, dy: &[f32], x: &[f32], rows: usize, cols: usize, part: OutputPart<'_>) {
+    let units = part.units();
+    assert!(units.start.is_multiple_of(crate::OC_ALIGN) && units.end <= rows);
+    assert!(
+        rows > 0 && cols > 0 && dy.len().is_multiple_of(rows),
+        "dy is not whole rows"
+    );
+    assert_eq!(x.len(), dy.len() / rows * cols, "dy and x hold different batches");
+    assert_eq!(part.buffer_len(), Matrix::packed_len(rows, cols));
+    // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer is the whole
+    // packed matrix (checked), and the panels of its rows are this call's alone.
+    unsafe { (simd::entries(isa).dense_weight_grad)(dy, x, cols, part.ptr(), units, rows) }
+}
+
+/// The gradient through `y = tanh(x)`, given `y`: `grad *= 1 - y²`, bit-identical on every
+/// instruction set.
+pub fn tanh_backward(isa: Isa, y: &[f32], grad: &mut [f32]) {
+    assert_eq!(y.len(), grad.len());
+    // SAFETY: `isa` proves the CPU has the kernel's features.
+    unsafe { (simd::entries(isa).tanh_backward)(y, grad) }
+}

@@ -1,7 +1,7 @@
 //! Weight preparation done once at load: PyTorch layouts in, kernel layouts out.
 
 use crate::winograd::{with_phase, WeightTransform, Winograd};
-use crate::{math, ConvKind, ConvShape, Matrix};
+use crate::{math, ConvKind, ConvShape, Matrix, OC_ALIGN};
 use alloc::vec::Vec;
 
 /// PyTorch's BatchNorm epsilon.
@@ -147,10 +147,22 @@ pub fn permute_rows_chw_to_hwc(
 pub fn dense_weights<T: Copy + Default>(row_major: &[T], rows: usize, cols: usize) -> Vec<T> {
     assert_eq!(row_major.len(), rows * cols);
     let mut packed = alloc::vec![T::default(); Matrix::packed_len(rows, cols)];
-    for (r, row) in row_major.chunks_exact(cols.max(1)).enumerate() {
-        for (c, &v) in row.iter().enumerate() {
-            packed[Matrix::packed_index(r, c, cols)] = v;
+    dense_from_fn(rows, cols, &mut packed, |r, c| row_major[r * cols + c]);
+    packed
+}
+
+/// Packs the `rows x cols` matrix whose weight `(r, c)` is `value(r, c)` into `packed` (the
+/// panels of [`Matrix`], padding rows set to the default, zero), writing it in order. Training
+/// packs transposes with it in place: the data gradient of a dense layer is the forward
+/// [`crate::dense`] on `Wᵀ`.
+pub fn dense_from_fn<T: Copy + Default>(rows: usize, cols: usize, packed: &mut [T], value: impl Fn(usize, usize) -> T) {
+    assert_eq!(packed.len(), Matrix::packed_len(rows, cols));
+    for (panel, panel_values) in packed.chunks_exact_mut(OC_ALIGN * cols.max(1)).enumerate() {
+        for (col, column) in panel_values.chunks_exact_mut(OC_ALIGN).enumerate() {
+            for (lane, p) in column.iter_mut().enumerate() {
+                let row = panel * OC_ALIGN + lane;
+                *p = if row < rows { value(row, col) } else { T::default() };
+            }
         }
     }
-    packed
 }

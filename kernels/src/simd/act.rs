@@ -4,7 +4,7 @@
 //! constants and the same (unfused) operation order, so SIMD and scalar agree bit for bit on the
 //! same input (up to the sign of a zero).
 
-use super::vector::Simd;
+use super::vector::{load_n, store_n, Simd};
 use crate::math::{EXP_POLY, LN2_HI, LN2_LO, TANH_CLAMP, TANH_SERIES, TANH_SERIES_LIMIT};
 use crate::Activation;
 
@@ -66,6 +66,21 @@ pub(crate) unsafe fn apply_slice<V: Simd>(act: Activation, data: &mut [f32]) {
         let rest = chunks.into_remainder();
         if !rest.is_empty() {
             apply(act, V::load_partial(rest.as_ptr(), rest.len())).store_partial(rest.as_mut_ptr(), rest.len());
+        }
+    }
+}
+
+/// [`crate::scalar::tanh_backward`] lane by lane, in the same (unfused) operation order:
+/// `grad *= 1 - y²`.
+#[inline(always)]
+pub(crate) unsafe fn tanh_backward<V: Simd>(y: &[f32], grad: &mut [f32]) {
+    unsafe {
+        let n = grad.len().min(y.len());
+        let one = V::splat(1.0);
+        for i in (0..n).step_by(V::LANES) {
+            let lanes = V::LANES.min(n - i);
+            let (y, g) = (load_n::<V>(y.as_ptr().add(i), lanes), grad.as_mut_ptr().add(i));
+            store_n(load_n::<V>(g, lanes).mul(one.sub(y.mul(y))), g, lanes);
         }
     }
 }

@@ -24,6 +24,7 @@
 
 use super::act;
 use super::vector::{load_n, store_n, Simd, Widen};
+use super::{balanced_blocks, Block};
 use crate::{f16, Activation, Matrix, MatrixData, OC_ALIGN};
 
 /// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row of `w` (see
@@ -215,8 +216,7 @@ pub(super) unsafe fn body<S: Widen, T: Weight, const NI: usize, const NV: usize>
 }
 
 /// One tile of rows (from `row`, `NV` vectors) over columns `col .. col + len` for every item,
-/// in balanced blocks of at most `NI <= 8` items. Const generics need one arm per block size
-/// (the guards keep the arms above `NI` from being compiled).
+/// in balanced blocks of at most `NI <= 8` items.
 #[inline(always)]
 unsafe fn item_blocks<S: Widen, T: Weight, const NI: usize, const NV: usize>(
     w: &[T],
@@ -224,28 +224,25 @@ unsafe fn item_blocks<S: Widen, T: Weight, const NI: usize, const NV: usize>(
     items: usize,
     (row, col, len): (usize, usize, usize),
 ) {
-    unsafe {
-        let blocks = items.div_ceil(NI);
-        for block in 0..blocks {
-            let item = block * items / blocks;
+    struct Items<'a, 'b, T, const NV: usize> {
+        w: &'a [T],
+        args: &'a Args<'b>,
+        row: usize,
+        col: usize,
+        len: usize,
+    }
+    impl<S: Widen, T: Weight, const NV: usize> Block<S> for Items<'_, '_, T, NV> {
+        #[inline(always)]
+        unsafe fn run<const N: usize>(&self, item: usize) {
             let at = Tile {
-                row,
+                row: self.row,
                 stride: 1,
                 item,
-                col,
-                len,
+                col: self.col,
+                len: self.len,
             };
-            match (block + 1) * items / blocks - item {
-                1 => tile::<S, T, 1, NV>(w, args, at),
-                2 if NI >= 2 => tile::<S, T, 2, NV>(w, args, at),
-                3 if NI >= 3 => tile::<S, T, 3, NV>(w, args, at),
-                4 if NI >= 4 => tile::<S, T, 4, NV>(w, args, at),
-                5 if NI >= 5 => tile::<S, T, 5, NV>(w, args, at),
-                6 if NI >= 6 => tile::<S, T, 6, NV>(w, args, at),
-                7 if NI >= 7 => tile::<S, T, 7, NV>(w, args, at),
-                8 if NI >= 8 => tile::<S, T, 8, NV>(w, args, at),
-                _ => unreachable!("item blocks hold at most NI items"),
-            }
+            unsafe { tile::<S, T, N, NV>(self.w, self.args, at) }
         }
     }
+    unsafe { balanced_blocks::<S, NI>(items, &Items::<T, NV> { w, args, row, col, len }) }
 }

@@ -21,6 +21,7 @@ pub(crate) mod act;
 mod conv;
 mod conv_narrow;
 mod dense;
+mod dense_grad;
 pub(crate) mod vector;
 pub(crate) mod winograd;
 
@@ -33,6 +34,10 @@ pub(crate) struct Entries {
     pub conv: unsafe fn(ConvParams<'_>, &[f32], *mut f32, Range<usize>),
     /// See [`crate::scalar::dense_rows`].
     pub dense: unsafe fn(Matrix<'_>, &[f32], Activation, &[f32], *mut f32, usize),
+    /// `(dy, x, cols, grad, rows, total_rows)`: see [`crate::scalar::dense_weight_grad_rows`].
+    pub dense_weight_grad: unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, usize),
+    /// See [`crate::scalar::tanh_backward`].
+    pub tanh_backward: unsafe fn(&[f32], &mut [f32]),
     /// See [`crate::scalar::winograd_input`].
     pub winograd_input: unsafe fn(&Winograd, usize, &[f32], &mut [f32]),
     /// See [`crate::scalar::winograd_channels`].
@@ -42,11 +47,47 @@ pub(crate) struct Entries {
 /// `(w, layer, v, scratch, output, channels)`.
 type WinogradChannels = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mut [f32], *mut f32, Range<usize>);
 
+/// A register tile run on a block of `N` consecutive units (items, columns) from `start`: what
+/// [`balanced_blocks`] calls.
+pub(super) trait Block<S> {
+    /// # Safety
+    /// As for the tile it runs.
+    unsafe fn run<const N: usize>(&self, start: usize);
+}
+
+/// Runs `tile` on `count` units in balanced blocks of at most `MAX <= 8`. Const generics need
+/// one arm per block size (the guards keep the arms above `MAX` from being compiled).
+///
+/// # Safety
+/// As for the tile.
+#[inline(always)]
+pub(super) unsafe fn balanced_blocks<S, const MAX: usize>(count: usize, tile: &impl Block<S>) {
+    unsafe {
+        let blocks = count.div_ceil(MAX);
+        for block in 0..blocks {
+            let start = block * count / blocks;
+            match (block + 1) * count / blocks - start {
+                1 => tile.run::<1>(start),
+                2 if MAX >= 2 => tile.run::<2>(start),
+                3 if MAX >= 3 => tile.run::<3>(start),
+                4 if MAX >= 4 => tile.run::<4>(start),
+                5 if MAX >= 5 => tile.run::<5>(start),
+                6 if MAX >= 6 => tile.run::<6>(start),
+                7 if MAX >= 7 => tile.run::<7>(start),
+                8 if MAX >= 8 => tile.run::<8>(start),
+                _ => unreachable!("blocks hold at most MAX units"),
+            }
+        }
+    }
+}
+
 /// The reference kernels, for [`crate::IsaLevel::Scalar`] and every CPU without a vector unit
 /// the kernels know.
 static SCALAR: Entries = Entries {
     conv: scalar::conv_channels,
     dense: scalar::dense_rows,
+    dense_weight_grad: scalar::dense_weight_grad_rows,
+    tanh_backward: scalar::tanh_backward,
     winograd_input: scalar::winograd_input,
     winograd_channels: scalar::winograd_channels,
 };
@@ -57,7 +98,8 @@ pub(crate) fn entries(isa: Isa) -> &'static Entries {
 }
 
 /// `static $name: Entries` for the vector type `$vector` under the target features
-/// `$features`, with the dense batch tile `$items` x `$vectors`.
+/// `$features`, with the dense batch tile `$items` x `$vectors` (and the same tile of columns
+/// by vectors of rows for the dense weight gradient).
 macro_rules! entries {
     ($name:ident, $features:literal, $vector:ty, dense tile $items:literal x $vectors:literal) => {
         static $name: $crate::simd::Entries = {
@@ -88,6 +130,31 @@ macro_rules! entries {
             }
 
             /// # Safety
+            /// The CPU must have the features; as for `dense_grad::weight_grad`.
+            #[target_feature(enable = $features)]
+            unsafe fn dense_weight_grad(
+                dy: &[f32],
+                x: &[f32],
+                cols: usize,
+                grad: *mut f32,
+                rows: core::ops::Range<usize>,
+                total_rows: usize,
+            ) {
+                unsafe {
+                    $crate::simd::dense_grad::weight_grad::<$vector, $items, $vectors>(
+                        dy, x, cols, grad, rows, total_rows,
+                    )
+                }
+            }
+
+            /// # Safety
+            /// The CPU must have the features.
+            #[target_feature(enable = $features)]
+            unsafe fn tanh_backward(y: &[f32], grad: &mut [f32]) {
+                unsafe { $crate::simd::act::tanh_backward::<$vector>(y, grad) }
+            }
+
+            /// # Safety
             /// The CPU must have the features; as for `winograd::input_body`.
             #[target_feature(enable = $features)]
             unsafe fn input(w: &$crate::winograd::Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
@@ -111,6 +178,8 @@ macro_rules! entries {
             $crate::simd::Entries {
                 conv,
                 dense,
+                dense_weight_grad,
+                tanh_backward,
                 winograd_input: input,
                 winograd_channels: channels,
             }

@@ -1,0 +1,132 @@
+//! The weight gradient of a dense layer, `G = dYᵀ X` summed over a batch of `K` items, written
+//! straight into the packed layout of [`Matrix`] so that an optimiser updates packed weights in
+//! place.
+//!
+//! The same register tile as the forward kernel ([`super::dense`]) with the roles swapped:
+//! a column of a panel is `NV` vectors of consecutive rows, so the vectors are loaded from an
+//! item's output gradient `dy[k]` (rows are contiguous there), and each of `NC` columns
+//! broadcasts the item's input `x[k][c]`: `NC * NV` multiply-adds for `NC + NV` loads per item.
+//! - The items are summed in chunks of at most [`ITEMS`], the later ones added to what the
+//!   earlier ones stored. The chunks depend on `K` alone, so every gradient is summed in the
+//!   same order however threads split the rows (bit-identical results across thread counts).
+//! - A chunk's output gradients for one tile of rows (`ITEMS x NV` vectors) stay in L1 while
+//!   every block of columns passes over them; the inputs stream from L2.
+
+use super::vector::{load_n, Simd};
+use super::{balanced_blocks, Block};
+use crate::{Matrix, OC_ALIGN};
+use core::ops::Range;
+
+/// Most items per pass over a tile (see the module comment): 128 items of three AVX-512 row
+/// vectors are 24 KiB, within L1.
+const ITEMS: usize = 128;
+
+/// The arguments of one call: `dy` is `K x rows`, `x` is `K x cols`, both item-major; `grad`
+/// the packed `rows x cols` gradient.
+struct Args<'a> {
+    dy: &'a [f32],
+    x: &'a [f32],
+    rows: usize,
+    cols: usize,
+    grad: *mut f32,
+}
+
+/// `grad = dyᵀ x` for the rows `rows` (see [`crate::dense_weight_grad_rows`]), with tiles of
+/// `NC` columns by `NV` vectors of rows.
+///
+/// # Safety
+/// As for [`crate::scalar::dense_weight_grad_rows`]; the CPU must have `S`'s features.
+#[inline(always)]
+pub(super) unsafe fn weight_grad<S: Simd, const NC: usize, const NV: usize>(
+    dy: &[f32],
+    x: &[f32],
+    cols: usize,
+    grad: *mut f32,
+    rows: Range<usize>,
+    total_rows: usize,
+) {
+    unsafe {
+        let args = Args {
+            dy,
+            x,
+            rows: total_rows,
+            cols,
+            grad,
+        };
+        let items = dy.len() / total_rows;
+        // Whole panels: the padding rows of the last one are written too (as zeros).
+        let end = rows.end.next_multiple_of(OC_ALIGN);
+        let chunks = items.div_ceil(ITEMS).max(1);
+        for chunk in 0..chunks {
+            let ks = chunk * items / chunks..(chunk + 1) * items / chunks;
+            let mut row = rows.start;
+            while row + NV * S::LANES <= end {
+                let tile = ColumnTile::<NV> {
+                    args: &args,
+                    row,
+                    ks: ks.clone(),
+                    first: chunk == 0,
+                };
+                balanced_blocks::<S, NC>(cols, &tile);
+                row += NV * S::LANES;
+            }
+            while row < end {
+                let tile = ColumnTile::<1> {
+                    args: &args,
+                    row,
+                    ks: ks.clone(),
+                    first: chunk == 0,
+                };
+                balanced_blocks::<S, NC>(cols, &tile);
+                row += S::LANES;
+            }
+        }
+    }
+}
+
+/// `NV` vectors of rows from `row`, over the items `ks`: stored if `first`, else added.
+struct ColumnTile<'a, 'b, const NV: usize> {
+    args: &'a Args<'b>,
+    row: usize,
+    ks: Range<usize>,
+    first: bool,
+}
+
+impl<S: Simd, const NV: usize> Block<S> for ColumnTile<'_, '_, NV> {
+    /// The tile's rows for the `N` columns from `col`.
+    #[inline(always)]
+    unsafe fn run<const N: usize>(&self, col: usize) {
+        unsafe {
+            let Args {
+                dy,
+                x,
+                rows,
+                cols,
+                grad,
+            } = *self.args;
+            // Rows past the last are read as zeros (their gradient is the panel's padding).
+            let lanes: [usize; NV] = core::array::from_fn(|v| rows.saturating_sub(self.row + v * S::LANES));
+            let mut acc = [[S::splat(0.0); NV]; N];
+            for k in self.ks.clone() {
+                // Wrapping: the padding vectors' addresses may lie past `dy` (they load nothing).
+                let d = dy.as_ptr().wrapping_add(k * rows + self.row);
+                let dv: [S; NV] = core::array::from_fn(|v| load_n::<S>(d.wrapping_add(v * S::LANES), lanes[v]));
+                let xk = x.as_ptr().add(k * cols + col);
+                for (i, acc) in acc.iter_mut().enumerate() {
+                    let xb = S::splat(*xk.add(i));
+                    for (a, &d) in acc.iter_mut().zip(&dv) {
+                        *a = d.mul_add(xb, *a);
+                    }
+                }
+            }
+            for (i, acc) in acc.iter().enumerate() {
+                for (v, &sum) in acc.iter().enumerate() {
+                    // `LANES` divides a panel, so a vector of rows stays inside one.
+                    let p = grad.add(Matrix::packed_index(self.row + v * S::LANES, col + i, cols));
+                    let sum = if self.first { sum } else { S::load(p).add(sum) };
+                    sum.store(p);
+                }
+            }
+        }
+    }
+}

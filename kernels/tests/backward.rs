@@ -1,0 +1,194 @@
+//! The backward kernels of training: the SIMD weight gradient and tanh backward against the
+//! scalar reference on awkward shapes, the scalar weight gradient against f64, and the adjoint
+//! identities that tie the gradients to the forward kernel.
+
+mod common;
+
+use common::{simd_levels, values};
+use drivesim_kernels::pack::{dense_from_fn, dense_weights};
+use drivesim_kernels::{
+    dense, dense_weight_grad, dense_weight_grad_rows, scalar, tanh_backward, Activation, Isa, Matrix, MatrixData,
+    OutputParts,
+};
+
+const ROWS: [usize; 9] = [1, 3, 7, 16, 17, 33, 47, 64, 129];
+const COLS: [usize; 10] = [1, 2, 3, 7, 8, 9, 17, 31, 100, 386];
+/// Item counts around the kernels' chunk of 128 items.
+const ITEMS: [usize; 7] = [0, 1, 2, 5, 127, 129, 300];
+
+/// `G[r][c] = Σ_k dy[k][r] x[k][c]` in f64, row-major, with the sums of absolute terms.
+fn weight_grad_f64(dy: &[f32], x: &[f32], rows: usize, cols: usize) -> (Vec<f64>, Vec<f64>) {
+    let (mut g, mut terms) = (vec![0.0; rows * cols], vec![0.0; rows * cols]);
+    for (dy, x) in dy.chunks_exact(rows).zip(x.chunks_exact(cols)) {
+        for r in 0..rows {
+            for c in 0..cols {
+                let p = dy[r] as f64 * x[c] as f64;
+                g[r * cols + c] += p;
+                terms[r * cols + c] += p.abs();
+            }
+        }
+    }
+    (g, terms)
+}
+
+/// The packed gradient's value `(r, c)`, and zero padding checked.
+fn unpack(packed: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+    for r in rows..rows.next_multiple_of(16) {
+        for c in 0..cols {
+            assert_eq!(packed[Matrix::packed_index(r, c, cols)], 0.0, "padding row {r} col {c}");
+        }
+    }
+    (0..rows * cols)
+        .map(|i| packed[Matrix::packed_index(i / cols, i % cols, cols)])
+        .collect()
+}
+
+#[test]
+fn scalar_weight_grad_matches_f64() {
+    for &rows in &ROWS {
+        for &cols in &COLS {
+            let items = 19;
+            let dy = values((rows * 7 + cols) as u64, items * rows, 1.0);
+            let x = values((rows + cols * 5) as u64, items * cols, 2.0);
+            let mut packed = vec![f32::NAN; Matrix::packed_len(rows, cols)];
+            scalar::dense_weight_grad(&dy, &x, rows, cols, &mut packed);
+            let got = unpack(&packed, rows, cols);
+            let (want, terms) = weight_grad_f64(&dy, &x, rows, cols);
+            for ((g, w), t) in got.iter().zip(&want).zip(&terms) {
+                // f32 summation of `items` terms: a few ulps of the terms' sum.
+                assert!(
+                    (*g as f64 - w).abs() <= 1e-6 * t.max(1e-30),
+                    "{rows}x{cols}: {g} vs {w}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn simd_weight_grad_matches_scalar() {
+    let levels = simd_levels();
+    let mut checked = 0;
+    for &rows in &ROWS {
+        for &cols in &COLS {
+            for &items in &ITEMS {
+                let dy = values((rows * 1000 + cols + items) as u64, items * rows, 1.0);
+                let x = values((cols * 1000 + rows + items) as u64, items * cols, 2.0);
+                let mut want = vec![f32::NAN; Matrix::packed_len(rows, cols)];
+                scalar::dense_weight_grad(&dy, &x, rows, cols, &mut want);
+                let (_, terms) = weight_grad_f64(&dy, &x, rows, cols);
+                let scale = terms.iter().fold(1e-6f64, |m, &t| m.max(t));
+                for &isa in &levels {
+                    let mut got = vec![f32::NAN; want.len()];
+                    dense_weight_grad(isa, &dy, &x, rows, cols, &mut got);
+                    let got = unpack(&got, rows, cols);
+                    let want = unpack(&want, rows, cols);
+                    let err = got
+                        .iter()
+                        .zip(&want)
+                        .fold(0.0f64, |m, (g, w)| m.max((g - w).abs() as f64))
+                        / scale;
+                    assert!(
+                        err <= 1e-6,
+                        "{:?} {rows}x{cols} items {items}: error {err}",
+                        isa.level()
+                    );
+                    checked += 1;
+                }
+            }
+        }
+    }
+    eprintln!("{checked} SIMD weight-gradient cases checked");
+}
+
+/// Threads split the gradient by panels of rows: any split gives the bits of the whole.
+#[test]
+fn weight_grad_is_bit_identical_across_row_splits() {
+    let mut levels = simd_levels();
+    levels.push(Isa::SCALAR);
+    for (rows, cols, items) in [(129, 386, 300), (256, 129, 224), (33, 1026, 17)] {
+        let dy = values(rows as u64, items * rows, 1.0);
+        let x = values(cols as u64, items * cols, 1.0);
+        for &isa in &levels {
+            let mut whole = vec![0.0; Matrix::packed_len(rows, cols)];
+            dense_weight_grad(isa, &dy, &x, rows, cols, &mut whole);
+            for count in [2, 3, 7] {
+                let mut split = vec![f32::NAN; whole.len()];
+                let parts = OutputParts::new(&mut split, rows, count);
+                while let Some(part) = parts.take() {
+                    dense_weight_grad_rows(isa, &dy, &x, rows, cols, part);
+                }
+                assert_eq!(split, whole, "{isa:?} {rows}x{cols}: rows in {count} parts");
+            }
+        }
+    }
+}
+
+/// `<dy, W x> = <dyᵀ x, W>`: the weight gradient is the adjoint of the forward product in `W`;
+/// and `<dy, W x> = <Wᵀ dy, x>`: the data gradient is the forward kernel on the transposed
+/// packing. Checked on every level, in f64 sums of the kernels' outputs.
+#[test]
+fn gradients_are_adjoint_to_the_forward_product() {
+    let mut levels = simd_levels();
+    levels.push(Isa::SCALAR);
+    for (rows, cols, items) in [(37, 45, 9), (16, 1, 3), (1, 17, 130), (129, 386, 16)] {
+        let row_major = values(1, rows * cols, 0.3);
+        let w = dense_weights(&row_major, rows, cols);
+        let mut wt = vec![0.0; Matrix::packed_len(cols, rows)];
+        dense_from_fn(cols, rows, &mut wt, |r, c| row_major[c * cols + r]);
+        let x = values(2, items * cols, 1.0);
+        let dy = values(3, items * rows, 1.0);
+        let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>();
+        for &isa in &levels {
+            let mut y = vec![0.0; items * rows];
+            let matrix = |data, rows, cols| Matrix { data, rows, cols };
+            let zeros = |n| vec![0.0; n];
+            dense(
+                isa,
+                matrix(MatrixData::F32(&w), rows, cols),
+                &zeros(rows),
+                Activation::Identity,
+                &x,
+                &mut y,
+            );
+            let mut dx = vec![0.0; items * cols];
+            dense(
+                isa,
+                matrix(MatrixData::F32(&wt), cols, rows),
+                &zeros(cols),
+                Activation::Identity,
+                &dy,
+                &mut dx,
+            );
+            let mut g = vec![0.0; w.len()];
+            dense_weight_grad(isa, &dy, &x, rows, cols, &mut g);
+            let forward = dot(&dy, &y);
+            let scale = (items * rows * cols) as f64 * 0.3;
+            for (name, adjoint) in [("data", dot(&dx, &x)), ("weight", dot(&g, &w))] {
+                assert!(
+                    (forward - adjoint).abs() <= 1e-5 * scale,
+                    "{:?} {rows}x{cols} items {items}: {name} {adjoint} vs {forward}",
+                    isa.level()
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn tanh_backward_is_bit_identical_to_scalar() {
+    for n in [0, 1, 7, 8, 15, 16, 17, 100] {
+        let y: Vec<f32> = values(n as u64, n, 1.0);
+        let grad = values(n as u64 + 1, n, 3.0);
+        let mut want = grad.clone();
+        scalar::tanh_backward(&y, &mut want);
+        for (g, (w, y)) in grad.iter().zip(want.iter().zip(&y)) {
+            assert_eq!(*w, g * (1.0 - y * y));
+        }
+        for isa in Isa::supported() {
+            let mut got = grad.clone();
+            tanh_backward(isa, &y, &mut got);
+            assert_eq!(got, want, "{:?} n {n}", isa.level());
+        }
+    }
+}
