@@ -34,8 +34,8 @@ pub(crate) struct Entries {
     pub conv: unsafe fn(ConvParams<'_>, &[f32], *mut f32, Range<usize>),
     /// See [`crate::scalar::dense_rows`].
     pub dense: unsafe fn(Matrix<'_>, &[f32], Activation, &[f32], *mut f32, usize),
-    /// `(dy, x, cols, grad, rows, total_rows)`: see [`crate::scalar::dense_weight_grad_rows`].
-    pub dense_weight_grad: unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, usize),
+    /// See [`crate::scalar::dense_weight_grad_rows`].
+    pub dense_weight_grad: DenseWeightGrad,
     /// See [`crate::scalar::tanh_backward`].
     pub tanh_backward: unsafe fn(&[f32], &mut [f32]),
     /// See [`crate::scalar::winograd_input`].
@@ -43,6 +43,9 @@ pub(crate) struct Entries {
     /// See [`crate::scalar::winograd_channels`].
     pub winograd_channels: WinogradChannels,
 }
+
+/// `(dy, x, cols, grad, rows, total_rows)`.
+type DenseWeightGrad = unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, usize);
 
 /// `(w, layer, v, scratch, output, channels)`.
 type WinogradChannels = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mut [f32], *mut f32, Range<usize>);
