@@ -141,6 +141,23 @@ pub enum Error {
         /// The first non-finite value's index.
         index: usize,
     },
+    /// A caller-supplied arena is smaller than its plan.
+    ArenaTooSmall {
+        /// The bytes the plan needs.
+        needed: usize,
+        /// The bytes given.
+        given: usize,
+    },
+    /// A training setting outside its range (a learning rate, a clipping norm, an action's
+    /// standard deviation).
+    Setting {
+        /// The setting's name.
+        name: &'static str,
+        /// The values allowed.
+        expected: &'static str,
+        /// The value given.
+        value: f32,
+    },
     /// The memory a plan needs could not be allocated.
     OutOfMemory {
         /// What was being allocated.
@@ -230,6 +247,10 @@ impl fmt::Display for Error {
                 f,
                 "`{buffer}`[{index}] overflowed to a non-finite value: the inputs or weights are too large for f32"
             ),
+            Error::ArenaTooSmall { needed, given } => {
+                write!(f, "the arena holds {given} bytes: its plan needs {needed}")
+            }
+            Error::Setting { name, expected, value } => write!(f, "{name} is {value}: expected {expected}"),
             Error::OutOfMemory {
                 what,
                 bytes: Some(bytes),

@@ -198,18 +198,23 @@ impl DenseLayer {
         }
     }
 
-    /// `y = act(W x + b)` for a batch; with threads, each takes a share of the rows (and so
-    /// reads only its share of the weights) for every item.
+    /// `y = act(W x + b)` for a batch (see [`dense`]).
     pub fn run(&self, exec: Exec<'_>, x: &[f32], y: &mut [f32]) {
-        let (isa, threads) = (exec.isa, exec.threads());
-        if threads == 1 || self.rows * self.cols < PARALLEL_MIN_WEIGHTS {
-            return drivesim_kernels::dense(isa, self.matrix(), &self.bias, self.act, x, y);
-        }
-        let parts = OutputParts::new(y, self.rows, threads);
-        exec.run(&|| {
-            while let Some(part) = parts.take() {
-                drivesim_kernels::dense_rows(isa, self.matrix(), &self.bias, self.act, x, part);
-            }
-        });
+        dense(exec, self.matrix(), &self.bias, self.act, x, y);
     }
+}
+
+/// `y = act(W x + b)` for a batch; with threads, each takes a share of the rows (and so reads
+/// only its share of the weights) for every item.
+pub(crate) fn dense(exec: Exec<'_>, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
+    let (isa, threads) = (exec.isa, exec.threads());
+    if threads == 1 || w.rows * w.cols < PARALLEL_MIN_WEIGHTS {
+        return drivesim_kernels::dense(isa, w, bias, act, x, y);
+    }
+    let parts = OutputParts::new(y, w.rows, threads);
+    exec.run(&|| {
+        while let Some(part) = parts.take() {
+            drivesim_kernels::dense_rows(isa, w, bias, act, x, part);
+        }
+    });
 }

@@ -60,6 +60,8 @@ mod model;
 mod plan;
 mod pool;
 mod simulator;
+#[cfg(feature = "train")]
+pub mod train;
 mod transition;
 mod weights;
 

@@ -67,6 +67,12 @@ impl Transition {
         })
     }
 
+    /// The step's two layers: `[W | V | U]` with `b`, and `A` with `a` (a trainer's start).
+    #[cfg(feature = "train")]
+    pub fn layers(&self) -> (&DenseLayer, &DenseLayer) {
+        (&self.input, &self.output)
+    }
+
     /// Whether steps fed their own prediction run on `[W + V A | U]` (f32 weights).
     pub fn folds(&self) -> bool {
         self.fed_back.is_some()

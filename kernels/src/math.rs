@@ -58,6 +58,30 @@ pub fn sqrt(x: f64) -> f64 {
     y
 }
 
+/// `x^n` by repeated squaring (core has no `powi` without std).
+pub fn powi(x: f64, mut n: u32) -> f64 {
+    let (mut result, mut square) = (1.0, x);
+    while n > 0 {
+        if n & 1 == 1 {
+            result *= square;
+        }
+        square *= square;
+        n >>= 1;
+    }
+    result
+}
+
+/// Cosine of `x` in `[0, π]` by its Taylor series (core has no `cos` without std): to about
+/// 1e-15 there, for learning-rate schedules.
+pub fn cos(x: f64) -> f64 {
+    let (x2, mut term, mut sum) = (x * x, 1.0, 1.0);
+    for k in 1..30 {
+        term *= -x2 / ((2 * k - 1) * (2 * k)) as f64;
+        sum += term;
+    }
+    sum
+}
+
 #[cfg(all(test, feature = "std"))]
 mod tests {
     use super::*;
@@ -86,6 +110,18 @@ mod tests {
             let want = (x as f64).exp();
             assert!(((exp(x) as f64) - want).abs() / want < 5e-7, "exp({x})");
             x += 1.0 / 1024.0;
+        }
+    }
+
+    #[test]
+    fn powi_and_cos_match_std() {
+        for n in [0, 1, 2, 3, 10, 1000, 14000] {
+            let want = 0.999f64.powi(n as i32);
+            assert!((powi(0.999, n) - want).abs() <= 1e-13 * want, "0.999^{n}");
+        }
+        for i in 0..=1000 {
+            let x = core::f64::consts::PI * i as f64 / 1000.0;
+            assert!((cos(x) - x.cos()).abs() <= 1e-14, "cos({x})");
         }
     }
 

@@ -34,9 +34,24 @@ pub struct Io {
 
 impl Io {
     pub fn load(name: &str) -> Io {
+        Io::open(&format!("{name}.io.safetensors"))
+    }
+
+    /// Any float32 fixture file, by its file name.
+    pub fn open(file: &str) -> Io {
         Io {
-            bytes: std::fs::read(fixture_path(&format!("{name}.io.safetensors"))).expect("fixture file"),
+            bytes: std::fs::read(fixture_path(file)).unwrap_or_else(|e| panic!("fixture {file}: {e}")),
         }
+    }
+
+    /// A string of the file's metadata.
+    pub fn metadata(&self, key: &str) -> String {
+        let (_, metadata) = SafeTensors::read_metadata(&self.bytes).expect("fixture parses");
+        metadata
+            .metadata()
+            .as_ref()
+            .and_then(|m| m.get(key).cloned())
+            .unwrap_or_else(|| panic!("no metadata {key}"))
     }
 
     pub fn get(&self, tensor: &str) -> (Vec<usize>, Vec<f32>) {

@@ -1,0 +1,82 @@
+//! Adam, with the arithmetic of PyTorch's `torch.optim.Adam` (single-tensor path, the CPU's):
+//! `m += (1 - β1)(g - m)`, `v = β2 v + (1 - β2) g²`,
+//! `θ -= (lr / (1 - β1ᵗ)) m / (√v / √(1 - β2ᵗ) + eps)`.
+
+use crate::{Error, Result};
+use drivesim_kernels::math;
+
+/// Adam's constants; PyTorch's defaults.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Adam {
+    /// Decay of the first moment (0.9).
+    pub beta1: f32,
+    /// Decay of the second moment (0.999).
+    pub beta2: f32,
+    /// Added to the denominator (1e-8).
+    pub eps: f32,
+}
+
+impl Default for Adam {
+    fn default() -> Self {
+        Adam {
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+        }
+    }
+}
+
+impl Adam {
+    pub(crate) fn check(&self) -> Result<()> {
+        for (name, value) in [("beta1", self.beta1), ("beta2", self.beta2)] {
+            if !(0.0..1.0).contains(&value) {
+                return Err(Error::Setting {
+                    name,
+                    expected: "in [0, 1)",
+                    value,
+                });
+            }
+        }
+        if !(self.eps.is_finite() && self.eps > 0.0) {
+            return Err(Error::Setting {
+                name: "eps",
+                expected: "a finite number > 0",
+                value: self.eps,
+            });
+        }
+        Ok(())
+    }
+
+    /// Step `step` (from 1) on every parameter, with the gradients multiplied by `scale` first
+    /// (gradient clipping, as PyTorch scales them in place); `m` and `v` are the moments.
+    pub(crate) fn update(
+        &self,
+        step: u32,
+        lr: f32,
+        scale: f32,
+        params: &mut [f32],
+        grads: &[f32],
+        [m, v]: [&mut [f32]; 2],
+    ) {
+        let (b1, b2) = (self.beta1, self.beta2);
+        // PyTorch computes the corrections in Python floats (f64).
+        let correction1 = 1.0 - math::powi(b1 as f64, step);
+        let correction2_sqrt = math::sqrt(1.0 - math::powi(b2 as f64, step)) as f32;
+        let step_size = (lr as f64 / correction1) as f32;
+        for (((p, &g), m), v) in params.iter_mut().zip(grads).zip(m.iter_mut()).zip(v.iter_mut()) {
+            let g = g * scale;
+            *m += (g - *m) * (1.0 - b1);
+            *v = *v * b2 + (1.0 - b2) * g * g;
+            *p -= step_size * *m / (sqrt(*v) / correction2_sqrt + self.eps);
+        }
+    }
+}
+
+/// The correctly rounded square root: the CPU's instruction with std, else from f64.
+#[inline]
+fn sqrt(x: f32) -> f32 {
+    #[cfg(feature = "std")]
+    return x.sqrt();
+    #[cfg(not(feature = "std"))]
+    return math::sqrt(x as f64) as f32;
+}

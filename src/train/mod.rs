@@ -1,0 +1,25 @@
+//! Training inside planned memory (the `train` feature): the transition model today.
+//!
+//! As llm.c does for GPT-2, every parameter, gradient, optimiser moment and saved activation
+//! lives in one block allocated once, sized by a plan before anything is allocated
+//! ([`TransitionPlan`]); the caller may hand that block in ([`TransitionTrainer::with_arena`]),
+//! so that training needs no allocator. Steps allocate nothing. The backward pass runs on the
+//! forward kernels where the maths allows (the data gradient of a dense layer is the forward
+//! product by the transposed packing) and on the kernels crate's backward operations
+//! otherwise ([`drivesim_kernels::dense_weight_grad`], [`drivesim_kernels::tanh_backward`]).
+//! Each step agrees with PyTorch's (`weights/train.py`, checked by the fixtures of
+//! `tests/train.rs`).
+
+mod adam;
+mod arena;
+mod transition;
+
+pub use adam::Adam;
+pub use transition::{NamedTensor, TransitionPlan, TransitionSettings, TransitionTrainer};
+
+/// `torch.optim.lr_scheduler.CosineAnnealingLR` (to zero): the learning rate of step `step`
+/// (from 0) of `steps`, `base (1 + cos(π step / steps)) / 2`.
+pub fn cosine_lr(base: f32, step: usize, steps: usize) -> f32 {
+    let progress = step.min(steps) as f64 / steps.max(1) as f64;
+    (base as f64 * (1.0 + drivesim_kernels::math::cos(core::f64::consts::PI * progress)) / 2.0) as f32
+}

@@ -1,0 +1,280 @@
+//! The transition trainer (`--features train`): every step against PyTorch's
+//! (`weights/fixtures.py` wrote `NAME.train.safetensors` with `weights/train.py`'s step), the
+//! action gradient against finite differences, bit-identical results across thread counts,
+//! and typed errors for bad input.
+#![cfg(feature = "train")]
+
+mod common;
+
+use common::{fixture_path, relative_error, Io, Rng, FIXTURES};
+use drivesim::train::{cosine_lr, TransitionPlan, TransitionSettings, TransitionTrainer};
+use drivesim::{Config, Error, Isa, Model, WeightDtype};
+
+/// Max |found - expected| / max |expected| allowed against PyTorch (the 1e-4).
+const TOLERANCE: f32 = 1e-4;
+
+struct Fixture {
+    model: Model,
+    io: Io,
+    codes: Vec<f32>,
+    actions: Vec<f32>,
+    batch: usize,
+    window: usize,
+    settings: TransitionSettings,
+    lr: f32,
+}
+
+fn fixture(name: &str) -> Fixture {
+    let model = Model::load(fixture_path(&format!("{name}.safetensors"))).unwrap();
+    let io = Io::open(&format!("{name}.train.safetensors"));
+    let (shape, codes) = io.get("codes");
+    let actions = io.values("actions");
+    let settings = TransitionSettings {
+        teacher: io.metadata("teacher").parse().unwrap(),
+        clip: io.metadata("clip").parse().unwrap(),
+        ..TransitionSettings::default()
+    };
+    let lr = io.metadata("lr").parse().unwrap();
+    Fixture {
+        model,
+        io,
+        codes,
+        actions,
+        batch: shape[0],
+        window: shape[1],
+        settings,
+        lr,
+    }
+}
+
+impl Fixture {
+    fn trainer(&self, isa: Isa, full_bptt: bool) -> TransitionTrainer<'static> {
+        let plan = TransitionPlan::new(self.model.config(), self.batch, self.window).unwrap();
+        let settings = TransitionSettings {
+            full_bptt,
+            ..self.settings
+        };
+        TransitionTrainer::new(&self.model, &plan, settings)
+            .unwrap()
+            .with_isa(isa)
+    }
+}
+
+fn check(what: &str, found: &[f32], expected: &[f32]) {
+    let err = relative_error(found, expected);
+    assert!(err <= TOLERANCE, "{what}: relative error {err}");
+}
+
+#[test]
+fn one_step_matches_pytorch() {
+    for name in FIXTURES {
+        let f = fixture(name);
+        for isa in common::levels() {
+            for (full, prefix) in [(false, ""), (true, "full.")] {
+                let mut trainer = f.trainer(isa, full);
+                let loss = trainer.compute_gradients(&f.codes, &f.actions).unwrap();
+                let at = format!("{name} {:?} {prefix}", isa.level());
+                check(&format!("{at}loss"), &[loss], &f.io.values(&format!("{prefix}loss")));
+                for (tensor, shape, grad) in trainer.gradients() {
+                    let (want_shape, want) = f.io.get(&format!("{prefix}grad.{tensor}"));
+                    assert_eq!(shape, want_shape, "{at}grad.{tensor}");
+                    check(&format!("{at}grad.{tensor}"), &grad, &want);
+                }
+                if !full {
+                    trainer.apply_gradients(f.lr).unwrap();
+                    for (tensor, _, values) in trainer.tensors() {
+                        check(&format!("{at}{tensor} after one step"), &values, &f.io.values(tensor));
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn ten_steps_match_pytorch() {
+    for name in FIXTURES {
+        let f = fixture(name);
+        let steps: usize = f.io.metadata("steps").parse().unwrap();
+        let mut trainer = f.trainer(Isa::best(), false);
+        for _ in 0..steps {
+            trainer.step(&f.codes, &f.actions, f.lr).unwrap();
+        }
+        for (tensor, _, values) in trainer.tensors() {
+            check(
+                &format!("{name}: {tensor} after {steps} steps"),
+                &values,
+                &f.io.values(&format!("after10.{tensor}")),
+            );
+        }
+    }
+}
+
+/// Windows of random codes and actions for a small config.
+fn batch(config: &Config, batch: usize, window: usize, seed: u64) -> (Vec<f32>, Vec<f32>) {
+    let mut rng = Rng::new(seed);
+    (
+        rng.fill(batch * window * config.z_dim, 1.0),
+        rng.fill(batch * (window - 1) * config.action_dim, 2.0),
+    )
+}
+
+const SMALL: Config = Config {
+    z_dim: 7,
+    hidden_dim: 19,
+    action_dim: 3,
+    ..Config::COMMA
+};
+
+/// With full back-propagation the action gradient is the loss's derivative: central
+/// differences on each action agree (the loss is smooth; f64 would not add anything the step
+/// size does not already bound).
+#[test]
+fn action_gradient_matches_finite_differences() {
+    let model = Model::random(&SMALL, 5, WeightDtype::F32).unwrap();
+    let (b, t) = (2, 6);
+    let (codes, actions) = batch(&SMALL, b, t, 9);
+    let plan = TransitionPlan::new(&SMALL, b, t).unwrap();
+    let settings = TransitionSettings {
+        teacher: 2,
+        full_bptt: true,
+        ..TransitionSettings::default()
+    };
+    let mut trainer = TransitionTrainer::new(&model, &plan, settings).unwrap();
+    let mut grad = vec![0.0; actions.len()];
+    trainer.action_gradients(&codes, &actions, &mut grad).unwrap();
+    let mut scratch = vec![0.0; b * (t - 1) * SMALL.z_dim];
+    let eps = 1e-2;
+    let mut worst = 0.0f32;
+    for i in 0..actions.len() {
+        let mut loss_at = |delta: f32| {
+            let mut moved = actions.clone();
+            moved[i] += delta;
+            trainer.predict(&codes, &moved, &mut scratch).unwrap()
+        };
+        let numeric = (loss_at(eps) - loss_at(-eps)) / (2.0 * eps);
+        worst = worst.max((numeric - grad[i]).abs());
+    }
+    let scale = grad.iter().fold(0.0f32, |m, g| m.max(g.abs()));
+    assert!(scale > 1e-4, "the actions must matter");
+    assert!(
+        worst <= 2e-3 * scale,
+        "worst difference {worst} against gradients up to {scale}"
+    );
+}
+
+#[test]
+fn threads_give_the_same_bits() {
+    let model = Model::random(&SMALL, 6, WeightDtype::F32).unwrap();
+    let (b, t) = (5, 15);
+    let (codes, actions) = batch(&SMALL, b, t, 10);
+    let plan = TransitionPlan::new(&SMALL, b, t).unwrap();
+    let run = |threads| {
+        let mut trainer = TransitionTrainer::new(&model, &plan, TransitionSettings::default())
+            .unwrap()
+            .with_threads(threads)
+            .unwrap();
+        for _ in 0..3 {
+            trainer.step(&codes, &actions, 1e-2).unwrap();
+        }
+        trainer.compute_gradients(&codes, &actions).unwrap();
+        (trainer.gradients(), trainer.tensors())
+    };
+    let one = run(1);
+    for threads in [2, 3] {
+        assert!(run(threads) == one, "{threads} threads");
+    }
+}
+
+#[test]
+fn action_normalisation_is_folded_back_exactly_enough() {
+    // Normalising the actions changes how the weights are stored, not what the model computes.
+    let model = Model::random(&SMALL, 7, WeightDtype::F32).unwrap();
+    let (b, t) = (3, 8);
+    let (codes, actions) = batch(&SMALL, b, t, 11);
+    let plan = TransitionPlan::new(&SMALL, b, t).unwrap();
+    let mut plain = TransitionTrainer::new(&model, &plan, TransitionSettings::default()).unwrap();
+    let mut normalised = TransitionTrainer::new(&model, &plan, TransitionSettings::default()).unwrap();
+    normalised
+        .set_action_normalisation(&[20.0, -0.5, 1.0], &[5.0, 0.3, 2.0])
+        .unwrap();
+    let mut p = vec![0.0; b * (t - 1) * SMALL.z_dim];
+    let mut q = p.clone();
+    plain.predict(&codes, &actions, &mut p).unwrap();
+    normalised.predict(&codes, &actions, &mut q).unwrap();
+    assert!(relative_error(&q, &p) < 1e-5);
+    for ((name, _, a), (_, _, b)) in plain.tensors().iter().zip(normalised.tensors()) {
+        assert!(relative_error(&b, a) < 1e-5, "{name}");
+    }
+}
+
+#[test]
+fn cosine_schedule_is_pytorchs() {
+    // CosineAnnealingLR(T_max = 100): lr_t = base (1 + cos(π t / 100)) / 2.
+    for (step, want) in [
+        (0, 1e-3),
+        (50, 5e-4),
+        (100, 0.0),
+        (25, 1e-3 * (1.0 + 0.5f64.sqrt()) / 2.0),
+    ] {
+        assert!((cosine_lr(1e-3, step, 100) as f64 - want).abs() < 1e-9, "step {step}");
+    }
+}
+
+#[test]
+fn bad_input_is_a_typed_error() {
+    let model = Model::random(&SMALL, 8, WeightDtype::F32).unwrap();
+    let (b, t) = (2, 5);
+    let (codes, actions) = batch(&SMALL, b, t, 12);
+    let plan = TransitionPlan::new(&SMALL, b, t).unwrap();
+    let settings = TransitionSettings::default();
+    let mut trainer = TransitionTrainer::new(&model, &plan, settings).unwrap();
+    assert!(matches!(
+        trainer.step(&codes[1..], &actions, 1e-3),
+        Err(Error::NotWholeItems { .. })
+    ));
+    assert!(matches!(
+        trainer.step(&codes, &actions[1..], 1e-3),
+        Err(Error::BufferLength { .. })
+    ));
+    let mut nan = codes.clone();
+    nan[3] = f32::NAN;
+    assert!(matches!(
+        trainer.step(&nan, &actions, 1e-3),
+        Err(Error::NonFinite { index: 3, .. })
+    ));
+    let three = batch(&SMALL, 3, t, 1);
+    assert!(matches!(
+        trainer.step(&three.0, &three.1, 1e-3),
+        Err(Error::BatchTooLarge { max: 2, found: 3 })
+    ));
+    assert!(matches!(trainer.apply_gradients(1e-3), Err(Error::Setting { .. })));
+    trainer.compute_gradients(&codes, &actions).unwrap();
+    assert!(matches!(trainer.apply_gradients(-1.0), Err(Error::Setting { .. })));
+    assert!(matches!(
+        trainer.set_action_normalisation(&[0.0; 3], &[1.0, 0.0, 1.0]),
+        Err(Error::Setting { .. })
+    ));
+    for (batch, window) in [(0, 5), (2, 1), (usize::MAX, 15)] {
+        assert!(
+            TransitionPlan::new(&SMALL, batch, window).is_err(),
+            "batch {batch} window {window}"
+        );
+    }
+    let bad = [
+        TransitionSettings { teacher: 0, ..settings },
+        TransitionSettings { clip: 0.0, ..settings },
+        TransitionSettings {
+            clip: f32::NAN,
+            ..settings
+        },
+    ];
+    for settings in bad {
+        assert!(TransitionTrainer::new(&model, &plan, settings).is_err(), "{settings:?}");
+    }
+    let other = TransitionPlan::new(&Config { z_dim: 8, ..SMALL }, b, t).unwrap();
+    assert!(matches!(
+        TransitionTrainer::new(&model, &other, settings),
+        Err(Error::Config { field: "z_dim", .. })
+    ));
+}
