@@ -12,7 +12,11 @@
 //! Every frame goes to disk as it is generated (its PNG and its GIF frame), so memory stays
 //! flat however many steps are asked for.
 
+#[path = "common.rs"]
+mod common;
+
 use clap::Parser;
+use common::{report, write_png};
 use drivesim::{Episode, Episodes, Model, Simulator};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::fs::File;
@@ -430,18 +434,6 @@ fn draw_text(rgb: &mut [u8], width: usize, x: usize, y: usize, text: &str, ink: 
     }
 }
 
-fn write_png(path: &Path, w: usize, h: usize, rgb: &[u8]) -> Result<(), String> {
-    let fail = |e: &dyn std::fmt::Display| format!("cannot write {}: {e}", path.display());
-    let file = File::create(path).map_err(|e| fail(&e))?;
-    let mut encoder = png::Encoder::new(BufWriter::new(file), w as u32, h as u32);
-    encoder.set_color(png::ColorType::Rgb);
-    encoder.set_depth(png::BitDepth::Eight);
-    encoder
-        .write_header()
-        .and_then(|mut writer| writer.write_image_data(rgb))
-        .map_err(|e| fail(&e))
-}
-
 /// An endless GIF at 10 frames per second, each frame shown twice as large, written frame by
 /// frame.
 struct Gif {
@@ -481,15 +473,4 @@ impl Gif {
             .write_frame(&frame)
             .map_err(|e| format!("cannot write {}: {e}", self.path.display()))
     }
-}
-
-/// An error and its sources, one after another ("cannot read `w.safetensors`: No such file").
-fn report(e: &dyn std::error::Error) -> String {
-    let mut text = e.to_string();
-    let mut source = e.source();
-    while let Some(s) = source {
-        text = format!("{text}: {s}");
-        source = s.source();
-    }
-    text
 }

@@ -245,3 +245,58 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
     }
     Ok(BatchNormParams(params))
 }
+
+/// The weight file `bytes` with the tensors of `replace` (name, PyTorch-layout values) put in
+/// place of the stored ones, every tensor written in `dtype` (or the file's own dtype) and the
+/// metadata kept: how a trainer saves what it trained. The file is validated as
+/// [`SafetensorsSource::parse`] does, and each replacement must have its tensor's size.
+#[cfg(feature = "std")]
+pub(crate) fn rewrite(bytes: &[u8], replace: &[(&str, &[f32])], dtype: Option<WeightDtype>) -> Result<Vec<u8>> {
+    let (_, mut src) = SafetensorsSource::parse(bytes)?;
+    let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
+    let mut names: Vec<String> = src.file.names().into_iter().map(String::from).collect();
+    names.sort();
+    let stored = names.first().map_or(Ok(Dtype::F32), |n| {
+        src.file.tensor(n).map(|v| v.dtype()).map_err(malformed)
+    })?;
+    let dtype = match dtype {
+        Some(WeightDtype::F32) => Dtype::F32,
+        Some(WeightDtype::F16) => Dtype::F16,
+        None => stored,
+    };
+    if let Some((name, _)) = replace.iter().find(|(name, _)| !names.iter().any(|n| n == name)) {
+        return Err(Error::MissingTensor { name: name.to_string() });
+    }
+    let mut encoded = Vec::with_capacity(names.len());
+    for name in &names {
+        let shape = src.file.tensor(name).map_err(malformed)?.shape().to_vec();
+        let values = match replace.iter().find(|(n, _)| *n == name.as_str()) {
+            Some((_, values)) if values.len() == shape.iter().product::<usize>() => values.to_vec(),
+            Some((_, values)) => {
+                return Err(Error::Shape {
+                    name: name.clone(),
+                    expected: shape,
+                    found: alloc::vec![values.len()],
+                })
+            }
+            None => src.tensor(name, &shape, Init::Zeros)?.into_f32(),
+        };
+        let data: Vec<u8> = match dtype {
+            Dtype::F16 => bytemuck::cast_slice(&values.iter().map(|&v| f16::from_f32(v)).collect::<Vec<_>>()).to_vec(),
+            Dtype::BF16 => {
+                bytemuck::cast_slice(&values.iter().map(|&v| half::bf16::from_f32(v)).collect::<Vec<_>>()).to_vec()
+            }
+            _ => bytemuck::cast_slice(&values).to_vec(),
+        };
+        encoded.push((name.clone(), shape, data));
+    }
+    let views = encoded
+        .iter()
+        .map(|(name, shape, data)| {
+            safetensors::tensor::TensorView::new(dtype, shape.clone(), data)
+                .map(|view| (name.clone(), view))
+                .map_err(malformed)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    safetensors::serialize(views, metadata.metadata().clone()).map_err(malformed)
+}

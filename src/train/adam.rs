@@ -47,17 +47,12 @@ impl Adam {
         Ok(())
     }
 
-    /// Step `step` (from 1) on every parameter, with the gradients multiplied by `scale` first
-    /// (gradient clipping, as PyTorch scales them in place); `m` and `v` are the moments.
-    pub(crate) fn update(
-        &self,
-        step: u32,
-        lr: f32,
-        scale: f32,
-        params: &mut [f32],
-        grads: &[f32],
-        [m, v]: [&mut [f32]; 2],
-    ) {
+    /// Adam step `step` (from 1) on `params`, with the gradients multiplied by `scale` first
+    /// (gradient clipping, as PyTorch scales them in place; 1.0: none); `m` and `v` are the
+    /// moments, zeros before the first step. Also for a caller's own parameters, e.g. actions
+    /// recovered through [`super::TransitionTrainer::action_gradients`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn update(&self, step: u32, lr: f32, scale: f32, params: &mut [f32], grads: &[f32], [m, v]: [&mut [f32]; 2]) {
         let (b1, b2) = (self.beta1, self.beta2);
         // PyTorch computes the corrections in Python floats (f64).
         let correction1 = 1.0 - math::powi(b1 as f64, step);

@@ -510,6 +510,18 @@ impl<'a> TransitionTrainer<'a> {
         tensors
     }
 
+    /// A weight file with this transition: `original` (the bytes of a drivesim weight file of
+    /// the same config, e.g. the one the model was loaded from) with the transition's tensors
+    /// replaced by [`TransitionTrainer::tensors`], every tensor stored in `dtype` (`None`: the
+    /// file's own dtype; f16 files are trained on f32 master weights and rounded here).
+    /// [`Model::from_bytes`] reads it.
+    #[cfg(feature = "std")]
+    pub fn weight_file(&self, original: &[u8], dtype: Option<crate::WeightDtype>) -> Result<Vec<u8>> {
+        let tensors = self.tensors();
+        let replace: Vec<(&str, &[f32])> = tensors.iter().map(|(name, _, values)| (*name, &values[..])).collect();
+        crate::weights::rewrite(original, &replace, dtype)
+    }
+
     /// The gradients computed last, named and laid out as the tensors they belong to
     /// (`transition.W`, ...; for normalised actions if [`set_action_normalisation`] was
     /// called), before clipping.

@@ -1,0 +1,89 @@
+//! What several examples share: encoding episodes, progress bars, PNG files, error reports.
+#![allow(dead_code)] // each example uses part of it
+
+use drivesim::{Episodes, Model, Simulator};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::Path;
+
+/// One episode's encoded frames and its actions.
+pub struct Encoded {
+    /// `[frames, z]`: the encoder's means.
+    pub codes: Vec<f32>,
+    /// `[frames, 2]`: (speed, steering) after each frame.
+    pub actions: Vec<f32>,
+}
+
+/// Encodes every frame of every episode in `episodes` (batches of 32, `threads` threads).
+pub fn encode(model: &Model, episodes: &Episodes, threads: usize, what: &str) -> Result<Vec<Encoded>, String> {
+    let c = model.config();
+    let (height, width) = episodes.frame_size();
+    if (height, width) != (c.height, c.width) || c.action_dim != Episodes::ACTION_DIM {
+        return Err(format!(
+            "{what}: {height}x{width} frames with 2 actions, the model takes {}x{} with {}",
+            c.height, c.width, c.action_dim
+        ));
+    }
+    const BATCH: usize = 32;
+    let mut sim = Simulator::with_batch(model, BATCH)
+        .and_then(|s| s.with_threads(threads))
+        .map_err(|e| e.to_string())?;
+    let total: usize = (0..episodes.len())
+        .map(|i| episodes.episode(i).map_or(0, |e| e.len()))
+        .sum();
+    let progress = bar(
+        total as u64,
+        &format!("encoding {what}: {{pos}}/{{len}} frames ({{per_sec}}, {{eta}} left)"),
+    );
+    let mut frames = vec![0.0; BATCH * c.frame_len()];
+    let mut out = Vec::with_capacity(episodes.len());
+    for i in 0..episodes.len() {
+        let episode = episodes.episode(i).map_err(|e| e.to_string())?;
+        let mut codes = vec![0.0; episode.len() * c.z_dim];
+        for start in (0..episode.len()).step_by(BATCH) {
+            let n = BATCH.min(episode.len() - start);
+            for (j, frame) in frames.chunks_exact_mut(c.frame_len()).take(n).enumerate() {
+                episode.frame_f32(start + j, frame).map_err(|e| e.to_string())?;
+            }
+            let z = &mut codes[start * c.z_dim..][..n * c.z_dim];
+            sim.encode(&frames[..n * c.frame_len()], z).map_err(|e| e.to_string())?;
+            progress.inc(n as u64);
+        }
+        out.push(Encoded {
+            codes,
+            actions: episode.actions.to_vec(),
+        });
+    }
+    progress.finish_and_clear();
+    Ok(out)
+}
+
+/// A progress bar drawn with `template` (indicatif's syntax).
+pub fn bar(len: u64, template: &str) -> ProgressBar {
+    ProgressBar::new(len).with_style(ProgressStyle::with_template(template).expect("static template"))
+}
+
+/// Writes an 8-bit RGB image.
+pub fn write_png(path: &Path, w: usize, h: usize, rgb: &[u8]) -> Result<(), String> {
+    let fail = |e: &dyn std::fmt::Display| format!("cannot write {}: {e}", path.display());
+    let file = File::create(path).map_err(|e| fail(&e))?;
+    let mut encoder = png::Encoder::new(BufWriter::new(file), w as u32, h as u32);
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder
+        .write_header()
+        .and_then(|mut writer| writer.write_image_data(rgb))
+        .map_err(|e| fail(&e))
+}
+
+/// An error and its sources, one after another ("cannot read `w.safetensors`: No such file").
+pub fn report(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        text = format!("{text}: {s}");
+        source = s.source();
+    }
+    text
+}
