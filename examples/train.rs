@@ -22,7 +22,7 @@ use common::{bar, encode, Encoded};
 use drivesim::train::{cosine_lr, TransitionPlan, TransitionSettings, TransitionTrainer};
 use drivesim::{Episodes, Model, WeightDtype};
 use safetensors::{Dtype, SafeTensors};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -130,12 +130,12 @@ fn main() -> ExitCode {
     }
 }
 
-fn read(path: &PathBuf) -> Result<Vec<u8>, String> {
+fn read(path: &Path) -> Result<Vec<u8>, String> {
     std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))
 }
 
 /// A float32 tensor of a safetensors file: shape and values.
-fn f32_tensor(file: &SafeTensors<'_>, name: &str, path: &PathBuf) -> Result<(Vec<usize>, Vec<f32>), String> {
+fn f32_tensor(file: &SafeTensors<'_>, name: &str, path: &Path) -> Result<(Vec<usize>, Vec<f32>), String> {
     let view = file
         .tensor(name)
         .map_err(|_| format!("{}: no tensor `{name}`", path.display()))?;
