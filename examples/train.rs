@@ -205,7 +205,7 @@ fn step(args: &StepArgs) -> Result<(), String> {
 }
 
 /// Writes named float32 tensors as a safetensors file.
-fn write_f32(path: &PathBuf, tensors: &[(String, Vec<usize>, Vec<f32>)]) -> Result<(), String> {
+fn write_f32(path: &Path, tensors: &[(String, Vec<usize>, Vec<f32>)]) -> Result<(), String> {
     let views = tensors
         .iter()
         .map(|(name, shape, values)| {
