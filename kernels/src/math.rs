@@ -117,7 +117,8 @@ mod tests {
     fn powi_and_cos_match_std() {
         for n in [0, 1, 2, 3, 10, 1000, 14000] {
             let want = 0.999f64.powi(n as i32);
-            assert!((powi(0.999, n) - want).abs() <= 1e-13 * want, "0.999^{n}");
+            // Squaring doubles the relative error each time: about n ulps at worst.
+            assert!((powi(0.999, n) - want).abs() <= 1e-11 * want, "0.999^{n}");
         }
         for i in 0..=1000 {
             let x = core::f64::consts::PI * i as f64 / 1000.0;

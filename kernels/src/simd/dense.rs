@@ -24,7 +24,7 @@
 
 use super::act;
 use super::vector::{load_n, store_n, Simd, Widen};
-use super::{balanced_blocks, Block};
+use super::{balanced_blocks, row_tiles, Block, RowTile};
 use crate::{f16, Activation, Matrix, MatrixData, OC_ALIGN};
 
 /// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row of `w` (see
@@ -195,16 +195,17 @@ pub(super) unsafe fn body<S: Widen, T: Weight, const NI: usize, const NV: usize>
                 }
                 row = spread * groups * OC_ALIGN;
             }
-            // The rows left (all of them for a batch): every tile of NV vectors of rows (then of
-            // one vector) meets every block of items while its weights are in cache.
-            while row + NV * S::LANES <= padded {
-                item_blocks::<S, T, NI, NV>(w, &args, items, (row, col, len));
-                row += NV * S::LANES;
-            }
-            while row < rows {
-                item_blocks::<S, T, NI, 1>(w, &args, items, (row, col, len));
-                row += S::LANES;
-            }
+            // The rows left (all of them for a batch): every tile of up to NV vectors of rows
+            // meets every block of items while its weights are in cache.
+            let vectors = rows.saturating_sub(row).div_ceil(S::LANES);
+            let tiles = RowsForItems::<T, NI> {
+                w,
+                args: &args,
+                items,
+                col,
+                len,
+            };
+            row_tiles::<S, NV>(row, vectors, S::LANES, &tiles);
         }
         for n in 0..items {
             act::apply_slice::<S>(
@@ -212,6 +213,22 @@ pub(super) unsafe fn body<S: Widen, T: Weight, const NI: usize, const NV: usize>
                 core::slice::from_raw_parts_mut(args.y.add(n * args.ldy), rows),
             );
         }
+    }
+}
+
+/// The tiles of rows of one chunk of columns, each over every item (see [`item_blocks`]).
+struct RowsForItems<'a, 'b, T, const NI: usize> {
+    w: &'a [T],
+    args: &'a Args<'b>,
+    items: usize,
+    col: usize,
+    len: usize,
+}
+
+impl<S: Widen, T: Weight, const NI: usize> RowTile<S> for RowsForItems<'_, '_, T, NI> {
+    #[inline(always)]
+    unsafe fn run<const NV: usize>(&self, row: usize) {
+        unsafe { item_blocks::<S, T, NI, NV>(self.w, self.args, self.items, (row, self.col, self.len)) }
     }
 }
 

@@ -13,7 +13,7 @@
 //!   every block of columns passes over them; the inputs stream from L2.
 
 use super::vector::{load_n, Simd};
-use super::{balanced_blocks, Block};
+use super::{balanced_blocks, row_tiles, Block, RowTile};
 use crate::{Matrix, OC_ALIGN};
 use core::ops::Range;
 
@@ -59,28 +59,34 @@ pub(super) unsafe fn weight_grad<S: Simd, const NC: usize, const NV: usize>(
         let chunks = items.div_ceil(ITEMS).max(1);
         for chunk in 0..chunks {
             let ks = chunk * items / chunks..(chunk + 1) * items / chunks;
-            let mut row = rows.start;
-            while row + NV * S::LANES <= end {
-                let tile = ColumnTile::<NV> {
-                    args: &args,
-                    row,
-                    ks: ks.clone(),
-                    first: chunk == 0,
-                };
-                balanced_blocks::<S, NC>(cols, &tile);
-                row += NV * S::LANES;
-            }
-            while row < end {
-                let tile = ColumnTile::<1> {
-                    args: &args,
-                    row,
-                    ks: ks.clone(),
-                    first: chunk == 0,
-                };
-                balanced_blocks::<S, NC>(cols, &tile);
-                row += S::LANES;
-            }
+            let tiles = RowsForColumns::<NC> {
+                args: &args,
+                ks,
+                first: chunk == 0,
+            };
+            row_tiles::<S, NV>(rows.start, (end - rows.start) / S::LANES, S::LANES, &tiles);
         }
+    }
+}
+
+/// The tiles of rows over the items `ks`, each for every block of columns: stored if `first`,
+/// else added to what earlier chunks of items stored.
+struct RowsForColumns<'a, 'b, const NC: usize> {
+    args: &'a Args<'b>,
+    ks: Range<usize>,
+    first: bool,
+}
+
+impl<S: Simd, const NC: usize> RowTile<S> for RowsForColumns<'_, '_, NC> {
+    #[inline(always)]
+    unsafe fn run<const NV: usize>(&self, row: usize) {
+        let tile = ColumnTile::<NV> {
+            args: self.args,
+            row,
+            ks: self.ks.clone(),
+            first: self.first,
+        };
+        unsafe { balanced_blocks::<S, NC>(self.args.cols, &tile) }
     }
 }
 

@@ -84,6 +84,52 @@ pub(super) unsafe fn balanced_blocks<S, const MAX: usize>(count: usize, tile: &i
     }
 }
 
+/// A register tile of `NV` vectors of rows from `row`: what [`row_tiles`] calls.
+pub(super) trait RowTile<S> {
+    /// # Safety
+    /// As for the tile it runs.
+    unsafe fn run<const NV: usize>(&self, row: usize);
+}
+
+/// Covers `vectors` vectors of `lanes` rows each, from `row`, with tiles of at most `MAX <= 4`
+/// vectors. A single-vector tile does a third of the multiply-adds per load of a three-vector
+/// one, so a remainder of one vector takes the last full tile with it and splits the two
+/// (3 + 1 as 2 + 2, 4 + 1 as 3 + 2).
+///
+/// # Safety
+/// As for the tile.
+#[inline(always)]
+pub(super) unsafe fn row_tiles<S, const MAX: usize>(
+    mut row: usize,
+    vectors: usize,
+    lanes: usize,
+    tile: &impl RowTile<S>,
+) {
+    unsafe {
+        let (mut full, rest) = (vectors / MAX, vectors % MAX);
+        let mut tail = [rest, 0];
+        if rest == 1 && full > 0 && MAX > 2 {
+            full -= 1;
+            tail = [(MAX + 1).div_ceil(2), MAX.div_ceil(2)];
+        }
+        for _ in 0..full {
+            tile.run::<MAX>(row);
+            row += MAX * lanes;
+        }
+        for nv in tail {
+            match nv {
+                0 => {}
+                1 => tile.run::<1>(row),
+                2 if MAX >= 2 => tile.run::<2>(row),
+                3 if MAX >= 3 => tile.run::<3>(row),
+                4 if MAX >= 4 => tile.run::<4>(row),
+                _ => unreachable!("tiles hold at most MAX vectors"),
+            }
+            row += nv * lanes;
+        }
+    }
+}
+
 /// The reference kernels, for [`crate::IsaLevel::Scalar`] and every CPU without a vector unit
 /// the kernels know.
 static SCALAR: Entries = Entries {
