@@ -62,6 +62,7 @@ impl Fixture {
 
 fn check(what: &str, found: &[f32], expected: &[f32]) {
     let err = relative_error(found, expected);
+    eprintln!("{what}: {err:.1e}");
     assert!(err <= TOLERANCE, "{what}: relative error {err}");
 }
 

@@ -4,8 +4,10 @@
     weights/tool fixtures --check    regenerate into a temp dir and compare
 
 For each fixture NAME this writes NAME.safetensors (random weights in the
-drivesim format) and NAME.io.safetensors (float32 inputs and reference outputs,
-frames HWC). See weights/README.md for the tensor names.
+drivesim format), NAME.io.safetensors (float32 inputs and reference outputs,
+frames HWC) and NAME.train.safetensors (a batch of transition training windows,
+the first step's loss, gradients and updated tensors, and the tensors after ten
+steps, from train.py's step). See weights/README.md for the tensor names.
 """
 
 from __future__ import annotations
@@ -20,12 +22,27 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from model import CONFIG_KEY, Config, DriveSim, load_drivesim, save_drivesim
+from train import transition_step
 
 OUT = Path(__file__).resolve().parent.parent / "tests" / "fixtures"
 RTOL = 1e-6
 TRANSITION_STEPS = 30
 ROLLOUT_SEEDS = 3
 ROLLOUT_PREDICTIONS = 5
+
+# Transition training fixtures: windows per batch, Adam steps compared, learning rate.
+TRAIN_BATCH, TRAIN_STEPS, TRAIN_LR = 3, 10, 1e-3
+# name: (codes per window, teacher-forced inputs, gradient clip norm). The two small fixtures use
+# the paper's windows; the others shorter ones with the teacher boundary elsewhere. The first
+# gradient norms are 2.2-2.9: wide_f32's clip of 5 leaves its gradients as they are while the
+# others' are scaled down, so both sides of clip_grad_norm_ are checked.
+TRAIN_WINDOWS = {
+    "small_f32": (15, 5, 1.0),
+    "small_f16": (15, 5, 1.0),
+    "tiny_bf16": (9, 3, 1.0),
+    "tall_f32": (9, 3, 1.0),
+    "wide_f32": (9, 3, 5.0),
+}
 
 # name: (config, dtype, seed)
 FIXTURES = {
@@ -107,6 +124,44 @@ def reference_io(model: DriveSim, cfg: Config) -> dict[str, torch.Tensor]:
     return {k: v.float().contiguous() for k, v in io.items()}
 
 
+def reference_train(model: DriveSim, cfg: Config, name: str, seed: int) -> tuple[dict, dict]:
+    """A batch of windows, one training step's loss, gradients (detached feedback as in the
+    paper, and full back-propagation as `full.`) and updated tensors, and the tensors after
+    TRAIN_STEPS steps on the same batch; with the metadata the Rust test reads."""
+    window, teacher, clip = TRAIN_WINDOWS[name]
+    # A generator of its own: the other fixtures' draws stay as they were.
+    g = torch.Generator().manual_seed(1000 + seed)
+    codes = torch.randn(TRAIN_BATCH, window, cfg.z_dim, generator=g)
+    actions = torch.randn(TRAIN_BATCH, window - 1, cfg.action_dim, generator=g) * 0.5
+    actions[..., 0] = 20 + 5 * torch.randn(TRAIN_BATCH, window - 1, generator=g)
+    io = {"codes": codes, "actions": actions}
+    start = {k: p.detach().clone() for k, p in model.transition.named_parameters()}
+
+    def run(steps, detach):
+        with torch.no_grad():
+            for k, p in model.transition.named_parameters():
+                p.copy_(start[k])
+        opt = torch.optim.Adam(model.transition.parameters(), lr=TRAIN_LR)
+        results = [transition_step(model.transition, opt, codes, actions, teacher, clip, detach)
+                   for _ in range(steps)]
+        tensors = {f"transition.{k}": p.detach().clone() for k, p in model.transition.named_parameters()}
+        return results[0], tensors
+
+    (loss, grads), io_after1 = run(1, True)
+    norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads.values()]))
+    print(f"{name}: loss {loss.item():.4f}, gradient norm {norm.item():.3f} (clip {clip})")
+    io["loss"] = loss.reshape(1)
+    io.update({f"grad.transition.{k}": v for k, v in grads.items()})
+    io.update(io_after1)
+    (loss, grads), _ = run(1, False)
+    io["full.loss"] = loss.reshape(1)
+    io.update({f"full.grad.transition.{k}": v for k, v in grads.items()})
+    _, after = run(TRAIN_STEPS, True)
+    io.update({f"after{TRAIN_STEPS}.{k}": v for k, v in after.items()})
+    meta = {"teacher": str(teacher), "lr": str(TRAIN_LR), "clip": str(clip), "steps": str(TRAIN_STEPS)}
+    return {k: v.float().contiguous() for k, v in io.items()}, meta
+
+
 def generate(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name, (cfg, dtype, seed) in FIXTURES.items():
@@ -119,6 +174,8 @@ def generate(out: Path) -> None:
         model, _ = load_drivesim(weights)
         meta = {CONFIG_KEY: cfg.to_json(), "drivesim.frame_layout": "HWC"}
         save_file(reference_io(model, cfg), str(out / f"{name}.io.safetensors"), metadata=meta)
+        train_io, train_meta = reference_train(model, cfg, name, seed)
+        save_file(train_io, str(out / f"{name}.train.safetensors"), metadata=train_meta)
 
 
 def compare(committed: Path, fresh: Path) -> list[str]:

@@ -2,6 +2,7 @@
 
   weights/tool train fit --data train.safetensors.gz --out default.safetensors [--device cuda]
   weights/tool train eval --weights default.safetensors --data eval.safetensors.gz --figures figures/
+  weights/tool train step --stage transition --weights W.safetensors --batch B.safetensors --out O.safetensors
 
 fit: (1) VAE-GAN (Larsen et al.): encoder, generator and a discriminator. The encoder
 minimises the KL prior plus the reconstruction error, measured on the discriminator's 3rd
@@ -11,6 +12,9 @@ reaches the encoder. (2) The transition RNN on encoded 15-frame sequences: 5 fra
 forced, then 10 with its own output fed back, gradient stopped. Adam throughout. The action
 normalisation used in training is folded into U and b, so the exported model takes raw
 (speed, steering). Writes the f16 drivesim file and a JSON log beside it.
+
+step: one transition training step on a given batch, writing the loss, the gradients (before
+clipping) and the updated tensors: the reference of the Rust `train step` (weights/README.md).
 
 eval: reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
 a contact sheet of a 100-step rollout, all from frames the model never saw.
@@ -170,9 +174,10 @@ def windows(data, length):
     return np.concatenate([np.arange(s, e - length + 1) for s, e in data.bounds() if e - s >= length])
 
 
-def predict(transition, z, c, teacher):
+def predict(transition, z, c, teacher, detach=True):
     """Run the transition over z [B,T,z] and c [B,T-1,a]: the first `teacher` inputs are the
-    true codes, later ones the model's previous output, detached. Returns codes 1..T-1."""
+    true codes, later ones the model's previous output, detached (the paper) or not (full
+    back-propagation through time). Returns codes 1..T-1."""
     h = z.new_zeros(len(z), transition.W.shape[0])
     out = []
     for t in range(z.shape[1] - 1):
@@ -180,8 +185,22 @@ def predict(transition, z, c, teacher):
             zin = z[:, t]
         zin, h = transition(zin, h, c[:, t])
         out.append(zin)
-        zin = zin.detach()  # no gradient through fed-back outputs
+        if detach:
+            zin = zin.detach()  # no gradient through fed-back outputs
     return torch.stack(out, 1)
+
+
+def transition_step(tr, opt, z, c, teacher, clip, detach=True):
+    """One training step of the transition `tr` on windows z [B,T,z], c [B,T-1,a]: MSE of
+    the predictions, backward, gradient norm clipped to `clip`, `opt.step()`. Returns the loss
+    and the gradients as computed (before clipping), by parameter name."""
+    loss = F.mse_loss(predict(tr, z, c, teacher, detach), z[:, 1:])
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    grads = {name: p.grad.detach().clone() for name, p in tr.named_parameters()}
+    nn.utils.clip_grad_norm_(tr.parameters(), clip)
+    opt.step()
+    return loss.detach(), grads
 
 
 def train_transition(model, codes, actions, starts, args, log):
@@ -197,11 +216,7 @@ def train_transition(model, codes, actions, starts, args, log):
     for step in range(1, args.transition_steps + 1):
         idx = torch.as_tensor(rng.choice(starts, args.transition_batch), device=dev)[:, None] + offsets
         z, c = codes[idx], norm[idx[:, :-1]]
-        loss = F.mse_loss(predict(tr, z, c, TEACHER), z[:, 1:])
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(tr.parameters(), 1.0)
-        opt.step()
+        loss, _ = transition_step(tr, opt, z, c, TEACHER, 1.0)
         sched.step()
         if step % args.log_every == 0 or step == args.transition_steps:
             entry = dict(phase="transition", step=step, seconds=round(time.time() - start, 1), mse=loss.item())
@@ -336,6 +351,33 @@ def evaluate(args):
     print(json.dumps(result, indent=1))
 
 
+def step(args):
+    """`train step`: one transition step on a batch file; see weights/README.md."""
+    from safetensors.torch import load_file, save_file
+
+    model, cfg = load_drivesim(args.weights)
+    tr = model.transition.float()
+    batch = load_file(args.batch)
+    for name in ("codes", "actions"):
+        if name not in batch or batch[name].dtype != torch.float32:
+            raise ValueError(f"{args.batch}: needs a float32 tensor `{name}`")
+    z, c = batch["codes"], batch["actions"]
+    if z.dim() != 3 or z.shape[0] < 1 or z.shape[1] < 2 or z.shape[2] != cfg.z_dim:
+        raise ValueError(f"`codes` has shape {list(z.shape)}: expected [B >= 1, T >= 2, {cfg.z_dim}]")
+    want = [z.shape[0], z.shape[1] - 1, cfg.action_dim]
+    if list(c.shape) != want:
+        raise ValueError(f"`actions` has shape {list(c.shape)}: expected {want}")
+    if args.teacher < 1:
+        raise ValueError("--teacher must be at least 1")
+    opt = torch.optim.Adam(tr.parameters(), lr=args.lr)
+    loss, grads = transition_step(tr, opt, z, c, args.teacher, args.clip, detach=not args.full_bptt)
+    out = {"loss": loss.reshape(1)}
+    out.update({f"grad.transition.{k}": g for k, g in grads.items()})
+    out.update({f"transition.{k}": p.detach().clone() for k, p in tr.named_parameters()})
+    save_file({k: v.float().contiguous() for k, v in out.items()}, args.out)
+    print(f"loss {loss.item():.6e}: wrote {args.out}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="mode", required=True)
@@ -364,11 +406,22 @@ def main(argv=None):
     e.add_argument("--data", required=True, help="held-out episodes file")
     e.add_argument("--figures", required=True, help="folder for the PNGs and eval.json")
     e.add_argument("--seed-clip", help="also write the first 8 frames of the first episode here")
+    s = sub.add_parser("step", help="one transition training step on a batch file (the Rust step's reference)")
+    s.add_argument("--stage", required=True, choices=["transition"])
+    s.add_argument("--weights", required=True, help="drivesim weight file (f16/bf16 train on f32 copies)")
+    s.add_argument("--batch", required=True, help="safetensors with `codes` [B,T,z] and `actions` [B,T-1,a], f32")
+    s.add_argument("--out", required=True, help="safetensors to write: loss, grad.*, updated tensors")
+    s.add_argument("--lr", type=float, default=1e-3)
+    s.add_argument("--teacher", type=int, default=TEACHER)
+    s.add_argument("--clip", type=float, default=1.0)
+    s.add_argument("--full-bptt", action="store_true", help="do not detach fed-back predictions")
     args = p.parse_args(argv)
+    modes = {"fit": fit, "eval": evaluate, "step": step}
     try:
-        fit(args) if args.mode == "fit" else evaluate(args)
-    except episodes.EpisodesError as err:
-        sys.exit(f"train: {err}")
+        modes[args.mode](args)
+    except (episodes.EpisodesError, ValueError, OSError) as err:
+        print(f"train: {err}", file=sys.stderr)
+        sys.exit(2)
 
 
 if __name__ == "__main__":
