@@ -3,11 +3,14 @@
 //! of this core per vector width.
 //!
 //! ```text
-//! cargo run --release --example bench_report -- [--weights FILE | --z N] [--dtype f32|f16]
+//! cargo run --release --example bench_report -- [--weights FILE | --z N [--hidden N]] [--dtype f32|f16]
 //!     [--batch 1,16] [--threads 1,2] [--networks encode,generate,transition,transition_fed_back]
 //!     [--seconds S]
 //!     [--serve]
 //! ```
+//! Built with `--features train`, the network `train_transition` is one training step of the
+//! transition (`drivesim::train`) on a batch of windows of 15 codes (read by
+//! `weights/compare_train.py`).
 //! Lines: `isa level=avx2`, `peak width=256 threads=1 gflops=…` (for 1 and each `--threads`
 //! count: the FMA peak of that many threads at once), and
 //! `result network=encode batch=1 threads=1 median_ms=… gflop=…` (GFLOP per call, all taps).
@@ -22,7 +25,7 @@
 mod common;
 
 use common::*;
-use drivesim::{Isa, IsaLevel, Model, Simulator, WeightDtype};
+use drivesim::{Config, Isa, IsaLevel, Model, Simulator, WeightDtype};
 use std::collections::HashMap;
 use std::hint::black_box;
 use std::io::Write;
@@ -31,7 +34,12 @@ use std::time::{Duration, Instant};
 /// `transition_fed_back` is a step fed the previous step's prediction, as in a rollout after
 /// its seeds ([`Simulator::transition_fed_back`]: the folded step for f32 weights). Both steps count
 /// the model's FLOPs.
-const NETWORKS: [&str; 4] = ["encode", "generate", "transition", "transition_fed_back"];
+const NETWORKS: [&str; 5] = ["encode", "generate", "transition", "transition_fed_back", TRAIN];
+
+/// One transition training step on `batch` windows of [`WINDOW`] codes (`--features train`).
+const TRAIN: &str = "train_transition";
+/// Codes per training window, as `weights/train.py`.
+const WINDOW: usize = 15;
 
 fn arg<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
     args.iter()
@@ -82,7 +90,8 @@ fn main() {
         Some(path) => Model::load(path).expect("loading the weights"),
         None => {
             let z = arg(&args, "--z").map_or(512, |z| z.parse().expect("--z"));
-            Model::random(&comma(z), 2016, dtype).expect("valid config")
+            let hidden_dim = arg(&args, "--hidden").map_or(z, |h| h.parse().expect("--hidden"));
+            Model::random(&Config { hidden_dim, ..comma(z) }, 2016, dtype).expect("valid config")
         }
     };
     let isa = Isa::best();
@@ -131,6 +140,13 @@ fn answer<'m>(
     threads: usize,
     budget: Duration,
 ) {
+    if network == TRAIN {
+        let (flops, ms) = measure_training(model, batch, threads, budget);
+        let gflop = (batch as u64 * flops) as f64 / 1e9;
+        println!("result network={network} batch={batch} threads={threads} median_ms={ms:.4} gflop={gflop:.6}");
+        std::io::stdout().flush().expect("stdout");
+        return;
+    }
     let sim = sims.entry((threads, batch)).or_insert_with(|| {
         Simulator::with_batch(model, batch)
             .and_then(|sim| sim.with_threads(threads))
@@ -176,6 +192,28 @@ fn measure(sim: &mut Simulator<'_>, network: &str, batch: usize, budget: Duratio
             }),
         ),
     }
+}
+
+/// FLOPs of one window and the median ms of one training step on `batch` windows.
+#[cfg(feature = "train")]
+fn measure_training(model: &Model, batch: usize, threads: usize, budget: Duration) -> (u64, f64) {
+    use drivesim::train::{TransitionPlan, TransitionSettings, TransitionTrainer};
+    let cfg = *model.config();
+    let plan = TransitionPlan::new(&cfg, batch, WINDOW).expect("plan");
+    let mut trainer = TransitionTrainer::new(model, &plan, TransitionSettings::default())
+        .and_then(|t| t.with_threads(threads))
+        .expect("trainer");
+    let codes = values(4, batch * WINDOW * cfg.z_dim, 1.0);
+    let actions = values(5, batch * (WINDOW - 1) * cfg.action_dim, 1.0);
+    let ms = median_ms(budget, || {
+        trainer.step(black_box(&codes), &actions, 1e-4).unwrap();
+    });
+    (train_transition_flops(&cfg, WINDOW), ms)
+}
+
+#[cfg(not(feature = "train"))]
+fn measure_training(_: &Model, _: usize, _: usize, _: Duration) -> (u64, f64) {
+    panic!("{TRAIN} needs the train feature: cargo run --release --features train --example bench_report")
 }
 
 /// Peak FMA throughput in GFLOP/s of `threads` threads at once (their sum), for each vector

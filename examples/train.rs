@@ -77,6 +77,10 @@ struct TransitionArgs {
     /// Back-propagate through fed-back predictions (the paper detaches them)
     #[arg(long)]
     full_bptt: bool,
+    /// Start the transition from seeded random weights (`Model::random`'s draw) instead of the
+    /// file's: training from scratch, the encoder still the file's
+    #[arg(long)]
+    restart: bool,
     /// Dtype of the written file (default: the input file's)
     #[arg(long)]
     dtype: Option<DtypeArg>,
@@ -378,9 +382,14 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
         full_bptt: args.full_bptt,
         ..TransitionSettings::default()
     };
-    let mut trainer = TransitionTrainer::new(&model, &plan, settings)
+    let start = match args.restart {
+        true => Model::random(&c, args.seed, WeightDtype::F32).map_err(|e| e.to_string())?,
+        false => model,
+    };
+    let mut trainer = TransitionTrainer::new(&start, &plan, settings)
         .and_then(|t| t.with_threads(threads))
         .map_err(|e| e.to_string())?;
+    drop(start);
     let (mean, std) = action_stats(&train, a);
     trainer
         .set_action_normalisation(&mean, &std)
@@ -396,7 +405,7 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
     let (mut codes, mut actions) = (Vec::new(), Vec::new());
     let mut picked = vec![(0, 0); batch];
     let start = Instant::now();
-    let mut recent = 0.0;
+    let (mut first, mut recent) = (0.0, 0.0);
     for step in 0..args.steps {
         picked
             .iter_mut()
@@ -405,6 +414,9 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
         let loss = trainer
             .step(&codes, &actions, cosine_lr(args.lr, step, args.steps))
             .map_err(|e| format!("step {step}: {e}"))?;
+        if step == 0 {
+            first = loss;
+        }
         recent = if step == 0 { loss } else { 0.98 * recent + 0.02 * loss };
         progress.set_message(format!("loss {recent:.4}"));
         progress.inc(1);
@@ -412,7 +424,7 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
     progress.finish_and_clear();
     let seconds = start.elapsed().as_secs_f64();
     println!(
-        "{} steps of {batch} windows in {seconds:.1} s ({:.1} steps/s), final loss {recent:.4}",
+        "{} steps of {batch} windows in {seconds:.1} s ({:.1} steps/s), training loss {first:.4} at the first step, {recent:.4} at the end",
         args.steps,
         args.steps as f64 / seconds
     );

@@ -166,9 +166,12 @@ class Drivesim:
     """The bench_report example in `--serve` mode (built by cargo, or a prebuilt `binary` on a
     machine without Rust), answering one measurement at a time."""
 
-    def __init__(self, weights: Path, threads, seconds, binary: Path | None):
-        run = [str(binary)] if binary else ["cargo", "run", "--quiet", "--release", "--example", "bench_report", "--"]
-        cmd = run + ["--weights", str(weights), "--threads", ",".join(map(str, threads)), "--seconds", str(seconds), "--serve"]
+    def __init__(self, model_args: list[str], threads, seconds, binary: Path | None, features: str = ""):
+        """`model_args`: bench_report's `--weights FILE` or `--z N [--hidden N]`; `features`:
+        cargo features to build it with (`train` for the training step)."""
+        cargo = ["cargo", "run", "--quiet", "--release"] + (["--features", features] if features else [])
+        run = [str(binary)] if binary else cargo + ["--example", "bench_report", "--"]
+        cmd = run + model_args + ["--threads", ",".join(map(str, threads)), "--seconds", str(seconds), "--serve"]
         print("$", " ".join(cmd), file=sys.stderr)
         self.proc = subprocess.Popen(cmd, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         self.isa, self.peaks, self.gflop = "?", {}, {}
@@ -255,7 +258,7 @@ def main() -> int:
     save_drivesim(model, cfg, weights)
     paths = export_onnx(model, cfg, out)
 
-    drivesim = Drivesim(weights, threads, a.seconds, a.bench_report)
+    drivesim = Drivesim(["--weights", str(weights)], threads, a.seconds, a.bench_report)
     runtimes = {"drivesim": drivesim, "onnxruntime": Ort(paths, threads), "pytorch": Torch(model)}
     try:
         samples = time_rounds(runtimes, cfg, batches, threads, a.seconds, a.rounds)

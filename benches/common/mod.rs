@@ -88,3 +88,12 @@ pub fn generate_flops(c: &Config) -> u64 {
 pub fn transition_flops(c: &Config) -> u64 {
     dense_flops(c.hidden_dim, c.hidden_dim + c.z_dim + c.action_dim) + dense_flops(c.z_dim, c.hidden_dim)
 }
+
+/// FLOPs of one transition training step on one window of `window` codes: per prediction,
+/// the forward products (`[W | V | U]` and `A`), the hidden state's data gradient
+/// (`[Aᵀ | Wᵀ]`) and the weight gradients of both products, two FLOPs per multiply-add.
+pub fn train_transition_flops(c: &Config, window: usize) -> u64 {
+    let (h, z, a) = (c.hidden_dim as u64, c.z_dim as u64, c.action_dim as u64);
+    let products = h * (h + z + a) + z * h;
+    2 * (window as u64 - 1) * (2 * products + h * (z + h))
+}

@@ -1,0 +1,153 @@
+"""Compare one transition training step of drivesim (`drivesim::train`) with PyTorch eager on the CPU.
+
+    weights/tool compare-train [--configs default,comma] [--batch 16,256] [--threads 1,2]
+                               [--seconds 1] [--rounds 3] [--no-memory]
+
+One step as `train.py` trains the transition: 15-code windows, the first 5 inputs
+teacher-forced and later ones the model's own prediction (detached), MSE, backward, gradient
+norm clipped to 1, Adam. The configs: `default` (z 128, hidden 256, the trained default
+model's) and `comma` (z = hidden = 512). drivesim runs in `examples/bench_report --serve`
+(built with `--features train`, network `train_transition`), PyTorch in this process with
+`torch.set_num_threads`; both on seeded random weights of the same shapes. As in
+`weights/tool compare`, the runtimes take turns configuration by configuration for `--rounds`
+rounds; a row's time is the median of its rounds' medians and "PyTorch/drivesim" the median
+of the rounds' ratios with their range.
+
+GFLOP counts every product of the step (`benches/common/mod.rs`): forward (`[W|V|U]` and
+`A`), the hidden state's data gradient (`[Aᵀ|Wᵀ]`) and both weight gradients. "of peak" is
+GFLOP/s over the FMA peak bench_report measures with as many threads at once. Peak resident
+memory is measured separately, one process per runtime and configuration (1 thread), with
+/usr/bin/time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+
+from compare import ROOT, Drivesim, cpu_info, median_ms, spread
+from model import Config, Transition
+
+WINDOW, TEACHER = 15, 5
+CONFIGS = {"default": (128, 256), "comma": (512, 512)}
+NET = "train_transition"
+
+
+def config(name: str) -> Config:
+    z, hidden = CONFIGS[name]
+    return Config(height=80, width=160, channels=3, base_channels=64, z_dim=z, hidden_dim=hidden, action_dim=2)
+
+
+class TorchStep:
+    """train.py's transition step on random windows, per (config, batch), made once."""
+
+    def __init__(self):
+        self.steps = {}
+
+    def step(self, name: str, batch: int):
+        if (name, batch) not in self.steps:
+            from train import transition_step
+
+            torch.manual_seed(0)
+            tr = Transition(config(name))
+            opt = torch.optim.Adam(tr.parameters(), lr=1e-4)
+            z = torch.randn(batch, WINDOW, tr.V.shape[1])
+            c = torch.randn(batch, WINDOW - 1, tr.U.shape[1])
+            self.steps[(name, batch)] = lambda: transition_step(tr, opt, z, c, TEACHER, 1.0)
+        return self.steps[(name, batch)]
+
+    def time(self, name, batch, threads, seconds) -> float:
+        torch.set_num_threads(threads)
+        return median_ms(self.step(name, batch), seconds)
+
+
+def peak_rss_mib(cmd: list[str]) -> float:
+    """The peak resident memory of `cmd`, from /usr/bin/time."""
+    out = subprocess.run(["/usr/bin/time", "-f", "maxrss=%M", *cmd], cwd=ROOT, capture_output=True, text=True, check=True)
+    line = [l for l in out.stderr.splitlines() if l.startswith("maxrss=")][-1]
+    return int(line.split("=")[1]) / 1024
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--configs", default="default,comma")
+    p.add_argument("--batch", default="16,256")
+    p.add_argument("--threads", default="1,2")
+    p.add_argument("--seconds", type=float, default=1.0)
+    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--no-memory", action="store_true", help="skip the peak-memory processes")
+    p.add_argument("--torch-only", nargs=2, metavar=("CONFIG", "BATCH"), help=argparse.SUPPRESS)
+    a = p.parse_args()
+    if a.torch_only:  # one PyTorch configuration alone, for its peak memory
+        TorchStep().time(a.torch_only[0], int(a.torch_only[1]), 1, a.seconds)
+        return 0
+    names, batches = a.configs.split(","), [int(b) for b in a.batch.split(",")]
+    threads = [int(t) for t in a.threads.split(",")]
+    if unknown := [n for n in names if n not in CONFIGS]:
+        sys.exit(f"compare-train: unknown config {unknown} (default, comma)")
+    subprocess.run(["cargo", "build", "--quiet", "--release", "--features", "train", "--example", "bench_report"], cwd=ROOT, check=True)
+    binary = ROOT / "target" / "release" / "examples" / "bench_report"
+    torch_step = TorchStep()
+    samples: dict = {}
+    gflop: dict = {}
+    for name in names:
+        z, hidden = CONFIGS[name]
+        drivesim = Drivesim(["--z", str(z), "--hidden", str(hidden)], threads, a.seconds, binary)
+        try:
+            for r in range(a.rounds):
+                for t in threads:
+                    for b in batches:
+                        order = [("drivesim", drivesim.time), ("pytorch", None)]
+                        for runtime, _ in order if r % 2 == 0 else order[::-1]:
+                            if runtime == "drivesim":
+                                ms = drivesim.time(None, NET, b, t, a.seconds)
+                            else:
+                                ms = torch_step.time(name, b, t, a.seconds)
+                            samples.setdefault((name, runtime, b, t), []).append(ms)
+                print(f"{name}: round {r + 1} of {a.rounds} done", file=sys.stderr)
+            gflop.update({(name, b): drivesim.gflop[(NET, b)] for b in batches})
+            peaks = drivesim.peaks
+        finally:
+            drivesim.close()
+    memory = {}
+    if not a.no_memory:
+        for name in names:
+            z, hidden = CONFIGS[name]
+            for b in batches:
+                rust = [str(binary), "--z", str(z), "--hidden", str(hidden), "--networks", NET, "--batch", str(b),
+                        "--threads", "1", "--seconds", "1"]
+                python = [sys.executable, str(Path(__file__)), "--torch-only", name, str(b), "--seconds", "1"]
+                memory[(name, b)] = (peak_rss_mib(rust), peak_rss_mib(python))
+
+    model, flags = cpu_info()
+    print(f"CPU: {model} ({', '.join(flags)}); torch {torch.__version__}; {a.rounds} rounds of {a.seconds} s")
+    print()
+    print("| config | batch | threads | drivesim ms | GFLOP/s | of peak | PyTorch ms | GFLOP/s | PyTorch/drivesim (range) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for name in names:
+        for t in threads:
+            peak = max(v for (w, n), v in peaks.items() if n == t)
+            for b in batches:
+                ours, theirs = samples[(name, "drivesim", b, t)], samples[(name, "pytorch", b, t)]
+                g = gflop[(name, b)]
+                ratios = [p / d for p, d in zip(theirs, ours)]
+                mo, mt = statistics.median(ours), statistics.median(theirs)
+                print(f"| {name} | {b} | {t} | {spread(ours)} | {g / mo * 1e3:.1f} | {g / mo * 1e3 / peak:.0%} | "
+                      f"{spread(theirs)} | {g / mt * 1e3:.1f} | {statistics.median(ratios):.2f}x "
+                      f"({min(ratios):.2f}-{max(ratios):.2f}) |")
+    if memory:
+        print()
+        print("| config | batch | drivesim peak RSS MiB | PyTorch peak RSS MiB |")
+        print("| --- | --- | --- | --- |")
+        for (name, b), (rust, python) in memory.items():
+            print(f"| {name} | {b} | {rust:.0f} | {python:.0f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
