@@ -250,7 +250,7 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
 /// place of the stored ones, every tensor written in `dtype` (or the file's own dtype) and the
 /// metadata kept: how a trainer saves what it trained. The file is validated as
 /// [`SafetensorsSource::parse`] does, and each replacement must have its tensor's size.
-#[cfg(feature = "std")]
+#[cfg(all(feature = "std", feature = "train"))]
 pub(crate) fn rewrite(bytes: &[u8], replace: &[(&str, &[f32])], dtype: Option<WeightDtype>) -> Result<Vec<u8>> {
     let (_, mut src) = SafetensorsSource::parse(bytes)?;
     let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
