@@ -39,6 +39,7 @@ const NETWORKS: [&str; 5] = ["encode", "generate", "transition", "transition_fed
 /// One transition training step on `batch` windows of [`WINDOW`] codes (`--features train`).
 const TRAIN: &str = "train_transition";
 /// Codes per training window, as `weights/train.py`.
+#[cfg(feature = "train")]
 const WINDOW: usize = 15;
 
 fn arg<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
