@@ -6,6 +6,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::Path;
+use std::process::ExitCode;
 
 /// One episode's encoded frames and its actions.
 pub struct Encoded {
@@ -86,4 +87,15 @@ pub fn report(e: &dyn std::error::Error) -> String {
         source = s.source();
     }
     text
+}
+
+/// An example's exit: success, or the message on standard error and failure.
+pub fn exit(result: Result<(), String>) -> ExitCode {
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(message) => {
+            eprintln!("error: {message}");
+            ExitCode::FAILURE
+        }
+    }
 }

@@ -121,17 +121,10 @@ struct StepArgs {
 }
 
 fn main() -> ExitCode {
-    let result = match Args::parse().command {
+    common::exit(match Args::parse().command {
         Command::Transition(args) => transition(&args),
         Command::Step(args) => step(&args),
-    };
-    match result {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(message) => {
-            eprintln!("error: {message}");
-            ExitCode::FAILURE
-        }
-    }
+    })
 }
 
 fn read(path: &Path) -> Result<Vec<u8>, String> {

@@ -1,46 +1,13 @@
 //! After `Simulator::new`, encoding, stepping, generating and rolling out allocate nothing.
 
 use drivesim::{Config, Model, Simulator, WeightDtype};
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicUsize, Ordering};
+#[path = "common/counting.rs"]
+mod counting;
 
-/// Counts every allocation and reallocation made by this test binary.
-struct Counting;
-
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
-static BYTES: AtomicUsize = AtomicUsize::new(0);
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
-        BYTES.fetch_add(layout.size(), Ordering::SeqCst);
-        System.alloc(layout)
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        System.dealloc(ptr, layout)
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
-        BYTES.fetch_add(new_size, Ordering::SeqCst);
-        System.realloc(ptr, layout, new_size)
-    }
-}
+use counting::{counted, Counting};
 
 #[global_allocator]
 static GLOBAL: Counting = Counting;
-
-fn allocations_during(f: impl FnOnce()) -> usize {
-    let before = ALLOCATIONS.load(Ordering::SeqCst);
-    f();
-    ALLOCATIONS.load(Ordering::SeqCst) - before
-}
-
-/// What `f` returns and how many bytes it allocated.
-fn bytes_during<T>(f: impl FnOnce() -> T) -> (T, usize) {
-    let before = BYTES.load(Ordering::SeqCst);
-    let value = f();
-    (value, BYTES.load(Ordering::SeqCst) - before)
-}
 
 #[test]
 fn hot_paths_allocate_nothing() {
@@ -57,7 +24,7 @@ fn hot_paths_allocate_nothing() {
         let model = Model::random(&config, 3, dtype).unwrap();
         for isa in drivesim::Isa::supported() {
             // Planning allocates the buffers it reports, and little else.
-            let (sim, bytes) = bytes_during(|| Simulator::with_batch(&model, 3).unwrap().with_isa(isa));
+            let (sim, _, bytes) = counted(|| Simulator::with_batch(&model, 3).unwrap().with_isa(isa));
             assert!(
                 bytes >= sim.buffer_bytes() && bytes <= sim.buffer_bytes() + 1024,
                 "{bytes} bytes allocated, {} planned",
@@ -77,7 +44,7 @@ fn hot_paths_allocate_nothing() {
             let mut rollout_frames = vec![0.0; 4 * config.frame_len()];
             let mut bad = vec![0.0; 1];
 
-            let n = allocations_during(|| {
+            let ((), n, _) = counted(|| {
                 sim.encode(&frames, &mut z).unwrap();
                 sim.encode(&frames[..config.frame_len()], &mut z[..config.z_dim])
                     .unwrap();

@@ -5,43 +5,13 @@
 
 use drivesim::train::{TransitionPlan, TransitionSettings, TransitionTrainer};
 use drivesim::{Config, Error, Model, WeightDtype};
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicUsize, Ordering};
+#[path = "common/counting.rs"]
+mod counting;
 
-struct Counting;
-
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
-static BYTES: AtomicUsize = AtomicUsize::new(0);
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
-        BYTES.fetch_add(layout.size(), Ordering::SeqCst);
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        ALLOCATIONS.fetch_add(1, Ordering::SeqCst);
-        BYTES.fetch_add(new_size, Ordering::SeqCst);
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
+use counting::{counted, Counting};
 
 #[global_allocator]
 static GLOBAL: Counting = Counting;
-
-/// What `f` returns, with the allocations and bytes it made.
-fn counted<T>(f: impl FnOnce() -> T) -> (T, usize, usize) {
-    let (calls, bytes) = (ALLOCATIONS.load(Ordering::SeqCst), BYTES.load(Ordering::SeqCst));
-    let value = f();
-    (
-        value,
-        ALLOCATIONS.load(Ordering::SeqCst) - calls,
-        BYTES.load(Ordering::SeqCst) - bytes,
-    )
-}
 
 #[test]
 fn arena_is_the_plan_and_steps_allocate_nothing() {
