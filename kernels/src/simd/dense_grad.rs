@@ -9,8 +9,11 @@
 //! - The items are summed in chunks of at most [`ITEMS`], the later ones added to what the
 //!   earlier ones stored. The chunks depend on `K` alone, so every gradient is summed in the
 //!   same order however threads split the rows (bit-identical results across thread counts).
-//! - A chunk's output gradients for one tile of rows (`ITEMS x NV` vectors) stay in L1 while
-//!   every block of columns passes over them; the inputs stream from L2.
+//! - A chunk's output gradients for one tile of rows (`ITEMS x NV` vectors) are copied to a
+//!   contiguous block on the stack first, then stay in L1 while every block of columns passes
+//!   over them; the inputs stream from L2. In place, `dy[k]` rows a power of two apart (256 or
+//!   512 floats) would fall into a few of L1's sets and evict each other: the copy ran the
+//!   default transition's gradients 1.3x faster.
 
 use super::vector::{load_n, Simd};
 use super::{balanced_blocks, row_tiles, Block, RowTile};
@@ -77,50 +80,59 @@ struct RowsForColumns<'a, 'b, const NC: usize> {
     first: bool,
 }
 
+/// Most vectors of rows in a tile (`NV`): the size of the copied block.
+const MAX_NV: usize = 4;
+
 impl<S: Simd, const NC: usize> RowTile<S> for RowsForColumns<'_, '_, NC> {
     #[inline(always)]
     unsafe fn run<const NV: usize>(&self, row: usize) {
-        let tile = ColumnTile::<NV> {
-            args: self.args,
-            row,
-            ks: self.ks.clone(),
-            first: self.first,
-        };
-        unsafe { balanced_blocks::<S, NC>(self.args.cols, &tile) }
+        unsafe {
+            debug_assert!(NV <= MAX_NV && self.ks.len() <= ITEMS);
+            let Args { dy, rows, .. } = *self.args;
+            // Rows past the last are read as zeros (their gradient is the panel's padding).
+            let lanes: [usize; NV] = core::array::from_fn(|v| rows.saturating_sub(row + v * S::LANES));
+            let mut block = [S::splat(0.0); ITEMS * MAX_NV];
+            for (n, k) in self.ks.clone().enumerate() {
+                // Wrapping: the padding vectors' addresses may lie past `dy` (they load nothing).
+                let d = dy.as_ptr().wrapping_add(k * rows + row);
+                for (v, &lanes) in lanes.iter().enumerate() {
+                    block[n * NV + v] = load_n::<S>(d.wrapping_add(v * S::LANES), lanes);
+                }
+            }
+            let tile = ColumnTile::<S, NV> {
+                args: self.args,
+                dy: &block[..self.ks.len() * NV],
+                row,
+                ks: self.ks.clone(),
+                first: self.first,
+            };
+            balanced_blocks::<S, NC>(self.args.cols, &tile)
+        }
     }
 }
 
-/// `NV` vectors of rows from `row`, over the items `ks`: stored if `first`, else added.
-struct ColumnTile<'a, 'b, const NV: usize> {
+/// `NV` vectors of rows from `row`, over the items `ks` (their `dy`, `NV` vectors each, copied
+/// to `dy`): stored if `first`, else added.
+struct ColumnTile<'a, 'b, S, const NV: usize> {
     args: &'a Args<'b>,
+    dy: &'a [S],
     row: usize,
     ks: Range<usize>,
     first: bool,
 }
 
-impl<S: Simd, const NV: usize> Block<S> for ColumnTile<'_, '_, NV> {
+impl<S: Simd, const NV: usize> Block<S> for ColumnTile<'_, '_, S, NV> {
     /// The tile's rows for the `N` columns from `col`.
     #[inline(always)]
     unsafe fn run<const N: usize>(&self, col: usize) {
         unsafe {
-            let Args {
-                dy,
-                x,
-                rows,
-                cols,
-                grad,
-            } = *self.args;
-            // Rows past the last are read as zeros (their gradient is the panel's padding).
-            let lanes: [usize; NV] = core::array::from_fn(|v| rows.saturating_sub(self.row + v * S::LANES));
+            let Args { x, cols, grad, .. } = *self.args;
             let mut acc = [[S::splat(0.0); NV]; N];
-            for k in self.ks.clone() {
-                // Wrapping: the padding vectors' addresses may lie past `dy` (they load nothing).
-                let d = dy.as_ptr().wrapping_add(k * rows + self.row);
-                let dv: [S; NV] = core::array::from_fn(|v| load_n::<S>(d.wrapping_add(v * S::LANES), lanes[v]));
+            for (k, dv) in self.ks.clone().zip(self.dy.chunks_exact(NV)) {
                 let xk = x.as_ptr().add(k * cols + col);
                 for (i, acc) in acc.iter_mut().enumerate() {
                     let xb = S::splat(*xk.add(i));
-                    for (a, &d) in acc.iter_mut().zip(&dv) {
+                    for (a, &d) in acc.iter_mut().zip(dv) {
                         *a = d.mul_add(xb, *a);
                     }
                 }
