@@ -339,6 +339,11 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
     let (z, a, window, teacher) = (c.z_dim, c.action_dim, args.window as usize, args.teacher as usize);
     let batch = args.batch as usize;
     let threads = args.threads as usize;
+    if teacher >= window {
+        return Err(format!(
+            "--teacher {teacher}: it must be below --window {window}, so that predictions are fed back"
+        ));
+    }
     let load = |path: &PathBuf| Episodes::load(path).map_err(|e| format!("{}: {e}", path.display()));
     let all = load(&args.episodes)?;
     let mut train = encode(&model, &all, threads, "episodes")?;
@@ -422,17 +427,19 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
         args.steps as f64 / seconds
     );
     let after = evaluate(&mut trainer, &heldout, &heldout_starts, &mean_code, dims)?;
-    let fed = window - 1 - teacher;
+    // Predictions from the last true code: the first, and the last of the window (10 steps
+    // ahead for 15-code windows with 5 teacher-forced, as `train.py eval`'s "10-step").
+    let ahead = window - teacher;
     println!(
         "held-out latent MSE ({} windows)    before      after   copy last   mean code",
         heldout_starts.len()
     );
     println!(
-        "  first prediction               {:>9.4}  {:>9.4}   {:>9.4}   {:>9.4}",
+        "  1 step ahead                   {:>9.4}  {:>9.4}   {:>9.4}   {:>9.4}",
         before.one_step, after.one_step, after.copy_one, after.mean_one
     );
     println!(
-        "  {fed} fed-back steps later       {:>9.4}  {:>9.4}   {:>9.4}   {:>9.4}",
+        "  {ahead:>2} steps ahead                  {:>9.4}  {:>9.4}   {:>9.4}   {:>9.4}",
         before.ten_step, after.ten_step, after.copy_ten, after.mean_ten
     );
 
