@@ -134,7 +134,7 @@ fn main() {
 /// Times `network` on `batch` items with `threads` threads and prints its `result` line; the
 /// simulators stay planned in `sims` for the next request.
 fn answer<'m>(
-    sims: &mut HashMap<(usize, usize), Simulator<'m>>,
+    sims: &mut HashMap<(usize, usize), Simulator<&'m Model>>,
     model: &'m Model,
     network: &str,
     batch: usize,
@@ -160,7 +160,7 @@ fn answer<'m>(
 }
 
 /// FLOPs of one item and the median ms of one call of `network` on `batch` items.
-fn measure(sim: &mut Simulator<'_>, network: &str, batch: usize, budget: Duration) -> (u64, f64) {
+fn measure(sim: &mut Simulator<&Model>, network: &str, batch: usize, budget: Duration) -> (u64, f64) {
     let cfg = *sim.config();
     let frames = values(1, batch * cfg.frame_len(), 1.0);
     let codes = values(2, batch * cfg.z_dim, 1.0);

@@ -276,7 +276,7 @@ fn read_actions_csv(path: &Path) -> Result<Vec<f32>, String> {
 
 /// Encodes each seed frame: its mean code, or with `sample = Some(seed)` a code drawn as
 /// `z = mean + exp(logsigma) * noise`.
-fn seed_codes(sim: &mut Simulator<'_>, seed_frames: &[f32], sample: Option<u64>) -> drivesim::Result<Vec<f32>> {
+fn seed_codes(sim: &mut Simulator<&Model>, seed_frames: &[f32], sample: Option<u64>) -> drivesim::Result<Vec<f32>> {
     let (frame_len, z) = (sim.config().frame_len(), sim.config().z_dim);
     let mut codes = vec![0.0; seed_frames.len() / frame_len * z];
     let mut logsigma = vec![0.0; z];

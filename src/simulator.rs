@@ -6,6 +6,7 @@ use crate::pool::{Exec, Pool};
 use crate::transition::TransitionBuffers;
 use crate::{Config, Error, Model, Result};
 use alloc::vec::Vec;
+use core::borrow::Borrow;
 use drivesim_kernels::Isa;
 
 /// Runs a [`Model`]: encodes frames, steps the transition model, generates frames, and rolls
@@ -22,8 +23,39 @@ use drivesim_kernels::Isa;
 /// is computed in and what the simulator did before, on one machine and instruction set. Every
 /// `Ok` result is finite: inputs must be finite (frames within [-1, 1]), and an output that
 /// overflowed is an [`Error::NonFiniteOutput`].
-pub struct Simulator<'m> {
-    model: &'m Model,
+///
+/// The model is borrowed (`Simulator<&Model>`) or owned (`Simulator<Model>`,
+/// `Simulator<Arc<Model>>` to share one model's weights among several simulators), so that a
+/// controller's environment can hold its simulator, model included:
+///
+/// ```
+/// use drivesim::{Config, Model, Simulator, WeightDtype};
+/// use std::sync::Arc;
+///
+/// struct Environment {
+///     sim: Simulator<Arc<Model>>,
+///     hidden: Vec<f32>,
+///     code: Vec<f32>,
+/// }
+///
+/// # fn main() -> Result<(), drivesim::Error> {
+/// let config = Config { height: 32, width: 64, base_channels: 4, z_dim: 16, hidden_dim: 16, ..Config::COMMA };
+/// let model = Arc::new(Model::random(&config, 7, WeightDtype::F32)?);
+/// let mut env = Environment {
+///     sim: Simulator::new(Arc::clone(&model))?,
+///     hidden: vec![0.0; config.hidden_dim],
+///     code: vec![0.0; config.z_dim],
+/// };
+/// env.sim.transition_fed_back(&mut env.hidden, &[20.0, 0.1], &mut env.code)?;
+/// let second = Simulator::with_batch(model, 16)?; // the same weights, other buffers
+/// assert_eq!(second.config(), env.sim.config());
+/// # Ok(())
+/// # }
+/// ```
+pub struct Simulator<M: Borrow<Model>> {
+    /// The model, borrowed (`&Model`) or owned (`Model`, `Arc<Model>`, `Box<Model>`: a struct
+    /// can then hold the simulator and its model together).
+    model: M,
     isa: Isa,
     /// Threads that share each convolution and large dense layer (none: the caller's alone).
     pool: Option<Pool>,
@@ -36,23 +68,23 @@ pub struct Simulator<'m> {
     rollout_z: [Vec<f32>; 2],
 }
 
-impl<'m> Simulator<'m> {
+impl<M: Borrow<Model>> Simulator<M> {
     /// A simulator for one frame or code per call.
-    pub fn new(model: &'m Model) -> Result<Self> {
+    pub fn new(model: M) -> Result<Self> {
         Simulator::with_batch(model, 1)
     }
 
     /// A simulator for up to `max_batch` frames or codes per call (at least 1). Batches
     /// share each pass over the dense layers' weights, which dominate at batch 1.
     /// [`Plan::new`] tells the memory this needs without allocating it.
-    pub fn with_batch(model: &'m Model, max_batch: usize) -> Result<Self> {
-        let plan = Plan::new(model.config(), max_batch, 1)?;
+    pub fn with_batch(model: M, max_batch: usize) -> Result<Self> {
+        let plan = Plan::new(model.borrow().config(), max_batch, 1)?;
         Simulator::from_plan(model, plan, None)
     }
 
     /// Allocates the buffers of `plan`, for `pool`'s threads.
-    fn from_plan(model: &'m Model, plan: Plan, pool: Option<Pool>) -> Result<Self> {
-        let c = model.config();
+    fn from_plan(model: M, plan: Plan, pool: Option<Pool>) -> Result<Self> {
+        let c = *model.borrow().config();
         let bytes = plan.bytes();
         Ok(Simulator {
             model,
@@ -84,14 +116,24 @@ impl<'m> Simulator<'m> {
     /// stopped and joined before the error returns.
     #[cfg(feature = "std")]
     pub fn with_threads(self, threads: usize) -> Result<Self> {
-        let plan = Plan::new(self.model.config(), self.plan.max_batch(), threads)?;
+        let plan = Plan::new(self.config(), self.plan.max_batch(), threads)?;
         let pool = match plan.threads() {
             1 => None,
             n => Some(Pool::new(n).map_err(|source| Error::Threads { requested: n, source })?),
         };
         // The old buffers go before the new ones are allocated.
-        let (model, isa) = (self.model, self.isa);
-        drop(self);
+        let Simulator {
+            model,
+            isa,
+            pool: old_pool,
+            encoder,
+            generator,
+            transition,
+            rollout_h,
+            rollout_z,
+            plan: _,
+        } = self;
+        drop((old_pool, encoder, generator, transition, rollout_h, rollout_z));
         Ok(Simulator::from_plan(model, plan, pool)?.with_isa(isa))
     }
 
@@ -105,9 +147,14 @@ impl<'m> Simulator<'m> {
         self.isa
     }
 
+    /// The model this simulator runs.
+    pub fn model(&self) -> &Model {
+        self.model.borrow()
+    }
+
     /// The model's config.
     pub fn config(&self) -> &Config {
-        self.model.config()
+        self.model.borrow().config()
     }
 
     /// Bytes of the buffers this simulator allocated when it was planned ([`Plan::bytes`]):
@@ -164,7 +211,10 @@ impl<'m> Simulator<'m> {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
-        self.model.encoder.forward(exec, &mut self.encoder, frames, z, logsigma);
+        self.model
+            .borrow()
+            .encoder
+            .forward(exec, &mut self.encoder, frames, z, logsigma);
         expect_finite_output("z", z)
     }
 
@@ -177,7 +227,10 @@ impl<'m> Simulator<'m> {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
-        self.model.generator.forward(exec, &mut self.generator, z, frames);
+        self.model
+            .borrow()
+            .generator
+            .forward(exec, &mut self.generator, z, frames);
         expect_finite_output("frames", frames)
     }
 
@@ -231,6 +284,7 @@ impl<'m> Simulator<'m> {
             pool: self.pool.as_ref(),
         };
         self.model
+            .borrow()
             .transition
             .step(exec, &mut self.transition, h, z, action, z_next);
         expect_finite_output("h", h)?;
@@ -336,29 +390,35 @@ impl<'m> Simulator<'m> {
         };
         // An unfolded model's fed-back step would recompute `A h + a`: the last prediction,
         // bit for bit (the kernels sum in one order whatever the split), so give it that.
-        let folds = self.model.transition.folds();
+        let folds = self.model.borrow().transition.folds();
         self.rollout_h.fill(0.0);
         let [z, z_next] = &mut self.rollout_z;
         for (step, action) in actions.chunks_exact(c.action_dim).enumerate() {
             let fed_back = step >= seed_count;
             match seeds {
                 _ if fed_back => core::mem::swap(z, z_next),
-                Seeds::Frames(f) => {
-                    self.model
-                        .encoder
-                        .forward(exec, &mut self.encoder, &f[step * item_len..][..item_len], z, None)
-                }
+                Seeds::Frames(f) => self.model.borrow().encoder.forward(
+                    exec,
+                    &mut self.encoder,
+                    &f[step * item_len..][..item_len],
+                    z,
+                    None,
+                ),
                 Seeds::Codes(codes) => z.copy_from_slice(&codes[step * item_len..][..item_len]),
             }
             let input = if fed_back && folds { None } else { Some(&z[..]) };
             self.model
+                .borrow()
                 .transition
                 .step(exec, &mut self.transition, &mut self.rollout_h, input, action, z_next);
             if let Some(t) = (step + 1).checked_sub(seed_count) {
                 codes[t * c.z_dim..][..c.z_dim].copy_from_slice(z_next);
                 if let Some(frames) = frames.as_deref_mut() {
                     let frame = &mut frames[t * c.frame_len()..][..c.frame_len()];
-                    self.model.generator.forward(exec, &mut self.generator, z_next, frame);
+                    self.model
+                        .borrow()
+                        .generator
+                        .forward(exec, &mut self.generator, z_next, frame);
                     expect_finite_output("frames", frame)?;
                 }
             }
@@ -368,7 +428,7 @@ impl<'m> Simulator<'m> {
     }
 }
 
-impl core::fmt::Debug for Simulator<'_> {
+impl<M: Borrow<Model>> core::fmt::Debug for Simulator<M> {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         f.debug_struct("Simulator")
             .field("config", self.config())

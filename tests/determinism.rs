@@ -6,6 +6,8 @@ mod common;
 
 use common::levels;
 use drivesim::{Config, Model, Simulator, WeightDtype};
+use std::borrow::Borrow;
+use std::sync::Arc;
 
 /// Large enough that the encoder's heads cut their 1280 columns in two chunks and split their
 /// rows between threads, and that the transition's product is split too.
@@ -45,7 +47,7 @@ struct Outputs {
 }
 
 /// [`Outputs`] with a batch of `BATCH` per call, or (`one_at_a_time`) one item per call.
-fn run(sim: &mut Simulator<'_>, one_at_a_time: bool) -> Outputs {
+fn run<M: Borrow<Model>>(sim: &mut Simulator<M>, one_at_a_time: bool) -> Outputs {
     let c = CONFIG;
     let (frames, actions) = inputs();
     let per_call = if one_at_a_time { 1 } else { BATCH };
@@ -122,4 +124,18 @@ fn same_bits_whatever_threads_batch_or_history() {
             );
         }
     }
+}
+
+/// A simulator that owns its model (by value, boxed or shared) computes what one borrowing it
+/// does.
+#[test]
+fn owned_models_give_the_bits_of_borrowed_ones() {
+    let model = Model::random(&CONFIG, 11, WeightDtype::F32).unwrap();
+    let want = run(&mut Simulator::with_batch(&model, BATCH).unwrap(), false);
+    let shared = Arc::new(Model::random(&CONFIG, 11, WeightDtype::F32).unwrap());
+    let boxed = Box::new(Model::random(&CONFIG, 11, WeightDtype::F32).unwrap());
+    assert!(run(&mut Simulator::with_batch(Arc::clone(&shared), BATCH).unwrap(), false) == want);
+    assert!(run(&mut Simulator::with_batch(boxed, BATCH).unwrap(), false) == want);
+    let owned = Simulator::with_batch(model, BATCH).unwrap().with_threads(2).unwrap();
+    assert!(run(&mut { owned }, false) == want);
 }

@@ -17,7 +17,7 @@ fn check(what: &str, name: &str, isa: Isa, found: &[f32], expected: &[f32]) {
 }
 
 /// Runs `f` for every fixture on every instruction set this CPU has.
-fn each_fixture(f: impl Fn(&str, &Model, &Io, Simulator<'_>)) {
+fn each_fixture(f: impl Fn(&str, &Model, &Io, Simulator<&Model>)) {
     let levels = levels();
     for name in FIXTURES {
         let model = Model::load(fixture_path(&format!("{name}.safetensors"))).expect("fixture weights load");
