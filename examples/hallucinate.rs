@@ -17,7 +17,7 @@ mod common;
 
 use clap::Parser;
 use common::{report, write_png};
-use drivesim::{Episode, Episodes, Model, Simulator};
+use drivesim::{frames_to_rgb, Episode, Episodes, Model, PixelLayout, Simulator};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::fs::File;
 use std::io::BufWriter;
@@ -170,7 +170,7 @@ fn run(args: &Args) -> Result<(), String> {
                 .map_err(|e| e.to_string())?;
         }
         sim.generate(&z, &mut frame).map_err(|e| e.to_string())?;
-        to_rgb(&frame, &mut rgb);
+        frames_to_rgb(&frame, PixelLayout::Hwc, &config, &mut rgb).map_err(|e| e.to_string())?;
         write_png(&args.out.join(name(t + 1)), w, h, &rgb)?;
         if let Some(gif) = gif.as_mut().filter(|_| seeds + t < gif_frames) {
             gif.push(&rgb)?;
@@ -307,13 +307,6 @@ impl Gaussian {
     fn next(&mut self) -> f32 {
         let (u, v) = (self.uniform().max(f64::MIN_POSITIVE), self.uniform());
         ((-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()) as f32
-    }
-}
-
-/// [-1, 1] HWC floats to RGB bytes.
-fn to_rgb(frame: &[f32], rgb: &mut [u8]) {
-    for (b, v) in rgb.iter_mut().zip(frame) {
-        *b = ((v + 1.0) * 127.5).round().clamp(0.0, 255.0) as u8;
     }
 }
 

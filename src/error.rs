@@ -283,7 +283,7 @@ impl core::error::Error for Error {
 }
 
 /// Checks a caller buffer's length.
-pub(crate) fn expect_len(buffer: &'static str, data: &[f32], expected: usize) -> Result<()> {
+pub(crate) fn expect_len<T>(buffer: &'static str, data: &[T], expected: usize) -> Result<()> {
     if data.len() == expected {
         Ok(())
     } else {
