@@ -115,6 +115,9 @@ fn run(args: &Args) -> Result<(), String> {
 
     // The recorded actions between the seed frames, then the script for the predicted steps.
     let script = action_script(args, &episode, seeds)?;
+    if let Err(e) = model.check_actions(&script) {
+        eprintln!("warning: {e}: the prediction is an extrapolation");
+    }
     let steps = script.len() / 2;
     let mut actions = episode.actions[..(seeds - 1) * 2].to_vec();
     actions.extend(script);

@@ -27,9 +27,10 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 /// The default model's training actions (`weights/TRAINING.md`): speed in Box2D units/s and
-/// steering in [-1, 1], their means and standard deviations. The search starts at the means.
-const ACTION_MEAN: [f32; 2] = [24.8, -0.04];
-const ACTION_STD: [f32; 2] = [11.2, 0.23];
+/// steering in [-1, 1], their means and standard deviations, for weight files without
+/// `drivesim.actions` metadata. The search starts at the means.
+const DEFAULT_MEAN: [f32; 2] = [24.8, -0.04];
+const DEFAULT_STD: [f32; 2] = [11.2, 0.23];
 
 #[derive(Parser)]
 #[command(about = "Recover the actions of recorded episodes through the transition model")]
@@ -82,6 +83,10 @@ fn run(args: &Args) -> Result<(), String> {
     let c = *model.config();
     let episodes = Episodes::load(&args.episodes).map_err(|e| format!("episodes: {}", report(&e)))?;
     let data = encode(&model, &episodes, args.threads as usize, "episodes")?;
+    let (mean, std) = match model.actions() {
+        Some(specs) => ([specs[0].mean, specs[1].mean], [specs[0].std, specs[1].std]),
+        None => (DEFAULT_MEAN, DEFAULT_STD),
+    };
     std::fs::create_dir_all(&args.out).map_err(|e| format!("cannot create {}: {e}", args.out.display()))?;
     let (z, window) = (c.z_dim, args.window as usize);
     let (mut all_found, mut all_want) = ([Vec::new(), Vec::new()], [Vec::new(), Vec::new()]);
@@ -115,13 +120,13 @@ fn run(args: &Args) -> Result<(), String> {
         let mut loss = 0.0;
         for iteration in 1..=args.iterations {
             for (i, (r, u)) in raw.iter_mut().zip(&units).enumerate() {
-                *r = ACTION_MEAN[i % 2] + ACTION_STD[i % 2] * u;
+                *r = mean[i % 2] + std[i % 2] * u;
             }
             loss = trainer
                 .action_gradients(&batch_codes, &raw, &mut grad)
                 .map_err(|e| e.to_string())?;
             for (i, g) in grad.iter_mut().enumerate() {
-                *g *= ACTION_STD[i % 2];
+                *g *= std[i % 2];
             }
             smoothness(&units, args.smooth, &mut grad);
             adam.update(iteration, args.lr, 1.0, &mut units, &grad, [&mut m, &mut v]);
@@ -133,7 +138,7 @@ fn run(args: &Args) -> Result<(), String> {
                 .iter()
                 .skip(j)
                 .step_by(2)
-                .map(|&u| (ACTION_MEAN[j] + ACTION_STD[j] * u) as f64)
+                .map(|&u| (mean[j] + std[j] * u) as f64)
                 .collect();
             let want: Vec<f64> = actions
                 .iter()

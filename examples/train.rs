@@ -20,7 +20,7 @@ mod common;
 use clap::{Parser, Subcommand, ValueEnum};
 use common::{bar, encode, Encoded};
 use drivesim::train::{cosine_lr, TransitionPlan, TransitionSettings, TransitionTrainer};
-use drivesim::{Episodes, Model, WeightDtype};
+use drivesim::{ActionSpec, Episodes, Model, WeightDtype};
 use safetensors::{Dtype, SafeTensors};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -297,27 +297,42 @@ fn evaluate(
     })
 }
 
-/// Mean and standard deviation (unbiased, as torch.std) of each action over the data.
-fn action_stats(data: &[Encoded], a: usize) -> (Vec<f32>, Vec<f32>) {
-    let (mut mean, mut sq) = (vec![0.0f64; a], vec![0.0f64; a]);
+/// Each action's mean, standard deviation (unbiased, as torch.std) and range over the data,
+/// named and with units as `known` (the starting model's metadata) or as episodes files hold
+/// them: (speed, steering), in the recording's units.
+fn action_specs(data: &[Encoded], known: Option<&[ActionSpec]>) -> Vec<ActionSpec> {
+    let a = Episodes::ACTION_DIM;
+    let (mut sum, mut sq) = (vec![0.0f64; a], vec![0.0f64; a]);
+    let (mut min, mut max) = (vec![f32::INFINITY; a], vec![f32::NEG_INFINITY; a]);
     let mut n = 0usize;
-    for episode in data {
-        for action in episode.actions.chunks_exact(a) {
-            for (j, &v) in action.iter().enumerate() {
-                mean[j] += v as f64;
-                sq[j] += (v as f64).powi(2);
-            }
-            n += 1;
+    for action in data.iter().flat_map(|e| e.actions.chunks_exact(a)) {
+        for (j, &v) in action.iter().enumerate() {
+            sum[j] += v as f64;
+            sq[j] += (v as f64).powi(2);
+            min[j] = min[j].min(v);
+            max[j] = max[j].max(v);
         }
+        n += 1;
     }
     let n = n.max(2) as f64;
-    let mean: Vec<f64> = mean.iter().map(|m| m / n).collect();
-    let std = sq
-        .iter()
-        .zip(&mean)
-        .map(|(s, m)| (((s - n * m * m) / (n - 1.0)).max(0.0).sqrt().max(1e-6)) as f32)
-        .collect();
-    (mean.iter().map(|&m| m as f32).collect(), std)
+    (0..a)
+        .map(|j| {
+            let mean = sum[j] / n;
+            let std = ((sq[j] - n * mean * mean) / (n - 1.0)).max(0.0).sqrt().max(1e-6);
+            let (name, unit) = match known {
+                Some(specs) => (specs[j].name.clone(), specs[j].unit.clone()),
+                None => (["speed", "steering"][j].to_string(), "as recorded".to_string()),
+            };
+            ActionSpec {
+                name,
+                unit,
+                mean: mean as f32,
+                std: std as f32,
+                min: min[j],
+                max: max[j],
+            }
+        })
+        .collect()
 }
 
 /// A small xorshift generator: window draws reproducible from `--seed`.
@@ -380,6 +395,7 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
         full_bptt: args.full_bptt,
         ..TransitionSettings::default()
     };
+    let model_actions = model.actions().map(<[ActionSpec]>::to_vec);
     let start = match args.restart {
         true => Model::random(&c, args.seed, WeightDtype::F32).map_err(|e| e.to_string())?,
         false => model,
@@ -388,7 +404,8 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
         .and_then(|t| t.with_threads(threads))
         .map_err(|e| e.to_string())?;
     drop(start);
-    let (mean, std) = action_stats(&train, a);
+    let specs = action_specs(&train, model_actions.as_deref());
+    let (mean, std): (Vec<f32>, Vec<f32>) = specs.iter().map(|s| (s.mean, s.std)).unzip();
     trainer
         .set_action_normalisation(&mean, &std)
         .map_err(|e| e.to_string())?;
@@ -447,7 +464,9 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
         DtypeArg::F32 => WeightDtype::F32,
         DtypeArg::F16 => WeightDtype::F16,
     });
-    let bytes = trainer.weight_file(&original, dtype).map_err(|e| e.to_string())?;
+    let bytes = trainer
+        .weight_file(&original, dtype, Some(&specs))
+        .map_err(|e| e.to_string())?;
     Model::from_bytes(&bytes).map_err(|e| format!("the written file does not load: {e}"))?;
     std::fs::write(&args.out, &bytes).map_err(|e| format!("cannot write {}: {e}", args.out.display()))?;
     println!("wrote {}", args.out.display());

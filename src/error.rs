@@ -141,6 +141,21 @@ pub enum Error {
         /// The first non-finite value's index.
         index: usize,
     },
+    /// An action outside the range the model was trained on (its `drivesim.actions`).
+    ActionRange {
+        /// The value's index in the plan.
+        index: usize,
+        /// The action's name.
+        name: String,
+        /// Its unit.
+        unit: String,
+        /// The value given.
+        value: f32,
+        /// The smallest value in the training data.
+        min: f32,
+        /// The largest.
+        max: f32,
+    },
     /// A caller-supplied arena is smaller than its plan.
     ArenaTooSmall {
         /// The bytes the plan needs.
@@ -246,6 +261,17 @@ impl fmt::Display for Error {
             Error::NonFiniteOutput { buffer, index } => write!(
                 f,
                 "`{buffer}`[{index}] overflowed to a non-finite value: the inputs or weights are too large for f32"
+            ),
+            Error::ActionRange {
+                index,
+                name,
+                unit,
+                value,
+                min,
+                max,
+            } => write!(
+                f,
+                "action {index} ({name}) is {value} {unit}: the model was trained on {min} to {max}"
             ),
             Error::ArenaTooSmall { needed, given } => {
                 write!(f, "the arena holds {given} bytes: its plan needs {needed}")

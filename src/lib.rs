@@ -50,6 +50,7 @@
 
 extern crate alloc;
 
+mod actions;
 mod config;
 mod encoder;
 mod episodes;
@@ -66,6 +67,7 @@ pub mod train;
 mod transition;
 mod weights;
 
+pub use actions::ActionSpec;
 pub use config::Config;
 pub use drivesim_kernels::{Isa, IsaLevel};
 pub use episodes::{Episode, Episodes};

@@ -1,10 +1,12 @@
 //! A loaded model: the three networks with weights packed for the kernels.
 
+use crate::actions::ActionSpec;
 use crate::encoder::Encoder;
 use crate::generator::Generator;
 use crate::transition::Transition;
 use crate::weights::{RandomSource, SafetensorsSource, TensorSource, WeightDtype};
 use crate::{Config, Result};
+use alloc::vec::Vec;
 
 /// The encoder, transition and generator of "Learning a Driving Simulator", ready to run.
 ///
@@ -14,6 +16,7 @@ use crate::{Config, Result};
 /// kernels' layouts, once. A `Model` is immutable; run it through a [`crate::Simulator`].
 pub struct Model {
     config: Config,
+    actions: Option<Vec<ActionSpec>>,
     pub(crate) encoder: Encoder,
     pub(crate) generator: Generator,
     pub(crate) transition: Transition,
@@ -41,19 +44,20 @@ impl Model {
     /// Builds a model from the bytes of a weight file. The bytes need no particular alignment,
     /// so `include_bytes!` works on targets without a file system.
     pub fn from_bytes(bytes: &[u8]) -> Result<Model> {
-        let (config, mut src) = SafetensorsSource::parse(bytes)?;
-        Model::build(config, &mut src)
+        let (config, actions, mut src) = SafetensorsSource::parse(bytes)?;
+        Model::build(config, actions, &mut src)
     }
 
     /// A model with seeded pseudo-random weights (for tests and benchmarks): the same seed and
     /// config give the same model on every platform.
     pub fn random(config: &Config, seed: u64, dtype: WeightDtype) -> Result<Model> {
         config.validate()?;
-        Model::build(*config, &mut RandomSource::new(seed, dtype))
+        Model::build(*config, None, &mut RandomSource::new(seed, dtype))
     }
 
-    fn build(config: Config, src: &mut dyn TensorSource) -> Result<Model> {
+    fn build(config: Config, actions: Option<Vec<ActionSpec>>, src: &mut dyn TensorSource) -> Result<Model> {
         let model = Model {
+            actions,
             encoder: Encoder::load(&config, src)?,
             generator: Generator::load(&config, src)?,
             transition: Transition::load(&config, src)?,
@@ -61,6 +65,30 @@ impl Model {
         };
         src.finish()?;
         Ok(model)
+    }
+
+    /// What each action input means and the range it was trained on, from the file's
+    /// `drivesim.actions` metadata; `None` for files without it (and random models).
+    pub fn actions(&self) -> Option<&[ActionSpec]> {
+        self.actions.as_deref()
+    }
+
+    /// Checks a plan of actions (`action_dim` values per step) against the ranges the model
+    /// was trained on: the first value outside is [`crate::Error::ActionRange`], with the
+    /// numbers. A model without action metadata accepts every plan.
+    ///
+    /// ```
+    /// let model = drivesim::Model::load("weights/default.safetensors")?;
+    /// if let Err(e) = model.check_actions(&[0.5, 0.0]) {
+    ///     eprintln!("warning: {e}"); // e.g. a speed far below anything the model saw
+    /// }
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
+    pub fn check_actions(&self, actions: &[f32]) -> Result<()> {
+        match &self.actions {
+            Some(specs) => crate::actions::check_plan(specs, actions),
+            None => Ok(()),
+        }
     }
 
     /// The architecture the weights were built for.
@@ -73,6 +101,7 @@ impl core::fmt::Debug for Model {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         f.debug_struct("Model")
             .field("config", &self.config)
+            .field("actions", &self.actions)
             .field("folds_fed_back_steps", &self.transition.folds())
             .finish_non_exhaustive()
     }

@@ -1,6 +1,7 @@
 //! Where the network builders get their tensors: a safetensors file, or a seeded random draw.
 //! Both hand out tensors in PyTorch layout; the networks pack them for the kernels.
 
+use crate::actions::{ActionSpec, ACTIONS_KEY};
 use crate::{Config, Error, Result};
 use alloc::format;
 use alloc::string::{String, ToString};
@@ -72,8 +73,9 @@ fn expect_finite_weights(name: &str, values: impl Iterator<Item = f32>) -> Resul
 }
 
 impl<'a> SafetensorsSource<'a> {
-    /// Parses the header and the config; tensors are read on demand.
-    pub(crate) fn parse(bytes: &'a [u8]) -> Result<(Config, Self)> {
+    /// Parses the header, the config and the action metadata (if any); tensors are read on
+    /// demand.
+    pub(crate) fn parse(bytes: &'a [u8]) -> Result<(Config, Option<Vec<ActionSpec>>, Self)> {
         let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
         let json = metadata
             .metadata()
@@ -83,6 +85,10 @@ impl<'a> SafetensorsSource<'a> {
                 reason: format!("no `{}` key in the file's metadata", Config::METADATA_KEY),
             })?;
         let config = Config::from_json(json)?;
+        let actions = match metadata.metadata().as_ref().and_then(|m| m.get(ACTIONS_KEY)) {
+            Some(json) => Some(ActionSpec::parse_all(json, config.action_dim)?),
+            None => None,
+        };
         let file = SafeTensors::deserialize(bytes).map_err(malformed)?;
         // One supported dtype per file (`weights/README.md`): name the first tensor, in name
         // order, that breaks it.
@@ -104,7 +110,7 @@ impl<'a> SafetensorsSource<'a> {
                 });
             }
         }
-        Ok((config, SafetensorsSource { file, read: Vec::new() }))
+        Ok((config, actions, SafetensorsSource { file, read: Vec::new() }))
     }
 }
 
@@ -247,13 +253,25 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
 }
 
 /// The weight file `bytes` with the tensors of `replace` (name, PyTorch-layout values) put in
-/// place of the stored ones, every tensor written in `dtype` (or the file's own dtype) and the
-/// metadata kept: how a trainer saves what it trained. The file is validated as
+/// place of the stored ones, every tensor written in `dtype` (or the file's own dtype), the
+/// metadata kept and `actions` written as its `drivesim.actions`: how a trainer saves what it
+/// trained. The file is validated as
 /// [`SafetensorsSource::parse`] does, and each replacement must have its tensor's size.
 #[cfg(all(feature = "std", feature = "train"))]
-pub(crate) fn rewrite(bytes: &[u8], replace: &[(&str, &[f32])], dtype: Option<WeightDtype>) -> Result<Vec<u8>> {
-    let (_, mut src) = SafetensorsSource::parse(bytes)?;
+pub(crate) fn rewrite(
+    bytes: &[u8],
+    replace: &[(&str, &[f32])],
+    dtype: Option<WeightDtype>,
+    actions: Option<&[ActionSpec]>,
+) -> Result<Vec<u8>> {
+    let (config, _, mut src) = SafetensorsSource::parse(bytes)?;
     let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
+    let mut metadata = metadata.metadata().clone().unwrap_or_default();
+    if let Some(actions) = actions {
+        let json = ActionSpec::to_json(actions);
+        ActionSpec::parse_all(&json, config.action_dim)?; // what is written must read back
+        metadata.insert(ACTIONS_KEY.to_string(), json);
+    }
     let mut names: Vec<String> = src.file.names().into_iter().map(String::from).collect();
     names.sort();
     let stored = names.first().map_or(Ok(Dtype::F32), |n| {
@@ -298,5 +316,5 @@ pub(crate) fn rewrite(bytes: &[u8], replace: &[(&str, &[f32])], dtype: Option<We
                 .map_err(malformed)
         })
         .collect::<Result<Vec<_>>>()?;
-    safetensors::serialize(views, metadata.metadata().clone()).map_err(malformed)
+    safetensors::serialize(views, Some(metadata)).map_err(malformed)
 }

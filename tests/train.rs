@@ -279,3 +279,40 @@ fn bad_input_is_a_typed_error() {
         Err(Error::Config { field: "z_dim", .. })
     ));
 }
+
+/// The trained weights written as a weight file (f32 or rounded to f16, with action metadata)
+/// load back with the trained tensors.
+#[test]
+fn weight_file_holds_the_trained_tensors() {
+    let original = std::fs::read(fixture_path("small_f32.safetensors")).unwrap();
+    let model = Model::from_bytes(&original).unwrap();
+    let c = *model.config();
+    let (codes, actions) = batch(&c, 3, 9, 13);
+    let plan = TransitionPlan::new(&c, 3, 9).unwrap();
+    let settings = TransitionSettings::default();
+    let mut trainer = TransitionTrainer::new(&model, &plan, settings).unwrap();
+    trainer.set_action_normalisation(&[20.0, 0.0], &[5.0, 0.5]).unwrap();
+    for _ in 0..3 {
+        trainer.step(&codes, &actions, 1e-2).unwrap();
+    }
+    let spec = |name: &str, mean| drivesim::ActionSpec {
+        name: name.into(),
+        unit: "test".into(),
+        mean,
+        std: 1.0,
+        min: -1.0,
+        max: 40.0,
+    };
+    let specs = [spec("speed", 20.0), spec("steering", 0.0)];
+    for (dtype, tolerance) in [(None, 1e-6), (Some(WeightDtype::F16), 1e-3)] {
+        let file = trainer.weight_file(&original, dtype, Some(&specs)).unwrap();
+        let loaded = Model::from_bytes(&file).unwrap();
+        assert_eq!(loaded.actions(), Some(&specs[..]));
+        let again = TransitionTrainer::new(&loaded, &plan, settings).unwrap();
+        for ((name, _, want), (_, _, got)) in trainer.tensors().iter().zip(again.tensors()) {
+            let err = relative_error(&got, want);
+            assert!(err <= tolerance, "{dtype:?} {name}: {err}");
+        }
+    }
+    assert!(trainer.weight_file(&original[..100], None, None).is_err());
+}

@@ -18,6 +18,9 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 CONFIG_KEY = "drivesim.config"
+# What each action input means and the range it was trained on: a JSON array of
+# {"name", "unit", "mean", "std", "min", "max"}, one per action (weights/README.md §3).
+ACTIONS_KEY = "drivesim.actions"
 DTYPES = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}
 LEAK = 0.2  # LeakyReLU slope of the encoder, as in the paper's discriminator-style encoder
 
@@ -197,11 +200,18 @@ def state_tensors(model: DriveSim, dtype: str | torch.dtype = "f32") -> dict[str
     }
 
 
-def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | torch.dtype = "f32") -> None:
-    """Write the drivesim safetensors file; dtype is "f32", "f16", "bf16" or a torch dtype."""
+def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | torch.dtype = "f32",
+                  actions: list[dict] | None = None) -> None:
+    """Write the drivesim safetensors file; dtype is "f32", "f16", "bf16" or a torch dtype;
+    `actions`, if given, becomes the `drivesim.actions` metadata (one dict per action)."""
     if DTYPES.get(dtype, dtype) not in DTYPES.values():
         raise ValueError(f"unsupported dtype {dtype!r}")
-    save_file(state_tensors(model, dtype), str(path), metadata={CONFIG_KEY: cfg.to_json()})
+    metadata = {CONFIG_KEY: cfg.to_json()}
+    if actions is not None:
+        if len(actions) != cfg.action_dim:
+            raise ValueError(f"{len(actions)} action descriptions for {cfg.action_dim} actions")
+        metadata[ACTIONS_KEY] = json.dumps(actions)
+    save_file(state_tensors(model, dtype), str(path), metadata=metadata)
 
 
 def load_drivesim(path: str | Path) -> tuple[DriveSim, Config]:

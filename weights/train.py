@@ -252,7 +252,11 @@ def fit(args):
     log.append(dict(vae_gan_seconds=round(t1 - t0, 1), transition_seconds=round(t2 - t1, 1), **norm))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_drivesim(model.cpu(), cfg, out, "f16")
+    # What the actions mean travels with the weights (units as the episodes file recorded them).
+    low, high = actions.min(0).values.tolist(), actions.max(0).values.tolist()
+    described = [dict(name=name, unit="as recorded", mean=m, std=sd, min=lo, max=hi) for name, m, sd, lo, hi
+                 in zip(("speed", "steering"), norm["action_mean"], norm["action_std"], low, high)]
+    save_drivesim(model.cpu(), cfg, out, "f16", actions=described)
     out.with_suffix(".log.json").write_text(json.dumps(log, indent=1))
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB) in {t2 - t0:.0f} s", flush=True)
 

@@ -513,13 +513,19 @@ impl<'a> TransitionTrainer<'a> {
     /// A weight file with this transition: `original` (the bytes of a drivesim weight file of
     /// the same config, e.g. the one the model was loaded from) with the transition's tensors
     /// replaced by [`TransitionTrainer::tensors`], every tensor stored in `dtype` (`None`: the
-    /// file's own dtype; f16 files are trained on f32 master weights and rounded here).
-    /// [`Model::from_bytes`] reads it.
+    /// file's own dtype; f16 files are trained on f32 master weights and rounded here), and
+    /// `actions` (what the actions trained on mean, and their range) as its `drivesim.actions`
+    /// metadata (`None`: the original's, if any). [`Model::from_bytes`] reads it.
     #[cfg(feature = "std")]
-    pub fn weight_file(&self, original: &[u8], dtype: Option<crate::WeightDtype>) -> Result<Vec<u8>> {
+    pub fn weight_file(
+        &self,
+        original: &[u8],
+        dtype: Option<crate::WeightDtype>,
+        actions: Option<&[crate::ActionSpec]>,
+    ) -> Result<Vec<u8>> {
         let tensors = self.tensors();
         let replace: Vec<(&str, &[f32])> = tensors.iter().map(|(name, _, values)| (*name, &values[..])).collect();
-        crate::weights::rewrite(original, &replace, dtype)
+        crate::weights::rewrite(original, &replace, dtype, actions)
     }
 
     /// The gradients computed last, named and laid out as the tensors they belong to
