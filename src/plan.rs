@@ -32,7 +32,7 @@ pub struct Plan {
     pub(crate) transition_concat: usize,
     /// Floats of the code an f16 model's fed-back step recomputes from `h` for a batch.
     pub(crate) transition_code: usize,
-    /// Floats of a rollout's hidden state and two codes.
+    /// Floats of a rollout's hidden states (a batch of candidates) and codes (a batch, and one).
     pub(crate) rollout: usize,
     bytes: usize,
 }
@@ -111,7 +111,7 @@ impl Plan {
             generator_flat: mul(max_batch, c.flat_len())?,
             transition_concat: mul(max_batch, c.hidden_dim + c.z_dim + c.action_dim)?,
             transition_code: mul(max_batch, c.z_dim)?,
-            rollout: c.hidden_dim + 2 * c.z_dim,
+            rollout: add(mul(max_batch, c.hidden_dim + c.z_dim)?, c.z_dim)?,
             bytes: 0,
         };
         let floats = [

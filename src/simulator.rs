@@ -63,7 +63,8 @@ pub struct Simulator<M: Borrow<Model>> {
     encoder: StackBuffers,
     generator: StackBuffers,
     transition: TransitionBuffers,
-    /// Hidden state and codes of a rollout.
+    /// Hidden states and codes of a rollout: one of each, or one per candidate
+    /// ([`Simulator::rollout_candidates`]) in the first two.
     rollout_h: Vec<f32>,
     rollout_z: [Vec<f32>; 2],
 }
@@ -93,8 +94,8 @@ impl<M: Borrow<Model>> Simulator<M> {
             encoder: StackBuffers::new(&plan.encoder, plan.encoder_flat, bytes)?,
             generator: StackBuffers::new(&plan.generator, plan.generator_flat, bytes)?,
             transition: TransitionBuffers::new(&plan)?,
-            rollout_h: zeros(c.hidden_dim, bytes)?,
-            rollout_z: [zeros(c.z_dim, bytes)?, zeros(c.z_dim, bytes)?],
+            rollout_h: zeros(plan.max_batch() * c.hidden_dim, bytes)?,
+            rollout_z: [zeros(plan.max_batch() * c.z_dim, bytes)?, zeros(c.z_dim, bytes)?],
             plan,
         })
     }
@@ -338,6 +339,123 @@ impl<M: Borrow<Model>> Simulator<M> {
         self.run_rollout(Seeds::Codes(seed_codes), actions, codes, frames)
     }
 
+    /// Rolls out `candidates` action sequences at once from one state (or one state each):
+    /// the planner's building block. Every candidate steps in one batch, so each step reads
+    /// the transition's weights once for all of them.
+    ///
+    /// `h` is the hidden state of one step (`hidden_dim` values, shared by every candidate) or
+    /// of one per candidate. The first step starts from `z` (the current code, `z_dim` values
+    /// or one per candidate) where given, else from the code `h` predicts (as after a
+    /// rollout's or [`Simulator::transition_fed_back`]'s last step); every later step from the
+    /// candidate's previous prediction. Everything is **step-major**: `actions` holds `T`
+    /// steps of `candidates` actions (`[T][candidates][action_dim]`), `codes` receives
+    /// `[T][candidates][z_dim]` and `frames`, if given, `[T][candidates][frame]`. Each
+    /// candidate gets the bits a rollout of its own would ([`Simulator::transition`] and
+    /// [`Simulator::transition_fed_back`] step by step). `candidates` is at most the planned
+    /// batch ([`Simulator::with_batch`]); `h` is not changed.
+    ///
+    /// ```
+    /// # use drivesim::{Config, Model, Simulator, WeightDtype};
+    /// # let config = Config { height: 16, width: 32, base_channels: 2, z_dim: 8, hidden_dim: 8, ..Config::COMMA };
+    /// # let model = Model::random(&config, 1, WeightDtype::F32)?;
+    /// let (candidates, steps) = (64, 10);
+    /// let mut sim = Simulator::with_batch(&model, candidates)?;
+    /// // The state after seeding: a rollout's hidden state and the real last code.
+    /// let (h, z) = (vec![0.1; config.hidden_dim], vec![0.0; config.z_dim]);
+    /// // Candidate n steers (n - 32) / 32 at every step, at speed 25.
+    /// let actions: Vec<f32> = (0..steps * candidates)
+    ///     .flat_map(|i| [25.0, ((i % candidates) as f32 - 32.0) / 32.0])
+    ///     .collect();
+    /// let mut codes = vec![0.0; steps * candidates * config.z_dim];
+    /// sim.rollout_candidates(&h, Some(&z), candidates, &actions, &mut codes, None)?;
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
+    pub fn rollout_candidates(
+        &mut self,
+        h: &[f32],
+        z: Option<&[f32]>,
+        candidates: usize,
+        actions: &[f32],
+        codes: &mut [f32],
+        mut frames: Option<&mut [f32]>,
+    ) -> Result<()> {
+        let c = *self.config();
+        let n = candidates;
+        if n == 0 || n > self.max_batch() {
+            return Err(Error::BatchTooLarge {
+                max: self.max_batch(),
+                found: n,
+            });
+        }
+        // One value set for all candidates, or one each.
+        let each = |buffer, data: &[f32], len: usize| match data.len() {
+            l if l == len || l == n * len => Ok(()),
+            found => Err(Error::BufferLength {
+                buffer,
+                expected: n * len,
+                found,
+            }),
+        };
+        each("h", h, c.hidden_dim)?;
+        if let Some(z) = z {
+            each("z", z, c.z_dim)?;
+            expect_finite("z", z)?;
+        }
+        let step_len = n * c.action_dim;
+        if actions.is_empty() || !actions.len().is_multiple_of(step_len) {
+            return Err(Error::NotWholeItems {
+                buffer: "actions",
+                item_len: step_len,
+                found: actions.len(),
+            });
+        }
+        let steps = actions.len() / step_len;
+        expect_len("codes", codes, steps * n * c.z_dim)?;
+        if let Some(frames) = frames.as_deref() {
+            expect_len("frames", frames, steps * n * c.frame_len())?;
+        }
+        expect_finite("h", h)?;
+        expect_finite("actions", actions)?;
+
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
+        let model = self.model.borrow();
+        let hs = &mut self.rollout_h[..n * c.hidden_dim];
+        for state in hs.chunks_exact_mut(h.len()) {
+            state.copy_from_slice(h);
+        }
+        let first = &mut self.rollout_z[0][..n * c.z_dim];
+        if let Some(z) = z {
+            for code in first.chunks_exact_mut(z.len()) {
+                code.copy_from_slice(z);
+            }
+        }
+        let (len, folds) = (n * c.z_dim, model.transition.folds());
+        for t in 0..steps {
+            let (done, rest) = codes.split_at_mut(t * len);
+            let out = &mut rest[..len];
+            let input = match t {
+                0 => z.map(|_| &first[..]),
+                // An unfolded model would recompute the previous prediction: give it that.
+                _ if !folds => Some(&done[(t - 1) * len..]),
+                _ => None,
+            };
+            let action = &actions[t * step_len..][..step_len];
+            model
+                .transition
+                .step(exec, &mut self.transition, hs, input, action, out);
+            expect_finite_output("codes", out)?;
+            if let Some(frames) = frames.as_deref_mut() {
+                let frames = &mut frames[t * n * c.frame_len()..][..n * c.frame_len()];
+                model.generator.forward(exec, &mut self.generator, out, frames);
+                expect_finite_output("frames", frames)?;
+            }
+        }
+        Ok(())
+    }
+
     fn run_rollout(
         &mut self,
         seeds: Seeds<'_>,
@@ -391,12 +509,14 @@ impl<M: Borrow<Model>> Simulator<M> {
         // An unfolded model's fed-back step would recompute `A h + a`: the last prediction,
         // bit for bit (the kernels sum in one order whatever the split), so give it that.
         let folds = self.model.borrow().transition.folds();
-        self.rollout_h.fill(0.0);
+        let h = &mut self.rollout_h[..c.hidden_dim];
+        h.fill(0.0);
         let [z, z_next] = &mut self.rollout_z;
+        let z = &mut z[..c.z_dim];
         for (step, action) in actions.chunks_exact(c.action_dim).enumerate() {
             let fed_back = step >= seed_count;
             match seeds {
-                _ if fed_back => core::mem::swap(z, z_next),
+                _ if fed_back => z.copy_from_slice(z_next),
                 Seeds::Frames(f) => self.model.borrow().encoder.forward(
                     exec,
                     &mut self.encoder,
@@ -410,7 +530,7 @@ impl<M: Borrow<Model>> Simulator<M> {
             self.model
                 .borrow()
                 .transition
-                .step(exec, &mut self.transition, &mut self.rollout_h, input, action, z_next);
+                .step(exec, &mut self.transition, h, input, action, z_next);
             if let Some(t) = (step + 1).checked_sub(seed_count) {
                 codes[t * c.z_dim..][..c.z_dim].copy_from_slice(z_next);
                 if let Some(frames) = frames.as_deref_mut() {

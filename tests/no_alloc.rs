@@ -43,6 +43,8 @@ fn hot_paths_allocate_nothing() {
             let mut codes = vec![0.0; 4 * config.z_dim];
             let mut rollout_frames = vec![0.0; 4 * config.frame_len()];
             let mut bad = vec![0.0; 1];
+            let mut candidate_codes = vec![0.0; 2 * 3 * config.z_dim];
+            let mut candidate_frames = vec![0.0; 2 * 3 * config.frame_len()];
 
             let ((), n, _) = counted(|| {
                 sim.encode(&frames, &mut z).unwrap();
@@ -67,6 +69,15 @@ fn hot_paths_allocate_nothing() {
                     &actions[..4 * config.action_dim],
                     &mut codes,
                     None,
+                )
+                .unwrap();
+                sim.rollout_candidates(
+                    &h[..config.hidden_dim],
+                    Some(&z[..config.z_dim]),
+                    3,
+                    &actions,
+                    &mut candidate_codes,
+                    Some(&mut candidate_frames),
                 )
                 .unwrap();
                 // Rejected calls report without allocating either.
