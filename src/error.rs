@@ -156,6 +156,9 @@ pub enum Error {
         /// The largest.
         max: f32,
     },
+    /// An [`crate::Environment`] stepped before any reset gave its drives a state (or after a
+    /// reset failed).
+    NotSeeded,
     /// A caller-supplied arena is smaller than its plan.
     ArenaTooSmall {
         /// The bytes the plan needs.
@@ -272,6 +275,10 @@ impl fmt::Display for Error {
             } => write!(
                 f,
                 "action {index} ({name}) is {value} {unit}: the model was trained on {min} to {max}"
+            ),
+            Error::NotSeeded => write!(
+                f,
+                "the environment has no state: reset it from seed frames or codes first"
             ),
             Error::ArenaTooSmall { needed, given } => {
                 write!(f, "the arena holds {given} bytes: its plan needs {needed}")

@@ -1,6 +1,7 @@
-//! After `Simulator::new`, encoding, stepping, generating and rolling out allocate nothing.
+//! After `Simulator::new` (or `Environment::new`), encoding, stepping, generating and rolling
+//! out allocate nothing.
 
-use drivesim::{Config, Model, Simulator, WeightDtype};
+use drivesim::{Config, Environment, Model, Simulator, WeightDtype};
 #[path = "common/counting.rs"]
 mod counting;
 
@@ -44,6 +45,9 @@ fn hot_paths_allocate_nothing() {
             let mut rollout_frames = vec![0.0; 4 * config.frame_len()];
             let mut bad = vec![0.0; 1];
             let mut candidate_codes = vec![0.0; 2 * 3 * config.z_dim];
+            // An environment of 3 drives that owns a model of its own.
+            let mut env = Environment::new(Model::random(&config, 3, dtype).unwrap(), 3, 3).unwrap();
+            let mut env_frames = vec![0.0; 3 * config.frame_len()];
             let mut candidate_frames = vec![0.0; 2 * 3 * config.frame_len()];
 
             let ((), n, _) = counted(|| {
@@ -80,6 +84,11 @@ fn hot_paths_allocate_nothing() {
                     Some(&mut candidate_frames),
                 )
                 .unwrap();
+                env.reset_from_frames(&frames, &[]).unwrap();
+                env.step(&actions[..3 * config.action_dim]).unwrap();
+                env.step(&actions[..3 * config.action_dim]).unwrap();
+                env.frames(&mut env_frames).unwrap();
+                env.rollout_candidates(2, 3, &actions, &mut candidate_codes, None).unwrap();
                 // Rejected calls report without allocating either.
                 assert!(sim.generate(&bad, &mut out).is_err());
                 bad[0] = f32::NAN;
