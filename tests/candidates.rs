@@ -2,24 +2,14 @@
 //! the bits of its own step-by-step rollout, from one shared state or one each, from a given
 //! code or from the state's own prediction; bad arguments are typed errors.
 
+mod common;
+
+use common::values;
 use drivesim::{Config, Error, Model, Simulator, WeightDtype};
 
-const CONFIG: Config = Config {
-    height: 16,
-    width: 32,
-    base_channels: 3,
-    z_dim: 12,
-    hidden_dim: 40,
-    ..Config::COMMA
-};
+const CONFIG: Config = common::SMALL;
 const CANDIDATES: usize = 5;
 const STEPS: usize = 4;
-
-fn values(n: usize, seed: usize, scale: f32) -> Vec<f32> {
-    (0..n)
-        .map(|i| (((i + seed) * 7919 % 2003) as f32 / 1001.5 - 1.0) * scale)
-        .collect()
-}
 
 /// Candidate `n`'s codes and frames, one step at a time on a single simulator.
 fn alone(model: &Model, h: &[f32], z: Option<&[f32]>, actions: &[f32], n: usize) -> (Vec<f32>, Vec<f32>) {
@@ -45,13 +35,13 @@ fn alone(model: &Model, h: &[f32], z: Option<&[f32]>, actions: &[f32], n: usize)
 #[test]
 fn each_candidate_gets_the_bits_of_its_own_rollout() {
     let c = CONFIG;
-    let actions = values(STEPS * CANDIDATES * c.action_dim, 3, 1.0);
+    let actions = values(3, STEPS * CANDIDATES * c.action_dim, 1.0);
     for dtype in [WeightDtype::F32, WeightDtype::F16] {
         let model = Model::random(&c, 4, dtype).unwrap();
         let mut sim = Simulator::with_batch(&model, 8).unwrap().with_threads(2).unwrap();
-        let shared_h = values(c.hidden_dim, 5, 0.5);
-        let own_h = values(CANDIDATES * c.hidden_dim, 6, 0.5);
-        let z = values(c.z_dim, 7, 1.0);
+        let shared_h = values(5, c.hidden_dim, 0.5);
+        let own_h = values(6, CANDIDATES * c.hidden_dim, 0.5);
+        let z = values(7, c.z_dim, 1.0);
         for (h, z) in [(&shared_h, Some(&z[..])), (&own_h, None), (&shared_h, None)] {
             let mut codes = vec![0.0; STEPS * CANDIDATES * c.z_dim];
             let mut frames = vec![0.0; STEPS * CANDIDATES * c.frame_len()];

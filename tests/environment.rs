@@ -1,32 +1,22 @@
 //! `Environment`: drives reset from seeds and stepped together give each drive the bits of its
 //! own `Simulator::rollout`, borrowed or owning the model; misuse is a typed error.
 
+mod common;
+
+use common::values;
 use drivesim::{Config, Environment, Error, Model, Simulator, WeightDtype};
 use std::sync::Arc;
 
-const CONFIG: Config = Config {
-    height: 16,
-    width: 32,
-    base_channels: 3,
-    z_dim: 12,
-    hidden_dim: 40,
-    ..Config::COMMA
-};
+const CONFIG: Config = common::SMALL;
 const DRIVES: usize = 3;
 const SEEDS: usize = 3;
 const STEPS: usize = 6;
 
-fn values(n: usize, seed: usize, scale: f32) -> Vec<f32> {
-    (0..n)
-        .map(|i| (((i + seed) * 7919 % 2003) as f32 / 1001.5 - 1.0) * scale)
-        .collect()
-}
-
 /// Drive `d`'s seed frames and its actions (seeds, then steps), each drive its own.
 fn drive_inputs(d: usize) -> (Vec<f32>, Vec<f32>) {
     (
-        values(SEEDS * CONFIG.frame_len(), 10 + d, 1.0),
-        values((SEEDS - 1 + STEPS) * CONFIG.action_dim, 20 + d, 1.0),
+        values((10 + d) as u64, SEEDS * CONFIG.frame_len(), 1.0),
+        values((20 + d) as u64, (SEEDS - 1 + STEPS) * CONFIG.action_dim, 1.0),
     )
 }
 

@@ -88,7 +88,8 @@ fn hot_paths_allocate_nothing() {
                 env.step(&actions[..3 * config.action_dim]).unwrap();
                 env.step(&actions[..3 * config.action_dim]).unwrap();
                 env.frames(&mut env_frames).unwrap();
-                env.rollout_candidates(2, 3, &actions, &mut candidate_codes, None).unwrap();
+                env.rollout_candidates(2, 3, &actions, &mut candidate_codes, None)
+                    .unwrap();
                 // Rejected calls report without allocating either.
                 assert!(sim.generate(&bad, &mut out).is_err());
                 bad[0] = f32::NAN;

@@ -8,7 +8,18 @@ use std::path::PathBuf;
 #[path = "../../kernels/tests/common/mod.rs"]
 mod kernel_common;
 #[allow(unused_imports)] // not every test binary runs on every level
-pub use kernel_common::{levels, Rng};
+pub use kernel_common::{levels, values, Rng};
+
+/// A small config for the tests of whole calls (environments, candidate rollouts): quick,
+/// yet every network has several panels of rows.
+pub const SMALL: drivesim::Config = drivesim::Config {
+    height: 16,
+    width: 32,
+    base_channels: 3,
+    z_dim: 12,
+    hidden_dim: 40,
+    ..drivesim::Config::COMMA
+};
 
 pub const FIXTURES: [&str; 5] = ["small_f32", "small_f16", "tiny_bf16", "tall_f32", "wide_f32"];
 
