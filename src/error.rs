@@ -159,6 +159,8 @@ pub enum Error {
     /// An [`crate::Environment`] stepped before any reset gave its drives a state (or after a
     /// reset failed).
     NotSeeded,
+    /// A trainer asked to apply gradients it has not computed (each set is applied once).
+    NoGradients,
     /// A caller-supplied arena is smaller than its plan.
     ArenaTooSmall {
         /// The bytes the plan needs.
@@ -279,6 +281,10 @@ impl fmt::Display for Error {
             Error::NotSeeded => write!(
                 f,
                 "the environment has no state: reset it from seed frames or codes first"
+            ),
+            Error::NoGradients => write!(
+                f,
+                "no gradients to apply: compute them first (each set is applied once)"
             ),
             Error::ArenaTooSmall { needed, given } => {
                 write!(f, "the arena holds {given} bytes: its plan needs {needed}")

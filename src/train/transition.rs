@@ -437,11 +437,7 @@ impl<'a> TransitionTrainer<'a> {
                 value: lr,
             });
         }
-        let norm = self.pending.take().ok_or(Error::Setting {
-            name: "gradients",
-            expected: "computed (compute_gradients) before they are applied",
-            value: f32::NAN,
-        })?;
+        let norm = self.pending.take().ok_or(Error::NoGradients)?;
         // torch.nn.utils.clip_grad_norm_: scale by max_norm / (norm + 1e-6), at most 1.
         let scale = (self.settings.clip / (norm + 1e-6)).min(1.0);
         self.steps += 1;
