@@ -99,3 +99,21 @@ pub fn exit(result: Result<(), String>) -> ExitCode {
         }
     }
 }
+
+/// Seeded standard normal samples (SplitMix64 and Box-Muller), and uniform ones in [0, 1).
+pub struct Gaussian(pub u64);
+
+impl Gaussian {
+    pub fn uniform(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    pub fn next(&mut self) -> f32 {
+        let (u, v) = (self.uniform().max(f64::MIN_POSITIVE), self.uniform());
+        ((-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()) as f32
+    }
+}

@@ -16,7 +16,7 @@
 mod common;
 
 use clap::Parser;
-use common::{report, write_png};
+use common::{report, write_png, Gaussian};
 use drivesim::{frames_to_rgb, Episode, Episodes, Model, PixelLayout, Simulator};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::fs::File;
@@ -293,24 +293,6 @@ fn seed_codes(sim: &mut Simulator<&Model>, seed_frames: &[f32], sample: Option<u
         }
     }
     Ok(codes)
-}
-
-/// Standard normal samples (SplitMix64 and Box-Muller): enough for sampling a code.
-struct Gaussian(u64);
-
-impl Gaussian {
-    fn uniform(&mut self) -> f64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    }
-
-    fn next(&mut self) -> f32 {
-        let (u, v) = (self.uniform().max(f64::MIN_POSITIVE), self.uniform());
-        ((-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()) as f32
-    }
 }
 
 /// Which frames the contact sheet shows: a row of the last seed frames, then rows of predicted
