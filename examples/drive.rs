@@ -20,13 +20,14 @@
 //!   offset (plus a little for steering changes) and refits a Gaussian. The first action of the
 //!   mean is applied; the rest seeds the next step's plan.
 //!
-//! Writes the planner's frames as `frame_NNNN.png` and a contact sheet into `--out`.
+//! Writes the planner's frames as `frame_NNNN.png`, a contact sheet and `drive.gif` (the first
+//! 300 frames) into `--out`. Plans are checked against the model's `drivesim.actions`.
 
 #[path = "common.rs"]
 mod common;
 
 use clap::Parser;
-use common::{report, write_png, Gaussian};
+use common::{report, write_png, Gaussian, Gif};
 use drivesim::{frames_to_rgb, Config, Environment, Episodes, Model, PixelLayout};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -177,6 +178,9 @@ fn run(args: &Args) -> Result<(), String> {
     }
     let seed_actions = &episode.actions[..(seeds - 1) * 2];
     let speed = episode.actions[(seeds - 1) * 2];
+    if let Err(e) = model.check_actions(&[speed, -1.0, speed, 1.0]) {
+        eprintln!("warning: {e}: the plans are an extrapolation");
+    }
     let (candidates, horizon) = (args.candidates as usize, args.horizon as usize);
     let mut env = Environment::new(&model, 8, candidates)
         .and_then(|e| e.with_threads(args.threads as usize))
@@ -228,7 +232,10 @@ fn run(args: &Args) -> Result<(), String> {
             1e3 * f.seconds / steps as f64
         );
     }
-    println!("planner frames: {}/frame_*.png, contact_sheet.png", args.out.display());
+    println!(
+        "planner frames: {}/frame_*.png, contact_sheet.png, drive.gif",
+        args.out.display()
+    );
     Ok(())
 }
 
@@ -308,6 +315,11 @@ fn drive(
     let mut steering = vec![0.0f32; candidates * horizon];
     let (mut out, mut rgb) = (vec![0.0; drives * c.frame_len()], vec![0u8; drives * c.frame_len()]);
     let mut sheet = Vec::new();
+    // The planner's drive, its first 300 frames.
+    let mut gif = match driver {
+        Driver::Planner => Some(Gif::create(&args.out.join("drive.gif"), c.width, c.height)?),
+        _ => None,
+    };
     let mut figures = Figures {
         on_road: 0,
         offset: 0.0,
@@ -389,6 +401,9 @@ fn drive(
                 c.height,
                 frame,
             )?;
+            if let Some(gif) = gif.as_mut().filter(|_| t < 300) {
+                gif.push(frame)?;
+            }
             if t % (args.steps as usize / 20).max(1) == 0 && sheet.len() < 20 {
                 sheet.push(frame.to_vec());
             }

@@ -16,11 +16,9 @@
 mod common;
 
 use clap::Parser;
-use common::{report, write_png, Gaussian};
+use common::{report, write_png, Gaussian, Gif};
 use drivesim::{frames_to_rgb, Episode, Episodes, Model, PixelLayout, Simulator};
 use indicatif::{ProgressBar, ProgressStyle};
-use std::fs::File;
-use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -403,46 +401,5 @@ fn draw_text(rgb: &mut [u8], width: usize, x: usize, y: usize, text: &str, ink: 
                 }
             }
         }
-    }
-}
-
-/// An endless GIF at 10 frames per second, each frame shown twice as large, written frame by
-/// frame.
-struct Gif {
-    encoder: gif::Encoder<BufWriter<File>>,
-    path: PathBuf,
-    w: usize,
-    h: usize,
-    doubled: Vec<u8>,
-}
-
-impl Gif {
-    fn create(path: &Path, w: usize, h: usize) -> Result<Gif, String> {
-        let fail = |e: &dyn std::fmt::Display| format!("cannot write {}: {e}", path.display());
-        let file = File::create(path).map_err(|e| fail(&e))?;
-        let mut encoder =
-            gif::Encoder::new(BufWriter::new(file), 2 * w as u16, 2 * h as u16, &[]).map_err(|e| fail(&e))?;
-        encoder.set_repeat(gif::Repeat::Infinite).map_err(|e| fail(&e))?;
-        Ok(Gif {
-            encoder,
-            path: path.to_path_buf(),
-            w,
-            h,
-            doubled: vec![0; 4 * w * h * 3],
-        })
-    }
-
-    fn push(&mut self, rgb: &[u8]) -> Result<(), String> {
-        let (w, h) = (self.w, self.h);
-        for (y, line) in self.doubled.chunks_exact_mut(2 * w * 3).enumerate() {
-            for (x, pixel) in line.chunks_exact_mut(3).enumerate() {
-                pixel.copy_from_slice(&rgb[((y / 2) * w + x / 2) * 3..][..3]);
-            }
-        }
-        let mut frame = gif::Frame::from_rgb_speed(2 * w as u16, 2 * h as u16, &self.doubled, 10);
-        frame.delay = 10; // hundredths of a second
-        self.encoder
-            .write_frame(&frame)
-            .map_err(|e| format!("cannot write {}: {e}", self.path.display()))
     }
 }
