@@ -19,9 +19,10 @@ import warnings
 from pathlib import Path
 
 import torch
+from safetensors import safe_open
 from torch import nn
 
-from model import DTYPES, Config, DriveSim, from_state_dict, load_drivesim, save_drivesim
+from model import ACTIONS_KEY, DTYPES, Config, DriveSim, from_state_dict, load_drivesim, save_drivesim
 
 OPSET = 17
 
@@ -77,6 +78,17 @@ def export_onnx(model: DriveSim, cfg: Config, out: Path) -> None:
             )
 
 
+def actions_of(source: Path, given: Path | None) -> list[dict] | None:
+    """The action descriptions to write: `given`'s, else the source drivesim file's."""
+    if given is not None:
+        return json.loads(given.read_text())
+    if source.suffix == ".safetensors":
+        with safe_open(str(source), framework="pt") as f:
+            text = (f.metadata() or {}).get(ACTIONS_KEY)
+        return json.loads(text) if text else None
+    return None
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("input", type=Path, help="checkpoint .pt or drivesim .safetensors")
@@ -84,13 +96,16 @@ def main() -> int:
     p.add_argument("--out", type=Path, help="drivesim safetensors file to write")
     p.add_argument("--dtype", choices=sorted(DTYPES), default="f32", help="dtype of --out (default f32)")
     p.add_argument("--onnx", type=Path, metavar="DIR", help="also write ONNX graphs into DIR")
+    p.add_argument("--actions", type=Path, metavar="JSON",
+                   help="what the actions mean and their trained range, written as drivesim.actions "
+                        "(a JSON array, weights/README.md §3; default: the input file's, if any)")
     args = p.parse_args()
     if args.out is None and args.onnx is None:
         p.error("nothing to do: give --out and/or --onnx")
 
     model, cfg = load_any(args.input, args.config)
     if args.out is not None:
-        save_drivesim(model, cfg, args.out, args.dtype)
+        save_drivesim(model, cfg, args.out, args.dtype, actions=actions_of(args.input, args.actions))
         print(f"wrote {args.out} ({args.dtype}, config {json.loads(cfg.to_json())})")
     if args.onnx is not None:
         export_onnx(model, cfg, args.onnx)
