@@ -26,4 +26,30 @@ impl Activation {
             Activation::Tanh => math::tanh(x),
         }
     }
+
+    /// The gradient through the activation, given its output `y` and the gradient `grad` of
+    /// `y`: the scalar reference of [`crate::activation_backward`]. ReLU and LeakyReLU read the
+    /// sign of the input from `y` (the same sign) and, as PyTorch does, take the left slope at 0;
+    /// tanh multiplies by `1 - y²`, in this order, unfused.
+    #[inline]
+    pub fn backward(self, y: f32, grad: f32) -> f32 {
+        match self {
+            Activation::Identity => grad,
+            Activation::Relu => {
+                if y > 0.0 {
+                    grad
+                } else {
+                    0.0
+                }
+            }
+            Activation::LeakyRelu(slope) => {
+                if y > 0.0 {
+                    grad
+                } else {
+                    grad * slope
+                }
+            }
+            Activation::Tanh => grad * (1.0 - y * y),
+        }
+    }
 }

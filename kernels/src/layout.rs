@@ -146,6 +146,29 @@ impl ConvShape {
         }
     }
 
+    /// The layer whose forward pass is this one's gradient with respect to its input: the
+    /// other kind, from a plane shaped as this one's output (with at least the border the other
+    /// kind reads) to a plane shaped as this one's input. The gradient of a strided convolution
+    /// is the transposed convolution with the same PyTorch weights, and the converse: packing
+    /// this layer's PyTorch weight tensor for the transposed shape
+    /// ([`crate::pack::conv_weights_into`]) reads `[out, in, k, k]` as `[in, out, k, k]`,
+    /// which is exactly the swap of roles. Its bias is zero and its activation the identity.
+    pub const fn transposed(&self) -> ConvShape {
+        let kind = match self.kind {
+            ConvKind::Down => ConvKind::Up,
+            ConvKind::Up => ConvKind::Down,
+        };
+        let o = self.output;
+        let needed = kind.input_halo(self.kernel);
+        let halo = if o.halo > needed { o.halo } else { needed };
+        ConvShape {
+            kind,
+            kernel: self.kernel,
+            input: Plane::new(o.height, o.width, o.channels, halo),
+            output: self.input,
+        }
+    }
+
     /// Stride between the weight vectors of consecutive input channels.
     pub const fn oc_stride(&self) -> usize {
         self.output.channels.div_ceil(OC_ALIGN) * OC_ALIGN

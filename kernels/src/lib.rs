@@ -10,7 +10,10 @@
 //!   through [`OutputParts`], which hands each part out once;
 //! - the backward operations of training, on the same layouts: [`dense_weight_grad`] (the
 //!   data gradient of a dense layer is the forward [`dense`] on the transposed packing,
-//!   [`pack::dense_from_fn`]) and [`tanh_backward`];
+//!   [`pack::dense_from_fn`]) and [`activation_backward`]; a convolution's data gradient is
+//!   the forward [`conv`] (or Winograd) of its [`ConvShape::transposed`] shape, its weight
+//!   gradient [`conv_weight_grad`] (the dense weight gradient over patches); [`norm`] holds
+//!   BatchNorm in training mode and the per-channel sums of bias gradients;
 //! - [`winograd`]: a second algorithm for the convolutions, Winograd's minimal filtering, with
 //!   its own weight layout and caller-provided scratch; its scalar path is tested against the
 //!   direct scalar convolution;
@@ -34,6 +37,7 @@ pub mod activation;
 mod isa;
 pub mod layout;
 pub mod math;
+pub mod norm;
 pub mod ops;
 mod output;
 pub mod pack;
@@ -46,8 +50,9 @@ pub use half::f16;
 pub use isa::{Isa, IsaLevel};
 pub use layout::{ConvKind, ConvParams, ConvShape, Matrix, MatrixData, Plane, Tensor, Weights, NARROW_OC, OC_ALIGN};
 pub use ops::{
-    conv, conv_channels, dense, dense_rows, dense_weight_grad, dense_weight_grad_rows, tanh_backward,
-    winograd_channels, winograd_conv, winograd_input,
+    activation_backward, conv, conv_channels, conv_patch_len, conv_weight_grad, conv_weight_grad_rows,
+    conv_weight_grad_scratch_len, dense, dense_rows, dense_weight_grad, dense_weight_grad_rows, winograd_channels,
+    winograd_conv, winograd_input,
 };
 pub use output::{OutputPart, OutputParts};
 pub use winograd::Winograd;

@@ -7,7 +7,7 @@
 //! every entry point here is safe.
 
 use crate::winograd::Winograd;
-use crate::{simd, Activation, ConvParams, Isa, Matrix, OutputPart};
+use crate::{simd, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, OutputPart};
 
 /// `output = act(conv(input) + bias)` for one image: see [`crate::ConvShape`] for the layouts.
 /// Only the interior of `output` is written; its border stays as it was (zero).
@@ -129,13 +129,105 @@ pub fn dense_weight_grad_rows(isa: Isa, dy: &[f32], x: &[f32], rows: usize, cols
     assert_eq!(part.buffer_len(), Matrix::packed_len(rows, cols));
     // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer is the whole
     // packed matrix (checked), and the panels of its rows are this call's alone.
-    unsafe { (simd::entries(isa).dense_weight_grad)(dy, x, cols, part.ptr(), units, rows) }
+    unsafe { (simd::entries(isa).dense_weight_grad)(dy, x, cols, part.ptr(), units, rows, false) }
 }
 
-/// The gradient through `y = tanh(x)`, given `y`: `grad *= 1 - y²`, bit-identical on every
-/// instruction set.
-pub fn tanh_backward(isa: Isa, y: &[f32], grad: &mut [f32]) {
+/// The gradient through `y = act(x)`, given `y`, in place (see [`Activation::backward`]):
+/// bit-identical on every instruction set.
+pub fn activation_backward(isa: Isa, act: Activation, y: &[f32], grad: &mut [f32]) {
     assert_eq!(y.len(), grad.len());
     // SAFETY: `isa` proves the CPU has the kernel's features.
-    unsafe { (simd::entries(isa).tanh_backward)(y, grad) }
+    unsafe { (simd::entries(isa).activation_backward)(act, y, grad) }
+}
+
+/// Output pixels per chunk of [`conv_weight_grad`]: one chunk of the dense weight gradient's
+/// items, so the sums run in the same order whatever the thread count.
+const GRAD_PIXELS: usize = 128;
+
+/// Floats in the patch an output pixel of `shape` reads: `k · k · in_channels`, the columns of
+/// its weight gradient.
+pub const fn conv_patch_len(shape: &ConvShape) -> usize {
+    shape.kernel * shape.kernel * shape.input.channels
+}
+
+/// Floats of scratch that [`conv_weight_grad_rows`] needs for `shape`, one per thread: a chunk
+/// of patches and of output gradients.
+pub const fn conv_weight_grad_scratch_len(shape: &ConvShape) -> usize {
+    GRAD_PIXELS * (conv_patch_len(shape) + shape.output.channels)
+}
+
+/// The weight gradient of a strided convolution ([`ConvKind::Down`]) summed over a batch:
+/// `grad[o][(ky, kx, i)] = Σ dy[o](oy, ox) · x[i](2oy + ky - k/2, 2ox + kx - k/2)` over items and
+/// output pixels, overwriting `grad`, the packed `out_channels x (k·k·in_channels)` [`Matrix`]
+/// (for layers wider than [`crate::NARROW_OC`], the packed layout of the weights themselves).
+/// `input` holds planes of `shape.input`, `dy` the same number of planes of `shape.output`.
+///
+/// It is [`dense_weight_grad`] with one item per output pixel whose input is the patch the
+/// pixel reads, gathered a chunk at a time into `scratch` ([`conv_weight_grad_scratch_len`]).
+/// The gradient of a transposed convolution `x -> y` is this one for its
+/// [`ConvShape::transposed`] shape with the roles swapped: `input` the gradient of `y`, `dy`
+/// the layer's input `x`; its rows are then the layer's input channels, as in PyTorch's
+/// `[in, out, k, k]` tensor (see [`crate::pack::conv_grad_to_torch`]).
+pub fn conv_weight_grad(isa: Isa, shape: ConvShape, input: &[f32], dy: &[f32], scratch: &mut [f32], grad: &mut [f32]) {
+    let rows = shape.output.channels;
+    conv_weight_grad_rows(isa, shape, input, dy, scratch, OutputPart::whole(grad, rows));
+}
+
+/// [`conv_weight_grad`] for the output channels of `part` only, so that threads can fill
+/// disjoint panels of one gradient at once, each with its own `scratch`.
+pub fn conv_weight_grad_rows(
+    isa: Isa,
+    shape: ConvShape,
+    input: &[f32],
+    dy: &[f32],
+    scratch: &mut [f32],
+    part: OutputPart<'_>,
+) {
+    let (ip, op, k) = (shape.input, shape.output, shape.kernel);
+    assert_eq!(
+        shape.kind,
+        ConvKind::Down,
+        "a transposed layer's weight gradient is its transposed shape's"
+    );
+    assert!(k % 2 == 1 && ip.halo >= k / 2, "odd kernels in a border of k / 2");
+    assert_eq!(shape, ConvShape::new(shape.kind, k, ip, op.channels, op.halo));
+    assert!(input.len().is_multiple_of(ip.len()), "input is not whole planes");
+    let items = input.len() / ip.len();
+    assert_eq!(dy.len(), items * op.len(), "input and dy hold different batches");
+    let (rows, cols) = (op.channels, conv_patch_len(&shape));
+    assert_eq!(part.buffer_len(), Matrix::packed_len(rows, cols));
+    let units = part.units();
+    assert!(units.start.is_multiple_of(crate::OC_ALIGN) && units.end <= rows);
+    assert!(scratch.len() >= conv_weight_grad_scratch_len(&shape));
+    let (patches, dys) = scratch.split_at_mut(GRAD_PIXELS * cols);
+    let kernel = simd::entries(isa).dense_weight_grad;
+    let pixels = op.height * op.width;
+    let mut first = true;
+    for (x, d) in input.chunks_exact(ip.len()).zip(dy.chunks_exact(op.len())) {
+        for start in (0..pixels).step_by(GRAD_PIXELS) {
+            let n = GRAD_PIXELS.min(pixels - start);
+            for (j, p) in (start..start + n).enumerate() {
+                let (oy, ox) = (p / op.width, p % op.width);
+                dys[j * rows..][..rows].copy_from_slice(&d[op.index(oy, ox)..][..rows]);
+                // Tap (ky, kx) reads input pixel (2oy + ky - k/2, 2ox + kx - k/2): the k taps of
+                // one row of the kernel are k adjacent pixels, inside the border.
+                let row = k * ip.channels;
+                for ky in 0..k {
+                    let at =
+                        (2 * oy + ky + ip.halo - k / 2) * ip.row_stride() + (2 * ox + ip.halo - k / 2) * ip.channels;
+                    patches[j * cols + ky * row..][..row].copy_from_slice(&x[at..][..row]);
+                }
+            }
+            let (d, x) = (&dys[..n * rows], &patches[..n * cols]);
+            // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer is the
+            // whole packed matrix (checked) and the panels of its rows are this call's alone.
+            unsafe { kernel(d, x, cols, part.ptr(), units.clone(), rows, !first) };
+            first = false;
+        }
+    }
+    if first {
+        // No pixels: the gradient is zero.
+        // SAFETY: as above, with no items.
+        unsafe { kernel(&[], &[], cols, part.ptr(), units, rows, false) };
+    }
 }

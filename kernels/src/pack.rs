@@ -43,12 +43,37 @@ pub fn conv_weights(
     bias: &[f32],
     bn: Option<BatchNorm<'_>>,
 ) -> (Vec<f32>, Vec<f32>) {
-    let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
-    assert_eq!(torch_weight.len(), oc * ic * k * k);
+    let oc = shape.output.channels;
     assert_eq!(bias.len(), oc);
     let affine = bn.map(|bn| bn.affine()).unwrap_or_else(|| alloc::vec![(1.0, 0.0); oc]);
     assert_eq!(affine.len(), oc);
     let mut packed = alloc::vec![0.0f32; shape.packed_len()];
+    for_each_conv_weight(shape, torch_weight.len(), |src, at, o| {
+        packed[at] = (torch_weight[src] as f64 * affine[o].0) as f32
+    });
+    let bias = bias
+        .iter()
+        .zip(&affine)
+        .map(|(&b, &(s, t))| (b as f64 * s + t) as f32)
+        .collect();
+    (packed, bias)
+}
+
+/// [`conv_weights`] without BatchNorm and without allocating: packs `torch_weight` into
+/// `packed` ([`ConvShape::packed_len`] floats, its padding left as it was). Training repacks
+/// its weights after every update with it, and packs a layer's data gradient, the forward
+/// pass of [`ConvShape::transposed`], from the layer's own PyTorch weights.
+pub fn conv_weights_into(shape: &ConvShape, torch_weight: &[f32], packed: &mut [f32]) {
+    assert_eq!(packed.len(), shape.packed_len());
+    for_each_conv_weight(shape, torch_weight.len(), |src, at, _| packed[at] = torch_weight[src]);
+}
+
+/// Calls `f(source, packed, out_channel)` for every weight of a PyTorch convolution tensor
+/// of `torch_len` values (checked to be `shape`'s size): its index there, its index in the
+/// packed layout.
+fn for_each_conv_weight(shape: &ConvShape, torch_len: usize, mut f: impl FnMut(usize, usize, usize)) {
+    let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
+    assert_eq!(torch_len, oc * ic * k * k);
     for o in 0..oc {
         for i in 0..ic {
             for ky in 0..k {
@@ -57,17 +82,11 @@ pub fn conv_weights(
                         ConvKind::Down => ((o * ic + i) * k + ky) * k + kx,
                         ConvKind::Up => ((i * oc + o) * k + ky) * k + kx,
                     };
-                    packed[shape.packed_index(ky, kx, i, o)] = (torch_weight[src] as f64 * affine[o].0) as f32;
+                    f(src, shape.packed_index(ky, kx, i, o), o);
                 }
             }
         }
     }
-    let bias = bias
-        .iter()
-        .zip(&affine)
-        .map(|(&b, &(s, t))| (b as f64 * s + t) as f32)
-        .collect();
-    (packed, bias)
 }
 
 /// Packs PyTorch convolution weights for [`crate::winograd_channels`] (see [`Winograd`]),
@@ -81,16 +100,38 @@ pub fn winograd_weights(
 ) -> (Vec<f32>, Vec<f32>) {
     let (direct, bias) = conv_weights(&w.shape, torch_weight, bias, bn);
     let mut packed = alloc::vec![0.0f32; w.packed_len()];
-    let mut transform = WeightTransform {
-        w,
-        direct: &direct,
-        packed: &mut packed,
-    };
+    winograd_weights_from_direct(w, &direct, &mut packed);
+    (packed, bias)
+}
+
+/// Transforms weights packed for the direct convolution of `w.shape` (by [`conv_weights`] or
+/// [`conv_weights_into`]) into `packed`, [`Winograd::packed_len`] floats, without allocating.
+pub fn winograd_weights_from_direct(w: &Winograd, direct: &[f32], packed: &mut [f32]) {
+    assert_eq!(direct.len(), w.shape.packed_len());
+    assert_eq!(packed.len(), w.packed_len());
+    let mut transform = WeightTransform { w, direct, packed };
     for phase in 0..4 {
         // SAFETY: the weight transform is plain scalar code.
         unsafe { with_phase(w, phase, &mut transform) };
     }
-    (packed, bias)
+}
+
+/// The inverse of [`conv_weights_into`] for a gradient: `packed` is the `out x (k·k·in)`
+/// [`crate::Matrix`] of [`crate::conv_weight_grad`] for the strided `shape`, `torch` the
+/// PyTorch `[out, in, k, k]` tensor it fills (for a transposed layer, whose gradient is that of
+/// its [`ConvShape::transposed`] shape, this is its own `[in, out, k, k]` tensor).
+pub fn conv_grad_to_torch(shape: &ConvShape, packed: &[f32], torch: &mut [f32]) {
+    let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
+    let cols = k * k * ic;
+    assert_eq!(packed.len(), Matrix::packed_len(oc, cols));
+    assert_eq!(torch.len(), oc * cols);
+    for (o, row) in torch.chunks_exact_mut(cols).enumerate() {
+        for (i, per_input) in row.chunks_exact_mut(k * k).enumerate() {
+            for (tap, t) in per_input.iter_mut().enumerate() {
+                *t = packed[Matrix::packed_index(o, tap * ic + i, cols)];
+            }
+        }
+    }
 }
 
 /// Maps an index of a flattened `[channels, height, width]` (PyTorch NCHW flatten) tensor to

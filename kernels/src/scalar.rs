@@ -118,12 +118,13 @@ pub(crate) unsafe fn dense_rows(w: Matrix<'_>, bias: &[f32], act: Activation, x:
 pub fn dense_weight_grad(dy: &[f32], x: &[f32], rows: usize, cols: usize, grad: &mut [f32]) {
     assert_eq!(grad.len(), Matrix::packed_len(rows, cols));
     // SAFETY: `grad` holds the whole packed matrix and is borrowed mutably for the call.
-    unsafe { dense_weight_grad_rows(dy, x, cols, grad.as_mut_ptr(), 0..rows, rows) }
+    unsafe { dense_weight_grad_rows(dy, x, cols, grad.as_mut_ptr(), 0..rows, rows, false) }
 }
 
 /// `grad[r][c] = Σ_k dy[k * total_rows + r] * x[k * cols + c]` for the rows `rows`, summed in
-/// item order, into the packed layout of a `total_rows x cols` [`Matrix`]; when `rows` ends
-/// the matrix, the padding rows of its last panel are set to zero.
+/// item order, into the packed layout of a `total_rows x cols` [`Matrix`] (added to what it
+/// holds if `accumulate`); when `rows` ends the matrix, the padding rows of its last panel are
+/// set to zero.
 ///
 /// # Safety
 /// `grad` must point to the whole packed matrix, valid for writes, and no other thread may
@@ -135,6 +136,7 @@ pub(crate) unsafe fn dense_weight_grad_rows(
     grad: *mut f32,
     rows: Range<usize>,
     total_rows: usize,
+    accumulate: bool,
 ) {
     unsafe {
         let end = rows.end.next_multiple_of(crate::OC_ALIGN);
@@ -146,15 +148,16 @@ pub(crate) unsafe fn dense_weight_grad_rows(
                 } else {
                     0.0
                 };
-                *grad.add(Matrix::packed_index(r, c, cols)) = sum;
+                let g = grad.add(Matrix::packed_index(r, c, cols));
+                *g = if accumulate { *g + sum } else { sum };
             }
         }
     }
 }
 
-/// See [`crate::tanh_backward`]: `grad *= 1 - y²`, in this order, unfused.
-pub fn tanh_backward(y: &[f32], grad: &mut [f32]) {
+/// See [`crate::activation_backward`]: [`Activation::backward`] value by value.
+pub fn activation_backward(act: Activation, y: &[f32], grad: &mut [f32]) {
     for (g, &y) in grad.iter_mut().zip(y) {
-        *g *= 1.0 - y * y;
+        *g = act.backward(y, *g);
     }
 }

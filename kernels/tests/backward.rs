@@ -7,7 +7,7 @@ mod common;
 use common::{simd_levels, values};
 use drivesim_kernels::pack::{dense_from_fn, dense_weights};
 use drivesim_kernels::{
-    dense, dense_weight_grad, dense_weight_grad_rows, scalar, tanh_backward, Activation, Isa, Matrix, MatrixData,
+    activation_backward, dense, dense_weight_grad, dense_weight_grad_rows, scalar, Activation, Isa, Matrix, MatrixData,
     OutputParts,
 };
 
@@ -176,19 +176,42 @@ fn gradients_are_adjoint_to_the_forward_product() {
 }
 
 #[test]
-fn tanh_backward_is_bit_identical_to_scalar() {
-    for n in [0, 1, 7, 8, 15, 16, 17, 100] {
-        let y: Vec<f32> = values(n as u64, n, 1.0);
-        let grad = values(n as u64 + 1, n, 3.0);
-        let mut want = grad.clone();
-        scalar::tanh_backward(&y, &mut want);
-        for (g, (w, y)) in grad.iter().zip(want.iter().zip(&y)) {
-            assert_eq!(*w, g * (1.0 - y * y));
-        }
-        for isa in Isa::supported() {
-            let mut got = grad.clone();
-            tanh_backward(isa, &y, &mut got);
-            assert_eq!(got, want, "{:?} n {n}", isa.level());
+fn activation_backward_is_bit_identical_to_scalar() {
+    let acts = [
+        Activation::Identity,
+        Activation::Relu,
+        Activation::LeakyRelu(0.2),
+        Activation::Tanh,
+    ];
+    for act in acts {
+        for n in [0, 1, 7, 8, 15, 16, 17, 100] {
+            // Outputs of the activation, zeros among them (ReLU's), and their gradients.
+            let mut y: Vec<f32> = values(n as u64, n, 1.0).iter().map(|&x| act.apply(x)).collect();
+            y.iter_mut().step_by(5).for_each(|y| *y = 0.0);
+            let grad = values(n as u64 + 1, n, 3.0);
+            let mut want = grad.clone();
+            scalar::activation_backward(act, &y, &mut want);
+            for (g, (w, &y)) in grad.iter().zip(want.iter().zip(&y)) {
+                // The derivative from its definition, PyTorch's left slope at 0.
+                let slope = match act {
+                    Activation::Identity => 1.0,
+                    Activation::Relu => (y > 0.0) as u8 as f32,
+                    Activation::LeakyRelu(s) => {
+                        if y > 0.0 {
+                            1.0
+                        } else {
+                            s
+                        }
+                    }
+                    Activation::Tanh => 1.0 - y * y,
+                };
+                assert_eq!(*w, g * slope, "{act:?}");
+            }
+            for isa in Isa::supported() {
+                let mut got = grad.clone();
+                activation_backward(isa, act, &y, &mut got);
+                assert_eq!(got, want, "{:?} {act:?} n {n}", isa.level());
+            }
         }
     }
 }

@@ -6,7 +6,7 @@
 //! so that training needs no allocator. Steps allocate nothing. The backward pass runs on the
 //! forward kernels where the maths allows (the data gradient of a dense layer is the forward
 //! product by the transposed packing) and on the kernels crate's backward operations
-//! otherwise ([`drivesim_kernels::dense_weight_grad`], [`drivesim_kernels::tanh_backward`]).
+//! otherwise ([`drivesim_kernels::dense_weight_grad`], [`drivesim_kernels::activation_backward`]).
 //! Each step agrees with PyTorch's (`weights/train.py`, checked by the fixtures of
 //! `tests/train.rs`).
 

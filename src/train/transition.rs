@@ -757,7 +757,7 @@ enum Backward {
 /// the prediction and the next step), then through the tanh: `dpre = dh (1 - h²)`.
 fn step_backward(exec: Exec<'_>, bt: Matrix<'_>, zero: &[f32], gathered: &[f32], h: &[f32], dpre: &mut [f32]) {
     dense(exec, bt, zero, Activation::Identity, gathered, dpre);
-    drivesim_kernels::tanh_backward(exec.isa, h, dpre);
+    drivesim_kernels::activation_backward(exec.isa, Activation::Tanh, h, dpre);
 }
 
 /// `grad = dyᵀ x` packed, shared among the threads by panels of rows.

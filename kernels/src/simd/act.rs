@@ -70,17 +70,28 @@ pub(crate) unsafe fn apply_slice<V: Simd>(act: Activation, data: &mut [f32]) {
     }
 }
 
-/// [`crate::scalar::tanh_backward`] lane by lane, in the same (unfused) operation order:
-/// `grad *= 1 - y²`.
+/// [`Activation::backward`] lane by lane, in the same operation order: bit-identical to
+/// [`crate::scalar::activation_backward`].
 #[inline(always)]
-pub(crate) unsafe fn tanh_backward<V: Simd>(y: &[f32], grad: &mut [f32]) {
+pub(crate) unsafe fn backward<V: Simd>(act: Activation, y: &[f32], grad: &mut [f32]) {
     unsafe {
+        if act == Activation::Identity {
+            return;
+        }
         let n = grad.len().min(y.len());
-        let one = V::splat(1.0);
+        let (zero, one) = (V::splat(0.0), V::splat(1.0));
         for i in (0..n).step_by(V::LANES) {
             let lanes = V::LANES.min(n - i);
-            let (y, g) = (load_n::<V>(y.as_ptr().add(i), lanes), grad.as_mut_ptr().add(i));
-            store_n(load_n::<V>(g, lanes).mul(one.sub(y.mul(y))), g, lanes);
+            let (y, p) = (load_n::<V>(y.as_ptr().add(i), lanes), grad.as_mut_ptr().add(i));
+            let g = load_n::<V>(p, lanes);
+            // `zero.select_lt(y, a, b)` is `if 0 < y { a } else { b }`, as the scalar test.
+            let d = match act {
+                Activation::Identity => g,
+                Activation::Relu => zero.select_lt(y, g, zero),
+                Activation::LeakyRelu(slope) => zero.select_lt(y, g, g.mul(V::splat(slope))),
+                Activation::Tanh => g.mul(one.sub(y.mul(y))),
+            };
+            store_n(d, p, lanes);
         }
     }
 }

@@ -34,7 +34,7 @@ struct Args<'a> {
     grad: *mut f32,
 }
 
-/// `grad = dyᵀ x` for the rows `rows` (see [`crate::dense_weight_grad_rows`]), with tiles of
+/// `grad = dyᵀ x` (or `grad += dyᵀ x` if `accumulate`) for the rows `rows` (see [`crate::dense_weight_grad_rows`]), with tiles of
 /// `NC` columns by `NV` vectors of rows.
 ///
 /// # Safety
@@ -47,6 +47,7 @@ pub(super) unsafe fn weight_grad<S: Simd, const NC: usize, const NV: usize>(
     grad: *mut f32,
     rows: Range<usize>,
     total_rows: usize,
+    accumulate: bool,
 ) {
     unsafe {
         let args = Args {
@@ -65,7 +66,7 @@ pub(super) unsafe fn weight_grad<S: Simd, const NC: usize, const NV: usize>(
             let tiles = RowsForColumns::<NC> {
                 args: &args,
                 ks,
-                first: chunk == 0,
+                first: chunk == 0 && !accumulate,
             };
             row_tiles::<S, NV>(rows.start, (end - rows.start) / S::LANES, S::LANES, &tiles);
         }

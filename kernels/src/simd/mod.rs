@@ -36,16 +36,16 @@ pub(crate) struct Entries {
     pub dense: unsafe fn(Matrix<'_>, &[f32], Activation, &[f32], *mut f32, usize),
     /// See [`crate::scalar::dense_weight_grad_rows`].
     pub dense_weight_grad: DenseWeightGrad,
-    /// See [`crate::scalar::tanh_backward`].
-    pub tanh_backward: unsafe fn(&[f32], &mut [f32]),
+    /// See [`crate::scalar::activation_backward`].
+    pub activation_backward: unsafe fn(Activation, &[f32], &mut [f32]),
     /// See [`crate::scalar::winograd_input`].
     pub winograd_input: unsafe fn(&Winograd, usize, &[f32], &mut [f32]),
     /// See [`crate::scalar::winograd_channels`].
     pub winograd_channels: WinogradChannels,
 }
 
-/// `(dy, x, cols, grad, rows, total_rows)`.
-type DenseWeightGrad = unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, usize);
+/// `(dy, x, cols, grad, rows, total_rows, accumulate)`.
+type DenseWeightGrad = unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, usize, bool);
 
 /// `(w, layer, v, scratch, output, channels)`.
 type WinogradChannels = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mut [f32], *mut f32, Range<usize>);
@@ -136,7 +136,7 @@ static SCALAR: Entries = Entries {
     conv: scalar::conv_channels,
     dense: scalar::dense_rows,
     dense_weight_grad: scalar::dense_weight_grad_rows,
-    tanh_backward: scalar::tanh_backward,
+    activation_backward: scalar::activation_backward,
     winograd_input: scalar::winograd_input,
     winograd_channels: scalar::winograd_channels,
 };
@@ -188,10 +188,11 @@ macro_rules! entries {
                 grad: *mut f32,
                 rows: core::ops::Range<usize>,
                 total_rows: usize,
+                accumulate: bool,
             ) {
                 unsafe {
                     $crate::simd::dense_grad::weight_grad::<$vector, $items, $vectors>(
-                        dy, x, cols, grad, rows, total_rows,
+                        dy, x, cols, grad, rows, total_rows, accumulate,
                     )
                 }
             }
@@ -199,8 +200,8 @@ macro_rules! entries {
             /// # Safety
             /// The CPU must have the features.
             #[target_feature(enable = $features)]
-            unsafe fn tanh_backward(y: &[f32], grad: &mut [f32]) {
-                unsafe { $crate::simd::act::tanh_backward::<$vector>(y, grad) }
+            unsafe fn activation_backward(act: $crate::Activation, y: &[f32], grad: &mut [f32]) {
+                unsafe { $crate::simd::act::backward::<$vector>(act, y, grad) }
             }
 
             /// # Safety
@@ -228,7 +229,7 @@ macro_rules! entries {
                 conv,
                 dense,
                 dense_weight_grad,
-                tanh_backward,
+                activation_backward,
                 winograd_input: input,
                 winograd_channels: channels,
             }
