@@ -7,7 +7,10 @@ For each fixture NAME this writes NAME.safetensors (random weights in the
 drivesim format), NAME.io.safetensors (float32 inputs and reference outputs,
 frames HWC) and NAME.train.safetensors (a batch of transition training windows,
 the first step's loss, gradients and updated tensors, and the tensors after ten
-steps, from train.py's step). See weights/README.md for the tensor names.
+steps, from train.py's step); for some, NAME.gan.safetensors (the weights with a
+discriminator) and NAME.gan.io.safetensors (a VAE-GAN batch, the first step's
+losses, gradients and updated tensors, and the tensors after five steps). See
+weights/README.md for the tensor names.
 """
 
 from __future__ import annotations
@@ -21,8 +24,8 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from model import CONFIG_KEY, Config, DriveSim, load_drivesim, save_drivesim
-from train import transition_step
+from model import CONFIG_KEY, Config, DriveSim, load_discriminator, load_drivesim, save_drivesim
+from train import ADAM_VAE_GAN, Discriminator, transition_step, vae_gan_step
 
 OUT = Path(__file__).resolve().parent.parent / "tests" / "fixtures"
 RTOL = 1e-6
@@ -44,6 +47,11 @@ TRAIN_WINDOWS = {
     "wide_f32": (9, 3, 5.0),
 }
 
+# VAE-GAN fixtures: frames per batch (BatchNorm statistics over few items), and the Adam steps
+# after which the tensors are compared again.
+GAN_BATCH = {"small_f32": 3, "wide_f32": 2, "tiny_bf16": 2}
+GAN_STEPS = 5
+
 # name: (config, dtype, seed)
 FIXTURES = {
     "small_f32": (Config(48, 112, 3, 6, z_dim=20, hidden_dim=36, action_dim=2), "f32", 1),
@@ -56,7 +64,7 @@ FIXTURES = {
 }
 
 
-def randomize(model: DriveSim) -> None:
+def randomize(model: torch.nn.Module) -> None:
     """Random weights whose outputs depend clearly on every layer.
 
     PyTorch's default init shrinks the signal at each layer, so generated frames
@@ -79,8 +87,9 @@ def randomize(model: DriveSim) -> None:
                 m.bias.normal_(0, 0.1)
                 m.running_mean.normal_(0, 0.1)
                 m.running_var.uniform_(0.5, 1.5)
-        model.transition.b.normal_(0, 0.1)
-        model.transition.a.normal_(0, 0.1)
+        if isinstance(model, DriveSim):
+            model.transition.b.normal_(0, 0.1)
+            model.transition.a.normal_(0, 0.1)
 
 
 def hwc(frames: torch.Tensor) -> torch.Tensor:
@@ -162,6 +171,45 @@ def reference_train(model: DriveSim, cfg: Config, name: str, seed: int) -> tuple
     return {k: v.float().contiguous() for k, v in io.items()}, meta
 
 
+def reference_vae_gan(model: DriveSim, cfg: Config, dtype: str, name: str, seed: int, out: Path) -> dict:
+    """Writes NAME.gan.safetensors (the weights with a random discriminator) and returns a batch
+    (frames HWC in [-1, 1], eps, prior), one VAE-GAN step's losses, gradients and updated
+    tensors (running statistics included), and the tensors after GAN_STEPS steps on the batch."""
+    batch = GAN_BATCH[name]
+    g = torch.Generator().manual_seed(2000 + seed)
+    frames_u8 = torch.randint(0, 256, (batch, cfg.height, cfg.width, cfg.channels), generator=g, dtype=torch.uint8)
+    io = {"frames": frames_u8.float() / 127.5 - 1.0}
+    io["eps"], io["prior"] = (torch.randn(batch, cfg.z_dim, generator=g) for _ in range(2))
+    torch.manual_seed(3000 + seed)
+    dis = Discriminator(cfg)
+    randomize(dis)
+    path = out / f"{name}.gan.safetensors"
+    save_drivesim(model, cfg, path, dtype, discriminator=dis)
+    # Train on the tensors as stored (rounded for f16/bf16), in float32.
+    model, _ = load_drivesim(path)
+    dis.load_state_dict(load_discriminator(path), strict=False)
+    model.train()
+    dis.train()
+    nets = dict(encoder=model.encoder, generator=model.generator, discriminator=dis)
+    opts = [torch.optim.Adam(m.parameters(), **ADAM_VAE_GAN) for m in nets.values()]
+
+    def state(prefix):
+        return {f"{prefix}{net}.{k}": v.detach().clone() for net, m in nets.items()
+                for k, v in m.state_dict().items() if not k.endswith("num_batches_tracked")}
+
+    x = nchw(io["frames"])
+    for step in range(GAN_STEPS):
+        losses, grads, _ = vae_gan_step(model.encoder, model.generator, dis, opts, x, io["eps"], io["prior"])
+        if step == 0:
+            io.update({f"loss.{k}": v.reshape(1) for k, v in losses.items()})
+            for net, m in nets.items():
+                io.update({f"grad.{net}.{k}": gr for (k, _), gr in zip(m.named_parameters(), grads[net])})
+            io.update(state(""))
+            print(f"{name}: VAE-GAN losses " + ", ".join(f"{k} {v.item():.4f}" for k, v in losses.items()))
+    io.update(state(f"after{GAN_STEPS}."))
+    return {k: v.float().contiguous() for k, v in io.items()}
+
+
 def generate(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name, (cfg, dtype, seed) in FIXTURES.items():
@@ -176,6 +224,13 @@ def generate(out: Path) -> None:
         save_file(reference_io(model, cfg), str(out / f"{name}.io.safetensors"), metadata=meta)
         train_io, train_meta = reference_train(model, cfg, name, seed)
         save_file(train_io, str(out / f"{name}.train.safetensors"), metadata=train_meta)
+        if name in GAN_BATCH:
+            torch.manual_seed(seed)
+            model = DriveSim(cfg)
+            randomize(model)
+            gan_io = reference_vae_gan(model, cfg, dtype, name, seed, out)
+            meta = {"lr": str(ADAM_VAE_GAN["lr"]), "steps": str(GAN_STEPS)}
+            save_file(gan_io, str(out / f"{name}.gan.io.safetensors"), metadata=meta)
 
 
 def compare(committed: Path, fresh: Path) -> list[str]:

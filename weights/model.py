@@ -21,6 +21,9 @@ CONFIG_KEY = "drivesim.config"
 # What each action input means and the range it was trained on: a JSON array of
 # {"name", "unit", "mean", "std", "min", "max"}, one per action (weights/README.md §3).
 ACTIONS_KEY = "drivesim.actions"
+# A weight file may also carry the VAE-GAN's discriminator (train.py's `Discriminator`) under
+# this prefix, so that training can resume from it; inference ignores those tensors.
+DISCRIMINATOR = "discriminator."
 DTYPES = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}
 LEAK = 0.2  # LeakyReLU slope of the encoder, as in the paper's discriminator-style encoder
 
@@ -190,7 +193,7 @@ class DriveSim(nn.Module):
         return torch.stack(codes)
 
 
-def state_tensors(model: DriveSim, dtype: str | torch.dtype = "f32") -> dict[str, torch.Tensor]:
+def state_tensors(model: nn.Module, dtype: str | torch.dtype = "f32") -> dict[str, torch.Tensor]:
     """The tensors of the weight file: the state_dict without BN's num_batches_tracked."""
     dt = DTYPES.get(dtype, dtype)
     return {
@@ -201,9 +204,10 @@ def state_tensors(model: DriveSim, dtype: str | torch.dtype = "f32") -> dict[str
 
 
 def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | torch.dtype = "f32",
-                  actions: list[dict] | None = None) -> None:
+                  actions: list[dict] | None = None, discriminator: nn.Module | None = None) -> None:
     """Write the drivesim safetensors file; dtype is "f32", "f16", "bf16" or a torch dtype;
-    `actions`, if given, becomes the `drivesim.actions` metadata (one dict per action)."""
+    `actions`, if given, becomes the `drivesim.actions` metadata (one dict per action);
+    `discriminator`, if given, is stored under the prefix `discriminator.`."""
     if DTYPES.get(dtype, dtype) not in DTYPES.values():
         raise ValueError(f"unsupported dtype {dtype!r}")
     metadata = {CONFIG_KEY: cfg.to_json()}
@@ -211,7 +215,10 @@ def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | t
         if len(actions) != cfg.action_dim:
             raise ValueError(f"{len(actions)} action descriptions for {cfg.action_dim} actions")
         metadata[ACTIONS_KEY] = json.dumps(actions)
-    save_file(state_tensors(model, dtype), str(path), metadata=metadata)
+    tensors = state_tensors(model, dtype)
+    if discriminator is not None:
+        tensors.update({DISCRIMINATOR + k: v for k, v in state_tensors(discriminator, dtype).items()})
+    save_file(tensors, str(path), metadata=metadata)
 
 
 def load_drivesim(path: str | Path) -> tuple[DriveSim, Config]:
@@ -225,7 +232,13 @@ def load_drivesim(path: str | Path) -> tuple[DriveSim, Config]:
     dtypes = {t.dtype for t in tensors.values()}
     if len(dtypes) != 1 or not dtypes <= set(DTYPES.values()):
         raise ValueError(f"{path}: tensors must all share one of f32/f16/bf16, got {dtypes}")
+    tensors = {k: v for k, v in tensors.items() if not k.startswith(DISCRIMINATOR)}
     return from_state_dict(cfg, tensors), cfg
+
+
+def load_discriminator(path: str | Path) -> dict[str, torch.Tensor]:
+    """The `discriminator.*` tensors of a weight file as float32, prefix removed (empty if none)."""
+    return {k[len(DISCRIMINATOR):]: v.float() for k, v in load_file(str(path)).items() if k.startswith(DISCRIMINATOR)}
 
 
 def from_state_dict(cfg: Config, tensors: dict[str, torch.Tensor]) -> DriveSim:

@@ -2,7 +2,7 @@
 
   weights/tool train fit --data train.safetensors.gz --out default.safetensors [--device cuda]
   weights/tool train eval --weights default.safetensors --data eval.safetensors.gz --figures figures/
-  weights/tool train step --stage transition --weights W.safetensors --batch B.safetensors --out O.safetensors
+  weights/tool train step --stage transition|vae-gan --weights W.safetensors --batch B.safetensors --out O.safetensors
 
 fit: (1) VAE-GAN (Larsen et al.): encoder, generator and a discriminator. The encoder
 minimises the KL prior plus the reconstruction error, measured on the discriminator's 3rd
@@ -13,8 +13,10 @@ forced, then 10 with its own output fed back, gradient stopped. Adam throughout.
 normalisation used in training is folded into U and b, so the exported model takes raw
 (speed, steering). Writes the f16 drivesim file and a JSON log beside it.
 
-step: one transition training step on a given batch, writing the loss, the gradients (before
-clipping) and the updated tensors: the reference of the Rust `train step` (weights/README.md).
+step: one training step of a stage on a given batch, writing the losses, the gradients (for the
+transition, before clipping) and the updated tensors: the reference of the Rust `train step`
+(weights/README.md). The VAE-GAN step reads the discriminator from the weight file, where `fit`
+stores it (`discriminator.*`), so training can resume from either side.
 
 eval: reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
 a contact sheet of a 100-step rollout, all from frames the model never saw.
@@ -35,7 +37,7 @@ from torch import nn
 from torch.nn import functional as F
 
 import episodes
-from model import LEAK, Config, DriveSim, _conv, load_drivesim, save_drivesim
+from model import LEAK, Config, DriveSim, _conv, load_discriminator, load_drivesim, save_drivesim
 
 SEQ, TEACHER = 15, 5  # transition sequences: 15 frames, the first 5 from the encoder
 STEER = 0.6  # constant steering of the steering-response test, well inside the recorded range
@@ -96,59 +98,82 @@ def bce(logits, real):
     return F.binary_cross_entropy_with_logits(logits, torch.full_like(logits, float(real)))
 
 
+# The loss weights of the VAE-GAN (the `fit` defaults): KL prior, discriminator features,
+# pixel L1, and the generator's GAN term.
+LOSS_WEIGHTS = dict(kl=1e-3, feature=0.1, pixel=1.0, gan=0.01)
+ADAM_VAE_GAN = dict(lr=2e-4, betas=(0.5, 0.999))
+
+
+def vae_gan_step(enc, gen, dis, opts, x, eps, prior, w=LOSS_WEIGHTS, amp=contextlib.nullcontext()):
+    """One VAE-GAN step on frames x [B,C,H,W] with the reparametrisation draws eps [B,z] and
+    prior samples prior [B,z]: the discriminator's step, then the encoder's and generator's
+    (`opts` = their Adam optimisers, in the order encoder, generator, discriminator). Returns
+    the losses and the gradients as computed, by module: the Rust `train step`'s reference."""
+    opt_e, opt_g, opt_d = opts
+    with amp:
+        mu, logsigma = enc(x)
+        xr = gen(mu + eps * logsigma.exp())  # reparametrisation trick
+        with frozen_bn_stats(gen):
+            xp = gen(prior)
+
+        # Discriminator: real frames against reconstructions and prior samples.
+        d_real, _ = dis(x)
+        d_fake, _ = dis(torch.cat([xr, xp]).detach())
+        loss_d = bce(d_real, 1) + bce(d_fake, 0)
+    opt_d.zero_grad(set_to_none=True)
+    loss_d.backward()
+    grads_d = [p.grad.detach().clone() for p in dis.parameters()]
+    opt_d.step()
+
+    # Encoder and generator; the discriminator is a fixed cost function here.
+    with amp:
+        with torch.no_grad():
+            _, f_real = dis(x)
+        d_gen, f_gen = dis(torch.cat([xr, xp]))
+        f_rec = f_gen[: len(x)]
+        # Feature error relative to the features' spread: its scale stays fixed while
+        # the discriminator's features grow or shrink.
+        llike = (f_rec.float() - f_real.float()).square().mean() / f_real.float().var().clamp_min(1e-6)
+        pixel = (xr.float() - x).abs().mean()
+        kl = kl_prior(mu.float(), logsigma.float())
+        gan = bce(d_gen.float(), 1)
+    recon = w["feature"] * llike + w["pixel"] * pixel
+    loss_e = w["kl"] * kl + recon
+    loss_g = recon + w["gan"] * gan  # only the generator sees the GAN term
+    grads_e = torch.autograd.grad(loss_e, list(enc.parameters()), retain_graph=True)
+    grads_g = torch.autograd.grad(loss_g, list(gen.parameters()))
+    for params, grads, opt in ((enc.parameters(), grads_e, opt_e), (gen.parameters(), grads_g, opt_g)):
+        for p, g in zip(params, grads):
+            p.grad = g
+        opt.step()
+    losses = dict(d=loss_d.detach(), e=loss_e.detach(), g=loss_g.detach(), gan=gan.detach(),
+                  feature=llike.detach(), pixel_l1=pixel.detach(), kl=kl.detach())
+    grads = dict(encoder=grads_e, generator=grads_g, discriminator=grads_d)
+    return losses, grads, xr.detach()
+
+
 def train_vae_gan(model, frames, args, log):
     dev = frames.device
     enc, gen = model.encoder, model.generator
     dis = Discriminator(model.cfg).to(dev)
-    adam = dict(lr=args.lr, betas=(0.5, 0.999))
-    opt_e, opt_g, opt_d = (torch.optim.Adam(m.parameters(), **adam) for m in (enc, gen, dis))
+    adam = dict(ADAM_VAE_GAN, lr=args.lr)
+    opts = [torch.optim.Adam(m.parameters(), **adam) for m in (enc, gen, dis)]
     amp = torch.autocast("cuda", torch.bfloat16) if dev.type == "cuda" else contextlib.nullcontext()
+    weights = dict(kl=args.w_kl, feature=args.w_feature, pixel=args.w_pixel, gan=args.w_gan)
     gen_rng = torch.Generator(dev).manual_seed(args.seed)
     model.train()
     start, deadline = time.time(), time.time() + 60 * args.max_minutes
     for step in range(1, args.vae_steps + 1):
         idx = torch.randint(len(frames), (args.batch,), device=dev, generator=gen_rng)
         x = to_input(frames[idx])
-        with amp:
-            mu, logsigma = enc(x)
-            xr = gen(mu + torch.randn_like(mu) * logsigma.exp())  # reparametrisation trick
-            with frozen_bn_stats(gen):
-                xp = gen(torch.randn_like(mu))
-
-            # Discriminator: real frames against reconstructions and prior samples.
-            d_real, _ = dis(x)
-            d_fake, _ = dis(torch.cat([xr, xp]).detach())
-            loss_d = bce(d_real, 1) + bce(d_fake, 0)
-        opt_d.zero_grad(set_to_none=True)
-        loss_d.backward()
-        opt_d.step()
-
-        # Encoder and generator; the discriminator is a fixed cost function here.
-        with amp:
-            with torch.no_grad():
-                _, f_real = dis(x)
-            d_gen, f_gen = dis(torch.cat([xr, xp]))
-            f_rec = f_gen[: len(x)]
-            # Feature error relative to the features' spread: its scale stays fixed while
-            # the discriminator's features grow or shrink.
-            llike = (f_rec.float() - f_real.float()).square().mean() / f_real.float().var().clamp_min(1e-6)
-            pixel = (xr.float() - x).abs().mean()
-            kl = kl_prior(mu.float(), logsigma.float())
-            gan = bce(d_gen.float(), 1)
-        recon = args.w_feature * llike + args.w_pixel * pixel
-        loss_e = args.w_kl * kl + recon
-        loss_g = recon + args.w_gan * gan  # only the generator sees the GAN term
-        grads_e = torch.autograd.grad(loss_e, list(enc.parameters()), retain_graph=True)
-        grads_g = torch.autograd.grad(loss_g, list(gen.parameters()))
-        for params, grads, opt in ((enc.parameters(), grads_e, opt_e), (gen.parameters(), grads_g, opt_g)):
-            for p, g in zip(params, grads):
-                p.grad = g
-            opt.step()
+        shape = (args.batch, model.cfg.z_dim)
+        eps, prior = torch.randn(shape, device=dev), torch.randn(shape, device=dev)
+        losses, _, xr = vae_gan_step(enc, gen, dis, opts, x, eps, prior, weights, amp)
 
         if step % args.log_every == 0 or step == args.vae_steps:
             entry = dict(phase="vae_gan", step=step, seconds=round(time.time() - start, 1),
-                         d=loss_d.item(), gan=gan.item(), feature=llike.item(), pixel_l1=pixel.item(),
-                         kl=kl.item(), psnr_batch=psnr(xr.detach().float(), x))
+                         d=losses["d"].item(), gan=losses["gan"].item(), feature=losses["feature"].item(),
+                         pixel_l1=losses["pixel_l1"].item(), kl=losses["kl"].item(), psnr_batch=psnr(xr.float(), x))
             log.append(entry)
             print(json.dumps(entry), flush=True)
         if time.time() > deadline:
@@ -156,6 +181,7 @@ def train_vae_gan(model, frames, args, log):
             print(f"VAE-GAN stopped at step {step}: --max-minutes reached", flush=True)
             break
     model.eval()
+    return dis.eval()
 
 
 def psnr(x, y):
@@ -243,7 +269,7 @@ def fit(args):
     log = [dict(args={k: str(v) for k, v in vars(args).items()}, config=json.loads(cfg.to_json()),
                 episodes=len(data), frames=len(frames))]
     t0 = time.time()
-    train_vae_gan(model, frames, args, log)
+    dis = train_vae_gan(model, frames, args, log)
     t1 = time.time()
     codes = encode(model, frames)
     actions = torch.from_numpy(data.actions).to(dev)
@@ -256,7 +282,7 @@ def fit(args):
     low, high = actions.min(0).values.tolist(), actions.max(0).values.tolist()
     described = [dict(name=name, unit="as recorded", mean=m, std=sd, min=lo, max=hi) for name, m, sd, lo, hi
                  in zip(("speed", "steering"), norm["action_mean"], norm["action_std"], low, high)]
-    save_drivesim(model.cpu(), cfg, out, "f16", actions=described)
+    save_drivesim(model.cpu(), cfg, out, "f16", actions=described, discriminator=dis.cpu())
     out.with_suffix(".log.json").write_text(json.dumps(log, indent=1))
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB) in {t2 - t0:.0f} s", flush=True)
 
@@ -356,7 +382,57 @@ def evaluate(args):
 
 
 def step(args):
-    """`train step`: one transition step on a batch file; see weights/README.md."""
+    """`train step`: one training step of a stage on a batch file; see weights/README.md."""
+    {"transition": step_transition, "vae-gan": step_vae_gan}[args.stage](args)
+
+
+def step_vae_gan(args):
+    """One VAE-GAN step (vae_gan_step) on `frames`, `eps` and `prior` from the batch file, with
+    the discriminator stored in the weight file."""
+    from safetensors.torch import load_file, save_file
+
+    model, cfg = load_drivesim(args.weights)
+    stored = load_discriminator(args.weights)
+    if not stored:
+        raise ValueError(f"{args.weights}: no discriminator.* tensors (the VAE-GAN step needs them)")
+    dis = Discriminator(cfg)
+    missing, unexpected = dis.load_state_dict(stored, strict=False)
+    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
+    if missing or unexpected:
+        raise ValueError(f"{args.weights}: discriminator tensors missing {missing}, unexpected {unexpected}")
+    batch = load_file(args.batch)
+    for name in ("frames", "eps", "prior"):
+        if name not in batch:
+            raise ValueError(f"{args.batch}: needs a tensor `{name}`")
+    frames, eps, prior = batch["frames"], batch["eps"], batch["prior"]
+    want = [cfg.height, cfg.width, cfg.channels]
+    if frames.dim() != 4 or list(frames.shape[1:]) != want or frames.shape[0] < 1:
+        raise ValueError(f"`frames` has shape {list(frames.shape)}: expected [B >= 1, {', '.join(map(str, want))}]")
+    if frames.dtype == torch.uint8:
+        x = to_input(frames)
+    elif frames.dtype == torch.float32:
+        x = frames.permute(0, 3, 1, 2)
+    else:
+        raise ValueError(f"`frames` is {frames.dtype}: expected uint8 or float32 in [-1, 1]")
+    for name, t in (("eps", eps), ("prior", prior)):
+        if t.dtype != torch.float32 or list(t.shape) != [len(frames), cfg.z_dim]:
+            raise ValueError(f"`{name}` is {t.dtype} {list(t.shape)}: expected float32 [{len(frames)}, {cfg.z_dim}]")
+    model.train()
+    dis.train()
+    nets = dict(encoder=model.encoder, generator=model.generator, discriminator=dis)
+    lr = 2e-4 if args.lr is None else args.lr
+    opts = [torch.optim.Adam(m.parameters(), **dict(ADAM_VAE_GAN, lr=lr)) for m in nets.values()]
+    losses, grads, _ = vae_gan_step(model.encoder, model.generator, dis, opts, x, eps, prior)
+    out = {f"loss.{k}": v.reshape(1) for k, v in losses.items()}
+    for net, module in nets.items():
+        out.update({f"grad.{net}.{name}": g for (name, _), g in zip(module.named_parameters(), grads[net])})
+        out.update({f"{net}.{k}": v for k, v in module.state_dict().items() if not k.endswith("num_batches_tracked")})
+    save_file({k: v.float().contiguous() for k, v in out.items()}, args.out)
+    print(", ".join(f"{k} {v.item():.6e}" for k, v in losses.items()) + f": wrote {args.out}")
+
+
+def step_transition(args):
+    """One transition step on `codes` and `actions` from the batch file."""
     from safetensors.torch import load_file, save_file
 
     model, cfg = load_drivesim(args.weights)
@@ -373,7 +449,7 @@ def step(args):
         raise ValueError(f"`actions` has shape {list(c.shape)}: expected {want}")
     if args.teacher < 1:
         raise ValueError("--teacher must be at least 1")
-    opt = torch.optim.Adam(tr.parameters(), lr=args.lr)
+    opt = torch.optim.Adam(tr.parameters(), lr=1e-3 if args.lr is None else args.lr)
     loss, grads = transition_step(tr, opt, z, c, args.teacher, args.clip, detach=not args.full_bptt)
     out = {"loss": loss.reshape(1)}
     out.update({f"grad.transition.{k}": g for k, g in grads.items()})
@@ -395,11 +471,11 @@ def main(argv=None):
     f.add_argument("--hidden-dim", type=int, default=256)
     f.add_argument("--vae-steps", type=int, default=14000)
     f.add_argument("--batch", type=int, default=64)
-    f.add_argument("--lr", type=float, default=2e-4)
-    f.add_argument("--w-pixel", type=float, default=1.0, help="weight of the pixel L1 term")
-    f.add_argument("--w-feature", type=float, default=0.1, help="weight of the discriminator-feature term")
-    f.add_argument("--w-kl", type=float, default=1e-3, help="weight of the KL prior")
-    f.add_argument("--w-gan", type=float, default=0.01, help="weight of the generator's GAN term")
+    f.add_argument("--lr", type=float, default=ADAM_VAE_GAN["lr"])
+    f.add_argument("--w-pixel", type=float, default=LOSS_WEIGHTS["pixel"], help="weight of the pixel L1 term")
+    f.add_argument("--w-feature", type=float, default=LOSS_WEIGHTS["feature"], help="weight of the feature term")
+    f.add_argument("--w-kl", type=float, default=LOSS_WEIGHTS["kl"], help="weight of the KL prior")
+    f.add_argument("--w-gan", type=float, default=LOSS_WEIGHTS["gan"], help="weight of the generator's GAN term")
     f.add_argument("--max-minutes", type=float, default=math.inf, help="stop the VAE-GAN early after this")
     f.add_argument("--transition-steps", type=int, default=8000)
     f.add_argument("--transition-batch", type=int, default=256)
@@ -410,12 +486,13 @@ def main(argv=None):
     e.add_argument("--data", required=True, help="held-out episodes file")
     e.add_argument("--figures", required=True, help="folder for the PNGs and eval.json")
     e.add_argument("--seed-clip", help="also write the first 8 frames of the first episode here")
-    s = sub.add_parser("step", help="one transition training step on a batch file (the Rust step's reference)")
-    s.add_argument("--stage", required=True, choices=["transition"])
+    s = sub.add_parser("step", help="one training step on a batch file (the Rust step's reference)")
+    s.add_argument("--stage", required=True, choices=["transition", "vae-gan"])
     s.add_argument("--weights", required=True, help="drivesim weight file (f16/bf16 train on f32 copies)")
-    s.add_argument("--batch", required=True, help="safetensors with `codes` [B,T,z] and `actions` [B,T-1,a], f32")
+    s.add_argument("--batch", required=True, help="safetensors: transition `codes` [B,T,z] and `actions` [B,T-1,a], "
+                   "f32; vae-gan `frames` [B,H,W,C] (uint8, or f32 in [-1, 1]), `eps` and `prior` [B,z] f32")
     s.add_argument("--out", required=True, help="safetensors to write: loss, grad.*, updated tensors")
-    s.add_argument("--lr", type=float, default=1e-3)
+    s.add_argument("--lr", type=float, help="Adam's learning rate (default 1e-3 transition, 2e-4 vae-gan)")
     s.add_argument("--teacher", type=int, default=TEACHER)
     s.add_argument("--clip", type=float, default=1.0)
     s.add_argument("--full-bptt", action="store_true", help="do not detach fed-back predictions")
