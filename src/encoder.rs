@@ -11,7 +11,7 @@ use drivesim_kernels::pack::permute_cols_chw_to_hwc;
 use drivesim_kernels::{Activation, ConvKind, ConvShape, Plane, Tensor};
 
 /// `LeakyReLU(0.2)` after every encoder convolution.
-const LEAKY_SLOPE: f32 = 0.2;
+pub(crate) const LEAKY_SLOPE: f32 = 0.2;
 
 pub(crate) struct Encoder {
     convs: Vec<ConvLayer>,

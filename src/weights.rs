@@ -12,6 +12,10 @@ use drivesim_kernels::Tensor;
 use half::slice::HalfFloatSliceExt;
 use safetensors::{Dtype, SafeTensors};
 
+/// The prefix of the VAE-GAN discriminator's tensors, which a weight file may carry so that
+/// training can resume from it (`weights/README.md`); inference does not read them.
+pub(crate) const DISCRIMINATOR_PREFIX: &str = "discriminator.";
+
 /// How a random source draws a tensor (PyTorch's default initialisation, roughly).
 #[derive(Clone, Copy)]
 pub(crate) enum Init {
@@ -114,6 +118,13 @@ impl<'a> SafetensorsSource<'a> {
     }
 }
 
+impl SafetensorsSource<'_> {
+    /// Whether the file has a tensor whose name starts with `prefix`.
+    pub(crate) fn contains(&self, prefix: &str) -> bool {
+        self.file.names().iter().any(|n| n.starts_with(prefix))
+    }
+}
+
 impl TensorSource for SafetensorsSource<'_> {
     fn tensor(&mut self, name: &str, shape: &[usize], _init: Init) -> Result<Tensor> {
         let view = self
@@ -155,7 +166,8 @@ impl TensorSource for SafetensorsSource<'_> {
     fn finish(&self) -> Result<()> {
         let mut names = self.file.names();
         names.sort();
-        match names.into_iter().find(|n| !self.read.iter().any(|r| r == *n)) {
+        let unread = |n: &&str| !n.starts_with(DISCRIMINATOR_PREFIX) && !self.read.iter().any(|r| r == *n);
+        match names.into_iter().find(unread) {
             Some(name) => Err(Error::UnexpectedTensor { name: name.to_string() }),
             None => Ok(()),
         }
@@ -252,15 +264,15 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
     Ok(BatchNormParams(params))
 }
 
-/// The weight file `bytes` with the tensors of `replace` (name, PyTorch-layout values) put in
-/// place of the stored ones, every tensor written in `dtype` (or the file's own dtype), the
-/// metadata kept and `actions` written as its `drivesim.actions`: how a trainer saves what it
-/// trained. The file is validated as
-/// [`SafetensorsSource::parse`] does, and each replacement must have its tensor's size.
+/// The weight file `bytes` with the tensors of `replace` (name, shape, PyTorch-layout values)
+/// put in place of the stored ones or, where the file has no such tensor, added; every tensor
+/// written in `dtype` (or the file's own dtype), the metadata kept and `actions` written as its
+/// `drivesim.actions`: how a trainer saves what it trained. The file is validated as
+/// [`SafetensorsSource::parse`] does, and each replacement must have its tensor's shape.
 #[cfg(all(feature = "std", feature = "train"))]
 pub(crate) fn rewrite(
     bytes: &[u8],
-    replace: &[(&str, &[f32])],
+    replace: &[(&str, &[usize], &[f32])],
     dtype: Option<WeightDtype>,
     actions: Option<&[ActionSpec]>,
 ) -> Result<Vec<u8>> {
@@ -282,23 +294,31 @@ pub(crate) fn rewrite(
         Some(WeightDtype::F16) => Dtype::F16,
         None => stored,
     };
-    if let Some((name, _)) = replace.iter().find(|(name, _)| !names.iter().any(|n| n == name)) {
-        return Err(Error::MissingTensor { name: name.to_string() });
-    }
+    let added = replace.iter().filter(|(name, ..)| !names.iter().any(|n| n == name));
+    let added: Vec<String> = added.map(|(name, ..)| name.to_string()).collect();
+    names.extend(added);
     let mut encoded = Vec::with_capacity(names.len());
     for name in &names {
-        let shape = src.file.tensor(name).map_err(malformed)?.shape().to_vec();
-        let values = match replace.iter().find(|(n, _)| *n == name.as_str()) {
-            Some((_, values)) if values.len() == shape.iter().product::<usize>() => values.to_vec(),
-            Some((_, values)) => {
-                return Err(Error::Shape {
-                    name: name.clone(),
-                    expected: shape,
-                    found: alloc::vec![values.len()],
-                })
+        let stored = src.file.tensor(name).ok().map(|view| view.shape().to_vec());
+        let values = match (replace.iter().find(|(n, ..)| *n == name.as_str()), stored) {
+            (Some((_, shape, values)), stored) => {
+                let expected = stored.unwrap_or_else(|| shape.to_vec());
+                if *shape != expected || values.len() != shape.iter().product::<usize>() {
+                    return Err(Error::Shape {
+                        name: name.clone(),
+                        expected,
+                        found: shape.to_vec(),
+                    });
+                }
+                (expected, values.to_vec())
             }
-            None => src.tensor(name, &shape, Init::Zeros)?.into_f32(),
+            (None, Some(shape)) => {
+                let values = src.tensor(name, &shape, Init::Zeros)?.into_f32();
+                (shape, values)
+            }
+            (None, None) => unreachable!("every name is stored or replaced"),
         };
+        let (shape, values) = values;
         let data: Vec<u8> = match dtype {
             Dtype::F16 => bytemuck::cast_slice(&values.iter().map(|&v| f16::from_f32(v)).collect::<Vec<_>>()).to_vec(),
             Dtype::BF16 => {

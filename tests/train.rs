@@ -84,7 +84,7 @@ fn one_step_matches_pytorch() {
                 if !full {
                     trainer.apply_gradients(f.lr).unwrap();
                     for (tensor, _, values) in trainer.tensors() {
-                        check(&format!("{at}{tensor} after one step"), &values, &f.io.values(tensor));
+                        check(&format!("{at}{tensor} after one step"), &values, &f.io.values(&tensor));
                     }
                 }
             }

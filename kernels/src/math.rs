@@ -82,6 +82,64 @@ pub fn cos(x: f64) -> f64 {
     sum
 }
 
+/// e^x in f64 for the losses of training (core has no `exp` without std): `x = n ln2 + r`
+/// with `|r| <= ln2 / 2`, Taylor series of e^r to 1e-16; 0 below -745, infinity above 709.
+pub fn exp64(x: f64) -> f64 {
+    if x.is_nan() {
+        return x;
+    }
+    if x > 709.0 {
+        return f64::INFINITY;
+    }
+    if x < -745.0 {
+        return 0.0;
+    }
+    let n = (x * core::f64::consts::LOG2_E + if x < 0.0 { -0.5 } else { 0.5 }) as i64;
+    // ln2 in two parts (fdlibm's): n · LN2_HI is exact, so r keeps its bits for large n.
+    const LN2_HI: f64 = 6.931_471_803_691_238_164_9e-1;
+    const LN2_LO: f64 = 1.908_214_929_270_587_700_02e-10;
+    let r = (x - n as f64 * LN2_HI) - n as f64 * LN2_LO;
+    let (mut term, mut sum) = (1.0, 1.0);
+    for k in 1..18 {
+        term *= r / k as f64;
+        sum += term;
+    }
+    // 2^n in two factors: n alone may leave the exponent range near the ends.
+    let half = n / 2;
+    sum * pow2(half) * pow2(n - half)
+}
+
+/// 2^n for -1022 <= n <= 1023.
+fn pow2(n: i64) -> f64 {
+    f64::from_bits(((n + 1023) as u64) << 52)
+}
+
+/// The natural logarithm in f64 for x > 0 (core has none without std): `x = m 2^e` with
+/// `m` in [1, 2), `ln m = 2 atanh((m - 1) / (m + 1))` by its series (the ratio is at most 1/3).
+pub fn ln64(x: f64) -> f64 {
+    if x.is_nan() || x < 0.0 {
+        return f64::NAN;
+    }
+    if x == 0.0 {
+        return f64::NEG_INFINITY;
+    }
+    if x.is_infinite() {
+        return x;
+    }
+    // Subnormals: scale into the normal range first.
+    let (x, shift) = if x < f64::MIN_POSITIVE { (x * pow2(54), -54) } else { (x, 0) };
+    let bits = x.to_bits();
+    let e = ((bits >> 52) & 0x7ff) as i64 - 1023 + shift;
+    let m = f64::from_bits((bits & ((1u64 << 52) - 1)) | (1023u64 << 52));
+    let s = (m - 1.0) / (m + 1.0);
+    let (s2, mut power, mut sum) = (s * s, s, 0.0);
+    for k in 0..30 {
+        sum += power / (2 * k + 1) as f64;
+        power *= s2;
+    }
+    2.0 * sum + e as f64 * core::f64::consts::LN_2
+}
+
 #[cfg(all(test, feature = "std"))]
 mod tests {
     use super::*;
@@ -124,6 +182,24 @@ mod tests {
             let x = core::f64::consts::PI * i as f64 / 1000.0;
             assert!((cos(x) - x.cos()).abs() <= 1e-14, "cos({x})");
         }
+    }
+
+    #[test]
+    fn exp64_and_ln64_match_std() {
+        // Normal results (subnormal ones keep fewer bits, in std too).
+        let mut x = -708.0f64;
+        while x <= 709.0 {
+            let want = x.exp();
+            assert!((exp64(x) - want).abs() <= 1e-15 * want, "exp64({x}): {} vs {want}", exp64(x));
+            x += 0.173;
+        }
+        for &x in &[1e-310f64, 1e-300, 1e-5, 0.3, 1.0, 1.5, 2.0, 7.25, 1e10, 1.7e308] {
+            let want = x.ln();
+            assert!((ln64(x) - want).abs() <= 1e-15 * want.abs().max(1.0), "ln64({x})");
+        }
+        assert_eq!(ln64(1.0), 0.0);
+        assert!(ln64(-1.0).is_nan() && exp64(f64::NAN).is_nan());
+        assert!(exp64(-740.0) < 1e-320 && exp64(-746.0) == 0.0 && exp64(710.0).is_infinite());
     }
 
     #[test]

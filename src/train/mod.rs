@@ -13,9 +13,16 @@
 mod adam;
 mod arena;
 mod transition;
+mod vae_gan;
 
 pub use adam::Adam;
-pub use transition::{NamedTensor, TransitionPlan, TransitionSettings, TransitionTrainer};
+pub use transition::{TransitionPlan, TransitionSettings, TransitionTrainer};
+#[cfg(feature = "std")]
+pub use vae_gan::random_weight_file;
+pub use vae_gan::{VaeGanLosses, VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR};
+
+/// A named tensor in PyTorch layout: name, shape, row-major values.
+pub type NamedTensor = (alloc::string::String, alloc::vec::Vec<usize>, alloc::vec::Vec<f32>);
 
 /// `torch.optim.lr_scheduler.CosineAnnealingLR` (to zero): the learning rate of step `step`
 /// (from 0) of `steps`, `base (1 + cos(π step / steps)) / 2`.

@@ -10,6 +10,7 @@
 
 use super::adam::Adam;
 use super::arena::{bytes_of, cut, cut_ref, total, Memory};
+use super::NamedTensor;
 use crate::error::{expect_finite, expect_finite_output, expect_len};
 use crate::layers::dense;
 use crate::pool::{Exec, Pool};
@@ -217,8 +218,6 @@ fn tensor_shapes(d: &Dims) -> [(&'static str, [usize; 2]); 6] {
     ]
 }
 
-/// A named tensor in PyTorch layout: name, shape, row-major values.
-pub type NamedTensor = (&'static str, Vec<usize>, Vec<f32>);
 
 /// Trains a model's transition in the memory of a [`TransitionPlan`], allocated once (or the
 /// caller's): a step allocates nothing.
@@ -520,7 +519,8 @@ impl<'a> TransitionTrainer<'a> {
         actions: Option<&[crate::ActionSpec]>,
     ) -> Result<Vec<u8>> {
         let tensors = self.tensors();
-        let replace: Vec<(&str, &[f32])> = tensors.iter().map(|(name, _, values)| (*name, &values[..])).collect();
+        let replace: Vec<(&str, &[usize], &[f32])> =
+            tensors.iter().map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..])).collect();
         crate::weights::rewrite(original, &replace, dtype, actions)
     }
 
@@ -557,7 +557,7 @@ impl<'a> TransitionTrainer<'a> {
             .zip(values)
             .map(|((name, shape), values)| {
                 let shape = if shape[1] == 1 { vec![shape[0]] } else { shape.to_vec() };
-                (name, shape, values)
+                (name.into(), shape, values)
             })
             .collect()
     }

@@ -1,0 +1,1412 @@
+//! Training the encoder and generator as a VAE-GAN (Larsen et al.), exactly as
+//! `weights/train.py`'s `vae_gan_step`: a discriminator (the encoder's mirror, a logit on top)
+//! learns to tell real frames from reconstructions and prior samples; the encoder minimises a
+//! KL prior plus the reconstruction error measured on the discriminator's third-convolution
+//! features (relative to their spread) and in pixels; the generator minimises the same
+//! reconstruction error and fools the discriminator. The GAN term never reaches the encoder, and
+//! prior samples go through the generator's BatchNorm with batch statistics without moving its
+//! running statistics. Adam with lr 2e-4 and betas 0.5 / 0.999 for each network.
+//!
+//! Every buffer is sized before anything is allocated: [`VaeGanPlan`] builds the trainer once
+//! in a measuring mode (as ggml's allocator measures a graph), adding up what each buffer would
+//! take; [`VaeGanTrainer::new`] then allocates exactly that. Parameters, gradients and Adam
+//! moments are kept in PyTorch's layout; each network's packed weights (the forward packing, and
+//! the packing of its data gradient: the forward kernel of the transposed convolution or dense
+//! layer) are rebuilt in place after each update. A step allocates nothing.
+
+use super::adam::Adam;
+use super::NamedTensor;
+use crate::encoder::LEAKY_SLOPE;
+use crate::error::{expect_finite, expect_finite_output, expect_frames, expect_len};
+use crate::weights::{Init, RandomSource, SafetensorsSource, TensorSource, WeightDtype, DISCRIMINATOR_PREFIX};
+use crate::{Config, Error, Result};
+use alloc::format;
+use alloc::string::String;
+use alloc::vec::Vec;
+use core::ops::Range;
+use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, update_running_stats};
+use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, dense_from_fn, winograd_weights_from_direct};
+use drivesim_kernels::{
+    activation_backward, conv, conv_weight_grad, conv_weight_grad_scratch_len, dense, dense_weight_grad, math,
+    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, Plane, Winograd,
+};
+
+/// The border of every plane of the training networks: strided convolutions read 2 pixels
+/// beyond the image, transposed ones 1, and so do their gradients; one border for all keeps each
+/// gradient plane in the layout of the activation it belongs to.
+const HALO: usize = 2;
+
+/// The learning rate of `weights/train.py fit`'s VAE-GAN.
+pub const VAE_GAN_LR: f32 = 2e-4;
+
+/// The loss weights and optimiser of the VAE-GAN (`weights/train.py fit`'s defaults).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VaeGanSettings {
+    /// Weight of the KL prior in the encoder's loss.
+    pub kl: f32,
+    /// Weight of the discriminator-feature error (encoder and generator).
+    pub feature: f32,
+    /// Weight of the pixel L1 error (encoder and generator).
+    pub pixel: f32,
+    /// Weight of the non-saturating GAN term in the generator's loss.
+    pub gan: f32,
+    /// Adam's constants, shared by the three networks.
+    pub adam: Adam,
+}
+
+impl Default for VaeGanSettings {
+    fn default() -> Self {
+        VaeGanSettings {
+            kl: 1e-3,
+            feature: 0.1,
+            pixel: 1.0,
+            gan: 0.01,
+            adam: Adam {
+                beta1: 0.5,
+                beta2: 0.999,
+                eps: 1e-8,
+            },
+        }
+    }
+}
+
+/// The losses of one step (each network's, and the terms they are made of).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct VaeGanLosses {
+    /// The discriminator's: BCE on real frames plus BCE on reconstructions and prior samples.
+    pub discriminator: f32,
+    /// `kl · KL + feature · feature error + pixel · pixel L1`.
+    pub encoder: f32,
+    /// `feature · feature error + pixel · pixel L1 + gan · GAN`.
+    pub generator: f32,
+    /// The generator's non-saturating GAN term (BCE of fakes against "real").
+    pub gan: f32,
+    /// The squared error of the reconstructions' third-convolution features, over the variance
+    /// of the real frames' features.
+    pub feature: f32,
+    /// The mean absolute error of the reconstructions, in [-1, 1] units.
+    pub pixel_l1: f32,
+    /// `KL(N(mu, sigma) || N(0, 1))`, mean over items and code dimensions.
+    pub kl: f32,
+}
+
+/// Where the buffers' floats come from: counted only (planning) or allocated (the trainer).
+struct Budget {
+    allocate: bool,
+    /// Floats per kind of buffer, in the order first met.
+    floats: Vec<(&'static str, usize)>,
+}
+
+impl Budget {
+    /// A buffer of `len` zeros, counted under `what` (empty when only measuring).
+    fn take(&mut self, what: &'static str, len: usize) -> Result<Vec<f32>> {
+        match self.floats.iter_mut().find(|(w, _)| *w == what) {
+            Some((_, n)) => *n = n.checked_add(len).ok_or(OVERFLOW)?,
+            None => self.floats.push((what, len)),
+        }
+        if !self.allocate {
+            return Ok(Vec::new());
+        }
+        let mut v = Vec::new();
+        v.try_reserve_exact(len).map_err(|_| Error::OutOfMemory {
+            what: WHAT,
+            bytes: len.checked_mul(4),
+        })?;
+        v.resize(len, 0.0);
+        Ok(v)
+    }
+}
+
+const WHAT: &str = "the VAE-GAN trainer's buffers";
+const OVERFLOW: Error = Error::OutOfMemory { what: WHAT, bytes: None };
+
+fn mul(a: usize, b: usize) -> Result<usize> {
+    a.checked_mul(b).ok_or(OVERFLOW)
+}
+
+/// One tensor of the three networks: its name, PyTorch shape, place (in the parameters, or in
+/// the running statistics) and initialisation where the file has none.
+struct Entry {
+    name: String,
+    shape: Vec<usize>,
+    at: Range<usize>,
+    param: bool,
+    init: Init,
+}
+
+/// The tensors, laid out as they are declared.
+#[derive(Default)]
+struct Table {
+    entries: Vec<Entry>,
+    params: usize,
+    stats: usize,
+}
+
+impl Table {
+    fn add(&mut self, name: String, shape: &[usize], param: bool, init: Init) -> Range<usize> {
+        let len: usize = shape.iter().product();
+        let next = if param { &mut self.params } else { &mut self.stats };
+        let at = *next..*next + len;
+        *next += len;
+        self.entries.push(Entry {
+            name,
+            shape: shape.to_vec(),
+            at: at.clone(),
+            param,
+            init,
+        });
+        at
+    }
+
+    fn param(&mut self, name: String, shape: &[usize], init: Init) -> Range<usize> {
+        self.add(name, shape, true, init)
+    }
+
+    /// A BatchNorm layer's four tensors.
+    fn norm(&mut self, name: &str, channels: usize) -> Norm {
+        Norm {
+            gamma: self.param(format!("{name}.weight"), &[channels], Init::Ones),
+            beta: self.param(format!("{name}.bias"), &[channels], Init::Zeros),
+            mean: self.add(format!("{name}.running_mean"), &[channels], false, Init::Zeros),
+            var: self.add(format!("{name}.running_var"), &[channels], false, Init::Ones),
+        }
+    }
+}
+
+/// A BatchNorm layer's tensors: scale and shift in the parameters, running statistics in the
+/// statistics.
+#[derive(Clone)]
+struct Norm {
+    gamma: Range<usize>,
+    beta: Range<usize>,
+    mean: Range<usize>,
+    var: Range<usize>,
+}
+
+/// Convolution weights packed for one shape: direct, and for Winograd where it takes the shape.
+struct Packed {
+    shape: ConvShape,
+    winograd: Option<Winograd>,
+    direct: Vec<f32>,
+    transformed: Vec<f32>,
+}
+
+/// Winograd's transformed input and product scratch, shared by every layer.
+struct Scratch {
+    v: Vec<f32>,
+    products: Vec<f32>,
+}
+
+impl Packed {
+    fn new(budget: &mut Budget, shape: ConvShape, sizes: &mut Sizes) -> Result<Packed> {
+        let winograd = Winograd::new(shape);
+        if let Some(w) = &winograd {
+            sizes.winograd_v = sizes.winograd_v.max(w.input_len());
+            sizes.winograd_products = sizes.winograd_products.max(w.scratch_len());
+        }
+        Ok(Packed {
+            shape,
+            winograd,
+            direct: budget.take("packed weights", shape.packed_len())?,
+            transformed: budget.take("packed weights", winograd.map_or(0, |w| w.packed_len()))?,
+        })
+    }
+
+    /// Packs PyTorch weights (the layer's own tensor, for its transposed shape too).
+    fn pack(&mut self, torch: &[f32]) {
+        conv_weights_into(&self.shape, torch, &mut self.direct);
+        if let Some(w) = &self.winograd {
+            winograd_weights_from_direct(w, &self.direct, &mut self.transformed);
+        }
+    }
+
+    /// `output = act(conv(input) + bias)` for one plane.
+    fn run(&self, isa: Isa, bias: &[f32], act: Activation, input: &[f32], output: &mut [f32], s: &mut Scratch) {
+        let layer = ConvParams {
+            shape: self.shape,
+            weights: &self.direct,
+            bias,
+            act,
+        };
+        match &self.winograd {
+            None => conv(isa, layer, input, output),
+            Some(w) => {
+                let layer = ConvParams {
+                    weights: &self.transformed,
+                    ..layer
+                };
+                let (v, products) = (&mut s.v[..w.input_len()], &mut s.products[..w.scratch_len()]);
+                winograd_conv(isa, w, layer, input, v, products, output)
+            }
+        }
+    }
+}
+
+/// A convolution, optionally followed by BatchNorm, then an activation.
+struct Conv {
+    shape: ConvShape,
+    weight: Range<usize>,
+    bias: Range<usize>,
+    norm: Option<Norm>,
+    act: Activation,
+    forward: Packed,
+    /// Packed for [`ConvShape::transposed`]: the data gradient.
+    backward: Packed,
+}
+
+impl Conv {
+    fn new(
+        t: &mut Table,
+        budget: &mut Budget,
+        sizes: &mut Sizes,
+        name: &str,
+        norm: Option<&str>,
+        shape: ConvShape,
+        act: Activation,
+    ) -> Result<Conv> {
+        let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
+        let (torch, fan_in) = match shape.kind {
+            ConvKind::Down => ([oc, ic, k, k], ic * k * k),
+            ConvKind::Up => ([ic, oc, k, k], oc * k * k),
+        };
+        let down = match shape.kind {
+            ConvKind::Down => shape,
+            ConvKind::Up => shape.transposed(),
+        };
+        sizes.weight_scratch = sizes.weight_scratch.max(conv_weight_grad_scratch_len(&down));
+        sizes.packed_grad = sizes
+            .packed_grad
+            .max(Matrix::packed_len(down.output.channels, k * k * down.input.channels));
+        sizes.torch_grad = sizes.torch_grad.max(oc * ic * k * k);
+        sizes.channels = sizes.channels.max(oc).max(ic);
+        Ok(Conv {
+            shape,
+            weight: t.param(format!("{name}.weight"), &torch, Init::FanIn(fan_in)),
+            bias: t.param(format!("{name}.bias"), &[oc], Init::FanIn(fan_in)),
+            norm: norm.map(|n| t.norm(n, oc)),
+            act,
+            forward: Packed::new(budget, shape, sizes)?,
+            backward: Packed::new(budget, shape.transposed(), sizes)?,
+        })
+    }
+
+    fn pack(&mut self, params: &[f32]) {
+        self.forward.pack(&params[self.weight.clone()]);
+        self.backward.pack(&params[self.weight.clone()]);
+    }
+}
+
+/// How a dense layer's PyTorch rows or columns map to the kernels' order: a flattened feature
+/// map is CHW in PyTorch and HWC in a plane.
+#[derive(Clone, Copy)]
+enum Order {
+    /// The columns are a flattened `(channels, height, width)` map.
+    Columns(usize, usize, usize),
+    /// The rows are.
+    Rows(usize, usize, usize),
+}
+
+/// The CHW index of HWC index `i` of a `(c, h, w)` map.
+fn hwc_to_chw(i: usize, (c, h, w): (usize, usize, usize)) -> usize {
+    (i % c) * h * w + i / c
+}
+
+impl Order {
+    /// PyTorch's row and column of the kernels' `(r, c)`.
+    fn torch(self, r: usize, c: usize) -> (usize, usize) {
+        match self {
+            Order::Columns(ch, h, w) => (r, hwc_to_chw(c, (ch, h, w))),
+            Order::Rows(ch, h, w) => (hwc_to_chw(r, (ch, h, w)), c),
+        }
+    }
+}
+
+/// `y = W x + b` with PyTorch weights `rows x cols`.
+struct Dense {
+    rows: usize,
+    cols: usize,
+    weight: Range<usize>,
+    bias: Range<usize>,
+    order: Order,
+    forward: Vec<f32>,
+    /// `Wᵀ`, packed: the data gradient.
+    backward: Vec<f32>,
+    /// The bias in the kernels' row order.
+    bias_rows: Vec<f32>,
+}
+
+impl Dense {
+    /// A layer over the tensors `weight` and `bias` already in the table.
+    fn new(
+        budget: &mut Budget,
+        sizes: &mut Sizes,
+        (weight, bias): (Range<usize>, Range<usize>),
+        rows: usize,
+        cols: usize,
+        order: Order,
+    ) -> Result<Dense> {
+        sizes.packed_grad = sizes.packed_grad.max(Matrix::packed_len(rows, cols));
+        sizes.dense_zero = sizes.dense_zero.max(cols);
+        Ok(Dense {
+            rows,
+            cols,
+            weight,
+            bias,
+            order,
+            forward: budget.take("packed weights", Matrix::packed_len(rows, cols))?,
+            backward: budget.take("packed weights", Matrix::packed_len(cols, rows))?,
+            bias_rows: budget.take("packed weights", rows)?,
+        })
+    }
+
+    fn pack(&mut self, params: &[f32]) {
+        let (w, order, cols) = (&params[self.weight.clone()], self.order, self.cols);
+        let at = |r, c| {
+            let (tr, tc) = order.torch(r, c);
+            w[tr * cols + tc]
+        };
+        dense_from_fn(self.rows, self.cols, &mut self.forward, at);
+        dense_from_fn(self.cols, self.rows, &mut self.backward, |c, r| at(r, c));
+        let bias = &params[self.bias.clone()];
+        for (r, b) in self.bias_rows.iter_mut().enumerate() {
+            *b = bias[order.torch(r, 0).0];
+        }
+    }
+
+    /// `y = W x + b` for a batch.
+    fn run(&self, isa: Isa, x: &[f32], y: &mut [f32]) {
+        let w = Matrix {
+            data: MatrixData::F32(&self.forward),
+            rows: self.rows,
+            cols: self.cols,
+        };
+        dense(isa, w, &self.bias_rows, Activation::Identity, x, y);
+    }
+
+    /// `dx = Wᵀ dy` for a batch.
+    fn data_grad(&self, isa: Isa, zero: &[f32], dy: &[f32], dx: &mut [f32]) {
+        let wt = Matrix {
+            data: MatrixData::F32(&self.backward),
+            rows: self.cols,
+            cols: self.rows,
+        };
+        dense(isa, wt, &zero[..self.cols], Activation::Identity, dy, dx);
+    }
+
+    /// Adds the weight and bias gradients of a batch (`dy` of the outputs, `x` the inputs) to
+    /// `grads`, in PyTorch's layout.
+    fn weight_grad(&self, isa: Isa, dy: &[f32], x: &[f32], packed: &mut [f32], grads: &mut [f32]) {
+        let (rows, cols) = (self.rows, self.cols);
+        let packed = &mut packed[..Matrix::packed_len(rows, cols)];
+        dense_weight_grad(isa, dy, x, rows, cols, packed);
+        let g = &mut grads[self.weight.clone()];
+        for r in 0..rows {
+            for c in 0..cols {
+                let (tr, tc) = self.order.torch(r, c);
+                g[tr * cols + tc] += packed[Matrix::packed_index(r, c, cols)];
+            }
+        }
+        let gb = &mut grads[self.bias.clone()];
+        for dy in dy.chunks_exact(rows) {
+            for (r, &d) in dy.iter().enumerate() {
+                gb[self.order.torch(r, 0).0] += d;
+            }
+        }
+    }
+}
+
+/// The largest scratch any layer needs.
+#[derive(Default)]
+struct Sizes {
+    winograd_v: usize,
+    winograd_products: usize,
+    weight_scratch: usize,
+    packed_grad: usize,
+    torch_grad: usize,
+    channels: usize,
+    dense_zero: usize,
+}
+
+/// The activations of a stack of convolutions for a batch, saved for the backward pass, and
+/// the BatchNorm statistics of each of its passes (batches normalised on their own).
+struct Stack {
+    /// Each layer's convolution output before BatchNorm (empty for layers without one).
+    z: Vec<Vec<f32>>,
+    /// Each layer's output.
+    y: Vec<Vec<f32>>,
+    /// Per layer, each pass's batch means and variances, `[pass][channel]`.
+    mean: Vec<Vec<f32>>,
+    var: Vec<Vec<f32>>,
+}
+
+/// The gradients of a stack's activations (`gy` of the outputs, `gz` before BatchNorm).
+struct StackGrads {
+    gy: Vec<Vec<f32>>,
+    gz: Vec<Vec<f32>>,
+}
+
+const PASSES: usize = 2;
+
+fn stack(budget: &mut Budget, layers: &[Conv], items: usize, what: &'static str) -> Result<Stack> {
+    let (mut z, mut y, mut mean, mut var) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for l in layers {
+        let len = mul(items, l.shape.output.len())?;
+        let c = l.shape.output.channels;
+        z.push(budget.take(what, if l.norm.is_some() { len } else { 0 })?);
+        y.push(budget.take(what, len)?);
+        mean.push(budget.take(what, PASSES * c)?);
+        var.push(budget.take(what, PASSES * c)?);
+    }
+    Ok(Stack { z, y, mean, var })
+}
+
+fn stack_grads(budget: &mut Budget, layers: &[Conv], items: usize) -> Result<StackGrads> {
+    let (mut gy, mut gz) = (Vec::new(), Vec::new());
+    for l in layers {
+        let len = mul(items, l.shape.output.len())?;
+        gy.push(budget.take("activation gradients", len)?);
+        gz.push(budget.take("activation gradients", len)?);
+    }
+    Ok(StackGrads { gy, gz })
+}
+
+/// The planes of a strided stack from `input` through `channels`, each in a border of [`HALO`].
+fn down_shapes(input: Plane, channels: [usize; 4], k: usize) -> [ConvShape; 4] {
+    let mut plane = input;
+    channels.map(|oc| {
+        let shape = ConvShape::new(ConvKind::Down, k, plane, oc, HALO);
+        plane = shape.output;
+        shape
+    })
+}
+
+/// The three networks, their tensors and every buffer of a step.
+struct Parts {
+    table: Table,
+    params: Vec<f32>,
+    grads: Vec<f32>,
+    moments: [Vec<f32>; 2],
+    stats: Vec<f32>,
+    /// Each network's span of the parameters (encoder, generator, discriminator).
+    nets: [Range<usize>; 3],
+    enc: [Conv; 4],
+    heads: Dense,
+    fc: Dense,
+    top_norm: Norm,
+    top: Plane,
+    gen: [Conv; 4],
+    dis: [Conv; 4],
+    logit: Dense,
+    buffers: Buffers,
+}
+
+/// The activations, their gradients and the scratch of a step, for up to `batch` frames.
+struct Buffers {
+    batch: usize,
+    /// Real frames (planes of the first convolution's input).
+    real: Vec<f32>,
+    enc: Stack,
+    enc_flat: Vec<f32>,
+    /// `[mu | logsigma]` per item (logsigma after its tanh).
+    heads: Vec<f32>,
+    /// The generator's inputs: `mu + eps · sigma` for the batch, then the prior samples.
+    codes: Vec<f32>,
+    eps: Vec<f32>,
+    fc_out: Vec<f32>,
+    /// The generator's first feature map before and after BatchNorm0 + ReLU, and its stats.
+    top_z: Vec<f32>,
+    top_y: Vec<f32>,
+    top_mean: Vec<f32>,
+    top_var: Vec<f32>,
+    gen: Stack,
+    dis_real: Stack,
+    dis_fake: Stack,
+    flat_real: Vec<f32>,
+    flat_fake: Vec<f32>,
+    logits_real: Vec<f32>,
+    logits_fake: Vec<f32>,
+    enc_grads: StackGrads,
+    gen_grads: StackGrads,
+    dis_grads: StackGrads,
+    top_gz: Vec<f32>,
+    top_gy: Vec<f32>,
+    /// Gradients of the discriminator's input, the feature error, dense outputs and inputs.
+    dx: Vec<f32>,
+    dfeature: Vec<f32>,
+    dlogits: Vec<f32>,
+    dflat: Vec<f32>,
+    dheads: Vec<f32>,
+    dcodes: Vec<f32>,
+    work: Work,
+}
+
+/// The scratch every layer's passes share.
+struct Work {
+    scratch: Scratch,
+    weight_scratch: Vec<f32>,
+    packed_grad: Vec<f32>,
+    torch_grad: Vec<f32>,
+    /// Per-channel gradients of a BatchNorm pass, and bias sums.
+    channel_tmp: Vec<f32>,
+    /// Zeros: the bias of the data-gradient convolutions and dense layers.
+    zero: Vec<f32>,
+}
+
+fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
+    config.validate()?;
+    if batch == 0 {
+        return Err(Error::Config {
+            field: "batch",
+            expected: "at least 1 frame",
+            found: 0,
+        });
+    }
+    let c = config;
+    let (k, b, z) = (c.kernel, c.base_channels, c.z_dim);
+    let (flat, top_c, (top_h, top_w)) = (c.flat_len(), c.top_channels(), c.top_size());
+    let leaky = Activation::LeakyRelu(LEAKY_SLOPE);
+    let mut t = Table::default();
+    let mut sizes = Sizes::default();
+    let image = Plane::new(c.height, c.width, c.channels, HALO);
+    let down = down_shapes(image, [b, 2 * b, 4 * b, 8 * b], k);
+
+    // Encoder: its dense heads are one layer of 2z rows, mean then logsigma (their tensors
+    // side by side in the table).
+    let mut enc = Vec::new();
+    for (i, &shape) in down.iter().enumerate() {
+        let norm = (i > 0).then(|| format!("encoder.bn{i}"));
+        let name = format!("encoder.conv{i}");
+        enc.push(Conv::new(&mut t, budget, &mut sizes, &name, norm.as_deref(), shape, leaky)?);
+    }
+    let fan = Init::FanIn(flat);
+    let (mw, lw) = (
+        t.param("encoder.mean.weight".into(), &[z, flat], fan),
+        t.param("encoder.logsigma.weight".into(), &[z, flat], fan),
+    );
+    let (mb, lb) = (
+        t.param("encoder.mean.bias".into(), &[z], fan),
+        t.param("encoder.logsigma.bias".into(), &[z], fan),
+    );
+    let heads = Dense::new(budget, &mut sizes, (mw.start..lw.end, mb.start..lb.end), 2 * z, flat, Order::Columns(top_c, top_h, top_w))?;
+    let enc_end = t.params;
+
+    // Generator.
+    let fc_tensors = (
+        t.param("generator.fc.weight".into(), &[flat, z], Init::FanIn(z)),
+        t.param("generator.fc.bias".into(), &[flat], Init::FanIn(z)),
+    );
+    let fc = Dense::new(budget, &mut sizes, fc_tensors, flat, z, Order::Rows(top_c, top_h, top_w))?;
+    let top_norm = t.norm("generator.bn0", top_c);
+    let top = Plane::new(top_h, top_w, top_c, HALO);
+    let mut gen = Vec::new();
+    let mut plane = top;
+    for i in 1..=4 {
+        let last = i == 4;
+        let oc = if last { c.channels } else { plane.channels / 2 };
+        let shape = ConvShape::new(ConvKind::Up, k, plane, oc, HALO);
+        let norm = (!last).then(|| format!("generator.bn{i}"));
+        let act = if last { Activation::Tanh } else { Activation::Relu };
+        let name = format!("generator.deconv{i}");
+        gen.push(Conv::new(&mut t, budget, &mut sizes, &name, norm.as_deref(), shape, act)?);
+        plane = shape.output;
+    }
+    let gen_end = t.params;
+
+    // Discriminator.
+    let mut dis = Vec::new();
+    for (i, &shape) in down.iter().enumerate() {
+        let norm = (i > 0).then(|| format!("discriminator.bns.{i}"));
+        let name = format!("discriminator.convs.{i}");
+        dis.push(Conv::new(&mut t, budget, &mut sizes, &name, norm.as_deref(), shape, leaky)?);
+    }
+    let logit_tensors = (
+        t.param("discriminator.out.weight".into(), &[1, flat], Init::FanIn(flat)),
+        t.param("discriminator.out.bias".into(), &[1], Init::FanIn(flat)),
+    );
+    let logit = Dense::new(budget, &mut sizes, logit_tensors, 1, flat, Order::Columns(top_c, top_h, top_w))?;
+    let params = t.params;
+    let [enc, gen, dis]: [[Conv; 4]; 3] = [enc, gen, dis].map(|v| v.try_into().ok().expect("four layers"));
+
+    let pair = mul(2, batch)?;
+    let act = "activations";
+    let buffers = Buffers {
+        batch,
+        real: budget.take(act, mul(batch, image.len())?)?,
+        enc: stack(budget, &enc, batch, act)?,
+        enc_flat: budget.take(act, mul(batch, flat)?)?,
+        heads: budget.take(act, mul(batch, 2 * z)?)?,
+        codes: budget.take(act, mul(pair, z)?)?,
+        eps: budget.take(act, mul(batch, z)?)?,
+        fc_out: budget.take(act, mul(pair, flat)?)?,
+        top_z: budget.take(act, mul(pair, top.len())?)?,
+        top_y: budget.take(act, mul(pair, top.len())?)?,
+        top_mean: budget.take(act, PASSES * top_c)?,
+        top_var: budget.take(act, PASSES * top_c)?,
+        gen: stack(budget, &gen, pair, act)?,
+        dis_real: stack(budget, &dis, batch, act)?,
+        dis_fake: stack(budget, &dis, pair, act)?,
+        flat_real: budget.take(act, mul(batch, flat)?)?,
+        flat_fake: budget.take(act, mul(pair, flat)?)?,
+        logits_real: budget.take(act, batch)?,
+        logits_fake: budget.take(act, pair)?,
+        enc_grads: stack_grads(budget, &enc, batch)?,
+        gen_grads: stack_grads(budget, &gen, pair)?,
+        dis_grads: stack_grads(budget, &dis, pair)?,
+        top_gz: budget.take("activation gradients", mul(pair, top.len())?)?,
+        top_gy: budget.take("activation gradients", mul(pair, top.len())?)?,
+        dx: budget.take("activation gradients", mul(pair, image.len())?)?,
+        dfeature: budget.take("activation gradients", mul(pair, down[2].output.len())?)?,
+        dlogits: budget.take("activation gradients", pair)?,
+        dflat: budget.take("activation gradients", mul(pair, flat)?)?,
+        dheads: budget.take("activation gradients", mul(batch, 2 * z)?)?,
+        dcodes: budget.take("activation gradients", mul(batch, z)?)?,
+        work: Work {
+            scratch: Scratch {
+                v: budget.take("scratch", sizes.winograd_v)?,
+                products: budget.take("scratch", sizes.winograd_products)?,
+            },
+            weight_scratch: budget.take("scratch", sizes.weight_scratch)?,
+            packed_grad: budget.take("scratch", sizes.packed_grad)?,
+            torch_grad: budget.take("scratch", sizes.torch_grad)?,
+            channel_tmp: budget.take("scratch", 2 * sizes.channels.max(top_c))?,
+            zero: budget.take("scratch", sizes.channels.max(sizes.dense_zero))?,
+        },
+    };
+    Ok(Parts {
+        params: budget.take("parameters", params)?,
+        grads: budget.take("gradients", params)?,
+        moments: [budget.take("Adam moments", params)?, budget.take("Adam moments", params)?],
+        stats: budget.take("running statistics", t.stats)?,
+        nets: [0..enc_end, enc_end..gen_end, gen_end..params],
+        table: t,
+        enc,
+        heads,
+        fc,
+        top_norm,
+        top,
+        gen,
+        dis,
+        logit,
+        buffers,
+    })
+}
+
+/// The memory of a [`VaeGanTrainer`] for a config and a batch of frames, measured by building
+/// the trainer without allocating (every buffer counted, none made).
+///
+/// ```
+/// use drivesim::train::VaeGanPlan;
+/// use drivesim::Config;
+///
+/// let config = Config { base_channels: 32, z_dim: 128, hidden_dim: 256, ..Config::COMMA };
+/// let plan = VaeGanPlan::new(&config, 8)?;
+/// for (buffer, bytes) in plan.buffers() {
+///     println!("{buffer:>22}: {bytes} bytes");
+/// }
+/// assert!(plan.bytes() < 1 << 30);
+/// assert!(VaeGanPlan::new(&config, usize::MAX).is_err());
+/// # Ok::<(), drivesim::Error>(())
+/// ```
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct VaeGanPlan {
+    config: Config,
+    batch: usize,
+    floats: Vec<(&'static str, usize)>,
+    bytes: usize,
+}
+
+impl VaeGanPlan {
+    /// The plan for `config` taking up to `batch` frames per step.
+    pub fn new(config: &Config, batch: usize) -> Result<VaeGanPlan> {
+        let mut budget = Budget {
+            allocate: false,
+            floats: Vec::new(),
+        };
+        build(config, batch, &mut budget)?;
+        let total = budget.floats.iter().try_fold(0usize, |s, &(_, n)| s.checked_add(n));
+        let bytes = total
+            .and_then(|n| n.checked_mul(4))
+            .filter(|&b| b <= isize::MAX as usize)
+            .ok_or(OVERFLOW)?;
+        Ok(VaeGanPlan {
+            config: *config,
+            batch,
+            floats: budget.floats,
+            bytes,
+        })
+    }
+
+    /// Bytes the trainer allocates (besides a few tensor names).
+    pub fn bytes(&self) -> usize {
+        self.bytes
+    }
+
+    /// Bytes per kind of buffer.
+    pub fn buffers(&self) -> impl Iterator<Item = (&'static str, usize)> + '_ {
+        self.floats.iter().map(|&(what, n)| (what, n * 4))
+    }
+
+    /// Most frames per step.
+    pub fn batch(&self) -> usize {
+        self.batch
+    }
+}
+
+/// Trains a model's encoder and generator as a VAE-GAN, with a discriminator, in the memory of
+/// a [`VaeGanPlan`], allocated once: a step allocates nothing.
+///
+/// ```
+/// use drivesim::train::{VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR};
+/// use drivesim::{Config, Model, WeightDtype};
+///
+/// let config = Config { height: 32, width: 64, base_channels: 4, z_dim: 8, hidden_dim: 8, ..Config::COMMA };
+/// let file = drivesim::train::random_weight_file(&config, 7)?;
+/// let plan = VaeGanPlan::new(&config, 2)?;
+/// let mut trainer = VaeGanTrainer::new(&file, &plan, VaeGanSettings::default())?;
+/// let frames: Vec<f32> = (0..2 * 32 * 64 * 3).map(|i| ((i % 7) as f32 / 3.0 - 1.0)).collect();
+/// let eps = vec![0.5; 2 * 8];
+/// let prior = vec![-0.5; 2 * 8];
+/// let losses = trainer.step(&frames, &eps, &prior, VAE_GAN_LR)?;
+/// assert!(losses.pixel_l1 > 0.0 && losses.discriminator > 0.0);
+/// // The trained networks as a weight file the simulator loads (discriminator included).
+/// let model = Model::from_bytes(&trainer.weight_file(&file, None)?)?;
+/// # let _ = (model, WeightDtype::F32);
+/// # Ok::<(), drivesim::Error>(())
+/// ```
+pub struct VaeGanTrainer {
+    config: Config,
+    settings: VaeGanSettings,
+    isa: Isa,
+    steps: u32,
+    parts: Parts,
+}
+
+impl VaeGanTrainer {
+    /// A trainer starting from a drivesim weight file's encoder and generator (and its
+    /// discriminator, `discriminator.*`, if it has one; otherwise a seeded random one with
+    /// PyTorch's default initialisation ranges), its buffers allocated once here.
+    pub fn new(weights: &[u8], plan: &VaeGanPlan, settings: VaeGanSettings) -> Result<VaeGanTrainer> {
+        let (config, _, mut src) = SafetensorsSource::parse(weights)?;
+        if config != plan.config {
+            return Err(Error::Config {
+                field: "config",
+                expected: "the plan's config",
+                found: 0,
+            });
+        }
+        settings.adam.check()?;
+        let mut budget = Budget {
+            allocate: true,
+            floats: Vec::new(),
+        };
+        let mut parts = build(&config, plan.batch, &mut budget)?;
+        debug_assert_eq!(budget.floats, plan.floats, "the plan measures what is allocated");
+        let has_discriminator = src.contains(DISCRIMINATOR_PREFIX);
+        let mut random = RandomSource::new(0x5eed_d15c, WeightDtype::F32);
+        for e in &parts.table.entries {
+            let from_file = has_discriminator || !e.name.starts_with(DISCRIMINATOR_PREFIX);
+            let values = if from_file {
+                src.f32(&e.name, &e.shape, e.init)?
+            } else {
+                random.f32(&e.name, &e.shape, e.init)?
+            };
+            let dst = if e.param { &mut parts.params } else { &mut parts.stats };
+            dst[e.at.clone()].copy_from_slice(&values);
+        }
+        let mut trainer = VaeGanTrainer {
+            config,
+            settings,
+            isa: Isa::best(),
+            steps: 0,
+            parts,
+        };
+        for net in 0..3 {
+            trainer.parts.pack(net);
+        }
+        Ok(trainer)
+    }
+
+    /// Uses the kernels of `isa` instead of the best this CPU has.
+    pub fn with_isa(mut self, isa: Isa) -> Self {
+        self.isa = isa;
+        self
+    }
+
+    /// One step on `frames` (`[B, H, W, C]` in [-1, 1], `B` at most the plan's batch), with
+    /// the reparametrisation draws `eps` and the prior samples `prior` (`[B, z]` each, standard
+    /// normal for training): the discriminator's update, then the encoder's and generator's,
+    /// at learning rate `lr`. Returns the losses, computed before the updates.
+    pub fn step(&mut self, frames: &[f32], eps: &[f32], prior: &[f32], lr: f32) -> Result<VaeGanLosses> {
+        let c = self.config;
+        if frames.is_empty() || frames.len() % c.frame_len() != 0 || frames.len() / c.frame_len() > self.parts.buffers.batch {
+            return Err(Error::BufferLength {
+                buffer: "frames",
+                expected: self.parts.buffers.batch * c.frame_len(),
+                found: frames.len(),
+            });
+        }
+        let n = frames.len() / c.frame_len();
+        expect_frames("frames", frames)?;
+        expect_len("eps", eps, n * c.z_dim)?;
+        expect_len("prior", prior, n * c.z_dim)?;
+        expect_finite("eps", eps)?;
+        expect_finite("prior", prior)?;
+        if !(lr.is_finite() && lr >= 0.0) {
+            return Err(Error::Setting {
+                name: "lr",
+                expected: "a finite number >= 0",
+                value: lr,
+            });
+        }
+        self.steps += 1;
+        let losses = self.parts.step(self.isa, &self.settings, frames, eps, prior, n, lr, self.steps);
+        expect_finite_output("gradients", &self.parts.grads)?;
+        expect_finite_output("parameters", &self.parts.params)?;
+        Ok(losses)
+    }
+
+    /// Adam steps taken.
+    pub fn steps(&self) -> u32 {
+        self.steps
+    }
+
+    /// The encoder's, generator's and discriminator's tensors in PyTorch layout (running
+    /// statistics included), named as in the weight file.
+    pub fn tensors(&self) -> Vec<NamedTensor> {
+        let p = &self.parts;
+        let entries = p.table.entries.iter();
+        entries
+            .map(|e| {
+                let values = if e.param { &p.params } else { &p.stats };
+                (e.name.clone(), e.shape.clone(), values[e.at.clone()].to_vec())
+            })
+            .collect()
+    }
+
+    /// The gradients of the last step (encoder and generator: of their own losses; the
+    /// discriminator: of its loss), named as the tensors they belong to.
+    pub fn gradients(&self) -> Vec<NamedTensor> {
+        let p = &self.parts;
+        let params = p.table.entries.iter().filter(|e| e.param);
+        params.map(|e| (e.name.clone(), e.shape.clone(), p.grads[e.at.clone()].to_vec())).collect()
+    }
+
+    /// A weight file with the trained networks: `original` (a drivesim weight file of the same
+    /// config, e.g. the one training started from) with the encoder's, generator's and
+    /// discriminator's tensors replaced (or, for a discriminator it lacked, added), every tensor
+    /// in `dtype` (`None`: the file's own). [`crate::Model::from_bytes`] reads it.
+    #[cfg(feature = "std")]
+    pub fn weight_file(&self, original: &[u8], dtype: Option<WeightDtype>) -> Result<Vec<u8>> {
+        let tensors = self.tensors();
+        let replace: Vec<(&str, &[usize], &[f32])> =
+            tensors.iter().map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..])).collect();
+        crate::weights::rewrite(original, &replace, dtype, None)
+    }
+}
+
+/// A drivesim weight file (f32) with seeded random weights for `config` (PyTorch's default
+/// initialisation ranges, BatchNorm at identity), discriminator included: where training from
+/// scratch starts.
+#[cfg(feature = "std")]
+pub fn random_weight_file(config: &Config, seed: u64) -> Result<Vec<u8>> {
+    let mut budget = Budget {
+        allocate: false,
+        floats: Vec::new(),
+    };
+    let parts = build(config, 1, &mut budget)?;
+    let (h, z, a) = (config.hidden_dim, config.z_dim, config.action_dim);
+    let transition = [
+        ("transition.W", alloc::vec![h, h], Init::FanIn(h)),
+        ("transition.V", alloc::vec![h, z], Init::FanIn(z)),
+        ("transition.U", alloc::vec![h, a], Init::FanIn(a)),
+        ("transition.b", alloc::vec![h], Init::Zeros),
+        ("transition.A", alloc::vec![z, h], Init::FanIn(h)),
+        ("transition.a", alloc::vec![z], Init::Zeros),
+    ];
+    let specs = parts.table.entries.iter().map(|e| (e.name.as_str(), e.shape.clone(), e.init));
+    let specs: Vec<_> = specs.chain(transition.iter().map(|(n, s, i)| (*n, s.clone(), *i))).collect();
+    let mut random = RandomSource::new(seed, WeightDtype::F32);
+    let mut data = Vec::new();
+    for (name, shape, init) in &specs {
+        let values = random.f32(name, shape, *init)?;
+        data.push(bytemuck::cast_slice::<f32, u8>(&values).to_vec());
+    }
+    let views = specs
+        .iter()
+        .zip(&data)
+        .map(|((name, shape, _), bytes)| {
+            safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), bytes)
+                .map(|view| (String::from(*name), view))
+        })
+        .collect::<core::result::Result<Vec<_>, _>>();
+    let malformed = |e| Error::Malformed {
+        what: "weight file",
+        reason: format!("{e:?}"),
+    };
+    let mut metadata = std::collections::HashMap::new();
+    metadata.insert(String::from(Config::METADATA_KEY), config.to_json());
+    safetensors::serialize(views.map_err(malformed)?, Some(metadata)).map_err(malformed)
+}
+
+/// Copies the interiors of `items` planes into consecutive HWC vectors (a dense layer's input).
+fn gather(plane: Plane, planes: &[f32], items: usize, flat: &mut [f32]) {
+    let row = plane.width * plane.channels;
+    let per_item = plane.height * row;
+    for n in 0..items {
+        for y in 0..plane.height {
+            let src = &planes[n * plane.len() + plane.index(y, 0)..][..row];
+            flat[n * per_item + y * row..][..row].copy_from_slice(src);
+        }
+    }
+}
+
+/// The inverse of [`gather`]: HWC vectors into the interiors of planes.
+fn scatter(plane: Plane, flat: &[f32], items: usize, planes: &mut [f32]) {
+    let row = plane.width * plane.channels;
+    let per_item = plane.height * row;
+    for n in 0..items {
+        for y in 0..plane.height {
+            let dst = &mut planes[n * plane.len() + plane.index(y, 0)..][..row];
+            dst.copy_from_slice(&flat[n * per_item + y * row..][..row]);
+        }
+    }
+}
+
+/// `ln(1 + e^x)` in f64, without overflow.
+fn softplus(x: f64) -> f64 {
+    x.max(0.0) + math::ln64(1.0 + math::exp64(-x.abs()))
+}
+
+/// `1 / (1 + e^-x)` in f64.
+fn sigmoid(x: f64) -> f64 {
+    1.0 / (1.0 + math::exp64(-x))
+}
+
+/// PyTorch's `binary_cross_entropy_with_logits` against a constant target (mean over the
+/// logits), and its gradient times `scale` into `grad`.
+fn bce(logits: &[f32], target: bool, scale: f64, grad: &mut [f32]) -> f64 {
+    let n = logits.len() as f64;
+    let t = if target { 1.0 } else { 0.0 };
+    let mut loss = 0.0;
+    for (g, &l) in grad.iter_mut().zip(logits) {
+        let l = l as f64;
+        loss += softplus(if target { -l } else { l });
+        *g = (scale * (sigmoid(l) - t) / n) as f32;
+    }
+    loss / n
+}
+
+/// `dst += src`.
+fn add(dst: &mut [f32], src: &[f32]) {
+    dst.iter_mut().zip(src).for_each(|(d, s)| *d += s);
+}
+
+/// BatchNorm + activation in training mode over one pass of `plane`s, moving the running
+/// statistics if `update`.
+#[allow(clippy::too_many_arguments)] // a layer's tensors, its input and output, its statistics
+fn norm_forward(
+    plane: Plane,
+    norm: &Norm,
+    params: &[f32],
+    stats: &mut [f32],
+    act: Activation,
+    z: &[f32],
+    y: &mut [f32],
+    (mean, var): (&mut [f32], &mut [f32]),
+    update: bool,
+) {
+    batch_norm_train(plane, z, &params[norm.gamma.clone()], &params[norm.beta.clone()], act, y, mean, var);
+    if update {
+        let count = z.len() / plane.len() * plane.height * plane.width;
+        // The running mean and variance were declared one after the other.
+        let (rm, rv) = stats[norm.mean.start..norm.var.end].split_at_mut(norm.mean.len());
+        update_running_stats(mean, var, count, rm, rv);
+    }
+}
+
+/// The forward pass of a stack of convolutions over the items of `passes` (each pass a batch
+/// for BatchNorm, moving the running statistics if its flag says so).
+#[allow(clippy::too_many_arguments)]
+fn stack_forward(
+    isa: Isa,
+    layers: &[Conv],
+    params: &[f32],
+    stats: &mut [f32],
+    input: &[f32],
+    acts: &mut Stack,
+    passes: &[(Range<usize>, bool)],
+    scratch: &mut Scratch,
+) {
+    let items = passes.last().map_or(0, |p| p.0.end);
+    for (i, l) in layers.iter().enumerate() {
+        let (il, ol, oc) = (l.shape.input.len(), l.shape.output.len(), l.shape.output.channels);
+        let (done, rest) = acts.y.split_at_mut(i);
+        let x = if i == 0 { input } else { &done[i - 1][..] };
+        let y = &mut rest[0];
+        let bias = &params[l.bias.clone()];
+        let Some(norm) = &l.norm else {
+            for n in 0..items {
+                l.forward.run(isa, bias, l.act, &x[n * il..][..il], &mut y[n * ol..][..ol], scratch);
+            }
+            continue;
+        };
+        let z = &mut acts.z[i];
+        for n in 0..items {
+            l.forward.run(isa, bias, Activation::Identity, &x[n * il..][..il], &mut z[n * ol..][..ol], scratch);
+        }
+        let (mean, var) = (&mut acts.mean[i], &mut acts.var[i]);
+        for (p, (range, update)) in passes.iter().enumerate() {
+            let span = range.start * ol..range.end * ol;
+            let statistics = (&mut mean[p * oc..][..oc], &mut var[p * oc..][..oc]);
+            norm_forward(l.shape.output, norm, params, stats, l.act, &z[span.clone()], &mut y[span], statistics, *update);
+        }
+    }
+}
+
+/// Where a backward pass through a stack starts: from the gradient of layer `i`'s output (in
+/// `gy[i]`), or of its convolution's output before BatchNorm (in `gz[i]`).
+#[derive(Clone, Copy)]
+enum Start {
+    Output(usize),
+    BeforeNorm(usize),
+}
+
+/// The backward pass of a stack over the items of `passes` (with their BatchNorm statistics)
+/// from `start` down: parameter gradients added to `grads` if given, `inject` (a layer and a
+/// gradient) added to that layer's gradient before BatchNorm, and the input's gradient written
+/// to `dx` if given.
+#[allow(clippy::too_many_arguments)]
+fn stack_backward(
+    isa: Isa,
+    layers: &[Conv],
+    params: &[f32],
+    mut grads: Option<&mut [f32]>,
+    input: &[f32],
+    acts: &Stack,
+    g: &mut StackGrads,
+    passes: &[Range<usize>],
+    start: Start,
+    inject: Option<(usize, &[f32])>,
+    mut dx: Option<&mut [f32]>,
+    work: &mut Work,
+) {
+    let items = passes.last().map_or(0, |p| p.end);
+    let (top, norm_done) = match start {
+        Start::Output(i) => (i, false),
+        Start::BeforeNorm(i) => (i, true),
+    };
+    for i in (0..=top).rev() {
+        let l = &layers[i];
+        let (plane, il, ol) = (l.shape.output, l.shape.input.len(), l.shape.output.len());
+        let oc = plane.channels;
+        let (below, rest) = g.gy.split_at_mut(i);
+        let (gy, gz) = (&mut rest[0][..items * ol], &mut g.gz[i][..items * ol]);
+        if !(norm_done && i == top) {
+            match &l.norm {
+                Some(norm) => {
+                    for (p, r) in passes.iter().enumerate() {
+                        let s = r.start * ol..r.end * ol;
+                        let (dgamma, dbeta) = work.channel_tmp[..2 * oc].split_at_mut(oc);
+                        let gamma = &params[norm.gamma.clone()];
+                        let (mean, var) = (&acts.mean[i][p * oc..][..oc], &acts.var[i][p * oc..][..oc]);
+                        let (z, y) = (&acts.z[i][s.clone()], &acts.y[i][s.clone()]);
+                        batch_norm_backward(plane, z, y, l.act, gamma, mean, var, &mut gy[s.clone()], &mut gz[s], dgamma, dbeta);
+                        if let Some(grads) = grads.as_deref_mut() {
+                            add(&mut grads[norm.gamma.clone()], dgamma);
+                            add(&mut grads[norm.beta.clone()], dbeta);
+                        }
+                    }
+                }
+                None => {
+                    activation_backward(isa, l.act, &acts.y[i][..items * ol], gy);
+                    gz.copy_from_slice(gy);
+                }
+            }
+        }
+        if let Some((_, d)) = inject.filter(|(at, _)| *at == i) {
+            add(gz, &d[..items * ol]);
+        }
+        let x = if i == 0 { input } else { &acts.y[i - 1][..] };
+        let x = &x[..items * il];
+        if let Some(grads) = grads.as_deref_mut() {
+            let sums = &mut work.channel_tmp[..oc];
+            channel_sums(plane, gz, sums);
+            add(&mut grads[l.bias.clone()], sums);
+            // A transposed layer's weight gradient is its transposed shape's, with the input
+            // and the output gradient swapped.
+            let (down, a, b) = match l.shape.kind {
+                ConvKind::Down => (l.shape, x, &*gz),
+                ConvKind::Up => (l.shape.transposed(), &*gz, x),
+            };
+            let k = down.kernel;
+            let packed = &mut work.packed_grad[..Matrix::packed_len(down.output.channels, k * k * down.input.channels)];
+            conv_weight_grad(isa, down, a, b, &mut work.weight_scratch, packed);
+            let torch = &mut work.torch_grad[..l.weight.len()];
+            conv_grad_to_torch(&down, packed, torch);
+            add(&mut grads[l.weight.clone()], torch);
+        }
+        let target = if i > 0 { Some(&mut below[i - 1][..items * il]) } else { dx.as_deref_mut().map(|d| &mut d[..items * il]) };
+        if let Some(target) = target {
+            let zero = &work.zero[..l.shape.input.channels];
+            for n in 0..items {
+                let (src, dst) = (&gz[n * ol..][..ol], &mut target[n * il..][..il]);
+                l.backward.run(isa, zero, Activation::Identity, src, dst, &mut work.scratch);
+            }
+        }
+    }
+}
+
+impl Parts {
+    /// Repacks network `net`'s layers (0 encoder, 1 generator, 2 discriminator).
+    fn pack(&mut self, net: usize) {
+        let p = &self.params;
+        match net {
+            0 => {
+                self.enc.iter_mut().for_each(|l| l.pack(p));
+                self.heads.pack(p);
+            }
+            1 => {
+                self.fc.pack(p);
+                self.gen.iter_mut().for_each(|l| l.pack(p));
+            }
+            _ => {
+                self.dis.iter_mut().for_each(|l| l.pack(p));
+                self.logit.pack(p);
+            }
+        }
+    }
+
+    /// Adam on network `net`'s parameters, then its packings.
+    fn update(&mut self, net: usize, adam: &Adam, t: u32, lr: f32) {
+        let r = self.nets[net].clone();
+        let [m, v] = &mut self.moments;
+        adam.update(t, lr, 1.0, &mut self.params[r.clone()], &self.grads[r.clone()], [&mut m[r.clone()], &mut v[r]]);
+        self.pack(net);
+    }
+
+    /// The discriminator on `items` planes of `input` (real frames, or the fakes in the
+    /// generator's output): its activations in `set`, the logits in `logits`.
+    fn discriminate(&mut self, isa: Isa, fake: bool, items: usize) {
+        let b = &mut self.buffers;
+        let (input, acts, flat, logits) = if fake {
+            (&b.gen.y[3], &mut b.dis_fake, &mut b.flat_fake, &mut b.logits_fake)
+        } else {
+            (&b.real, &mut b.dis_real, &mut b.flat_real, &mut b.logits_real)
+        };
+        let passes = [(0..items, true)];
+        stack_forward(isa, &self.dis, &self.params, &mut self.stats, input, acts, &passes, &mut b.work.scratch);
+        gather(self.dis[3].shape.output, &acts.y[3], items, flat);
+        self.logit.run(isa, &flat[..items * self.logit.cols], &mut logits[..items]);
+    }
+
+    /// The gradient `dlogits` (of `items` logits) back through the discriminator's `fake` or
+    /// real set: to its parameters if `weights`, to its input (into `buffers.dx`) if `input`,
+    /// with `inject` added to the third convolution's output gradient.
+    fn discriminator_backward(&mut self, isa: Isa, fake: bool, items: usize, weights: bool, input: bool, inject: bool) {
+        let b = &mut self.buffers;
+        let (x, acts, flat) = if fake { (&b.gen.y[3], &b.dis_fake, &b.flat_fake) } else { (&b.real, &b.dis_real, &b.flat_real) };
+        let flat_len = self.logit.cols;
+        let dlogits = &b.dlogits[..items];
+        if weights {
+            self.logit.weight_grad(isa, dlogits, &flat[..items * flat_len], &mut b.work.packed_grad, &mut self.grads);
+        }
+        self.logit.data_grad(isa, &b.work.zero, dlogits, &mut b.dflat[..items * flat_len]);
+        scatter(self.dis[3].shape.output, &b.dflat, items, &mut b.dis_grads.gy[3]);
+        let grads = weights.then_some(&mut self.grads[..]);
+        let inject = inject.then_some((2, &b.dfeature[..]));
+        let dx = input.then_some(&mut b.dx[..]);
+        let passes = [0..items];
+        stack_backward(isa, &self.dis, &self.params, grads, x, acts, &mut b.dis_grads, &passes, Start::Output(3), inject, dx, &mut b.work);
+    }
+
+    /// The generator's gradient `buffers.dx` (of its `items` outputs) back through its first
+    /// `items` (with their passes' statistics): parameter gradients if `weights`, the codes'
+    /// gradient into `buffers.dcodes` otherwise.
+    fn generator_backward(&mut self, isa: Isa, passes: &[Range<usize>], weights: bool) {
+        let b = &mut self.buffers;
+        let items = passes.last().map_or(0, |p| p.end);
+        let image = self.gen[3].shape.output.len();
+        b.gen_grads.gy[3][..items * image].copy_from_slice(&b.dx[..items * image]);
+        let grads = weights.then_some(&mut self.grads[..]);
+        let (top_y, gen) = (&b.top_y, &b.gen);
+        stack_backward(isa, &self.gen, &self.params, grads, top_y, gen, &mut b.gen_grads, passes, Start::Output(3), None, Some(&mut b.top_gy), &mut b.work);
+        // BatchNorm0 + ReLU on the fully connected layer's output, per pass.
+        let (top, tl, c) = (self.top, self.top.len(), self.top.channels);
+        let norm = &self.top_norm;
+        for (p, r) in passes.iter().enumerate() {
+            let s = r.start * tl..r.end * tl;
+            let (dgamma, dbeta) = b.work.channel_tmp[..2 * c].split_at_mut(c);
+            let gamma = &self.params[norm.gamma.clone()];
+            let (mean, var) = (&b.top_mean[p * c..][..c], &b.top_var[p * c..][..c]);
+            batch_norm_backward(top, &b.top_z[s.clone()], &b.top_y[s.clone()], Activation::Relu, gamma, mean, var, &mut b.top_gy[s.clone()], &mut b.top_gz[s], dgamma, dbeta);
+            if weights {
+                add(&mut self.grads[norm.gamma.clone()], dgamma);
+                add(&mut self.grads[norm.beta.clone()], dbeta);
+            }
+        }
+        let flat = self.fc.rows;
+        gather(top, &b.top_gz, items, &mut b.dflat);
+        let (dflat, z) = (&b.dflat[..items * flat], self.fc.cols);
+        if weights {
+            self.fc.weight_grad(isa, dflat, &b.codes[..items * z], &mut b.work.packed_grad, &mut self.grads);
+        } else {
+            self.fc.data_grad(isa, &b.work.zero, dflat, &mut b.dcodes[..items * z]);
+        }
+    }
+
+    /// One VAE-GAN step on `n` frames; see [`VaeGanTrainer::step`]. `t` is the Adam step.
+    #[allow(clippy::too_many_arguments)]
+    fn step(&mut self, isa: Isa, s: &VaeGanSettings, frames: &[f32], eps: &[f32], prior: &[f32], n: usize, lr: f32, t: u32) -> VaeGanLosses {
+        self.grads.fill(0.0);
+        let z = self.fc.cols;
+        let image = self.enc[0].shape.input;
+        {
+            let b = &mut self.buffers;
+            for (plane, frame) in b.real.chunks_exact_mut(image.len()).zip(frames.chunks_exact(image.interior_len())) {
+                image.write_interior(plane, frame);
+            }
+            // Encoder.
+            let passes = [(0..n, true)];
+            stack_forward(isa, &self.enc, &self.params, &mut self.stats, &b.real, &mut b.enc, &passes, &mut b.work.scratch);
+            gather(self.enc[3].shape.output, &b.enc.y[3], n, &mut b.enc_flat);
+            let flat = self.heads.cols;
+            self.heads.run(isa, &b.enc_flat[..n * flat], &mut b.heads[..n * 2 * z]);
+            // The generator's inputs: mu + eps · exp(logsigma), then the prior samples.
+            b.eps[..n * z].copy_from_slice(eps);
+            for i in 0..n {
+                let (mu, ls) = b.heads[i * 2 * z..][..2 * z].split_at_mut(z);
+                for j in 0..z {
+                    ls[j] = math::tanh(ls[j]);
+                    b.codes[i * z + j] = mu[j] + eps[i * z + j] * math::exp64(ls[j] as f64) as f32;
+                }
+            }
+            b.codes[n * z..2 * n * z].copy_from_slice(prior);
+            // Generator: reconstructions update the running statistics, prior samples do not.
+            self.fc.run(isa, &b.codes[..2 * n * z], &mut b.fc_out[..2 * n * self.fc.rows]);
+            scatter(self.top, &b.fc_out, 2 * n, &mut b.top_z);
+            let (tl, tc) = (self.top.len(), self.top.channels);
+            for (p, update) in [(0, true), (1, false)] {
+                let span = p * n * tl..(p + 1) * n * tl;
+                let statistics = (&mut b.top_mean[p * tc..][..tc], &mut b.top_var[p * tc..][..tc]);
+                norm_forward(self.top, &self.top_norm, &self.params, &mut self.stats, Activation::Relu, &b.top_z[span.clone()], &mut b.top_y[span], statistics, update);
+            }
+            let passes = [(0..n, true), (n..2 * n, false)];
+            stack_forward(isa, &self.gen, &self.params, &mut self.stats, &b.top_y, &mut b.gen, &passes, &mut b.work.scratch);
+        }
+
+        // The discriminator: real frames against reconstructions and prior samples.
+        self.discriminate(isa, false, n);
+        self.discriminate(isa, true, 2 * n);
+        let b = &mut self.buffers;
+        let real = bce(&b.logits_real[..n], true, 1.0, &mut b.dlogits[..n]);
+        self.discriminator_backward(isa, false, n, true, false, false);
+        let b = &mut self.buffers;
+        let fake = bce(&b.logits_fake[..2 * n], false, 1.0, &mut b.dlogits[..2 * n]);
+        self.discriminator_backward(isa, true, 2 * n, true, false, false);
+        self.update(2, &s.adam, t, lr);
+
+        // The encoder's and generator's losses through the updated discriminator.
+        self.discriminate(isa, false, n);
+        self.discriminate(isa, true, 2 * n);
+        let b = &mut self.buffers;
+        let features = self.dis[2].shape.output;
+        let (fl, f_len) = (features.len(), n * features.interior_len());
+        let (f_real, f_fake) = (&b.dis_real.z[2][..n * fl], &b.dis_fake.z[2][..n * fl]);
+        // Interior values only: the borders are zero in both.
+        let (mut sum, mut sq, mut err) = (0.0f64, 0.0f64, 0.0f64);
+        for (&r, &f) in f_real.iter().zip(f_fake) {
+            sum += r as f64;
+            err += ((f - r) as f64).powi(2);
+        }
+        let mean = sum / f_len as f64;
+        for item in f_real.chunks_exact(fl) {
+            for y in 0..features.height {
+                for &r in &item[features.index(y, 0)..][..features.width * features.channels] {
+                    sq += (r as f64 - mean).powi(2);
+                }
+            }
+        }
+        let spread = (sq / (f_len as f64 - 1.0)).max(1e-6);
+        let feature = err / f_len as f64 / spread;
+        let dfeature_scale = s.feature as f64 * 2.0 / (f_len as f64 * spread);
+        b.dfeature.fill(0.0);
+        for ((d, &r), &f) in b.dfeature.iter_mut().zip(f_real).zip(f_fake) {
+            *d = (dfeature_scale * (f - r) as f64) as f32;
+        }
+        // Pixel L1 and its gradient (sign(0) = 0, as PyTorch's).
+        let (il, pixels) = (image.len(), n * image.interior_len());
+        let (xr, x) = (&b.gen.y[3][..n * il], &b.real[..n * il]);
+        let pixel = xr.iter().zip(x).map(|(&r, &x)| (r - x).abs() as f64).sum::<f64>() / pixels as f64;
+        let pixel_grad = |r: f32, x: f32| -> f32 {
+            let d = r - x;
+            let sign = if d > 0.0 { 1.0 } else if d < 0.0 { -1.0 } else { 0.0 };
+            (s.pixel as f64 * sign / pixels as f64) as f32
+        };
+        // KL prior.
+        let codes = (n * z) as f64;
+        let mut kl = 0.0;
+        for item in b.heads[..n * 2 * z].chunks_exact(2 * z) {
+            let (mu, ls) = item.split_at(z);
+            for (&m, &l) in mu.iter().zip(ls) {
+                let (m, l) = (m as f64, l as f64);
+                kl += m * m + math::exp64(2.0 * l) - 1.0 - 2.0 * l;
+            }
+        }
+        let kl = 0.5 * kl / codes;
+        let gan = bce(&b.logits_fake[..2 * n], true, s.gan as f64, &mut b.dlogits[..2 * n]);
+
+        // The encoder's loss: the feature error back through the discriminator (from its third
+        // convolution down), plus the pixel error, back through the reconstructions' pass of
+        // the generator to the codes, the reparametrisation and the KL prior.
+        let fake_len = 2 * n * fl;
+        b.dis_grads.gz[2][..fake_len].copy_from_slice(&b.dfeature[..fake_len]);
+        let passes = [0..2 * n];
+        stack_backward(isa, &self.dis, &self.params, None, &b.gen.y[3], &b.dis_fake, &mut b.dis_grads, &passes, Start::BeforeNorm(2), None, Some(&mut b.dx), &mut b.work);
+        for ((d, &r), &x) in b.dx[..n * il].iter_mut().zip(xr).zip(x) {
+            *d += pixel_grad(r, x);
+        }
+        self.generator_backward(isa, &[0..n], false);
+        let b = &mut self.buffers;
+        for i in 0..n {
+            let (mu, ls) = b.heads[i * 2 * z..][..2 * z].split_at(z);
+            let (dmu, dls) = b.dheads[i * 2 * z..][..2 * z].split_at_mut(z);
+            for j in 0..z {
+                let (m, l, dc, e) = (mu[j] as f64, ls[j] as f64, b.dcodes[i * z + j] as f64, b.eps[i * z + j] as f64);
+                let sigma = math::exp64(l);
+                dmu[j] = (dc + s.kl as f64 * m / codes) as f32;
+                let dl = dc * e * sigma + s.kl as f64 * (math::exp64(2.0 * l) - 1.0) / codes;
+                dls[j] = (dl * (1.0 - l * l)) as f32;
+            }
+        }
+        let flat = self.heads.cols;
+        let dheads = &b.dheads[..n * 2 * z];
+        self.heads.weight_grad(isa, dheads, &b.enc_flat[..n * flat], &mut b.work.packed_grad, &mut self.grads);
+        self.heads.data_grad(isa, &b.work.zero, dheads, &mut b.dflat[..n * flat]);
+        scatter(self.enc[3].shape.output, &b.dflat, n, &mut b.enc_grads.gy[3]);
+        let passes = [0..n];
+        stack_backward(isa, &self.enc, &self.params, Some(&mut self.grads), &b.real, &b.enc, &mut b.enc_grads, &passes, Start::Output(3), None, None, &mut b.work);
+
+        // The generator's loss: the GAN term and the feature error back through the
+        // discriminator to both fakes, plus the pixel error, back through both passes.
+        self.discriminator_backward(isa, true, 2 * n, false, true, true);
+        let b = &mut self.buffers;
+        let (xr, x) = (&b.gen.y[3][..n * il], &b.real[..n * il]);
+        for ((d, &r), &x) in b.dx[..n * il].iter_mut().zip(xr).zip(x) {
+            *d += pixel_grad(r, x);
+        }
+        self.generator_backward(isa, &[0..n, n..2 * n], true);
+
+        self.update(0, &s.adam, t, lr);
+        self.update(1, &s.adam, t, lr);
+        let recon = s.feature as f64 * feature + s.pixel as f64 * pixel;
+        VaeGanLosses {
+            discriminator: (real + fake) as f32,
+            encoder: (s.kl as f64 * kl + recon) as f32,
+            generator: (recon + s.gan as f64 * gan) as f32,
+            gan: gan as f32,
+            feature: feature as f32,
+            pixel_l1: pixel as f32,
+            kl: kl as f32,
+        }
+    }
+}
