@@ -50,7 +50,11 @@ TRAIN_WINDOWS = {
 # VAE-GAN fixtures: frames per batch (BatchNorm statistics over few items), and the Adam steps
 # after which the tensors are compared again.
 GAN_BATCH = {"small_f32": 3, "wide_f32": 2, "tiny_bf16": 2}
-GAN_STEPS = 5
+# The steps run at a tenth of the training rate: at 2e-4 the trajectory of these tiny random
+# batches is chaotic (Adam moves every weight by about ±lr, activations cross their kinks, and
+# PyTorch's own float32 run is 65% away from its float64 run in gradient after five steps),
+# so only a slower run can check the bookkeeping of several steps against the exact one.
+GAN_STEPS, GAN_STEPS_LR = 5, 2e-5
 
 # name: (config, dtype, seed)
 FIXTURES = {
@@ -191,22 +195,36 @@ def reference_vae_gan(model: DriveSim, cfg: Config, dtype: str, name: str, seed:
     model.train()
     dis.train()
     nets = dict(encoder=model.encoder, generator=model.generator, discriminator=dis)
-    opts = [torch.optim.Adam(m.parameters(), **ADAM_VAE_GAN) for m in nets.values()]
 
     def state(prefix):
         return {f"{prefix}{net}.{k}": v.detach().clone() for net, m in nets.items()
                 for k, v in m.state_dict().items() if not k.endswith("num_batches_tracked")}
 
-    x = nchw(io["frames"])
-    for step in range(GAN_STEPS):
-        losses, grads, _ = vae_gan_step(model.encoder, model.generator, dis, opts, x, io["eps"], io["prior"])
-        if step == 0:
-            io.update({f"loss.{k}": v.reshape(1) for k, v in losses.items()})
-            for net, m in nets.items():
-                io.update({f"grad.{net}.{k}": gr for (k, _), gr in zip(m.named_parameters(), grads[net])})
-            io.update(state(""))
+    start = {net: {k: v.clone() for k, v in m.state_dict().items()} for net, m in nets.items()}
+
+    def run(dtype, steps, lr):
+        """`steps` steps from the start in `dtype`: the losses of each, the first's gradients."""
+        for net, m in nets.items():
+            m.to(dtype).load_state_dict(start[net])
+        opts = [torch.optim.Adam(m.parameters(), **dict(ADAM_VAE_GAN, lr=lr)) for m in nets.values()]
+        x, eps, prior = nchw(io["frames"]).to(dtype), io["eps"].to(dtype), io["prior"].to(dtype)
+        every = [vae_gan_step(model.encoder, model.generator, dis, opts, x, eps, prior)[:2] for _ in range(steps)]
+        return every[0], torch.stack([torch.stack(list(losses.values())) for losses, _ in every])
+
+    # Each run in float32 (PyTorch as users run it) and in float64 (the reference both are
+    # measured against: Adam's first step moves every weight by about ±lr whatever the size of
+    # its gradient, so rounding alone moves float32 weights by up to 1e-3 of their scale).
+    for dtype, prefix in ((torch.float32, ""), (torch.float64, "f64.")):
+        (losses, grads), _ = run(dtype, 1, ADAM_VAE_GAN["lr"])
+        io.update({f"{prefix}loss.{k}": v.reshape(1) for k, v in losses.items()})
+        for net, m in nets.items():
+            io.update({f"{prefix}grad.{net}.{k}": gr for (k, _), gr in zip(m.named_parameters(), grads[net])})
+        io.update(state(prefix))
+        if not prefix:
             print(f"{name}: VAE-GAN losses " + ", ".join(f"{k} {v.item():.4f}" for k, v in losses.items()))
-    io.update(state(f"after{GAN_STEPS}."))
+        _, every = run(dtype, GAN_STEPS, GAN_STEPS_LR)
+        io[f"{prefix}losses"] = every  # [step, (d, e, g, gan, feature, pixel_l1, kl)]
+        io.update(state(f"{prefix}after{GAN_STEPS}."))
     return {k: v.float().contiguous() for k, v in io.items()}
 
 
@@ -229,7 +247,7 @@ def generate(out: Path) -> None:
             model = DriveSim(cfg)
             randomize(model)
             gan_io = reference_vae_gan(model, cfg, dtype, name, seed, out)
-            meta = {"lr": str(ADAM_VAE_GAN["lr"]), "steps": str(GAN_STEPS)}
+            meta = {"lr": str(ADAM_VAE_GAN["lr"]), "steps": str(GAN_STEPS), "steps_lr": str(GAN_STEPS_LR)}
             save_file(gan_io, str(out / f"{name}.gan.io.safetensors"), metadata=meta)
 
 

@@ -104,6 +104,12 @@ LOSS_WEIGHTS = dict(kl=1e-3, feature=0.1, pixel=1.0, gan=0.01)
 ADAM_VAE_GAN = dict(lr=2e-4, betas=(0.5, 0.999))
 
 
+def wide(t):
+    """The losses' precision: float32 for autocast's bfloat16, float64 kept (the fixtures'
+    reference runs the step in float64 too)."""
+    return t if t.dtype == torch.float64 else t.float()
+
+
 def vae_gan_step(enc, gen, dis, opts, x, eps, prior, w=LOSS_WEIGHTS, amp=contextlib.nullcontext()):
     """One VAE-GAN step on frames x [B,C,H,W] with the reparametrisation draws eps [B,z] and
     prior samples prior [B,z]: the discriminator's step, then the encoder's and generator's
@@ -133,10 +139,11 @@ def vae_gan_step(enc, gen, dis, opts, x, eps, prior, w=LOSS_WEIGHTS, amp=context
         f_rec = f_gen[: len(x)]
         # Feature error relative to the features' spread: its scale stays fixed while
         # the discriminator's features grow or shrink.
-        llike = (f_rec.float() - f_real.float()).square().mean() / f_real.float().var().clamp_min(1e-6)
-        pixel = (xr.float() - x).abs().mean()
-        kl = kl_prior(mu.float(), logsigma.float())
-        gan = bce(d_gen.float(), 1)
+        f_rec, f_real, xr_, mu, logsigma, d_gen = map(wide, (f_rec, f_real, xr, mu, logsigma, d_gen))
+        llike = (f_rec - f_real).square().mean() / f_real.var().clamp_min(1e-6)
+        pixel = (xr_ - x).abs().mean()
+        kl = kl_prior(mu, logsigma)
+        gan = bce(d_gen, 1)
     recon = w["feature"] * llike + w["pixel"] * pixel
     loss_e = w["kl"] * kl + recon
     loss_g = recon + w["gan"] * gan  # only the generator sees the GAN term

@@ -96,8 +96,8 @@ pub fn exp64(x: f64) -> f64 {
     }
     let n = (x * core::f64::consts::LOG2_E + if x < 0.0 { -0.5 } else { 0.5 }) as i64;
     // ln2 in two parts (fdlibm's): n · LN2_HI is exact, so r keeps its bits for large n.
-    const LN2_HI: f64 = 6.931_471_803_691_238_164_9e-1;
-    const LN2_LO: f64 = 1.908_214_929_270_587_700_02e-10;
+    const LN2_HI: f64 = 6.931_471_803_691_238e-1;
+    const LN2_LO: f64 = 1.908_214_929_270_587_7e-10;
     let r = (x - n as f64 * LN2_HI) - n as f64 * LN2_LO;
     let (mut term, mut sum) = (1.0, 1.0);
     for k in 1..18 {
@@ -127,7 +127,11 @@ pub fn ln64(x: f64) -> f64 {
         return x;
     }
     // Subnormals: scale into the normal range first.
-    let (x, shift) = if x < f64::MIN_POSITIVE { (x * pow2(54), -54) } else { (x, 0) };
+    let (x, shift) = if x < f64::MIN_POSITIVE {
+        (x * pow2(54), -54)
+    } else {
+        (x, 0)
+    };
     let bits = x.to_bits();
     let e = ((bits >> 52) & 0x7ff) as i64 - 1023 + shift;
     let m = f64::from_bits((bits & ((1u64 << 52) - 1)) | (1023u64 << 52));
@@ -190,7 +194,11 @@ mod tests {
         let mut x = -708.0f64;
         while x <= 709.0 {
             let want = x.exp();
-            assert!((exp64(x) - want).abs() <= 1e-15 * want, "exp64({x}): {} vs {want}", exp64(x));
+            assert!(
+                (exp64(x) - want).abs() <= 1e-15 * want,
+                "exp64({x}): {} vs {want}",
+                exp64(x)
+            );
             x += 0.173;
         }
         for &x in &[1e-310f64, 1e-300, 1e-5, 0.3, 1.0, 1.5, 2.0, 7.25, 1e10, 1.7e308] {

@@ -218,7 +218,6 @@ fn tensor_shapes(d: &Dims) -> [(&'static str, [usize; 2]); 6] {
     ]
 }
 
-
 /// Trains a model's transition in the memory of a [`TransitionPlan`], allocated once (or the
 /// caller's): a step allocates nothing.
 ///
@@ -519,8 +518,10 @@ impl<'a> TransitionTrainer<'a> {
         actions: Option<&[crate::ActionSpec]>,
     ) -> Result<Vec<u8>> {
         let tensors = self.tensors();
-        let replace: Vec<(&str, &[usize], &[f32])> =
-            tensors.iter().map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..])).collect();
+        let replace: Vec<(&str, &[usize], &[f32])> = tensors
+            .iter()
+            .map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..]))
+            .collect();
         crate::weights::rewrite(original, &replace, dtype, actions)
     }
 

@@ -14,6 +14,9 @@
 //! the packing of its data gradient: the forward kernel of the transposed convolution or dense
 //! layer) are rebuilt in place after each update. A step allocates nothing.
 
+// Passes are lists of item ranges, each a batch of its own for BatchNorm: often just one.
+#![allow(clippy::single_range_in_vec_init)]
+
 use super::adam::Adam;
 use super::NamedTensor;
 use crate::encoder::LEAKY_SLOPE;
@@ -118,7 +121,10 @@ impl Budget {
 }
 
 const WHAT: &str = "the VAE-GAN trainer's buffers";
-const OVERFLOW: Error = Error::OutOfMemory { what: WHAT, bytes: None };
+const OVERFLOW: Error = Error::OutOfMemory {
+    what: WHAT,
+    bytes: None,
+};
 
 fn mul(a: usize, b: usize) -> Result<usize> {
     a.checked_mul(b).ok_or(OVERFLOW)
@@ -576,7 +582,15 @@ fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
     for (i, &shape) in down.iter().enumerate() {
         let norm = (i > 0).then(|| format!("encoder.bn{i}"));
         let name = format!("encoder.conv{i}");
-        enc.push(Conv::new(&mut t, budget, &mut sizes, &name, norm.as_deref(), shape, leaky)?);
+        enc.push(Conv::new(
+            &mut t,
+            budget,
+            &mut sizes,
+            &name,
+            norm.as_deref(),
+            shape,
+            leaky,
+        )?);
     }
     let fan = Init::FanIn(flat);
     let (mw, lw) = (
@@ -587,7 +601,14 @@ fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
         t.param("encoder.mean.bias".into(), &[z], fan),
         t.param("encoder.logsigma.bias".into(), &[z], fan),
     );
-    let heads = Dense::new(budget, &mut sizes, (mw.start..lw.end, mb.start..lb.end), 2 * z, flat, Order::Columns(top_c, top_h, top_w))?;
+    let heads = Dense::new(
+        budget,
+        &mut sizes,
+        (mw.start..lw.end, mb.start..lb.end),
+        2 * z,
+        flat,
+        Order::Columns(top_c, top_h, top_w),
+    )?;
     let enc_end = t.params;
 
     // Generator.
@@ -595,7 +616,14 @@ fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
         t.param("generator.fc.weight".into(), &[flat, z], Init::FanIn(z)),
         t.param("generator.fc.bias".into(), &[flat], Init::FanIn(z)),
     );
-    let fc = Dense::new(budget, &mut sizes, fc_tensors, flat, z, Order::Rows(top_c, top_h, top_w))?;
+    let fc = Dense::new(
+        budget,
+        &mut sizes,
+        fc_tensors,
+        flat,
+        z,
+        Order::Rows(top_c, top_h, top_w),
+    )?;
     let top_norm = t.norm("generator.bn0", top_c);
     let top = Plane::new(top_h, top_w, top_c, HALO);
     let mut gen = Vec::new();
@@ -607,7 +635,15 @@ fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
         let norm = (!last).then(|| format!("generator.bn{i}"));
         let act = if last { Activation::Tanh } else { Activation::Relu };
         let name = format!("generator.deconv{i}");
-        gen.push(Conv::new(&mut t, budget, &mut sizes, &name, norm.as_deref(), shape, act)?);
+        gen.push(Conv::new(
+            &mut t,
+            budget,
+            &mut sizes,
+            &name,
+            norm.as_deref(),
+            shape,
+            act,
+        )?);
         plane = shape.output;
     }
     let gen_end = t.params;
@@ -617,13 +653,28 @@ fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
     for (i, &shape) in down.iter().enumerate() {
         let norm = (i > 0).then(|| format!("discriminator.bns.{i}"));
         let name = format!("discriminator.convs.{i}");
-        dis.push(Conv::new(&mut t, budget, &mut sizes, &name, norm.as_deref(), shape, leaky)?);
+        dis.push(Conv::new(
+            &mut t,
+            budget,
+            &mut sizes,
+            &name,
+            norm.as_deref(),
+            shape,
+            leaky,
+        )?);
     }
     let logit_tensors = (
         t.param("discriminator.out.weight".into(), &[1, flat], Init::FanIn(flat)),
         t.param("discriminator.out.bias".into(), &[1], Init::FanIn(flat)),
     );
-    let logit = Dense::new(budget, &mut sizes, logit_tensors, 1, flat, Order::Columns(top_c, top_h, top_w))?;
+    let logit = Dense::new(
+        budget,
+        &mut sizes,
+        logit_tensors,
+        1,
+        flat,
+        Order::Columns(top_c, top_h, top_w),
+    )?;
     let params = t.params;
     let [enc, gen, dis]: [[Conv; 4]; 3] = [enc, gen, dis].map(|v| v.try_into().ok().expect("four layers"));
 
@@ -675,7 +726,10 @@ fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
     Ok(Parts {
         params: budget.take("parameters", params)?,
         grads: budget.take("gradients", params)?,
-        moments: [budget.take("Adam moments", params)?, budget.take("Adam moments", params)?],
+        moments: [
+            budget.take("Adam moments", params)?,
+            budget.take("Adam moments", params)?,
+        ],
         stats: budget.take("running statistics", t.stats)?,
         nets: [0..enc_end, enc_end..gen_end, gen_end..params],
         table: t,
@@ -838,7 +892,10 @@ impl VaeGanTrainer {
     /// at learning rate `lr`. Returns the losses, computed before the updates.
     pub fn step(&mut self, frames: &[f32], eps: &[f32], prior: &[f32], lr: f32) -> Result<VaeGanLosses> {
         let c = self.config;
-        if frames.is_empty() || frames.len() % c.frame_len() != 0 || frames.len() / c.frame_len() > self.parts.buffers.batch {
+        if frames.is_empty()
+            || !frames.len().is_multiple_of(c.frame_len())
+            || frames.len() / c.frame_len() > self.parts.buffers.batch
+        {
             return Err(Error::BufferLength {
                 buffer: "frames",
                 expected: self.parts.buffers.batch * c.frame_len(),
@@ -859,7 +916,9 @@ impl VaeGanTrainer {
             });
         }
         self.steps += 1;
-        let losses = self.parts.step(self.isa, &self.settings, frames, eps, prior, n, lr, self.steps);
+        let losses = self
+            .parts
+            .step(self.isa, &self.settings, frames, eps, prior, n, lr, self.steps);
         expect_finite_output("gradients", &self.parts.grads)?;
         expect_finite_output("parameters", &self.parts.params)?;
         Ok(losses)
@@ -888,7 +947,9 @@ impl VaeGanTrainer {
     pub fn gradients(&self) -> Vec<NamedTensor> {
         let p = &self.parts;
         let params = p.table.entries.iter().filter(|e| e.param);
-        params.map(|e| (e.name.clone(), e.shape.clone(), p.grads[e.at.clone()].to_vec())).collect()
+        params
+            .map(|e| (e.name.clone(), e.shape.clone(), p.grads[e.at.clone()].to_vec()))
+            .collect()
     }
 
     /// A weight file with the trained networks: `original` (a drivesim weight file of the same
@@ -898,8 +959,10 @@ impl VaeGanTrainer {
     #[cfg(feature = "std")]
     pub fn weight_file(&self, original: &[u8], dtype: Option<WeightDtype>) -> Result<Vec<u8>> {
         let tensors = self.tensors();
-        let replace: Vec<(&str, &[usize], &[f32])> =
-            tensors.iter().map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..])).collect();
+        let replace: Vec<(&str, &[usize], &[f32])> = tensors
+            .iter()
+            .map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..]))
+            .collect();
         crate::weights::rewrite(original, &replace, dtype, None)
     }
 }
@@ -923,8 +986,14 @@ pub fn random_weight_file(config: &Config, seed: u64) -> Result<Vec<u8>> {
         ("transition.A", alloc::vec![z, h], Init::FanIn(h)),
         ("transition.a", alloc::vec![z], Init::Zeros),
     ];
-    let specs = parts.table.entries.iter().map(|e| (e.name.as_str(), e.shape.clone(), e.init));
-    let specs: Vec<_> = specs.chain(transition.iter().map(|(n, s, i)| (*n, s.clone(), *i))).collect();
+    let specs = parts
+        .table
+        .entries
+        .iter()
+        .map(|e| (e.name.as_str(), e.shape.clone(), e.init));
+    let specs: Vec<_> = specs
+        .chain(transition.iter().map(|(n, s, i)| (*n, s.clone(), *i)))
+        .collect();
     let mut random = RandomSource::new(seed, WeightDtype::F32);
     let mut data = Vec::new();
     for (name, shape, init) in &specs {
@@ -1015,7 +1084,16 @@ fn norm_forward(
     (mean, var): (&mut [f32], &mut [f32]),
     update: bool,
 ) {
-    batch_norm_train(plane, z, &params[norm.gamma.clone()], &params[norm.beta.clone()], act, y, mean, var);
+    batch_norm_train(
+        plane,
+        z,
+        &params[norm.gamma.clone()],
+        &params[norm.beta.clone()],
+        act,
+        y,
+        mean,
+        var,
+    );
     if update {
         let count = z.len() / plane.len() * plane.height * plane.width;
         // The running mean and variance were declared one after the other.
@@ -1046,19 +1124,37 @@ fn stack_forward(
         let bias = &params[l.bias.clone()];
         let Some(norm) = &l.norm else {
             for n in 0..items {
-                l.forward.run(isa, bias, l.act, &x[n * il..][..il], &mut y[n * ol..][..ol], scratch);
+                l.forward
+                    .run(isa, bias, l.act, &x[n * il..][..il], &mut y[n * ol..][..ol], scratch);
             }
             continue;
         };
         let z = &mut acts.z[i];
         for n in 0..items {
-            l.forward.run(isa, bias, Activation::Identity, &x[n * il..][..il], &mut z[n * ol..][..ol], scratch);
+            l.forward.run(
+                isa,
+                bias,
+                Activation::Identity,
+                &x[n * il..][..il],
+                &mut z[n * ol..][..ol],
+                scratch,
+            );
         }
         let (mean, var) = (&mut acts.mean[i], &mut acts.var[i]);
         for (p, (range, update)) in passes.iter().enumerate() {
             let span = range.start * ol..range.end * ol;
             let statistics = (&mut mean[p * oc..][..oc], &mut var[p * oc..][..oc]);
-            norm_forward(l.shape.output, norm, params, stats, l.act, &z[span.clone()], &mut y[span], statistics, *update);
+            norm_forward(
+                l.shape.output,
+                norm,
+                params,
+                stats,
+                l.act,
+                &z[span.clone()],
+                &mut y[span],
+                statistics,
+                *update,
+            );
         }
     }
 }
@@ -1110,7 +1206,19 @@ fn stack_backward(
                         let gamma = &params[norm.gamma.clone()];
                         let (mean, var) = (&acts.mean[i][p * oc..][..oc], &acts.var[i][p * oc..][..oc]);
                         let (z, y) = (&acts.z[i][s.clone()], &acts.y[i][s.clone()]);
-                        batch_norm_backward(plane, z, y, l.act, gamma, mean, var, &mut gy[s.clone()], &mut gz[s], dgamma, dbeta);
+                        batch_norm_backward(
+                            plane,
+                            z,
+                            y,
+                            l.act,
+                            gamma,
+                            mean,
+                            var,
+                            &mut gy[s.clone()],
+                            &mut gz[s],
+                            dgamma,
+                            dbeta,
+                        );
                         if let Some(grads) = grads.as_deref_mut() {
                             add(&mut grads[norm.gamma.clone()], dgamma);
                             add(&mut grads[norm.beta.clone()], dbeta);
@@ -1145,12 +1253,17 @@ fn stack_backward(
             conv_grad_to_torch(&down, packed, torch);
             add(&mut grads[l.weight.clone()], torch);
         }
-        let target = if i > 0 { Some(&mut below[i - 1][..items * il]) } else { dx.as_deref_mut().map(|d| &mut d[..items * il]) };
+        let target = if i > 0 {
+            Some(&mut below[i - 1][..items * il])
+        } else {
+            dx.as_deref_mut().map(|d| &mut d[..items * il])
+        };
         if let Some(target) = target {
             let zero = &work.zero[..l.shape.input.channels];
             for n in 0..items {
                 let (src, dst) = (&gz[n * ol..][..ol], &mut target[n * il..][..il]);
-                l.backward.run(isa, zero, Activation::Identity, src, dst, &mut work.scratch);
+                l.backward
+                    .run(isa, zero, Activation::Identity, src, dst, &mut work.scratch);
             }
         }
     }
@@ -1180,7 +1293,14 @@ impl Parts {
     fn update(&mut self, net: usize, adam: &Adam, t: u32, lr: f32) {
         let r = self.nets[net].clone();
         let [m, v] = &mut self.moments;
-        adam.update(t, lr, 1.0, &mut self.params[r.clone()], &self.grads[r.clone()], [&mut m[r.clone()], &mut v[r]]);
+        adam.update(
+            t,
+            lr,
+            1.0,
+            &mut self.params[r.clone()],
+            &self.grads[r.clone()],
+            [&mut m[r.clone()], &mut v[r]],
+        );
         self.pack(net);
     }
 
@@ -1194,9 +1314,19 @@ impl Parts {
             (&b.real, &mut b.dis_real, &mut b.flat_real, &mut b.logits_real)
         };
         let passes = [(0..items, true)];
-        stack_forward(isa, &self.dis, &self.params, &mut self.stats, input, acts, &passes, &mut b.work.scratch);
+        stack_forward(
+            isa,
+            &self.dis,
+            &self.params,
+            &mut self.stats,
+            input,
+            acts,
+            &passes,
+            &mut b.work.scratch,
+        );
         gather(self.dis[3].shape.output, &acts.y[3], items, flat);
-        self.logit.run(isa, &flat[..items * self.logit.cols], &mut logits[..items]);
+        self.logit
+            .run(isa, &flat[..items * self.logit.cols], &mut logits[..items]);
     }
 
     /// The gradient `dlogits` (of `items` logits) back through the discriminator's `fake` or
@@ -1204,19 +1334,43 @@ impl Parts {
     /// with `inject` added to the third convolution's output gradient.
     fn discriminator_backward(&mut self, isa: Isa, fake: bool, items: usize, weights: bool, input: bool, inject: bool) {
         let b = &mut self.buffers;
-        let (x, acts, flat) = if fake { (&b.gen.y[3], &b.dis_fake, &b.flat_fake) } else { (&b.real, &b.dis_real, &b.flat_real) };
+        let (x, acts, flat) = if fake {
+            (&b.gen.y[3], &b.dis_fake, &b.flat_fake)
+        } else {
+            (&b.real, &b.dis_real, &b.flat_real)
+        };
         let flat_len = self.logit.cols;
         let dlogits = &b.dlogits[..items];
         if weights {
-            self.logit.weight_grad(isa, dlogits, &flat[..items * flat_len], &mut b.work.packed_grad, &mut self.grads);
+            self.logit.weight_grad(
+                isa,
+                dlogits,
+                &flat[..items * flat_len],
+                &mut b.work.packed_grad,
+                &mut self.grads,
+            );
         }
-        self.logit.data_grad(isa, &b.work.zero, dlogits, &mut b.dflat[..items * flat_len]);
+        self.logit
+            .data_grad(isa, &b.work.zero, dlogits, &mut b.dflat[..items * flat_len]);
         scatter(self.dis[3].shape.output, &b.dflat, items, &mut b.dis_grads.gy[3]);
         let grads = weights.then_some(&mut self.grads[..]);
         let inject = inject.then_some((2, &b.dfeature[..]));
         let dx = input.then_some(&mut b.dx[..]);
         let passes = [0..items];
-        stack_backward(isa, &self.dis, &self.params, grads, x, acts, &mut b.dis_grads, &passes, Start::Output(3), inject, dx, &mut b.work);
+        stack_backward(
+            isa,
+            &self.dis,
+            &self.params,
+            grads,
+            x,
+            acts,
+            &mut b.dis_grads,
+            &passes,
+            Start::Output(3),
+            inject,
+            dx,
+            &mut b.work,
+        );
     }
 
     /// The generator's gradient `buffers.dx` (of its `items` outputs) back through its first
@@ -1229,7 +1383,20 @@ impl Parts {
         b.gen_grads.gy[3][..items * image].copy_from_slice(&b.dx[..items * image]);
         let grads = weights.then_some(&mut self.grads[..]);
         let (top_y, gen) = (&b.top_y, &b.gen);
-        stack_backward(isa, &self.gen, &self.params, grads, top_y, gen, &mut b.gen_grads, passes, Start::Output(3), None, Some(&mut b.top_gy), &mut b.work);
+        stack_backward(
+            isa,
+            &self.gen,
+            &self.params,
+            grads,
+            top_y,
+            gen,
+            &mut b.gen_grads,
+            passes,
+            Start::Output(3),
+            None,
+            Some(&mut b.top_gy),
+            &mut b.work,
+        );
         // BatchNorm0 + ReLU on the fully connected layer's output, per pass.
         let (top, tl, c) = (self.top, self.top.len(), self.top.channels);
         let norm = &self.top_norm;
@@ -1238,7 +1405,19 @@ impl Parts {
             let (dgamma, dbeta) = b.work.channel_tmp[..2 * c].split_at_mut(c);
             let gamma = &self.params[norm.gamma.clone()];
             let (mean, var) = (&b.top_mean[p * c..][..c], &b.top_var[p * c..][..c]);
-            batch_norm_backward(top, &b.top_z[s.clone()], &b.top_y[s.clone()], Activation::Relu, gamma, mean, var, &mut b.top_gy[s.clone()], &mut b.top_gz[s], dgamma, dbeta);
+            batch_norm_backward(
+                top,
+                &b.top_z[s.clone()],
+                &b.top_y[s.clone()],
+                Activation::Relu,
+                gamma,
+                mean,
+                var,
+                &mut b.top_gy[s.clone()],
+                &mut b.top_gz[s],
+                dgamma,
+                dbeta,
+            );
             if weights {
                 add(&mut self.grads[norm.gamma.clone()], dgamma);
                 add(&mut self.grads[norm.beta.clone()], dbeta);
@@ -1248,7 +1427,13 @@ impl Parts {
         gather(top, &b.top_gz, items, &mut b.dflat);
         let (dflat, z) = (&b.dflat[..items * flat], self.fc.cols);
         if weights {
-            self.fc.weight_grad(isa, dflat, &b.codes[..items * z], &mut b.work.packed_grad, &mut self.grads);
+            self.fc.weight_grad(
+                isa,
+                dflat,
+                &b.codes[..items * z],
+                &mut b.work.packed_grad,
+                &mut self.grads,
+            );
         } else {
             self.fc.data_grad(isa, &b.work.zero, dflat, &mut b.dcodes[..items * z]);
         }
@@ -1256,18 +1441,41 @@ impl Parts {
 
     /// One VAE-GAN step on `n` frames; see [`VaeGanTrainer::step`]. `t` is the Adam step.
     #[allow(clippy::too_many_arguments)]
-    fn step(&mut self, isa: Isa, s: &VaeGanSettings, frames: &[f32], eps: &[f32], prior: &[f32], n: usize, lr: f32, t: u32) -> VaeGanLosses {
+    fn step(
+        &mut self,
+        isa: Isa,
+        s: &VaeGanSettings,
+        frames: &[f32],
+        eps: &[f32],
+        prior: &[f32],
+        n: usize,
+        lr: f32,
+        t: u32,
+    ) -> VaeGanLosses {
         self.grads.fill(0.0);
         let z = self.fc.cols;
         let image = self.enc[0].shape.input;
         {
             let b = &mut self.buffers;
-            for (plane, frame) in b.real.chunks_exact_mut(image.len()).zip(frames.chunks_exact(image.interior_len())) {
+            for (plane, frame) in b
+                .real
+                .chunks_exact_mut(image.len())
+                .zip(frames.chunks_exact(image.interior_len()))
+            {
                 image.write_interior(plane, frame);
             }
             // Encoder.
             let passes = [(0..n, true)];
-            stack_forward(isa, &self.enc, &self.params, &mut self.stats, &b.real, &mut b.enc, &passes, &mut b.work.scratch);
+            stack_forward(
+                isa,
+                &self.enc,
+                &self.params,
+                &mut self.stats,
+                &b.real,
+                &mut b.enc,
+                &passes,
+                &mut b.work.scratch,
+            );
             gather(self.enc[3].shape.output, &b.enc.y[3], n, &mut b.enc_flat);
             let flat = self.heads.cols;
             self.heads.run(isa, &b.enc_flat[..n * flat], &mut b.heads[..n * 2 * z]);
@@ -1282,16 +1490,36 @@ impl Parts {
             }
             b.codes[n * z..2 * n * z].copy_from_slice(prior);
             // Generator: reconstructions update the running statistics, prior samples do not.
-            self.fc.run(isa, &b.codes[..2 * n * z], &mut b.fc_out[..2 * n * self.fc.rows]);
+            self.fc
+                .run(isa, &b.codes[..2 * n * z], &mut b.fc_out[..2 * n * self.fc.rows]);
             scatter(self.top, &b.fc_out, 2 * n, &mut b.top_z);
             let (tl, tc) = (self.top.len(), self.top.channels);
             for (p, update) in [(0, true), (1, false)] {
                 let span = p * n * tl..(p + 1) * n * tl;
                 let statistics = (&mut b.top_mean[p * tc..][..tc], &mut b.top_var[p * tc..][..tc]);
-                norm_forward(self.top, &self.top_norm, &self.params, &mut self.stats, Activation::Relu, &b.top_z[span.clone()], &mut b.top_y[span], statistics, update);
+                norm_forward(
+                    self.top,
+                    &self.top_norm,
+                    &self.params,
+                    &mut self.stats,
+                    Activation::Relu,
+                    &b.top_z[span.clone()],
+                    &mut b.top_y[span],
+                    statistics,
+                    update,
+                );
             }
             let passes = [(0..n, true), (n..2 * n, false)];
-            stack_forward(isa, &self.gen, &self.params, &mut self.stats, &b.top_y, &mut b.gen, &passes, &mut b.work.scratch);
+            stack_forward(
+                isa,
+                &self.gen,
+                &self.params,
+                &mut self.stats,
+                &b.top_y,
+                &mut b.gen,
+                &passes,
+                &mut b.work.scratch,
+            );
         }
 
         // The discriminator: real frames against reconstructions and prior samples.
@@ -1339,7 +1567,13 @@ impl Parts {
         let pixel = xr.iter().zip(x).map(|(&r, &x)| (r - x).abs() as f64).sum::<f64>() / pixels as f64;
         let pixel_grad = |r: f32, x: f32| -> f32 {
             let d = r - x;
-            let sign = if d > 0.0 { 1.0 } else if d < 0.0 { -1.0 } else { 0.0 };
+            let sign = if d > 0.0 {
+                1.0
+            } else if d < 0.0 {
+                -1.0
+            } else {
+                0.0
+            };
             (s.pixel as f64 * sign / pixels as f64) as f32
         };
         // KL prior.
@@ -1361,7 +1595,20 @@ impl Parts {
         let fake_len = 2 * n * fl;
         b.dis_grads.gz[2][..fake_len].copy_from_slice(&b.dfeature[..fake_len]);
         let passes = [0..2 * n];
-        stack_backward(isa, &self.dis, &self.params, None, &b.gen.y[3], &b.dis_fake, &mut b.dis_grads, &passes, Start::BeforeNorm(2), None, Some(&mut b.dx), &mut b.work);
+        stack_backward(
+            isa,
+            &self.dis,
+            &self.params,
+            None,
+            &b.gen.y[3],
+            &b.dis_fake,
+            &mut b.dis_grads,
+            &passes,
+            Start::BeforeNorm(2),
+            None,
+            Some(&mut b.dx),
+            &mut b.work,
+        );
         for ((d, &r), &x) in b.dx[..n * il].iter_mut().zip(xr).zip(x) {
             *d += pixel_grad(r, x);
         }
@@ -1371,7 +1618,12 @@ impl Parts {
             let (mu, ls) = b.heads[i * 2 * z..][..2 * z].split_at(z);
             let (dmu, dls) = b.dheads[i * 2 * z..][..2 * z].split_at_mut(z);
             for j in 0..z {
-                let (m, l, dc, e) = (mu[j] as f64, ls[j] as f64, b.dcodes[i * z + j] as f64, b.eps[i * z + j] as f64);
+                let (m, l, dc, e) = (
+                    mu[j] as f64,
+                    ls[j] as f64,
+                    b.dcodes[i * z + j] as f64,
+                    b.eps[i * z + j] as f64,
+                );
                 let sigma = math::exp64(l);
                 dmu[j] = (dc + s.kl as f64 * m / codes) as f32;
                 let dl = dc * e * sigma + s.kl as f64 * (math::exp64(2.0 * l) - 1.0) / codes;
@@ -1380,11 +1632,31 @@ impl Parts {
         }
         let flat = self.heads.cols;
         let dheads = &b.dheads[..n * 2 * z];
-        self.heads.weight_grad(isa, dheads, &b.enc_flat[..n * flat], &mut b.work.packed_grad, &mut self.grads);
-        self.heads.data_grad(isa, &b.work.zero, dheads, &mut b.dflat[..n * flat]);
+        self.heads.weight_grad(
+            isa,
+            dheads,
+            &b.enc_flat[..n * flat],
+            &mut b.work.packed_grad,
+            &mut self.grads,
+        );
+        self.heads
+            .data_grad(isa, &b.work.zero, dheads, &mut b.dflat[..n * flat]);
         scatter(self.enc[3].shape.output, &b.dflat, n, &mut b.enc_grads.gy[3]);
         let passes = [0..n];
-        stack_backward(isa, &self.enc, &self.params, Some(&mut self.grads), &b.real, &b.enc, &mut b.enc_grads, &passes, Start::Output(3), None, None, &mut b.work);
+        stack_backward(
+            isa,
+            &self.enc,
+            &self.params,
+            Some(&mut self.grads),
+            &b.real,
+            &b.enc,
+            &mut b.enc_grads,
+            &passes,
+            Start::Output(3),
+            None,
+            None,
+            &mut b.work,
+        );
 
         // The generator's loss: the GAN term and the feature error back through the
         // discriminator to both fakes, plus the pixel error, back through both passes.
