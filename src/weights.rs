@@ -118,6 +118,7 @@ impl<'a> SafetensorsSource<'a> {
     }
 }
 
+#[cfg(feature = "train")]
 impl SafetensorsSource<'_> {
     /// Whether the file has a tensor whose name starts with `prefix`.
     pub(crate) fn contains(&self, prefix: &str) -> bool {
