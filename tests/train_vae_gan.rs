@@ -41,8 +41,12 @@ fn fixture(name: &str) -> Fixture {
 
 impl Fixture {
     fn trainer(&self, isa: Isa) -> VaeGanTrainer {
+        self.trainer_with_threads(isa, 1)
+    }
+
+    fn trainer_with_threads(&self, isa: Isa, threads: usize) -> VaeGanTrainer {
         let model = Model::from_bytes(&self.weights).unwrap();
-        let plan = VaeGanPlan::new(model.config(), self.batch).unwrap();
+        let plan = VaeGanPlan::new(model.config(), self.batch, threads).unwrap();
         VaeGanTrainer::new(&self.weights, &plan, VaeGanSettings::default())
             .unwrap()
             .with_isa(isa)
@@ -173,5 +177,23 @@ fn five_steps_match_pytorch() {
                 &exact,
             );
         }
+    }
+}
+
+#[test]
+fn threads_give_the_same_bits() {
+    // Threads take whole items of each convolution and panels of each weight gradient: the
+    // same sums in the same order whatever their number.
+    let f = fixture("wide_f32");
+    let run = |threads| {
+        let mut trainer = f.trainer_with_threads(Isa::best(), threads);
+        let losses: Vec<[f32; 7]> = (0..2)
+            .map(|_| values(&trainer.step(&f.frames, &f.eps, &f.prior, f.lr).unwrap()))
+            .collect();
+        (losses, trainer.gradients(), trainer.tensors())
+    };
+    let one = run(1);
+    for threads in [2, 3] {
+        assert!(run(threads) == one, "{threads} threads differ from one");
     }
 }

@@ -29,9 +29,12 @@ use alloc::vec::Vec;
 use core::ops::Range;
 use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, update_running_stats};
 use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, dense_from_fn, winograd_weights_from_direct};
+use crate::layers::dense;
+use crate::pool::{Exec, Parts, Pool};
 use drivesim_kernels::{
-    activation_backward, conv, conv_weight_grad, conv_weight_grad_scratch_len, dense, dense_weight_grad, math,
-    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, Plane, Winograd,
+    activation_backward, conv, conv_weight_grad_rows, conv_weight_grad_scratch_len, dense_weight_grad_rows, math,
+    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane,
+    Winograd,
 };
 
 /// The border of every plane of the training networks: strided convolutions read 2 pixels
@@ -226,6 +229,28 @@ impl Packed {
         }
     }
 
+    /// [`Packed::run`] for each item of a batch of planes; threads take whole items, each with
+    /// a scratch of its own.
+    fn run_items(
+        &self,
+        exec: Exec<'_>,
+        bias: &[f32],
+        act: Activation,
+        input: &[f32],
+        output: &mut [f32],
+        scratch: &mut [Scratch],
+    ) {
+        let (il, ol) = (self.shape.input.len(), self.shape.output.len());
+        let items = Parts::chunks(output, ol);
+        let scratch = Parts::chunks(scratch, 1);
+        exec.run(&|| {
+            let (_, s) = scratch.take().expect("a scratch for every thread");
+            while let Some((n, out)) = items.take() {
+                self.run(exec.isa, bias, act, &input[n * il..][..il], out, &mut s[0]);
+            }
+        });
+    }
+
     /// `output = act(conv(input) + bias)` for one plane.
     fn run(&self, isa: Isa, bias: &[f32], act: Activation, input: &[f32], output: &mut [f32], s: &mut Scratch) {
         let layer = ConvParams {
@@ -380,31 +405,36 @@ impl Dense {
     }
 
     /// `y = W x + b` for a batch.
-    fn run(&self, isa: Isa, x: &[f32], y: &mut [f32]) {
+    fn run(&self, exec: Exec<'_>, x: &[f32], y: &mut [f32]) {
         let w = Matrix {
             data: MatrixData::F32(&self.forward),
             rows: self.rows,
             cols: self.cols,
         };
-        dense(isa, w, &self.bias_rows, Activation::Identity, x, y);
+        dense(exec, w, &self.bias_rows, Activation::Identity, x, y);
     }
 
     /// `dx = Wᵀ dy` for a batch.
-    fn data_grad(&self, isa: Isa, zero: &[f32], dy: &[f32], dx: &mut [f32]) {
+    fn data_grad(&self, exec: Exec<'_>, zero: &[f32], dy: &[f32], dx: &mut [f32]) {
         let wt = Matrix {
             data: MatrixData::F32(&self.backward),
             rows: self.cols,
             cols: self.rows,
         };
-        dense(isa, wt, &zero[..self.cols], Activation::Identity, dy, dx);
+        dense(exec, wt, &zero[..self.cols], Activation::Identity, dy, dx);
     }
 
     /// Adds the weight and bias gradients of a batch (`dy` of the outputs, `x` the inputs) to
     /// `grads`, in PyTorch's layout.
-    fn weight_grad(&self, isa: Isa, dy: &[f32], x: &[f32], packed: &mut [f32], grads: &mut [f32]) {
+    fn weight_grad(&self, exec: Exec<'_>, dy: &[f32], x: &[f32], packed: &mut [f32], grads: &mut [f32]) {
         let (rows, cols) = (self.rows, self.cols);
         let packed = &mut packed[..Matrix::packed_len(rows, cols)];
-        dense_weight_grad(isa, dy, x, rows, cols, packed);
+        let parts = OutputParts::new(packed, rows, exec.threads());
+        exec.run(&|| {
+            while let Some(part) = parts.take() {
+                dense_weight_grad_rows(exec.isa, dy, x, rows, cols, part);
+            }
+        });
         let g = &mut grads[self.weight.clone()];
         for r in 0..rows {
             for c in 0..cols {
@@ -487,7 +517,7 @@ fn down_shapes(input: Plane, channels: [usize; 4], k: usize) -> [ConvShape; 4] {
 }
 
 /// The three networks, their tensors and every buffer of a step.
-struct Parts {
+struct Networks {
     table: Table,
     params: Vec<f32>,
     grads: Vec<f32>,
@@ -548,7 +578,8 @@ struct Buffers {
 
 /// The scratch every layer's passes share.
 struct Work {
-    scratch: Scratch,
+    /// One per thread.
+    scratch: Vec<Scratch>,
     weight_scratch: Vec<f32>,
     packed_grad: Vec<f32>,
     torch_grad: Vec<f32>,
@@ -558,7 +589,7 @@ struct Work {
     zero: Vec<f32>,
 }
 
-fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
+fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> Result<Networks> {
     config.validate()?;
     if batch == 0 {
         return Err(Error::Config {
@@ -712,18 +743,22 @@ fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
         dheads: budget.take("activation gradients", mul(batch, 2 * z)?)?,
         dcodes: budget.take("activation gradients", mul(batch, z)?)?,
         work: Work {
-            scratch: Scratch {
-                v: budget.take("scratch", sizes.winograd_v)?,
-                products: budget.take("scratch", sizes.winograd_products)?,
-            },
-            weight_scratch: budget.take("scratch", sizes.weight_scratch)?,
+            scratch: (0..threads)
+                .map(|_| {
+                    Ok(Scratch {
+                        v: budget.take("scratch", sizes.winograd_v)?,
+                        products: budget.take("scratch", sizes.winograd_products)?,
+                    })
+                })
+                .collect::<Result<_>>()?,
+            weight_scratch: budget.take("scratch", mul(threads, sizes.weight_scratch)?)?,
             packed_grad: budget.take("scratch", sizes.packed_grad)?,
             torch_grad: budget.take("scratch", sizes.torch_grad)?,
             channel_tmp: budget.take("scratch", 2 * sizes.channels.max(top_c))?,
             zero: budget.take("scratch", sizes.channels.max(sizes.dense_zero))?,
         },
     };
-    Ok(Parts {
+    Ok(Networks {
         params: budget.take("parameters", params)?,
         grads: budget.take("gradients", params)?,
         moments: [
@@ -753,30 +788,33 @@ fn build(config: &Config, batch: usize, budget: &mut Budget) -> Result<Parts> {
 /// use drivesim::Config;
 ///
 /// let config = Config { base_channels: 32, z_dim: 128, hidden_dim: 256, ..Config::COMMA };
-/// let plan = VaeGanPlan::new(&config, 8)?;
+/// let plan = VaeGanPlan::new(&config, 8, 2)?;
 /// for (buffer, bytes) in plan.buffers() {
 ///     println!("{buffer:>22}: {bytes} bytes");
 /// }
 /// assert!(plan.bytes() < 1 << 30);
-/// assert!(VaeGanPlan::new(&config, usize::MAX).is_err());
+/// assert!(VaeGanPlan::new(&config, usize::MAX, 1).is_err());
 /// # Ok::<(), drivesim::Error>(())
 /// ```
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct VaeGanPlan {
     config: Config,
     batch: usize,
+    threads: usize,
     floats: Vec<(&'static str, usize)>,
     bytes: usize,
 }
 
 impl VaeGanPlan {
-    /// The plan for `config` taking up to `batch` frames per step.
-    pub fn new(config: &Config, batch: usize) -> Result<VaeGanPlan> {
+    /// The plan for `config` taking up to `batch` frames per step with `threads` threads (the
+    /// caller's included; 0 counts as 1), each with scratch of its own.
+    pub fn new(config: &Config, batch: usize, threads: usize) -> Result<VaeGanPlan> {
+        let threads = threads.max(1);
         let mut budget = Budget {
             allocate: false,
             floats: Vec::new(),
         };
-        build(config, batch, &mut budget)?;
+        build(config, batch, threads, &mut budget)?;
         let total = budget.floats.iter().try_fold(0usize, |s, &(_, n)| s.checked_add(n));
         let bytes = total
             .and_then(|n| n.checked_mul(4))
@@ -785,6 +823,7 @@ impl VaeGanPlan {
         Ok(VaeGanPlan {
             config: *config,
             batch,
+            threads,
             floats: budget.floats,
             bytes,
         })
@@ -815,7 +854,7 @@ impl VaeGanPlan {
 ///
 /// let config = Config { height: 32, width: 64, base_channels: 4, z_dim: 8, hidden_dim: 8, ..Config::COMMA };
 /// let file = drivesim::train::random_weight_file(&config, 7)?;
-/// let plan = VaeGanPlan::new(&config, 2)?;
+/// let plan = VaeGanPlan::new(&config, 2, 1)?;
 /// let mut trainer = VaeGanTrainer::new(&file, &plan, VaeGanSettings::default())?;
 /// let frames: Vec<f32> = (0..2 * 32 * 64 * 3).map(|i| ((i % 7) as f32 / 3.0 - 1.0)).collect();
 /// let eps = vec![0.5; 2 * 8];
@@ -831,8 +870,9 @@ pub struct VaeGanTrainer {
     config: Config,
     settings: VaeGanSettings,
     isa: Isa,
+    pool: Option<Pool>,
     steps: u32,
-    parts: Parts,
+    parts: Networks,
 }
 
 impl VaeGanTrainer {
@@ -853,7 +893,7 @@ impl VaeGanTrainer {
             allocate: true,
             floats: Vec::new(),
         };
-        let mut parts = build(&config, plan.batch, &mut budget)?;
+        let mut parts = build(&config, plan.batch, plan.threads, &mut budget)?;
         debug_assert_eq!(budget.floats, plan.floats, "the plan measures what is allocated");
         let has_discriminator = src.contains(DISCRIMINATOR_PREFIX);
         let mut random = RandomSource::new(0x5eed_d15c, WeightDtype::F32);
@@ -871,6 +911,7 @@ impl VaeGanTrainer {
             config,
             settings,
             isa: Isa::best(),
+            pool: start_pool(plan.threads)?,
             steps: 0,
             parts,
         };
@@ -916,9 +957,11 @@ impl VaeGanTrainer {
             });
         }
         self.steps += 1;
-        let losses = self
-            .parts
-            .step(self.isa, &self.settings, frames, eps, prior, n, lr, self.steps);
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
+        let losses = self.parts.step(exec, &self.settings, frames, eps, prior, n, lr, self.steps);
         expect_finite_output("gradients", &self.parts.grads)?;
         expect_finite_output("parameters", &self.parts.params)?;
         Ok(losses)
@@ -976,7 +1019,7 @@ pub fn random_weight_file(config: &Config, seed: u64) -> Result<Vec<u8>> {
         allocate: false,
         floats: Vec::new(),
     };
-    let parts = build(config, 1, &mut budget)?;
+    let parts = build(config, 1, 1, &mut budget)?;
     let (h, z, a) = (config.hidden_dim, config.z_dim, config.action_dim);
     let transition = [
         ("transition.W", alloc::vec![h, h], Init::FanIn(h)),
@@ -1106,14 +1149,14 @@ fn norm_forward(
 /// for BatchNorm, moving the running statistics if its flag says so).
 #[allow(clippy::too_many_arguments)]
 fn stack_forward(
-    isa: Isa,
+    exec: Exec<'_>,
     layers: &[Conv],
     params: &[f32],
     stats: &mut [f32],
     input: &[f32],
     acts: &mut Stack,
     passes: &[(Range<usize>, bool)],
-    scratch: &mut Scratch,
+    scratch: &mut [Scratch],
 ) {
     let items = passes.last().map_or(0, |p| p.0.end);
     for (i, l) in layers.iter().enumerate() {
@@ -1123,23 +1166,11 @@ fn stack_forward(
         let y = &mut rest[0];
         let bias = &params[l.bias.clone()];
         let Some(norm) = &l.norm else {
-            for n in 0..items {
-                l.forward
-                    .run(isa, bias, l.act, &x[n * il..][..il], &mut y[n * ol..][..ol], scratch);
-            }
+            l.forward.run_items(exec, bias, l.act, &x[..items * il], &mut y[..items * ol], scratch);
             continue;
         };
         let z = &mut acts.z[i];
-        for n in 0..items {
-            l.forward.run(
-                isa,
-                bias,
-                Activation::Identity,
-                &x[n * il..][..il],
-                &mut z[n * ol..][..ol],
-                scratch,
-            );
-        }
+        l.forward.run_items(exec, bias, Activation::Identity, &x[..items * il], &mut z[..items * ol], scratch);
         let (mean, var) = (&mut acts.mean[i], &mut acts.var[i]);
         for (p, (range, update)) in passes.iter().enumerate() {
             let span = range.start * ol..range.end * ol;
@@ -1173,7 +1204,7 @@ enum Start {
 /// to `dx` if given.
 #[allow(clippy::too_many_arguments)]
 fn stack_backward(
-    isa: Isa,
+    exec: Exec<'_>,
     layers: &[Conv],
     params: &[f32],
     mut grads: Option<&mut [f32]>,
@@ -1226,7 +1257,7 @@ fn stack_backward(
                     }
                 }
                 None => {
-                    activation_backward(isa, l.act, &acts.y[i][..items * ol], gy);
+                    activation_backward(exec.isa, l.act, &acts.y[i][..items * ol], gy);
                     gz.copy_from_slice(gy);
                 }
             }
@@ -1248,7 +1279,14 @@ fn stack_backward(
             };
             let k = down.kernel;
             let packed = &mut work.packed_grad[..Matrix::packed_len(down.output.channels, k * k * down.input.channels)];
-            conv_weight_grad(isa, down, a, b, &mut work.weight_scratch, packed);
+            let parts = OutputParts::new(packed, down.output.channels, exec.threads());
+            let scratch = Parts::chunks(&mut work.weight_scratch, conv_weight_grad_scratch_len(&down).max(1));
+            exec.run(&|| {
+                let (_, scratch) = scratch.take().expect("weight-gradient scratch for every thread");
+                while let Some(part) = parts.take() {
+                    conv_weight_grad_rows(exec.isa, down, a, b, scratch, part);
+                }
+            });
             let torch = &mut work.torch_grad[..l.weight.len()];
             conv_grad_to_torch(&down, packed, torch);
             add(&mut grads[l.weight.clone()], torch);
@@ -1260,16 +1298,27 @@ fn stack_backward(
         };
         if let Some(target) = target {
             let zero = &work.zero[..l.shape.input.channels];
-            for n in 0..items {
-                let (src, dst) = (&gz[n * ol..][..ol], &mut target[n * il..][..il]);
-                l.backward
-                    .run(isa, zero, Activation::Identity, src, dst, &mut work.scratch);
-            }
+            l.backward.run_items(exec, zero, Activation::Identity, gz, target, &mut work.scratch);
         }
     }
 }
 
-impl Parts {
+/// The worker threads of a plan for `threads` (none for one).
+fn start_pool(threads: usize) -> Result<Option<Pool>> {
+    match threads {
+        1 => Ok(None),
+        #[cfg(feature = "std")]
+        n => Pool::new(n).map(Some).map_err(|source| Error::Threads { requested: n, source }),
+        #[cfg(not(feature = "std"))]
+        n => Err(Error::Config {
+            field: "threads",
+            expected: "1 without the std feature",
+            found: n,
+        }),
+    }
+}
+
+impl Networks {
     /// Repacks network `net`'s layers (0 encoder, 1 generator, 2 discriminator).
     fn pack(&mut self, net: usize) {
         let p = &self.params;
@@ -1306,7 +1355,7 @@ impl Parts {
 
     /// The discriminator on `items` planes of `input` (real frames, or the fakes in the
     /// generator's output): its activations in `set`, the logits in `logits`.
-    fn discriminate(&mut self, isa: Isa, fake: bool, items: usize) {
+    fn discriminate(&mut self, exec: Exec<'_>, fake: bool, items: usize) {
         let b = &mut self.buffers;
         let (input, acts, flat, logits) = if fake {
             (&b.gen.y[3], &mut b.dis_fake, &mut b.flat_fake, &mut b.logits_fake)
@@ -1315,7 +1364,7 @@ impl Parts {
         };
         let passes = [(0..items, true)];
         stack_forward(
-            isa,
+            exec,
             &self.dis,
             &self.params,
             &mut self.stats,
@@ -1326,13 +1375,13 @@ impl Parts {
         );
         gather(self.dis[3].shape.output, &acts.y[3], items, flat);
         self.logit
-            .run(isa, &flat[..items * self.logit.cols], &mut logits[..items]);
+            .run(exec, &flat[..items * self.logit.cols], &mut logits[..items]);
     }
 
     /// The gradient `dlogits` (of `items` logits) back through the discriminator's `fake` or
     /// real set: to its parameters if `weights`, to its input (into `buffers.dx`) if `input`,
     /// with `inject` added to the third convolution's output gradient.
-    fn discriminator_backward(&mut self, isa: Isa, fake: bool, items: usize, weights: bool, input: bool, inject: bool) {
+    fn discriminator_backward(&mut self, exec: Exec<'_>, fake: bool, items: usize, weights: bool, input: bool, inject: bool) {
         let b = &mut self.buffers;
         let (x, acts, flat) = if fake {
             (&b.gen.y[3], &b.dis_fake, &b.flat_fake)
@@ -1343,7 +1392,7 @@ impl Parts {
         let dlogits = &b.dlogits[..items];
         if weights {
             self.logit.weight_grad(
-                isa,
+                exec,
                 dlogits,
                 &flat[..items * flat_len],
                 &mut b.work.packed_grad,
@@ -1351,14 +1400,14 @@ impl Parts {
             );
         }
         self.logit
-            .data_grad(isa, &b.work.zero, dlogits, &mut b.dflat[..items * flat_len]);
+            .data_grad(exec, &b.work.zero, dlogits, &mut b.dflat[..items * flat_len]);
         scatter(self.dis[3].shape.output, &b.dflat, items, &mut b.dis_grads.gy[3]);
         let grads = weights.then_some(&mut self.grads[..]);
         let inject = inject.then_some((2, &b.dfeature[..]));
         let dx = input.then_some(&mut b.dx[..]);
         let passes = [0..items];
         stack_backward(
-            isa,
+            exec,
             &self.dis,
             &self.params,
             grads,
@@ -1376,7 +1425,7 @@ impl Parts {
     /// The generator's gradient `buffers.dx` (of its `items` outputs) back through its first
     /// `items` (with their passes' statistics): parameter gradients if `weights`, the codes'
     /// gradient into `buffers.dcodes` otherwise.
-    fn generator_backward(&mut self, isa: Isa, passes: &[Range<usize>], weights: bool) {
+    fn generator_backward(&mut self, exec: Exec<'_>, passes: &[Range<usize>], weights: bool) {
         let b = &mut self.buffers;
         let items = passes.last().map_or(0, |p| p.end);
         let image = self.gen[3].shape.output.len();
@@ -1384,7 +1433,7 @@ impl Parts {
         let grads = weights.then_some(&mut self.grads[..]);
         let (top_y, gen) = (&b.top_y, &b.gen);
         stack_backward(
-            isa,
+            exec,
             &self.gen,
             &self.params,
             grads,
@@ -1428,14 +1477,14 @@ impl Parts {
         let (dflat, z) = (&b.dflat[..items * flat], self.fc.cols);
         if weights {
             self.fc.weight_grad(
-                isa,
+                exec,
                 dflat,
                 &b.codes[..items * z],
                 &mut b.work.packed_grad,
                 &mut self.grads,
             );
         } else {
-            self.fc.data_grad(isa, &b.work.zero, dflat, &mut b.dcodes[..items * z]);
+            self.fc.data_grad(exec, &b.work.zero, dflat, &mut b.dcodes[..items * z]);
         }
     }
 
@@ -1443,7 +1492,7 @@ impl Parts {
     #[allow(clippy::too_many_arguments)]
     fn step(
         &mut self,
-        isa: Isa,
+        exec: Exec<'_>,
         s: &VaeGanSettings,
         frames: &[f32],
         eps: &[f32],
@@ -1467,7 +1516,7 @@ impl Parts {
             // Encoder.
             let passes = [(0..n, true)];
             stack_forward(
-                isa,
+                exec,
                 &self.enc,
                 &self.params,
                 &mut self.stats,
@@ -1478,7 +1527,7 @@ impl Parts {
             );
             gather(self.enc[3].shape.output, &b.enc.y[3], n, &mut b.enc_flat);
             let flat = self.heads.cols;
-            self.heads.run(isa, &b.enc_flat[..n * flat], &mut b.heads[..n * 2 * z]);
+            self.heads.run(exec, &b.enc_flat[..n * flat], &mut b.heads[..n * 2 * z]);
             // The generator's inputs: mu + eps · exp(logsigma), then the prior samples.
             b.eps[..n * z].copy_from_slice(eps);
             for i in 0..n {
@@ -1491,7 +1540,7 @@ impl Parts {
             b.codes[n * z..2 * n * z].copy_from_slice(prior);
             // Generator: reconstructions update the running statistics, prior samples do not.
             self.fc
-                .run(isa, &b.codes[..2 * n * z], &mut b.fc_out[..2 * n * self.fc.rows]);
+                .run(exec, &b.codes[..2 * n * z], &mut b.fc_out[..2 * n * self.fc.rows]);
             scatter(self.top, &b.fc_out, 2 * n, &mut b.top_z);
             let (tl, tc) = (self.top.len(), self.top.channels);
             for (p, update) in [(0, true), (1, false)] {
@@ -1511,7 +1560,7 @@ impl Parts {
             }
             let passes = [(0..n, true), (n..2 * n, false)];
             stack_forward(
-                isa,
+                exec,
                 &self.gen,
                 &self.params,
                 &mut self.stats,
@@ -1523,19 +1572,19 @@ impl Parts {
         }
 
         // The discriminator: real frames against reconstructions and prior samples.
-        self.discriminate(isa, false, n);
-        self.discriminate(isa, true, 2 * n);
+        self.discriminate(exec, false, n);
+        self.discriminate(exec, true, 2 * n);
         let b = &mut self.buffers;
         let real = bce(&b.logits_real[..n], true, 1.0, &mut b.dlogits[..n]);
-        self.discriminator_backward(isa, false, n, true, false, false);
+        self.discriminator_backward(exec, false, n, true, false, false);
         let b = &mut self.buffers;
         let fake = bce(&b.logits_fake[..2 * n], false, 1.0, &mut b.dlogits[..2 * n]);
-        self.discriminator_backward(isa, true, 2 * n, true, false, false);
+        self.discriminator_backward(exec, true, 2 * n, true, false, false);
         self.update(2, &s.adam, t, lr);
 
         // The encoder's and generator's losses through the updated discriminator.
-        self.discriminate(isa, false, n);
-        self.discriminate(isa, true, 2 * n);
+        self.discriminate(exec, false, n);
+        self.discriminate(exec, true, 2 * n);
         let b = &mut self.buffers;
         let features = self.dis[2].shape.output;
         let (fl, f_len) = (features.len(), n * features.interior_len());
@@ -1596,7 +1645,7 @@ impl Parts {
         b.dis_grads.gz[2][..fake_len].copy_from_slice(&b.dfeature[..fake_len]);
         let passes = [0..2 * n];
         stack_backward(
-            isa,
+            exec,
             &self.dis,
             &self.params,
             None,
@@ -1612,7 +1661,7 @@ impl Parts {
         for ((d, &r), &x) in b.dx[..n * il].iter_mut().zip(xr).zip(x) {
             *d += pixel_grad(r, x);
         }
-        self.generator_backward(isa, &[0..n], false);
+        self.generator_backward(exec, &[0..n], false);
         let b = &mut self.buffers;
         for i in 0..n {
             let (mu, ls) = b.heads[i * 2 * z..][..2 * z].split_at(z);
@@ -1633,18 +1682,18 @@ impl Parts {
         let flat = self.heads.cols;
         let dheads = &b.dheads[..n * 2 * z];
         self.heads.weight_grad(
-            isa,
+            exec,
             dheads,
             &b.enc_flat[..n * flat],
             &mut b.work.packed_grad,
             &mut self.grads,
         );
         self.heads
-            .data_grad(isa, &b.work.zero, dheads, &mut b.dflat[..n * flat]);
+            .data_grad(exec, &b.work.zero, dheads, &mut b.dflat[..n * flat]);
         scatter(self.enc[3].shape.output, &b.dflat, n, &mut b.enc_grads.gy[3]);
         let passes = [0..n];
         stack_backward(
-            isa,
+            exec,
             &self.enc,
             &self.params,
             Some(&mut self.grads),
@@ -1660,13 +1709,13 @@ impl Parts {
 
         // The generator's loss: the GAN term and the feature error back through the
         // discriminator to both fakes, plus the pixel error, back through both passes.
-        self.discriminator_backward(isa, true, 2 * n, false, true, true);
+        self.discriminator_backward(exec, true, 2 * n, false, true, true);
         let b = &mut self.buffers;
         let (xr, x) = (&b.gen.y[3][..n * il], &b.real[..n * il]);
         for ((d, &r), &x) in b.dx[..n * il].iter_mut().zip(xr).zip(x) {
             *d += pixel_grad(r, x);
         }
-        self.generator_backward(isa, &[0..n, n..2 * n], true);
+        self.generator_backward(exec, &[0..n, n..2 * n], true);
 
         self.update(0, &s.adam, t, lr);
         self.update(1, &s.adam, t, lr);
