@@ -28,7 +28,7 @@ use alloc::string::String;
 use alloc::vec::Vec;
 use core::ops::Range;
 use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, update_running_stats};
-use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, dense_from_fn, winograd_weights_from_direct};
+use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, winograd_weights_from_direct};
 use crate::layers::dense;
 use crate::pool::{Exec, Parts, Pool};
 use drivesim_kernels::{
@@ -321,10 +321,6 @@ impl Conv {
         })
     }
 
-    fn pack(&mut self, params: &[f32]) {
-        self.forward.pack(&params[self.weight.clone()]);
-        self.backward.pack(&params[self.weight.clone()]);
-    }
 }
 
 /// How a dense layer's PyTorch rows or columns map to the kernels' order: a flattened feature
@@ -337,17 +333,40 @@ enum Order {
     Rows(usize, usize, usize),
 }
 
-/// The CHW index of HWC index `i` of a `(c, h, w)` map.
-fn hwc_to_chw(i: usize, (c, h, w): (usize, usize, usize)) -> usize {
-    (i % c) * h * w + i / c
-}
 
 impl Order {
-    /// PyTorch's row and column of the kernels' `(r, c)`.
-    fn torch(self, r: usize, c: usize) -> (usize, usize) {
+    /// Calls `f(r, c, t)` for every weight of a `rows x cols` layer: its row and column in the
+    /// kernels' order and its index in PyTorch's row-major tensor, counted up without division
+    /// (this runs over every weight after every update).
+    fn for_each(self, rows: usize, cols: usize, mut f: impl FnMut(usize, usize, usize)) {
         match self {
-            Order::Columns(ch, h, w) => (r, hwc_to_chw(c, (ch, h, w))),
-            Order::Rows(ch, h, w) => (hwc_to_chw(r, (ch, h, w)), c),
+            Order::Columns(ch, h, w) => {
+                for r in 0..rows {
+                    for c in 0..ch {
+                        for p in 0..h * w {
+                            f(r, p * ch + c, r * cols + c * h * w + p);
+                        }
+                    }
+                }
+            }
+            Order::Rows(ch, h, w) => {
+                for c in 0..ch {
+                    for p in 0..h * w {
+                        let (r, tr) = (p * ch + c, c * h * w + p);
+                        for col in 0..cols {
+                            f(r, col, tr * cols + col);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// PyTorch's row of the kernels' row `r` (for the bias).
+    fn torch_row(self, r: usize) -> usize {
+        match self {
+            Order::Columns(..) => r,
+            Order::Rows(ch, h, w) => (r % ch) * h * w + r / ch,
         }
     }
 }
@@ -391,16 +410,15 @@ impl Dense {
     }
 
     fn pack(&mut self, params: &[f32]) {
-        let (w, order, cols) = (&params[self.weight.clone()], self.order, self.cols);
-        let at = |r, c| {
-            let (tr, tc) = order.torch(r, c);
-            w[tr * cols + tc]
-        };
-        dense_from_fn(self.rows, self.cols, &mut self.forward, at);
-        dense_from_fn(self.cols, self.rows, &mut self.backward, |c, r| at(r, c));
+        let (w, rows, cols) = (&params[self.weight.clone()], self.rows, self.cols);
+        let (forward, backward) = (&mut self.forward, &mut self.backward);
+        self.order.for_each(rows, cols, |r, c, t| {
+            forward[Matrix::packed_index(r, c, cols)] = w[t];
+            backward[Matrix::packed_index(c, r, rows)] = w[t];
+        });
         let bias = &params[self.bias.clone()];
         for (r, b) in self.bias_rows.iter_mut().enumerate() {
-            *b = bias[order.torch(r, 0).0];
+            *b = bias[self.order.torch_row(r)];
         }
     }
 
@@ -436,16 +454,12 @@ impl Dense {
             }
         });
         let g = &mut grads[self.weight.clone()];
-        for r in 0..rows {
-            for c in 0..cols {
-                let (tr, tc) = self.order.torch(r, c);
-                g[tr * cols + tc] += packed[Matrix::packed_index(r, c, cols)];
-            }
-        }
+        self.order
+            .for_each(rows, cols, |r, c, t| g[t] += packed[Matrix::packed_index(r, c, cols)]);
         let gb = &mut grads[self.bias.clone()];
         for dy in dy.chunks_exact(rows) {
             for (r, &d) in dy.iter().enumerate() {
-                gb[self.order.torch(r, 0).0] += d;
+                gb[self.order.torch_row(r)] += d;
             }
         }
     }
@@ -915,8 +929,12 @@ impl VaeGanTrainer {
             steps: 0,
             parts,
         };
+        let exec = Exec {
+            isa: trainer.isa,
+            pool: trainer.pool.as_ref(),
+        };
         for net in 0..3 {
-            trainer.parts.pack(net);
+            trainer.parts.pack(net, exec);
         }
         Ok(trainer)
     }
@@ -1303,6 +1321,12 @@ fn stack_backward(
     }
 }
 
+/// One packing of [`Networks::pack`].
+enum Job<'a> {
+    Dense(&'a mut Dense),
+    Conv(&'a mut Packed, Range<usize>),
+}
+
 /// The worker threads of a plan for `threads` (none for one).
 fn start_pool(threads: usize) -> Result<Option<Pool>> {
     match threads {
@@ -1319,27 +1343,40 @@ fn start_pool(threads: usize) -> Result<Option<Pool>> {
 }
 
 impl Networks {
-    /// Repacks network `net`'s layers (0 encoder, 1 generator, 2 discriminator).
-    fn pack(&mut self, net: usize) {
+    /// Repacks network `net`'s layers (0 encoder, 1 generator, 2 discriminator), threads
+    /// taking the packings one at a time, the largest first.
+    fn pack(&mut self, net: usize, exec: Exec<'_>) {
         let p = &self.params;
-        match net {
-            0 => {
-                self.enc.iter_mut().for_each(|l| l.pack(p));
-                self.heads.pack(p);
+        let (convs, dense) = match net {
+            0 => (&mut self.enc, &mut self.heads),
+            1 => (&mut self.gen, &mut self.fc),
+            _ => (&mut self.dis, &mut self.logit),
+        };
+        let [a, b, c, d] = convs;
+        let mut jobs = [
+            Job::Dense(dense),
+            Job::Conv(&mut d.backward, d.weight.clone()),
+            Job::Conv(&mut d.forward, d.weight.clone()),
+            Job::Conv(&mut c.backward, c.weight.clone()),
+            Job::Conv(&mut c.forward, c.weight.clone()),
+            Job::Conv(&mut b.backward, b.weight.clone()),
+            Job::Conv(&mut b.forward, b.weight.clone()),
+            Job::Conv(&mut a.backward, a.weight.clone()),
+            Job::Conv(&mut a.forward, a.weight.clone()),
+        ];
+        let jobs = Parts::chunks(&mut jobs, 1);
+        exec.run(&|| {
+            while let Some((_, job)) = jobs.take() {
+                match &mut job[0] {
+                    Job::Dense(layer) => layer.pack(p),
+                    Job::Conv(packed, weight) => packed.pack(&p[weight.clone()]),
+                }
             }
-            1 => {
-                self.fc.pack(p);
-                self.gen.iter_mut().for_each(|l| l.pack(p));
-            }
-            _ => {
-                self.dis.iter_mut().for_each(|l| l.pack(p));
-                self.logit.pack(p);
-            }
-        }
+        });
     }
 
     /// Adam on network `net`'s parameters, then its packings.
-    fn update(&mut self, net: usize, adam: &Adam, t: u32, lr: f32) {
+    fn update(&mut self, net: usize, exec: Exec<'_>, adam: &Adam, t: u32, lr: f32) {
         let r = self.nets[net].clone();
         let [m, v] = &mut self.moments;
         adam.update(
@@ -1350,7 +1387,7 @@ impl Networks {
             &self.grads[r.clone()],
             [&mut m[r.clone()], &mut v[r]],
         );
-        self.pack(net);
+        self.pack(net, exec);
     }
 
     /// The discriminator on `items` planes of `input` (real frames, or the fakes in the
@@ -1580,7 +1617,7 @@ impl Networks {
         let b = &mut self.buffers;
         let fake = bce(&b.logits_fake[..2 * n], false, 1.0, &mut b.dlogits[..2 * n]);
         self.discriminator_backward(exec, true, 2 * n, true, false, false);
-        self.update(2, &s.adam, t, lr);
+        self.update(2, exec, &s.adam, t, lr);
 
         // The encoder's and generator's losses through the updated discriminator.
         self.discriminate(exec, false, n);
@@ -1717,8 +1754,8 @@ impl Networks {
         }
         self.generator_backward(exec, &[0..n, n..2 * n], true);
 
-        self.update(0, &s.adam, t, lr);
-        self.update(1, &s.adam, t, lr);
+        self.update(0, exec, &s.adam, t, lr);
+        self.update(1, exec, &s.adam, t, lr);
         let recon = s.feature as f64 * feature + s.pixel as f64 * pixel;
         VaeGanLosses {
             discriminator: (real + fake) as f32,
