@@ -21,6 +21,8 @@ use super::adam::Adam;
 use super::NamedTensor;
 use crate::encoder::LEAKY_SLOPE;
 use crate::error::{expect_finite, expect_finite_output, expect_frames, expect_len};
+use crate::layers::dense;
+use crate::pool::{Exec, Parts, Pool};
 use crate::weights::{Init, RandomSource, SafetensorsSource, TensorSource, WeightDtype, DISCRIMINATOR_PREFIX};
 use crate::{Config, Error, Result};
 use alloc::format;
@@ -28,13 +30,10 @@ use alloc::string::String;
 use alloc::vec::Vec;
 use core::ops::Range;
 use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, update_running_stats};
-use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, winograd_weights_from_direct};
-use crate::layers::dense;
-use crate::pool::{Exec, Parts, Pool};
+use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, dense_from_fn, winograd_weights_from_direct};
 use drivesim_kernels::{
     activation_backward, conv, conv_weight_grad_rows, conv_weight_grad_scratch_len, dense_weight_grad_rows, math,
-    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane,
-    Winograd,
+    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane, Winograd,
 };
 
 /// The border of every plane of the training networks: strided convolutions read 2 pixels
@@ -141,6 +140,9 @@ struct Entry {
     at: Range<usize>,
     param: bool,
     init: Init,
+    /// For a dense layer's weights, kept packed: the layer (see [`Networks::dense`]) and the
+    /// tensor's first row in it; `at` is then the whole layer's packed matrix.
+    packed: Option<(usize, usize)>,
 }
 
 /// The tensors, laid out as they are declared.
@@ -163,7 +165,30 @@ impl Table {
             at: at.clone(),
             param,
             init,
+            packed: None,
         });
+        at
+    }
+
+    /// Dense layer `layer`'s weights: the packed matrix (see [`Matrix`]) of the PyTorch tensors
+    /// `(name, rows)` stacked in order, each `rows x cols`. The optimiser updates them in place,
+    /// so that the forward pass multiplies by them as they are.
+    fn packed(&mut self, layer: usize, tensors: &[(&str, usize)], cols: usize, init: Init) -> Range<usize> {
+        let rows = tensors.iter().map(|t| t.1).sum();
+        let at = self.params..self.params + Matrix::packed_len(rows, cols);
+        self.params = at.end;
+        let mut first = 0;
+        for &(name, n) in tensors {
+            self.entries.push(Entry {
+                name: name.into(),
+                shape: alloc::vec![n, cols],
+                at: at.clone(),
+                param: true,
+                init,
+                packed: Some((layer, first)),
+            });
+            first += n;
+        }
         at
     }
 
@@ -320,7 +345,6 @@ impl Conv {
             backward: Packed::new(budget, shape.transposed(), sizes)?,
         })
     }
-
 }
 
 /// How a dense layer's PyTorch rows or columns map to the kernels' order: a flattened feature
@@ -332,7 +356,6 @@ enum Order {
     /// The rows are.
     Rows(usize, usize, usize),
 }
-
 
 impl Order {
     /// Calls `f(r, c, t)` for every weight of a `rows x cols` layer: its row and column in the
@@ -375,10 +398,10 @@ impl Order {
 struct Dense {
     rows: usize,
     cols: usize,
+    /// The packed matrix in the parameters (see [`Table::packed`]).
     weight: Range<usize>,
     bias: Range<usize>,
     order: Order,
-    forward: Vec<f32>,
     /// `Wᵀ`, packed: the data gradient.
     backward: Vec<f32>,
     /// The bias in the kernels' row order.
@@ -403,18 +426,16 @@ impl Dense {
             weight,
             bias,
             order,
-            forward: budget.take("packed weights", Matrix::packed_len(rows, cols))?,
             backward: budget.take("packed weights", Matrix::packed_len(cols, rows))?,
             bias_rows: budget.take("packed weights", rows)?,
         })
     }
 
+    /// Packs `Wᵀ` from the packed weights, and the bias in the kernels' order.
     fn pack(&mut self, params: &[f32]) {
         let (w, rows, cols) = (&params[self.weight.clone()], self.rows, self.cols);
-        let (forward, backward) = (&mut self.forward, &mut self.backward);
-        self.order.for_each(rows, cols, |r, c, t| {
-            forward[Matrix::packed_index(r, c, cols)] = w[t];
-            backward[Matrix::packed_index(c, r, rows)] = w[t];
+        dense_from_fn(cols, rows, &mut self.backward, |c, r| {
+            w[Matrix::packed_index(r, c, cols)]
         });
         let bias = &params[self.bias.clone()];
         for (r, b) in self.bias_rows.iter_mut().enumerate() {
@@ -423,9 +444,9 @@ impl Dense {
     }
 
     /// `y = W x + b` for a batch.
-    fn run(&self, exec: Exec<'_>, x: &[f32], y: &mut [f32]) {
+    fn run(&self, exec: Exec<'_>, params: &[f32], x: &[f32], y: &mut [f32]) {
         let w = Matrix {
-            data: MatrixData::F32(&self.forward),
+            data: MatrixData::F32(&params[self.weight.clone()]),
             rows: self.rows,
             cols: self.cols,
         };
@@ -453,9 +474,7 @@ impl Dense {
                 dense_weight_grad_rows(exec.isa, dy, x, rows, cols, part);
             }
         });
-        let g = &mut grads[self.weight.clone()];
-        self.order
-            .for_each(rows, cols, |r, c, t| g[t] += packed[Matrix::packed_index(r, c, cols)]);
+        add(&mut grads[self.weight.clone()], packed);
         let gb = &mut grads[self.bias.clone()];
         for dy in dy.chunks_exact(rows) {
             for (r, &d) in dy.iter().enumerate() {
@@ -638,9 +657,11 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
         )?);
     }
     let fan = Init::FanIn(flat);
-    let (mw, lw) = (
-        t.param("encoder.mean.weight".into(), &[z, flat], fan),
-        t.param("encoder.logsigma.weight".into(), &[z, flat], fan),
+    let heads_weight = t.packed(
+        0,
+        &[("encoder.mean.weight", z), ("encoder.logsigma.weight", z)],
+        flat,
+        fan,
     );
     let (mb, lb) = (
         t.param("encoder.mean.bias".into(), &[z], fan),
@@ -649,7 +670,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
     let heads = Dense::new(
         budget,
         &mut sizes,
-        (mw.start..lw.end, mb.start..lb.end),
+        (heads_weight, mb.start..lb.end),
         2 * z,
         flat,
         Order::Columns(top_c, top_h, top_w),
@@ -658,7 +679,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
 
     // Generator.
     let fc_tensors = (
-        t.param("generator.fc.weight".into(), &[flat, z], Init::FanIn(z)),
+        t.packed(1, &[("generator.fc.weight", flat)], z, Init::FanIn(z)),
         t.param("generator.fc.bias".into(), &[flat], Init::FanIn(z)),
     );
     let fc = Dense::new(
@@ -709,7 +730,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
         )?);
     }
     let logit_tensors = (
-        t.param("discriminator.out.weight".into(), &[1, flat], Init::FanIn(flat)),
+        t.packed(2, &[("discriminator.out.weight", 1)], flat, Init::FanIn(flat)),
         t.param("discriminator.out.bias".into(), &[1], Init::FanIn(flat)),
     );
     let logit = Dense::new(
@@ -918,8 +939,22 @@ impl VaeGanTrainer {
             } else {
                 random.f32(&e.name, &e.shape, e.init)?
             };
-            let dst = if e.param { &mut parts.params } else { &mut parts.stats };
-            dst[e.at.clone()].copy_from_slice(&values);
+            match e.packed {
+                Some((layer, first)) => {
+                    let dense = parts.dense(layer);
+                    let (order, all, cols, rows) = (dense.order, dense.rows, dense.cols, first..first + e.shape[0]);
+                    let w = &mut parts.params[e.at.clone()];
+                    order.for_each(all, cols, |r, c, t| {
+                        if rows.contains(&(t / cols)) {
+                            w[Matrix::packed_index(r, c, cols)] = values[t - rows.start * cols];
+                        }
+                    });
+                }
+                None => {
+                    let dst = if e.param { &mut parts.params } else { &mut parts.stats };
+                    dst[e.at.clone()].copy_from_slice(&values);
+                }
+            }
         }
         let mut trainer = VaeGanTrainer {
             config,
@@ -979,7 +1014,9 @@ impl VaeGanTrainer {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
-        let losses = self.parts.step(exec, &self.settings, frames, eps, prior, n, lr, self.steps);
+        let losses = self
+            .parts
+            .step(exec, &self.settings, frames, eps, prior, n, lr, self.steps);
         expect_finite_output("gradients", &self.parts.grads)?;
         expect_finite_output("parameters", &self.parts.params)?;
         Ok(losses)
@@ -996,10 +1033,7 @@ impl VaeGanTrainer {
         let p = &self.parts;
         let entries = p.table.entries.iter();
         entries
-            .map(|e| {
-                let values = if e.param { &p.params } else { &p.stats };
-                (e.name.clone(), e.shape.clone(), values[e.at.clone()].to_vec())
-            })
+            .map(|e| p.torch(e, if e.param { &p.params } else { &p.stats }))
             .collect()
     }
 
@@ -1008,9 +1042,7 @@ impl VaeGanTrainer {
     pub fn gradients(&self) -> Vec<NamedTensor> {
         let p = &self.parts;
         let params = p.table.entries.iter().filter(|e| e.param);
-        params
-            .map(|e| (e.name.clone(), e.shape.clone(), p.grads[e.at.clone()].to_vec()))
-            .collect()
+        params.map(|e| p.torch(e, &p.grads)).collect()
     }
 
     /// A weight file with the trained networks: `original` (a drivesim weight file of the same
@@ -1184,11 +1216,19 @@ fn stack_forward(
         let y = &mut rest[0];
         let bias = &params[l.bias.clone()];
         let Some(norm) = &l.norm else {
-            l.forward.run_items(exec, bias, l.act, &x[..items * il], &mut y[..items * ol], scratch);
+            l.forward
+                .run_items(exec, bias, l.act, &x[..items * il], &mut y[..items * ol], scratch);
             continue;
         };
         let z = &mut acts.z[i];
-        l.forward.run_items(exec, bias, Activation::Identity, &x[..items * il], &mut z[..items * ol], scratch);
+        l.forward.run_items(
+            exec,
+            bias,
+            Activation::Identity,
+            &x[..items * il],
+            &mut z[..items * ol],
+            scratch,
+        );
         let (mean, var) = (&mut acts.mean[i], &mut acts.var[i]);
         for (p, (range, update)) in passes.iter().enumerate() {
             let span = range.start * ol..range.end * ol;
@@ -1316,7 +1356,8 @@ fn stack_backward(
         };
         if let Some(target) = target {
             let zero = &work.zero[..l.shape.input.channels];
-            l.backward.run_items(exec, zero, Activation::Identity, gz, target, &mut work.scratch);
+            l.backward
+                .run_items(exec, zero, Activation::Identity, gz, target, &mut work.scratch);
         }
     }
 }
@@ -1332,7 +1373,9 @@ fn start_pool(threads: usize) -> Result<Option<Pool>> {
     match threads {
         1 => Ok(None),
         #[cfg(feature = "std")]
-        n => Pool::new(n).map(Some).map_err(|source| Error::Threads { requested: n, source }),
+        n => Pool::new(n)
+            .map(Some)
+            .map_err(|source| Error::Threads { requested: n, source }),
         #[cfg(not(feature = "std"))]
         n => Err(Error::Config {
             field: "threads",
@@ -1343,6 +1386,31 @@ fn start_pool(threads: usize) -> Result<Option<Pool>> {
 }
 
 impl Networks {
+    /// Dense layer `layer`: the encoder's heads, the generator's first layer, the logit.
+    fn dense(&self, layer: usize) -> &Dense {
+        [&self.heads, &self.fc, &self.logit][layer]
+    }
+
+    /// Tensor `e` of `values` (the parameters, their gradients or the statistics) in
+    /// PyTorch's layout.
+    fn torch(&self, e: &Entry, values: &[f32]) -> NamedTensor {
+        let tensor = match e.packed {
+            None => values[e.at.clone()].to_vec(),
+            Some((layer, first)) => {
+                let dense = self.dense(layer);
+                let (cols, rows) = (dense.cols, first..first + e.shape[0]);
+                let (w, mut out) = (&values[e.at.clone()], alloc::vec![0.0; rows.len() * cols]);
+                dense.order.for_each(dense.rows, cols, |r, c, t| {
+                    if rows.contains(&(t / cols)) {
+                        out[t - rows.start * cols] = w[Matrix::packed_index(r, c, cols)];
+                    }
+                });
+                out
+            }
+        };
+        (e.name.clone(), e.shape.clone(), tensor)
+    }
+
     /// Repacks network `net`'s layers (0 encoder, 1 generator, 2 discriminator), threads
     /// taking the packings one at a time, the largest first.
     fn pack(&mut self, net: usize, exec: Exec<'_>) {
@@ -1411,14 +1479,26 @@ impl Networks {
             &mut b.work.scratch,
         );
         gather(self.dis[3].shape.output, &acts.y[3], items, flat);
-        self.logit
-            .run(exec, &flat[..items * self.logit.cols], &mut logits[..items]);
+        self.logit.run(
+            exec,
+            &self.params,
+            &flat[..items * self.logit.cols],
+            &mut logits[..items],
+        );
     }
 
     /// The gradient `dlogits` (of `items` logits) back through the discriminator's `fake` or
     /// real set: to its parameters if `weights`, to its input (into `buffers.dx`) if `input`,
     /// with `inject` added to the third convolution's output gradient.
-    fn discriminator_backward(&mut self, exec: Exec<'_>, fake: bool, items: usize, weights: bool, input: bool, inject: bool) {
+    fn discriminator_backward(
+        &mut self,
+        exec: Exec<'_>,
+        fake: bool,
+        items: usize,
+        weights: bool,
+        input: bool,
+        inject: bool,
+    ) {
         let b = &mut self.buffers;
         let (x, acts, flat) = if fake {
             (&b.gen.y[3], &b.dis_fake, &b.flat_fake)
@@ -1564,7 +1644,8 @@ impl Networks {
             );
             gather(self.enc[3].shape.output, &b.enc.y[3], n, &mut b.enc_flat);
             let flat = self.heads.cols;
-            self.heads.run(exec, &b.enc_flat[..n * flat], &mut b.heads[..n * 2 * z]);
+            self.heads
+                .run(exec, &self.params, &b.enc_flat[..n * flat], &mut b.heads[..n * 2 * z]);
             // The generator's inputs: mu + eps · exp(logsigma), then the prior samples.
             b.eps[..n * z].copy_from_slice(eps);
             for i in 0..n {
@@ -1576,8 +1657,12 @@ impl Networks {
             }
             b.codes[n * z..2 * n * z].copy_from_slice(prior);
             // Generator: reconstructions update the running statistics, prior samples do not.
-            self.fc
-                .run(exec, &b.codes[..2 * n * z], &mut b.fc_out[..2 * n * self.fc.rows]);
+            self.fc.run(
+                exec,
+                &self.params,
+                &b.codes[..2 * n * z],
+                &mut b.fc_out[..2 * n * self.fc.rows],
+            );
             scatter(self.top, &b.fc_out, 2 * n, &mut b.top_z);
             let (tl, tc) = (self.top.len(), self.top.channels);
             for (p, update) in [(0, true), (1, false)] {
