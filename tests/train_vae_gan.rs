@@ -8,7 +8,7 @@ mod common;
 
 use common::{fixture_path, relative_error, Io};
 use drivesim::train::{VaeGanLosses, VaeGanPlan, VaeGanSettings, VaeGanTrainer};
-use drivesim::{Isa, Model};
+use drivesim::{Config, Error, Isa, Model};
 
 /// Max |found - expected| / max |expected| allowed against PyTorch (the 1e-4).
 const TOLERANCE: f32 = 1e-4;
@@ -196,4 +196,65 @@ fn threads_give_the_same_bits() {
     for threads in [2, 3] {
         assert!(run(threads) == one, "{threads} threads differ from one");
     }
+}
+
+#[test]
+fn bad_input_is_a_typed_error() {
+    let f = fixture("tiny_bf16");
+    let mut trainer = f.trainer(Isa::best());
+    let z = f.eps.len() / f.batch;
+    let before = trainer.tensors();
+    let mut frames = f.frames.clone();
+    frames[5] = 1.5;
+    assert!(matches!(
+        trainer.step(&frames, &f.eps, &f.prior, f.lr),
+        Err(Error::FrameValue { index: 5, .. })
+    ));
+    frames[5] = f32::NAN;
+    assert!(matches!(
+        trainer.step(&frames, &f.eps, &f.prior, f.lr),
+        Err(Error::NonFinite { .. })
+    ));
+    let too_many = [f.frames.clone(), f.frames.clone()].concat();
+    assert!(matches!(
+        trainer.step(&too_many, &f.eps, &f.prior, f.lr),
+        Err(Error::BufferLength { buffer: "frames", .. })
+    ));
+    assert!(matches!(
+        trainer.step(&f.frames[..7], &f.eps, &f.prior, f.lr),
+        Err(Error::BufferLength { buffer: "frames", .. })
+    ));
+    assert!(matches!(
+        trainer.step(&f.frames, &f.eps[..z], &f.prior, f.lr),
+        Err(Error::BufferLength { buffer: "eps", .. })
+    ));
+    let mut prior = f.prior.clone();
+    prior[0] = f32::INFINITY;
+    assert!(matches!(
+        trainer.step(&f.frames, &f.eps, &prior, f.lr),
+        Err(Error::NonFinite { buffer: "prior", .. })
+    ));
+    assert!(matches!(
+        trainer.step(&f.frames, &f.eps, &f.prior, -1.0),
+        Err(Error::Setting { name: "lr", .. })
+    ));
+    // Nothing was trained by the rejected calls.
+    assert!(trainer.tensors() == before);
+    assert_eq!(trainer.steps(), 0);
+
+    // A plan for another config, a batch of nothing, a file that is not a weight file.
+    let other = Config {
+        z_dim: 3,
+        ..*Model::from_bytes(&f.weights).unwrap().config()
+    };
+    let plan = VaeGanPlan::new(&other, 2, 1).unwrap();
+    assert!(matches!(
+        VaeGanTrainer::new(&f.weights, &plan, VaeGanSettings::default()),
+        Err(Error::Config { .. })
+    ));
+    assert!(matches!(
+        VaeGanPlan::new(&other, 0, 1),
+        Err(Error::Config { field: "batch", .. })
+    ));
+    assert!(VaeGanTrainer::new(b"not a weight file", &plan, VaeGanSettings::default()).is_err());
 }

@@ -983,7 +983,9 @@ impl VaeGanTrainer {
     /// One step on `frames` (`[B, H, W, C]` in [-1, 1], `B` at most the plan's batch), with
     /// the reparametrisation draws `eps` and the prior samples `prior` (`[B, z]` each, standard
     /// normal for training): the discriminator's update, then the encoder's and generator's,
-    /// at learning rate `lr`. Returns the losses, computed before the updates.
+    /// at learning rate `lr`. Returns the losses, computed before the updates. Gradients that
+    /// are not finite are [`Error::NonFiniteOutput`] before the update they would feed (the
+    /// discriminator's, or the encoder's and generator's), which then does not happen.
     pub fn step(&mut self, frames: &[f32], eps: &[f32], prior: &[f32], lr: f32) -> Result<VaeGanLosses> {
         let c = self.config;
         if frames.is_empty()
@@ -1009,16 +1011,14 @@ impl VaeGanTrainer {
                 value: lr,
             });
         }
-        self.steps += 1;
         let exec = Exec {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
         let losses = self
             .parts
-            .step(exec, &self.settings, frames, eps, prior, n, lr, self.steps);
-        expect_finite_output("gradients", &self.parts.grads)?;
-        expect_finite_output("parameters", &self.parts.params)?;
+            .step(exec, &self.settings, frames, eps, prior, n, lr, self.steps + 1)?;
+        self.steps += 1;
         Ok(losses)
     }
 
@@ -1617,7 +1617,7 @@ impl Networks {
         n: usize,
         lr: f32,
         t: u32,
-    ) -> VaeGanLosses {
+    ) -> Result<VaeGanLosses> {
         self.grads.fill(0.0);
         let z = self.fc.cols;
         let image = self.enc[0].shape.input;
@@ -1702,6 +1702,7 @@ impl Networks {
         let b = &mut self.buffers;
         let fake = bce(&b.logits_fake[..2 * n], false, 1.0, &mut b.dlogits[..2 * n]);
         self.discriminator_backward(exec, true, 2 * n, true, false, false);
+        expect_finite_output("discriminator gradients", &self.grads[self.nets[2].clone()])?;
         self.update(2, exec, &s.adam, t, lr);
 
         // The encoder's and generator's losses through the updated discriminator.
@@ -1839,10 +1840,11 @@ impl Networks {
         }
         self.generator_backward(exec, &[0..n, n..2 * n], true);
 
+        expect_finite_output("encoder and generator gradients", &self.grads[..self.nets[1].end])?;
         self.update(0, exec, &s.adam, t, lr);
         self.update(1, exec, &s.adam, t, lr);
         let recon = s.feature as f64 * feature + s.pixel as f64 * pixel;
-        VaeGanLosses {
+        Ok(VaeGanLosses {
             discriminator: (real + fake) as f32,
             encoder: (s.kl as f64 * kl + recon) as f32,
             generator: (recon + s.gan as f64 * gan) as f32,
@@ -1850,6 +1852,6 @@ impl Networks {
             feature: feature as f32,
             pixel_l1: pixel as f32,
             kl: kl as f32,
-        }
+        })
     }
 }
