@@ -1,12 +1,20 @@
-//! Trains the transition model on the CPU with `drivesim::train`, or runs one verifiable step.
+//! Trains the networks on the CPU with `drivesim::train`, or runs one verifiable step.
 //!
 //! ```text
 //! cargo run --release --features train --example train -- transition \
 //!     --weights weights/default.safetensors --episodes DATA.safetensors.gz --out tuned.safetensors \
 //!     [--heldout HELDOUT.safetensors.gz] [--steps 2000] [--batch 64] [--lr 1e-3] [--threads 2] [--full-bptt]
-//! cargo run --release --features train --example train -- step --stage transition \
-//!     --weights W.safetensors --batch B.safetensors --out O.safetensors [--lr 1e-3] [--teacher 5] [--clip 1.0]
+//! cargo run --release --features train --example train -- vae-gan \
+//!     --weights weights/default.safetensors --episodes DATA.safetensors.gz --out tuned.safetensors \
+//!     [--heldout HELDOUT.safetensors.gz] [--steps 1000] [--batch 32] [--threads 2] [--minutes 20] \
+//!     [--every 200] [--sheet sheet.png] [--from-scratch]
+//! cargo run --release --features train --example train -- step --stage transition|vae-gan \
+//!     --weights W.safetensors --batch B.safetensors --out O.safetensors [--lr ...] [--teacher 5] [--clip 1.0]
 //! ```
+//! `vae-gan` trains the encoder and generator with a discriminator as `weights/train.py fit`'s
+//! first stage does, measures held-out reconstruction PSNR every `--every` steps, and writes
+//! the weights (discriminator included, so a run resumes from its `--out`; Adam's moments
+//! start again).
 //! `transition` encodes the episodes with the crate's encoder, trains (or fine-tunes) the
 //! transition on windows of 15 codes as `weights/train.py` does, reports the held-out latent
 //! error before and after, and writes a weight file `Model::load` reads. `step` is the
@@ -16,6 +24,8 @@
 
 #[path = "common.rs"]
 mod common;
+#[path = "train_vae_gan.rs"]
+mod vae_gan;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use common::{bar, encode, Encoded};
@@ -37,6 +47,8 @@ struct Args {
 enum Command {
     /// Train or fine-tune the transition on episodes, report held-out errors, write weights
     Transition(TransitionArgs),
+    /// Train or fine-tune the encoder and generator as a VAE-GAN on episodes' frames
+    VaeGan(vae_gan::VaeGanArgs),
     /// One step on a batch file; write the loss, gradients and updated tensors
     Step(StepArgs),
 }
@@ -97,6 +109,15 @@ enum DtypeArg {
 #[derive(Clone, Copy, ValueEnum)]
 enum Stage {
     Transition,
+    VaeGan,
+}
+
+/// The weight dtype asked for, if any.
+fn dtype(arg: Option<DtypeArg>) -> Option<WeightDtype> {
+    arg.map(|d| match d {
+        DtypeArg::F32 => WeightDtype::F32,
+        DtypeArg::F16 => WeightDtype::F16,
+    })
 }
 
 #[derive(Parser)]
@@ -105,13 +126,15 @@ struct StepArgs {
     stage: Stage,
     #[arg(long)]
     weights: PathBuf,
-    /// `codes` f32 [B, T, z] and `actions` f32 [B, T-1, action_dim]
+    /// transition: `codes` f32 [B, T, z] and `actions` f32 [B, T-1, action_dim]; vae-gan:
+    /// `frames` [B, H, W, C] (u8, or f32 in [-1, 1]), `eps` and `prior` f32 [B, z]
     #[arg(long)]
     batch: PathBuf,
     #[arg(long)]
     out: PathBuf,
-    #[arg(long, default_value_t = 1e-3)]
-    lr: f32,
+    /// Adam's learning rate (default 1e-3 transition, 2e-4 vae-gan)
+    #[arg(long)]
+    lr: Option<f32>,
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
     teacher: u32,
     #[arg(long, default_value_t = 1.0)]
@@ -123,6 +146,7 @@ struct StepArgs {
 fn main() -> ExitCode {
     common::exit(match Args::parse().command {
         Command::Transition(args) => transition(&args),
+        Command::VaeGan(args) => vae_gan::vae_gan(&args),
         Command::Step(args) => step(&args),
     })
 }
@@ -147,7 +171,13 @@ fn f32_tensor(file: &SafeTensors<'_>, name: &str, path: &Path) -> Result<(Vec<us
 }
 
 fn step(args: &StepArgs) -> Result<(), String> {
-    let Stage::Transition = args.stage;
+    match args.stage {
+        Stage::Transition => step_transition(args),
+        Stage::VaeGan => vae_gan::step(args),
+    }
+}
+
+fn step_transition(args: &StepArgs) -> Result<(), String> {
     let model = Model::load(&args.weights).map_err(|e| format!("{}: {e}", args.weights.display()))?;
     let c = *model.config();
     let bytes = read(&args.batch)?;
@@ -180,7 +210,9 @@ fn step(args: &StepArgs) -> Result<(), String> {
     let loss = trainer.compute_gradients(&codes, &actions).map_err(|e| e.to_string())?;
     let norm = trainer.gradient_norm().unwrap_or(f32::NAN);
     let gradients = trainer.gradients();
-    trainer.apply_gradients(args.lr).map_err(|e| e.to_string())?;
+    trainer
+        .apply_gradients(args.lr.unwrap_or(1e-3))
+        .map_err(|e| e.to_string())?;
     let mut out: Vec<(String, Vec<usize>, Vec<f32>)> = vec![("loss".into(), vec![1], vec![loss])];
     out.extend(
         gradients
@@ -460,10 +492,7 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
         before.ten_step, after.ten_step, after.copy_ten, after.mean_ten
     );
 
-    let dtype = args.dtype.map(|d| match d {
-        DtypeArg::F32 => WeightDtype::F32,
-        DtypeArg::F16 => WeightDtype::F16,
-    });
+    let dtype = dtype(args.dtype);
     let bytes = trainer
         .weight_file(&original, dtype, Some(&specs))
         .map_err(|e| e.to_string())?;

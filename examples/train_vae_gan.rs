@@ -1,0 +1,329 @@
+//! `train vae-gan` (fine-tune or train the encoder and generator on episodes, as a VAE-GAN) and
+//! `train step --stage vae-gan` (one verifiable step on a batch file).
+
+use super::{dtype, f32_tensor, read, write_f32, DtypeArg, StepArgs};
+use crate::common::{bar, write_png, Gaussian};
+use clap::Parser;
+use drivesim::train::{random_weight_file, VaeGanLosses, VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR};
+use drivesim::{frames_to_rgb, Config, Episodes, Model, PixelLayout, Simulator};
+use safetensors::{Dtype, SafeTensors};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(Parser)]
+pub struct VaeGanArgs {
+    /// Weight file to start from: its encoder, generator and discriminator (`discriminator.*`,
+    /// seeded random ones if it has none); resume an interrupted run from its --out
+    #[arg(long)]
+    weights: PathBuf,
+    /// Episodes to train on (weights/tool record writes them)
+    #[arg(long)]
+    episodes: PathBuf,
+    /// Episodes to measure reconstruction on; without it, the last --holdout episodes of
+    /// --episodes
+    #[arg(long)]
+    heldout: Option<PathBuf>,
+    #[arg(long, default_value_t = 1)]
+    holdout: usize,
+    /// Where to write the trained weights (every --every steps, and at the end)
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, default_value_t = 1000)]
+    steps: usize,
+    /// Frames per step
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    batch: u32,
+    #[arg(long, default_value_t = VAE_GAN_LR)]
+    lr: f32,
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
+    threads: u32,
+    /// Seed of the batches, the reparametrisation draws and the prior samples
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Stop after this many minutes (what was trained is written)
+    #[arg(long)]
+    minutes: Option<f64>,
+    /// Measure held-out PSNR and write --out every this many steps
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u64).range(1..))]
+    every: u64,
+    /// Write a contact sheet of held-out frames (top) and their reconstructions (bottom)
+    #[arg(long)]
+    sheet: Option<PathBuf>,
+    /// Start from seeded random weights of --weights' config (training from scratch)
+    #[arg(long)]
+    from_scratch: bool,
+    /// Dtype of the written tensors (default: --weights' own)
+    #[arg(long, value_enum)]
+    dtype: Option<DtypeArg>,
+}
+
+/// Frames of the held-out episodes spread evenly over them, at most this many.
+const HELDOUT_FRAMES: usize = 64;
+/// Held-out frames on the contact sheet.
+const SHEET_FRAMES: usize = 8;
+
+/// Every frame of `episodes` as f32 in [-1, 1], `[frames, H, W, 3]`, checked against `c`.
+fn frames(episodes: &Episodes, c: &Config, what: &str) -> Result<Vec<f32>, String> {
+    if episodes.frame_size() != (c.height, c.width) || c.channels != 3 {
+        let (h, w) = episodes.frame_size();
+        return Err(format!(
+            "{what}: {h}x{w} RGB frames, the model takes {}x{} with {} channels",
+            c.height, c.width, c.channels
+        ));
+    }
+    let mut out = Vec::new();
+    for i in 0..episodes.len() {
+        let episode = episodes.episode(i).map_err(|e| e.to_string())?;
+        let start = out.len();
+        out.resize(start + episode.len() * c.frame_len(), 0.0);
+        for (j, frame) in out[start..].chunks_exact_mut(c.frame_len()).enumerate() {
+            episode.frame_f32(j, frame).map_err(|e| e.to_string())?;
+        }
+    }
+    Ok(out)
+}
+
+/// Mean PSNR in dB of reconstructions (encoder mean, then generator) of `frames` by the
+/// weights `bytes`, on the 0-255 scale as `weights/train.py` measures it; and the
+/// reconstructions.
+fn psnr(bytes: &[u8], frames: &[f32], threads: usize) -> Result<(f64, Vec<f32>), String> {
+    let model = Model::from_bytes(bytes).map_err(|e| e.to_string())?;
+    let c = *model.config();
+    let n = frames.len() / c.frame_len();
+    let mut sim = Simulator::with_batch(&model, n)
+        .and_then(|s| s.with_threads(threads))
+        .map_err(|e| e.to_string())?;
+    let mut codes = vec![0.0; n * c.z_dim];
+    let mut out = vec![0.0; frames.len()];
+    sim.encode(frames, &mut codes).map_err(|e| e.to_string())?;
+    sim.generate(&codes, &mut out).map_err(|e| e.to_string())?;
+    let mut sum = 0.0;
+    for (x, y) in frames.chunks_exact(c.frame_len()).zip(out.chunks_exact(c.frame_len())) {
+        let mse = x
+            .iter()
+            .zip(y)
+            .map(|(&x, &y)| ((y.clamp(-1.0, 1.0) - x) as f64 * 127.5).powi(2))
+            .sum::<f64>()
+            / x.len() as f64;
+        sum += 10.0 * (255.0f64.powi(2) / mse.max(1e-10)).log10();
+    }
+    Ok((sum / n as f64, out))
+}
+
+/// Held-out frames (top row) over their reconstructions (bottom row), as a PNG.
+fn sheet(path: &Path, c: &Config, frames: &[f32], recon: &[f32]) -> Result<(), String> {
+    let n = (frames.len() / c.frame_len()).min(SHEET_FRAMES);
+    let (w, h) = (c.width, c.height);
+    let mut rgb = vec![0u8; 2 * h * n * w * 3];
+    let mut one = vec![0u8; c.frame_len()];
+    for (row, source) in [frames, recon].into_iter().enumerate() {
+        for i in 0..n {
+            frames_to_rgb(
+                &source[i * c.frame_len()..][..c.frame_len()],
+                PixelLayout::Hwc,
+                c,
+                &mut one,
+            )
+            .map_err(|e| e.to_string())?;
+            for y in 0..h {
+                let dst = ((row * h + y) * n * w + i * w) * 3;
+                rgb[dst..dst + w * 3].copy_from_slice(&one[y * w * 3..][..w * 3]);
+            }
+        }
+    }
+    write_png(path, n * w, 2 * h, &rgb)
+}
+
+pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
+    let original = read(&args.weights)?;
+    let model = Model::from_bytes(&original).map_err(|e| format!("{}: {e}", args.weights.display()))?;
+    let c = *model.config();
+    drop(model);
+    let start_file = match args.from_scratch {
+        true => random_weight_file(&c, args.seed).map_err(|e| e.to_string())?,
+        false => original.clone(),
+    };
+    let load = |path: &PathBuf| Episodes::load(path).map_err(|e| format!("{}: {e}", path.display()));
+    let all = load(&args.episodes)?;
+    let (train, heldout) = match &args.heldout {
+        Some(path) => (
+            frames(&all, &c, "episodes")?,
+            frames(&load(path)?, &c, "held-out episodes")?,
+        ),
+        None if args.holdout < all.len() => {
+            let split: usize = (0..all.len() - args.holdout)
+                .map(|i| all.episode(i).map_or(0, |e| e.len()))
+                .sum();
+            let mut train = frames(&all, &c, "episodes")?;
+            let heldout = train.split_off(split * c.frame_len());
+            (train, heldout)
+        }
+        None => return Err(format!("--holdout {} leaves no training episode", args.holdout)),
+    };
+    let (count, held) = (train.len() / c.frame_len(), heldout.len() / c.frame_len());
+    if count == 0 || held == 0 {
+        return Err("no training or no held-out frames".into());
+    }
+    // Held-out frames spread evenly over the held-out episodes.
+    let picked: Vec<f32> = (0..held.min(HELDOUT_FRAMES))
+        .flat_map(|i| heldout[i * held / held.min(HELDOUT_FRAMES) * c.frame_len()..][..c.frame_len()].to_vec())
+        .collect();
+    let (batch, threads) = (args.batch as usize, args.threads as usize);
+    let plan = VaeGanPlan::new(&c, batch, threads).map_err(|e| e.to_string())?;
+    println!(
+        "{count} training frames, {} held-out frames measured; {} MiB planned for batch {batch}, {threads} thread(s)",
+        picked.len() / c.frame_len(),
+        plan.bytes() >> 20
+    );
+    let mut trainer = VaeGanTrainer::new(&start_file, &plan, VaeGanSettings::default()).map_err(|e| e.to_string())?;
+    let dtype = dtype(args.dtype);
+    let save = |trainer: &VaeGanTrainer| -> Result<Vec<u8>, String> {
+        let bytes = trainer.weight_file(&original, dtype).map_err(|e| e.to_string())?;
+        std::fs::write(&args.out, &bytes).map_err(|e| format!("cannot write {}: {e}", args.out.display()))?;
+        Ok(bytes)
+    };
+    let (before, _) = psnr(
+        &trainer.weight_file(&original, None).map_err(|e| e.to_string())?,
+        &picked,
+        threads,
+    )?;
+    println!("held-out reconstruction PSNR {before:.2} dB before training");
+
+    let progress = bar(
+        args.steps as u64,
+        "{bar:30} {pos}/{len} steps, {msg} ({per_sec}, {eta} left)",
+    );
+    let mut draws = Gaussian(args.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5eed);
+    let mut batch_frames = vec![0.0; batch * c.frame_len()];
+    let (mut eps, mut prior) = (vec![0.0; batch * c.z_dim], vec![0.0; batch * c.z_dim]);
+    let started = Instant::now();
+    let mut recent = VaeGanLosses::default();
+    let mut done = 0;
+    let mut last_psnr = before;
+    for step in 0..args.steps {
+        if args.minutes.is_some_and(|m| started.elapsed().as_secs_f64() > 60.0 * m) {
+            progress.println(format!("--minutes reached after {step} steps"));
+            break;
+        }
+        for frame in batch_frames.chunks_exact_mut(c.frame_len()) {
+            let i = ((draws.uniform() * count as f64) as usize).min(count - 1);
+            frame.copy_from_slice(&train[i * c.frame_len()..][..c.frame_len()]);
+        }
+        eps.iter_mut().chain(prior.iter_mut()).for_each(|v| *v = draws.next());
+        let losses = trainer
+            .step(&batch_frames, &eps, &prior, args.lr)
+            .map_err(|e| format!("step {step}: {e}"))?;
+        recent = if step == 0 { losses } else { smooth(recent, losses) };
+        done = step + 1;
+        progress.set_message(format!(
+            "D {:.3} GAN {:.3} feature {:.3} L1 {:.4} KL {:.3}, held-out {last_psnr:.2} dB",
+            recent.discriminator, recent.gan, recent.feature, recent.pixel_l1, recent.kl
+        ));
+        progress.inc(1);
+        if (step + 1) as u64 % args.every == 0 {
+            last_psnr = psnr(&save(&trainer)?, &picked, threads)?.0;
+        }
+    }
+    progress.finish_and_clear();
+    let seconds = started.elapsed().as_secs_f64();
+    let bytes = save(&trainer)?;
+    let (after, recon) = psnr(&bytes, &picked, threads)?;
+    println!(
+        "{done} steps of {batch} frames in {seconds:.0} s ({:.2} steps/s); losses at the end: D {:.3}, GAN {:.3}, \
+         feature {:.3}, pixel L1 {:.4}, KL {:.3}",
+        done as f64 / seconds,
+        recent.discriminator,
+        recent.gan,
+        recent.feature,
+        recent.pixel_l1,
+        recent.kl
+    );
+    println!("held-out reconstruction PSNR {before:.2} dB before, {after:.2} dB after");
+    if let Some(path) = &args.sheet {
+        sheet(path, &c, &picked, &recon)?;
+        println!("wrote {}", path.display());
+    }
+    println!("wrote {}", args.out.display());
+    Ok(())
+}
+
+/// An exponential moving average of the losses, for the progress line.
+fn smooth(a: VaeGanLosses, b: VaeGanLosses) -> VaeGanLosses {
+    let s = |a: f32, b: f32| 0.95 * a + 0.05 * b;
+    VaeGanLosses {
+        discriminator: s(a.discriminator, b.discriminator),
+        encoder: s(a.encoder, b.encoder),
+        generator: s(a.generator, b.generator),
+        gan: s(a.gan, b.gan),
+        feature: s(a.feature, b.feature),
+        pixel_l1: s(a.pixel_l1, b.pixel_l1),
+        kl: s(a.kl, b.kl),
+    }
+}
+
+/// `train step --stage vae-gan`: one step on `frames` (uint8, or f32 in [-1, 1]), `eps` and
+/// `prior` from the batch file; writes the losses, every gradient and the updated tensors.
+pub fn step(args: &StepArgs) -> Result<(), String> {
+    let weights = read(&args.weights)?;
+    let model = Model::from_bytes(&weights).map_err(|e| format!("{}: {e}", args.weights.display()))?;
+    let c = *model.config();
+    let bytes = read(&args.batch)?;
+    let file = SafeTensors::deserialize(&bytes).map_err(|e| format!("{}: {e:?}", args.batch.display()))?;
+    let view = file
+        .tensor("frames")
+        .map_err(|_| format!("{}: no tensor `frames`", args.batch.display()))?;
+    let want = [c.height, c.width, c.channels];
+    if view.shape().len() != 4 || view.shape()[1..] != want || view.shape()[0] == 0 {
+        return Err(format!(
+            "`frames` has shape {:?}: expected [B >= 1, {}, {}, {}]",
+            view.shape(),
+            want[0],
+            want[1],
+            want[2]
+        ));
+    }
+    let b = view.shape()[0];
+    let frames: Vec<f32> = match view.dtype() {
+        Dtype::U8 => view.data().iter().map(|&v| v as f32 / 127.5 - 1.0).collect(),
+        Dtype::F32 => f32_tensor(&file, "frames", &args.batch)?.1,
+        other => return Err(format!("`frames` is {other:?}: expected U8, or F32 in [-1, 1]")),
+    };
+    let mut draws = Vec::new();
+    for name in ["eps", "prior"] {
+        let (shape, values) = f32_tensor(&file, name, &args.batch)?;
+        if shape != [b, c.z_dim] {
+            return Err(format!("`{name}` has shape {shape:?}: expected [{b}, {}]", c.z_dim));
+        }
+        draws.push(values);
+    }
+    let plan = VaeGanPlan::new(&c, b, 1).map_err(|e| e.to_string())?;
+    let mut trainer = VaeGanTrainer::new(&weights, &plan, VaeGanSettings::default()).map_err(|e| e.to_string())?;
+    let lr = args.lr.unwrap_or(VAE_GAN_LR);
+    let l = trainer
+        .step(&frames, &draws[0], &draws[1], lr)
+        .map_err(|e| e.to_string())?;
+    let losses = [
+        ("d", l.discriminator),
+        ("e", l.encoder),
+        ("g", l.generator),
+        ("gan", l.gan),
+        ("feature", l.feature),
+        ("pixel_l1", l.pixel_l1),
+        ("kl", l.kl),
+    ];
+    let mut out: Vec<(String, Vec<usize>, Vec<f32>)> = losses
+        .iter()
+        .map(|(name, v)| (format!("loss.{name}"), vec![1], vec![*v]))
+        .collect();
+    out.extend(
+        trainer
+            .gradients()
+            .into_iter()
+            .map(|(name, shape, v)| (format!("grad.{name}"), shape, v)),
+    );
+    out.extend(trainer.tensors());
+    write_f32(&args.out, &out)?;
+    let listed: Vec<String> = losses.iter().map(|(name, v)| format!("{name} {v:.6e}")).collect();
+    println!("{}: wrote {}", listed.join(", "), args.out.display());
+    Ok(())
+}
