@@ -2,31 +2,25 @@
 //! of planes (items of [`Plane::len`] floats one after another; only interiors are read or
 //! written, borders stay zero).
 //!
-//! These read each value once or twice per call and do a few operations on it: memory-bound,
-//! so written once as plain loops over blocks of [`BLOCK`] channels (one cache line of a
-//! pixel), with per-channel sums in f64 on the stack. The f64 sums make the statistics of a
-//! hundred thousand values exact to f32 rounding, and independent of how a batch is split.
+//! These read each value twice per call and do a few operations on it: memory-bound, so
+//! written once as plain loops over blocks of [`BLOCK`] channels, with per-channel sums in f64
+//! on the stack. The f64 sums make the statistics of a hundred thousand values exact to f32
+//! rounding.
 
 use crate::pack::BN_EPS;
-use crate::{Activation, Plane};
+use crate::{Activation, Isa, Plane};
 use core::ops::Range;
 
 /// PyTorch's default BatchNorm momentum: the weight of a batch in the running statistics.
 pub const MOMENTUM: f64 = 0.1;
 
-/// Channels summed together in one pass over the pixels.
-const BLOCK: usize = 16;
+/// Channels summed together in one pass over the pixels: up to this many f64 sums live on
+/// the stack, and one pass reads a pixel's block of channels as one contiguous run.
+const BLOCK: usize = 64;
 
 /// The blocks of channels of a plane.
 fn blocks(channels: usize) -> impl Iterator<Item = Range<usize>> {
     (0..channels).step_by(BLOCK).map(move |c| c..(c + BLOCK).min(channels))
-}
-
-/// The offset of channel 0 of every interior pixel of every item of a batch of `items` planes.
-fn pixels(plane: Plane, items: usize) -> impl Iterator<Item = usize> {
-    (0..items).flat_map(move |n| {
-        (0..plane.height).flat_map(move |y| (0..plane.width).map(move |x| n * plane.len() + plane.index(y, x)))
-    })
 }
 
 /// Items in a batch of planes (checked to be whole).
@@ -35,15 +29,16 @@ fn items(plane: Plane, batch: &[f32]) -> usize {
     batch.len() / plane.len()
 }
 
-/// `Σ f(offset of the pixel's channel c, c)` over every interior pixel, per channel of `block`.
-fn sums(plane: Plane, items: usize, block: Range<usize>, f: impl Fn(usize, usize) -> f64) -> [f64; BLOCK] {
-    let mut sum = [0.0f64; BLOCK];
-    for p in pixels(plane, items) {
-        for (s, c) in sum.iter_mut().zip(block.clone()) {
-            *s += f(p + c, c);
-        }
-    }
-    sum
+/// The offset of channel 0 of every interior pixel of every item of a batch of `items`
+/// planes, row by row.
+fn pixels(plane: Plane, items: usize) -> impl Iterator<Item = usize> {
+    let row = plane.width * plane.channels;
+    (0..items).flat_map(move |n| {
+        (0..plane.height).flat_map(move |y| {
+            let start = n * plane.len() + plane.index(y, 0);
+            (start..start + row).step_by(plane.channels.max(1))
+        })
+    })
 }
 
 /// `sums[c] = Σ batch[c]` over every interior pixel of every item: a bias's gradient.
@@ -51,10 +46,15 @@ pub fn channel_sums(plane: Plane, batch: &[f32], sums_out: &mut [f32]) {
     assert_eq!(sums_out.len(), plane.channels);
     let n = items(plane, batch);
     for block in blocks(plane.channels) {
-        let s = sums(plane, n, block.clone(), |i, _| batch[i] as f64);
-        for (o, s) in sums_out[block].iter_mut().zip(s) {
-            *o = s as f32;
+        let mut sum = [0.0f64; BLOCK];
+        for p in pixels(plane, n) {
+            let values = &batch[p + block.start..p + block.end];
+            sum.iter_mut().zip(values).for_each(|(s, &v)| *s += v as f64);
         }
+        sums_out[block.clone()]
+            .iter_mut()
+            .zip(sum)
+            .for_each(|(o, s)| *o = s as f32);
     }
 }
 
@@ -83,29 +83,32 @@ pub fn batch_norm_train(
     let n = items(plane, x);
     let count = (n * plane.height * plane.width) as f64;
     for block in blocks(c) {
-        let sum = sums(plane, n, block.clone(), |i, _| x[i] as f64);
-        let m: [f64; BLOCK] = core::array::from_fn(|j| sum[j] / count);
-        let b0 = block.start;
-        let squares = sums(plane, n, block.clone(), |i, c| {
-            let d = x[i] as f64 - m[c - b0];
-            d * d
-        });
-        for (j, c) in block.clone().enumerate() {
-            mean[c] = m[j] as f32;
-            var[c] = (squares[j] / count) as f32;
+        // Sums of values and squares in f64, in one pass: the variance E[x²] - E[x]² keeps
+        // f32 accuracy unless the mean is a million times the spread.
+        let (mut sum, mut squares) = ([0.0f64; BLOCK], [0.0f64; BLOCK]);
+        for p in pixels(plane, n) {
+            let values = &x[p + block.start..p + block.end];
+            for ((s, q), &v) in sum.iter_mut().zip(squares.iter_mut()).zip(values) {
+                *s += v as f64;
+                *q += v as f64 * v as f64;
+            }
         }
         // y = x · scale + shift, as PyTorch's CPU kernel folds it.
-        let scale: [f32; BLOCK] = core::array::from_fn(|j| {
-            block
-                .clone()
-                .nth(j)
-                .map_or(0.0, |c| (gamma[c] as f64 * inv_std(var[c])) as f32)
-        });
-        let shift: [f32; BLOCK] =
-            core::array::from_fn(|j| block.clone().nth(j).map_or(0.0, |c| beta[c] - mean[c] * scale[j]));
+        let (mut scale, mut shift) = ([0.0f32; BLOCK], [0.0f32; BLOCK]);
+        for (j, ch) in block.clone().enumerate() {
+            let m = sum[j] / count;
+            mean[ch] = m as f32;
+            var[ch] = (squares[j] / count - m * m).max(0.0) as f32;
+            scale[j] = (gamma[ch] as f64 * inv_std(var[ch])) as f32;
+            shift[j] = beta[ch] - mean[ch] * scale[j];
+        }
         for p in pixels(plane, n) {
-            for (j, c) in block.clone().enumerate() {
-                y[p + c] = act.apply(x[p + c] * scale[j] + shift[j]);
+            let (values, out) = (
+                &x[p + block.start..p + block.end],
+                &mut y[p + block.start..p + block.end],
+            );
+            for (j, (o, &v)) in out.iter_mut().zip(values).enumerate() {
+                *o = act.apply(v * scale[j] + shift[j]);
             }
         }
     }
@@ -117,6 +120,7 @@ pub fn batch_norm_train(
 /// `dx = gamma / σ · (g - mean(g) - x̂ · mean(g · x̂))`, `dgamma = Σ g · x̂`, `dbeta = Σ g`.
 #[allow(clippy::too_many_arguments)] // one layer's saved forward values and its three gradients
 pub fn batch_norm_backward(
+    isa: Isa,
     plane: Plane,
     x: &[f32],
     y: &[f32],
@@ -134,35 +138,34 @@ pub fn batch_norm_backward(
     assert!(x.len() == y.len() && x.len() == dy.len() && x.len() == dx.len());
     let n = items(plane, x);
     let count = (n * plane.height * plane.width) as f64;
+    // The activation's gradient by its vector kernel (the borders are zero and stay so).
+    crate::activation_backward(isa, act, y, dy);
     for block in blocks(c) {
+        let m = &mean[block.clone()];
+        // The sums of g and (x - mean) · g, in one pass.
+        let (mut sum, mut dot) = ([0.0f64; BLOCK], [0.0f64; BLOCK]);
         for p in pixels(plane, n) {
-            for c in block.clone() {
-                dy[p + c] = act.backward(y[p + c], dy[p + c]);
+            let span = p + block.start..p + block.end;
+            let (xs, gs) = (&x[span.clone()], &dy[span]);
+            for (j, (&g, &xv)) in gs.iter().zip(xs).enumerate() {
+                sum[j] += g as f64;
+                dot[j] += (xv as f64 - m[j] as f64) * g as f64;
             }
         }
-        let dy = &*dy;
-        let sum = sums(plane, n, block.clone(), |i, _| dy[i] as f64);
-        let dot = sums(plane, n, block.clone(), |i, c| {
-            (x[i] as f64 - mean[c] as f64) * dy[i] as f64
-        });
-        let mut coef = [(0.0f64, 0.0f64, 0.0f64, 0.0f64); BLOCK];
-        for (j, c) in block.clone().enumerate() {
-            let s = inv_std(var[c]);
-            dgamma[c] = (dot[j] * s) as f32;
-            dbeta[c] = sum[j] as f32;
-            // dx = (g - sum / count - (x - mean) · dot · s² / count) · s · gamma
-            coef[j] = (
-                sum[j] / count,
-                dot[j] * s * s / count,
-                s * gamma[c] as f64,
-                mean[c] as f64,
-            );
+        // dx = (g - sum / count - (x - mean) · dot · s² / count) · s · gamma
+        let mut coef = [(0.0f64, 0.0f64, 0.0f64); BLOCK];
+        for (j, ch) in block.clone().enumerate() {
+            let s = inv_std(var[ch]);
+            dgamma[ch] = (dot[j] * s) as f32;
+            dbeta[ch] = sum[j] as f32;
+            coef[j] = (sum[j] / count, dot[j] * s * s / count, s * gamma[ch] as f64);
         }
         for p in pixels(plane, n) {
-            for (j, c) in block.clone().enumerate() {
-                let (mean_g, proj, scale, m) = coef[j];
-                let g = dy[p + c] as f64 - mean_g - (x[p + c] as f64 - m) * proj;
-                dx[p + c] = (g * scale) as f32;
+            let span = p + block.start..p + block.end;
+            let (xs, gs, out) = (&x[span.clone()], &dy[span.clone()], &mut dx[span]);
+            for (j, ((o, &xv), &g)) in out.iter_mut().zip(xs).zip(gs).enumerate() {
+                let (mean_g, proj, scale) = coef[j];
+                *o = ((g as f64 - mean_g - (xv as f64 - m[j] as f64) * proj) * scale) as f32;
             }
         }
     }

@@ -215,3 +215,18 @@ fn activation_backward_is_bit_identical_to_scalar() {
         }
     }
 }
+
+#[test]
+fn transposed_packing_is_the_transpose() {
+    for &rows in &ROWS {
+        for &cols in &COLS {
+            let w = values((rows * 31 + cols) as u64, rows * cols, 1.0);
+            let packed = dense_weights(&w, rows, cols);
+            let mut want = vec![f32::NAN; Matrix::packed_len(cols, rows)];
+            dense_from_fn(cols, rows, &mut want, |c, r| w[r * cols + c]);
+            let mut got = vec![f32::NAN; want.len()];
+            drivesim_kernels::pack::transpose_packed(rows, cols, &packed, &mut got);
+            assert!(got == want, "{rows}x{cols}");
+        }
+    }
+}

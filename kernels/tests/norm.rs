@@ -6,7 +6,7 @@ mod common;
 
 use common::{Rng, ACTS};
 use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, update_running_stats};
-use drivesim_kernels::{Activation, Plane};
+use drivesim_kernels::{Activation, Isa, Plane};
 
 /// Odd channel counts around the block of 16, small planes with and without a border.
 const PLANES: [(usize, usize, usize, usize); 4] = [(2, 3, 1, 0), (3, 2, 5, 1), (2, 2, 17, 2), (1, 3, 33, 1)];
@@ -108,6 +108,7 @@ fn backward_matches_central_differences() {
             let mut dx = vec![0.0; x.len()];
             let (mut dgamma, mut dbeta) = (vec![0.0; c], vec![0.0; c]);
             batch_norm_backward(
+                Isa::best(),
                 plane,
                 &x,
                 &y,

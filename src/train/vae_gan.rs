@@ -30,7 +30,7 @@ use alloc::string::String;
 use alloc::vec::Vec;
 use core::ops::Range;
 use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, update_running_stats};
-use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, dense_from_fn, winograd_weights_from_direct};
+use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, transpose_packed, winograd_weights_from_direct};
 use drivesim_kernels::{
     activation_backward, conv, conv_weight_grad_rows, conv_weight_grad_scratch_len, dense_weight_grad_rows, math,
     winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane, Winograd,
@@ -434,9 +434,7 @@ impl Dense {
     /// Packs `Wᵀ` from the packed weights, and the bias in the kernels' order.
     fn pack(&mut self, params: &[f32]) {
         let (w, rows, cols) = (&params[self.weight.clone()], self.rows, self.cols);
-        dense_from_fn(cols, rows, &mut self.backward, |c, r| {
-            w[Matrix::packed_index(r, c, cols)]
-        });
+        transpose_packed(rows, cols, w, &mut self.backward);
         let bias = &params[self.bias.clone()];
         for (r, b) in self.bias_rows.iter_mut().enumerate() {
             *b = bias[self.order.torch_row(r)];
@@ -1296,6 +1294,7 @@ fn stack_backward(
                         let (mean, var) = (&acts.mean[i][p * oc..][..oc], &acts.var[i][p * oc..][..oc]);
                         let (z, y) = (&acts.z[i][s.clone()], &acts.y[i][s.clone()]);
                         batch_norm_backward(
+                            exec.isa,
                             plane,
                             z,
                             y,
@@ -1572,6 +1571,7 @@ impl Networks {
             let gamma = &self.params[norm.gamma.clone()];
             let (mean, var) = (&b.top_mean[p * c..][..c], &b.top_var[p * c..][..c]);
             batch_norm_backward(
+                exec.isa,
                 top,
                 &b.top_z[s.clone()],
                 &b.top_y[s.clone()],
