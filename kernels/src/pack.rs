@@ -74,16 +74,18 @@ pub fn conv_weights_into(shape: &ConvShape, torch_weight: &[f32], packed: &mut [
 fn for_each_conv_weight(shape: &ConvShape, torch_len: usize, mut f: impl FnMut(usize, usize, usize)) {
     let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
     assert_eq!(torch_len, oc * ic * k * k);
+    // The packed index is linear in the tap and the input channel: offsets by strides (this
+    // runs over every weight after every update of a trainer).
+    let (tap_stride, ic_stride) = (shape.packed_index(0, 1, 0, 0), shape.packed_index(0, 0, 1, 0));
     for o in 0..oc {
+        let base = shape.packed_index(0, 0, 0, o);
         for i in 0..ic {
-            for ky in 0..k {
-                for kx in 0..k {
-                    let src = match shape.kind {
-                        ConvKind::Down => ((o * ic + i) * k + ky) * k + kx,
-                        ConvKind::Up => ((i * oc + o) * k + ky) * k + kx,
-                    };
-                    f(src, shape.packed_index(ky, kx, i, o), o);
-                }
+            let src = match shape.kind {
+                ConvKind::Down => (o * ic + i) * k * k,
+                ConvKind::Up => (i * oc + o) * k * k,
+            };
+            for tap in 0..k * k {
+                f(src + tap, base + i * ic_stride + tap * tap_stride, o);
             }
         }
     }

@@ -261,22 +261,27 @@ impl PhaseFn for WeightTransform<'_> {
     {
         let (w, shape) = (self.w, &self.w.shape);
         let (py, px, first) = (phase / 2, phase % 2, w.phase_points(phase).0);
+        // Trainers repack after every update: the taps' and points' offsets are computed once
+        // per phase, and G g G^T is two products (G g, then by G^T), in f64, rounded once.
+        let taps: [[usize; KX]; KY] =
+            core::array::from_fn(|my| core::array::from_fn(|mx| shape.packed_index(w.tap(py, my), w.tap(px, mx), 0, 0)));
+        let (ic_stride, oc_step) = (shape.packed_index(0, 0, 1, 0), shape.packed_index(0, 0, 0, 1));
         for oc in 0..shape.output.channels {
+            // Within a panel, output channels are adjacent; across panels a panel apart.
+            let oc_at = if shape.is_narrow() { oc * oc_step } else { shape.packed_index(0, 0, 0, oc) };
             for ic in 0..shape.input.channels {
-                let g: [[f64; KX]; KY] = core::array::from_fn(|my| {
-                    core::array::from_fn(|mx| {
-                        self.direct[shape.packed_index(w.tap(py, my), w.tap(px, mx), ic, oc)] as f64
-                    })
-                });
-                // G g G^T in f64, rounded once.
-                for (r, gy) in FY::G.iter().enumerate() {
-                    for (s, gx) in FX::G.iter().enumerate() {
-                        let mut sum = 0.0;
-                        for (grow, &cy) in g.iter().zip(gy) {
-                            for (&value, &cx) in grow.iter().zip(gx) {
-                                sum += cy * value * cx;
-                            }
+                let at = oc_at + ic * ic_stride;
+                let mut gg = [[0.0f64; KX]; PY];
+                for (row, gy) in gg.iter_mut().zip(FY::G.iter()) {
+                    for (taps, &cy) in taps.iter().zip(gy) {
+                        for (r, &tap) in row.iter_mut().zip(taps) {
+                            *r += cy * self.direct[at + tap] as f64;
                         }
+                    }
+                }
+                for (r, row) in gg.iter().enumerate() {
+                    for (s, gx) in FX::G.iter().enumerate() {
+                        let sum: f64 = row.iter().zip(gx).map(|(&v, &cx)| v * cx).sum();
                         self.packed[w.packed_index(first + r * PX + s, ic, oc)] = sum as f32;
                     }
                 }
