@@ -8,6 +8,7 @@
 
 use crate::winograd::Winograd;
 use crate::{simd, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, OutputPart};
+use core::ops::Range;
 
 /// `output = act(conv(input) + bias)` for one image: see [`crate::ConvShape`] for the layouts.
 /// Only the interior of `output` is written; its border stays as it was (zero).
@@ -119,6 +120,16 @@ pub fn dense_weight_grad(isa: Isa, dy: &[f32], x: &[f32], rows: usize, cols: usi
 /// [`dense_weight_grad`] for the rows of `part` only, so that threads can fill disjoint panels
 /// of one gradient at once; each item is summed in the same order whatever the split.
 pub fn dense_weight_grad_rows(isa: Isa, dy: &[f32], x: &[f32], rows: usize, cols: usize, part: OutputPart<'_>) {
+    weight_grad_rows(isa, dy, x, rows, cols, part, false)
+}
+
+/// [`dense_weight_grad_rows`] adding `dyᵀ x` to what the gradient holds: a sum over several
+/// batches (the chunks of a convolution's patches, see [`conv_patches`]).
+pub fn dense_weight_grad_add_rows(isa: Isa, dy: &[f32], x: &[f32], rows: usize, cols: usize, part: OutputPart<'_>) {
+    weight_grad_rows(isa, dy, x, rows, cols, part, true)
+}
+
+fn weight_grad_rows(isa: Isa, dy: &[f32], x: &[f32], rows: usize, cols: usize, part: OutputPart<'_>, accumulate: bool) {
     let units = part.units();
     assert!(units.start.is_multiple_of(crate::OC_ALIGN) && units.end <= rows);
     assert!(
@@ -129,7 +140,7 @@ pub fn dense_weight_grad_rows(isa: Isa, dy: &[f32], x: &[f32], rows: usize, cols
     assert_eq!(part.buffer_len(), Matrix::packed_len(rows, cols));
     // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer is the whole
     // packed matrix (checked), and the panels of its rows are this call's alone.
-    unsafe { (simd::entries(isa).dense_weight_grad)(dy, x, cols, part.ptr(), units, rows, false) }
+    unsafe { (simd::entries(isa).dense_weight_grad)(dy, x, cols, part.ptr(), units, rows, accumulate) }
 }
 
 /// The gradient through `y = act(x)`, given `y`, in place (see [`Activation::backward`]):
@@ -140,9 +151,10 @@ pub fn activation_backward(isa: Isa, act: Activation, y: &[f32], grad: &mut [f32
     unsafe { (simd::entries(isa).activation_backward)(act, y, grad) }
 }
 
-/// Output pixels per chunk of [`conv_weight_grad`]: one chunk of the dense weight gradient's
-/// items, so the sums run in the same order whatever the thread count.
-const GRAD_PIXELS: usize = 128;
+/// Output pixels per chunk of a convolution's weight gradient: one chunk of the dense weight
+/// gradient's items. The chunks are numbered over the whole batch, so the sums run in the same
+/// order whatever the thread count.
+pub const GRAD_PIXELS: usize = 128;
 
 /// Floats in the patch an output pixel of `shape` reads: `k · k · in_channels`, the columns of
 /// its weight gradient.
@@ -163,18 +175,20 @@ pub const fn conv_weight_grad_scratch_len(shape: &ConvShape) -> usize {
 /// `input` holds planes of `shape.input`, `dy` the same number of planes of `shape.output`.
 ///
 /// It is [`dense_weight_grad`] with one item per output pixel whose input is the patch the
-/// pixel reads, gathered a chunk at a time into `scratch` ([`conv_weight_grad_scratch_len`]).
-/// The gradient of a transposed convolution `x -> y` is this one for its
-/// [`ConvShape::transposed`] shape with the roles swapped: `input` the gradient of `y`, `dy`
-/// the layer's input `x`; its rows are then the layer's input channels, as in PyTorch's
-/// `[in, out, k, k]` tensor (see [`crate::pack::conv_grad_to_torch`]).
+/// pixel reads ([`conv_patches`]), gathered a chunk of [`GRAD_PIXELS`] at a time into
+/// `scratch` ([`conv_weight_grad_scratch_len`]). The gradient of a transposed convolution
+/// `x -> y` is this one for its [`ConvShape::transposed`] shape with the roles swapped: `input`
+/// the gradient of `y`, `dy` the layer's input `x`; its rows are then the layer's input
+/// channels, as in PyTorch's `[in, out, k, k]` tensor (see [`crate::pack::conv_grad_to_torch`]).
 pub fn conv_weight_grad(isa: Isa, shape: ConvShape, input: &[f32], dy: &[f32], scratch: &mut [f32], grad: &mut [f32]) {
     let rows = shape.output.channels;
     conv_weight_grad_rows(isa, shape, input, dy, scratch, OutputPart::whole(grad, rows));
 }
 
 /// [`conv_weight_grad`] for the output channels of `part` only, so that threads can fill
-/// disjoint panels of one gradient at once, each with its own `scratch`.
+/// disjoint panels of one gradient at once, each with its own `scratch` (each then gathers
+/// every patch; a caller that shares the gathering calls [`conv_patches`] and
+/// [`dense_weight_grad_add_rows`] itself).
 pub fn conv_weight_grad_rows(
     isa: Isa,
     shape: ConvShape,
@@ -183,6 +197,35 @@ pub fn conv_weight_grad_rows(
     scratch: &mut [f32],
     part: OutputPart<'_>,
 ) {
+    let (rows, cols) = (shape.output.channels, conv_patch_len(&shape));
+    assert!(scratch.len() >= conv_weight_grad_scratch_len(&shape));
+    let total = conv_pixels(&shape, input, dy);
+    let (patches, dys) = scratch.split_at_mut(GRAD_PIXELS * cols);
+    let units = part.units();
+    assert_eq!(part.buffer_len(), Matrix::packed_len(rows, cols));
+    assert!(units.start.is_multiple_of(crate::OC_ALIGN) && units.end <= rows);
+    let kernel = simd::entries(isa).dense_weight_grad;
+    // At least one call: no pixels make a zero gradient.
+    for start in (0..total.max(1)).step_by(GRAD_PIXELS) {
+        let n = GRAD_PIXELS.min(total - start.min(total));
+        conv_patches(
+            shape,
+            input,
+            dy,
+            start..start + n,
+            &mut patches[..n * cols],
+            &mut dys[..n * rows],
+        );
+        let (d, x) = (&dys[..n * rows], &patches[..n * cols]);
+        // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer is the
+        // whole packed matrix (checked) and the panels of its rows are this call's alone.
+        unsafe { kernel(d, x, cols, part.ptr(), units.clone(), rows, start > 0) };
+    }
+}
+
+/// Output pixels in a batch of `input` and `dy` for `shape` (checked: a strided layer, whole
+/// planes, the same number of each).
+fn conv_pixels(shape: &ConvShape, input: &[f32], dy: &[f32]) -> usize {
     let (ip, op, k) = (shape.input, shape.output, shape.kernel);
     assert_eq!(
         shape.kind,
@@ -190,44 +233,46 @@ pub fn conv_weight_grad_rows(
         "a transposed layer's weight gradient is its transposed shape's"
     );
     assert!(k % 2 == 1 && ip.halo >= k / 2, "odd kernels in a border of k / 2");
-    assert_eq!(shape, ConvShape::new(shape.kind, k, ip, op.channels, op.halo));
+    assert_eq!(*shape, ConvShape::new(shape.kind, k, ip, op.channels, op.halo));
     assert!(input.len().is_multiple_of(ip.len()), "input is not whole planes");
     let items = input.len() / ip.len();
     assert_eq!(dy.len(), items * op.len(), "input and dy hold different batches");
+    items * op.height * op.width
+}
+
+/// The items of a strided convolution's weight gradient as a dense one's, for the output
+/// pixels `pixels` of a batch (numbered item by item, row by row): each pixel's patch (the
+/// `k · k · in_channels` inputs its taps read, [`conv_patch_len`]) into `patches`, and its
+/// output gradient (`out_channels`) into `dys`, pixel after pixel.
+pub fn conv_patches(
+    shape: ConvShape,
+    input: &[f32],
+    dy: &[f32],
+    pixels: Range<usize>,
+    patches: &mut [f32],
+    dys: &mut [f32],
+) {
+    let total = conv_pixels(&shape, input, dy);
+    let (ip, op, k) = (shape.input, shape.output, shape.kernel);
     let (rows, cols) = (op.channels, conv_patch_len(&shape));
-    assert_eq!(part.buffer_len(), Matrix::packed_len(rows, cols));
-    let units = part.units();
-    assert!(units.start.is_multiple_of(crate::OC_ALIGN) && units.end <= rows);
-    assert!(scratch.len() >= conv_weight_grad_scratch_len(&shape));
-    let (patches, dys) = scratch.split_at_mut(GRAD_PIXELS * cols);
-    let kernel = simd::entries(isa).dense_weight_grad;
-    let pixels = op.height * op.width;
-    let mut first = true;
-    for (x, d) in input.chunks_exact(ip.len()).zip(dy.chunks_exact(op.len())) {
-        for start in (0..pixels).step_by(GRAD_PIXELS) {
-            let n = GRAD_PIXELS.min(pixels - start);
-            for (j, p) in (start..start + n).enumerate() {
-                let (oy, ox) = (p / op.width, p % op.width);
-                dys[j * rows..][..rows].copy_from_slice(&d[op.index(oy, ox)..][..rows]);
-                // Tap (ky, kx) reads input pixel (2oy + ky - k/2, 2ox + kx - k/2): the k taps of
-                // one row of the kernel are k adjacent pixels, inside the border.
-                let row = k * ip.channels;
-                for ky in 0..k {
-                    let at =
-                        (2 * oy + ky + ip.halo - k / 2) * ip.row_stride() + (2 * ox + ip.halo - k / 2) * ip.channels;
-                    patches[j * cols + ky * row..][..row].copy_from_slice(&x[at..][..row]);
-                }
-            }
-            let (d, x) = (&dys[..n * rows], &patches[..n * cols]);
-            // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer is the
-            // whole packed matrix (checked) and the panels of its rows are this call's alone.
-            unsafe { kernel(d, x, cols, part.ptr(), units.clone(), rows, !first) };
-            first = false;
+    assert!(pixels.start <= pixels.end && pixels.end <= total);
+    assert_eq!(patches.len(), pixels.len() * cols);
+    assert_eq!(dys.len(), pixels.len() * rows);
+    let per_item = op.height * op.width;
+    // Tap (ky, kx) reads input pixel (2oy + ky - k/2, 2ox + kx - k/2): the k taps of one row of
+    // the kernel are k adjacent pixels, inside the border.
+    let row = k * ip.channels;
+    for ((p, patch), d) in pixels
+        .zip(patches.chunks_exact_mut(cols))
+        .zip(dys.chunks_exact_mut(rows))
+    {
+        let (item, pixel) = (p / per_item, p % per_item);
+        let (oy, ox) = (pixel / op.width, pixel % op.width);
+        d.copy_from_slice(&dy[item * op.len() + op.index(oy, ox)..][..rows]);
+        let x = &input[item * ip.len()..][..ip.len()];
+        for (ky, patch_row) in patch.chunks_exact_mut(row).enumerate() {
+            let at = (2 * oy + ky + ip.halo - k / 2) * ip.row_stride() + (2 * ox + ip.halo - k / 2) * ip.channels;
+            patch_row.copy_from_slice(&x[at..][..row]);
         }
-    }
-    if first {
-        // No pixels: the gradient is zero.
-        // SAFETY: as above, with no items.
-        unsafe { kernel(&[], &[], cols, part.ptr(), units, rows, false) };
     }
 }

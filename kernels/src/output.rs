@@ -89,6 +89,17 @@ impl<'a> OutputPart<'a> {
         }
     }
 
+    /// The same units for a shorter while: one part for several kernel calls in turn (a sum
+    /// over chunks, [`crate::dense_weight_grad_add_rows`]).
+    pub fn reborrow(&mut self) -> OutputPart<'_> {
+        OutputPart {
+            ptr: self.ptr,
+            len: self.len,
+            units: self.units.clone(),
+            _borrow: PhantomData,
+        }
+    }
+
     /// The output channels or rows this part may write.
     pub fn units(&self) -> Range<usize> {
         self.units.clone()

@@ -32,8 +32,9 @@ use core::ops::Range;
 use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, update_running_stats};
 use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, transpose_packed, winograd_weights_from_direct};
 use drivesim_kernels::{
-    activation_backward, conv, conv_weight_grad_rows, conv_weight_grad_scratch_len, dense_weight_grad_rows, math,
+    activation_backward, conv, conv_patch_len, conv_patches, dense_weight_grad_add_rows, dense_weight_grad_rows, math,
     winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane, Winograd,
+    GRAD_PIXELS,
 };
 
 /// The border of every plane of the training networks: strided convolutions read 2 pixels
@@ -329,7 +330,8 @@ impl Conv {
             ConvKind::Down => shape,
             ConvKind::Up => shape.transposed(),
         };
-        sizes.weight_scratch = sizes.weight_scratch.max(conv_weight_grad_scratch_len(&down));
+        let block = grad_chunks(&down) * GRAD_PIXELS * (conv_patch_len(&down) + down.output.channels);
+        sizes.weight_scratch = sizes.weight_scratch.max(block);
         sizes.packed_grad = sizes
             .packed_grad
             .max(Matrix::packed_len(down.output.channels, k * k * down.input.channels));
@@ -784,7 +786,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
                     })
                 })
                 .collect::<Result<_>>()?,
-            weight_scratch: budget.take("scratch", mul(threads, sizes.weight_scratch)?)?,
+            weight_scratch: budget.take("scratch", sizes.weight_scratch)?,
             packed_grad: budget.take("scratch", sizes.packed_grad)?,
             torch_grad: budget.take("scratch", sizes.torch_grad)?,
             channel_tmp: budget.take("scratch", 2 * sizes.channels.max(top_c))?,
@@ -1246,6 +1248,84 @@ fn stack_forward(
     }
 }
 
+/// Chunks of [`GRAD_PIXELS`] output pixels gathered at once for a weight gradient: as many
+/// as fit about 512 KiB of patches, at least one, at most 8.
+fn grad_chunks(down: &ConvShape) -> usize {
+    let per_chunk = GRAD_PIXELS * (conv_patch_len(down) + down.output.channels);
+    ((1 << 17) / per_chunk).clamp(1, 8)
+}
+
+/// The weight gradient of the strided layer `down` over a batch ([`drivesim_kernels::conv_weight_grad`],
+/// whose chunks and sums it keeps), with the gathering shared: threads gather the chunks of a
+/// block into `scratch` (each chunk its patches, then its output gradients), then each sums every
+/// chunk of the block into its panels of the gradient. Returns the packed gradient, in the
+/// first floats of `packed`.
+fn conv_weight_grad<'p>(
+    exec: Exec<'_>,
+    down: ConvShape,
+    input: &[f32],
+    dy: &[f32],
+    scratch: &mut [f32],
+    packed: &'p mut [f32],
+) -> &'p mut [f32] {
+    let (rows, cols) = (down.output.channels, conv_patch_len(&down));
+    let packed = &mut packed[..Matrix::packed_len(rows, cols)];
+    let chunk = GRAD_PIXELS * (cols + rows);
+    let per_block = grad_chunks(&down);
+    let total = input.len() / down.input.len() * down.output.height * down.output.width;
+    let blocks = total.div_ceil(GRAD_PIXELS * per_block).max(1);
+    for block in 0..blocks {
+        let first = block * per_block * GRAD_PIXELS;
+        let pixels = |c: usize| {
+            let start = (first + c * GRAD_PIXELS).min(total);
+            start..(start + GRAD_PIXELS).min(total)
+        };
+        let count = per_block.min((total - first).div_ceil(GRAD_PIXELS)).max(1);
+        let region = &mut scratch[..count * chunk];
+        let chunks = Parts::chunks(region, chunk);
+        exec.run(&|| {
+            while let Some((c, region)) = chunks.take() {
+                let p = pixels(c);
+                let (patches, dys) = region.split_at_mut(GRAD_PIXELS * cols);
+                conv_patches(
+                    down,
+                    input,
+                    dy,
+                    p.clone(),
+                    &mut patches[..p.len() * cols],
+                    &mut dys[..p.len() * rows],
+                );
+            }
+        });
+        let region = &scratch[..count * chunk];
+        let parts = OutputParts::new(&mut *packed, rows, exec.threads());
+        exec.run(&|| {
+            while let Some(mut part) = parts.take() {
+                for (c, region) in region.chunks_exact(chunk).enumerate() {
+                    let n = pixels(c).len();
+                    let (patches, dys) = region.split_at(GRAD_PIXELS * cols);
+                    let part = part.reborrow();
+                    // The first chunk of all overwrites (no pixels: zeros), the others add.
+                    match block == 0 && c == 0 {
+                        true => {
+                            dense_weight_grad_rows(exec.isa, &dys[..n * rows], &patches[..n * cols], rows, cols, part)
+                        }
+                        false => dense_weight_grad_add_rows(
+                            exec.isa,
+                            &dys[..n * rows],
+                            &patches[..n * cols],
+                            rows,
+                            cols,
+                            part,
+                        ),
+                    }
+                }
+            }
+        });
+    }
+    packed
+}
+
 /// Where a backward pass through a stack starts: from the gradient of layer `i`'s output (in
 /// `gy[i]`), or of its convolution's output before BatchNorm (in `gz[i]`).
 #[derive(Clone, Copy)]
@@ -1334,16 +1414,7 @@ fn stack_backward(
                 ConvKind::Down => (l.shape, x, &*gz),
                 ConvKind::Up => (l.shape.transposed(), &*gz, x),
             };
-            let k = down.kernel;
-            let packed = &mut work.packed_grad[..Matrix::packed_len(down.output.channels, k * k * down.input.channels)];
-            let parts = OutputParts::new(packed, down.output.channels, exec.threads());
-            let scratch = Parts::chunks(&mut work.weight_scratch, conv_weight_grad_scratch_len(&down).max(1));
-            exec.run(&|| {
-                let (_, scratch) = scratch.take().expect("weight-gradient scratch for every thread");
-                while let Some(part) = parts.take() {
-                    conv_weight_grad_rows(exec.isa, down, a, b, scratch, part);
-                }
-            });
+            let packed = conv_weight_grad(exec, down, a, b, &mut work.weight_scratch, &mut work.packed_grad);
             let torch = &mut work.torch_grad[..l.weight.len()];
             conv_grad_to_torch(&down, packed, torch);
             add(&mut grads[l.weight.clone()], torch);

@@ -263,12 +263,17 @@ impl PhaseFn for WeightTransform<'_> {
         let (py, px, first) = (phase / 2, phase % 2, w.phase_points(phase).0);
         // Trainers repack after every update: the taps' and points' offsets are computed once
         // per phase, and G g G^T is two products (G g, then by G^T), in f64, rounded once.
-        let taps: [[usize; KX]; KY] =
-            core::array::from_fn(|my| core::array::from_fn(|mx| shape.packed_index(w.tap(py, my), w.tap(px, mx), 0, 0)));
+        let taps: [[usize; KX]; KY] = core::array::from_fn(|my| {
+            core::array::from_fn(|mx| shape.packed_index(w.tap(py, my), w.tap(px, mx), 0, 0))
+        });
         let (ic_stride, oc_step) = (shape.packed_index(0, 0, 1, 0), shape.packed_index(0, 0, 0, 1));
         for oc in 0..shape.output.channels {
             // Within a panel, output channels are adjacent; across panels a panel apart.
-            let oc_at = if shape.is_narrow() { oc * oc_step } else { shape.packed_index(0, 0, 0, oc) };
+            let oc_at = if shape.is_narrow() {
+                oc * oc_step
+            } else {
+                shape.packed_index(0, 0, 0, oc)
+            };
             for ic in 0..shape.input.channels {
                 let at = oc_at + ic * ic_stride;
                 let mut gg = [[0.0f64; KX]; PY];
