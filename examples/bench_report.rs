@@ -3,14 +3,15 @@
 //! of this core per vector width.
 //!
 //! ```text
-//! cargo run --release --example bench_report -- [--weights FILE | --z N [--hidden N]] [--dtype f32|f16]
+//! cargo run --release --example bench_report -- [--weights FILE | --z N [--hidden N] [--base N]] [--dtype f32|f16]
 //!     [--batch 1,16] [--threads 1,2] [--networks encode,generate,transition,transition_fed_back]
 //!     [--seconds S]
 //!     [--serve]
 //! ```
 //! Built with `--features train`, the network `train_transition` is one training step of the
 //! transition (`drivesim::train`) on a batch of windows of 15 codes (read by
-//! `weights/compare_train.py`).
+//! `weights/compare_train.py`), and `train_vae_gan` one VAE-GAN step of the encoder, generator
+//! and discriminator on a batch of frames (`--base N` sets the base channels, 64 by default).
 //! Lines: `isa level=avx2`, `peak width=256 threads=1 gflops=…` (for 1 and each `--threads`
 //! count: the FMA peak of that many threads at once), and
 //! `result network=encode batch=1 threads=1 median_ms=… gflop=…` (GFLOP per call, all taps).
@@ -34,10 +35,19 @@ use std::time::{Duration, Instant};
 /// `transition_fed_back` is a step fed the previous step's prediction, as in a rollout after
 /// its seeds ([`Simulator::transition_fed_back`]: the folded step for f32 weights). Both steps count
 /// the model's FLOPs.
-const NETWORKS: [&str; 5] = ["encode", "generate", "transition", "transition_fed_back", TRAIN];
+const NETWORKS: [&str; 6] = [
+    "encode",
+    "generate",
+    "transition",
+    "transition_fed_back",
+    TRAIN,
+    TRAIN_VAE_GAN,
+];
 
 /// One transition training step on `batch` windows of [`WINDOW`] codes (`--features train`).
 const TRAIN: &str = "train_transition";
+/// One VAE-GAN training step on `batch` frames (`--features train`).
+const TRAIN_VAE_GAN: &str = "train_vae_gan";
 /// Codes per training window, as `weights/train.py`.
 #[cfg(feature = "train")]
 const WINDOW: usize = 15;
@@ -92,7 +102,13 @@ fn main() {
         None => {
             let z = arg(&args, "--z").map_or(512, |z| z.parse().expect("--z"));
             let hidden_dim = arg(&args, "--hidden").map_or(z, |h| h.parse().expect("--hidden"));
-            Model::random(&Config { hidden_dim, ..comma(z) }, 2016, dtype).expect("valid config")
+            let base_channels = arg(&args, "--base").map_or(64, |b| b.parse().expect("--base"));
+            let config = Config {
+                hidden_dim,
+                base_channels,
+                ..comma(z)
+            };
+            Model::random(&config, 2016, dtype).expect("valid config")
         }
     };
     let isa = Isa::best();
@@ -141,8 +157,13 @@ fn answer<'m>(
     threads: usize,
     budget: Duration,
 ) {
-    if network == TRAIN {
-        let (flops, ms) = measure_training(model, batch, threads, budget);
+    if network == TRAIN || network == TRAIN_VAE_GAN {
+        let measure = if network == TRAIN {
+            measure_training
+        } else {
+            measure_vae_gan
+        };
+        let (flops, ms) = measure(model, batch, threads, budget);
         let gflop = (batch as u64 * flops) as f64 / 1e9;
         println!("result network={network} batch={batch} threads={threads} median_ms={ms:.4} gflop={gflop:.6}");
         std::io::stdout().flush().expect("stdout");
@@ -210,6 +231,29 @@ fn measure_training(model: &Model, batch: usize, threads: usize, budget: Duratio
         trainer.step(black_box(&codes), &actions, 1e-4).unwrap();
     });
     (train_transition_flops(&cfg, WINDOW), ms)
+}
+
+/// FLOPs of one frame and the median ms of one VAE-GAN step on `batch` frames, from seeded
+/// random weights of `model`'s config.
+#[cfg(feature = "train")]
+fn measure_vae_gan(model: &Model, batch: usize, threads: usize, budget: Duration) -> (u64, f64) {
+    use drivesim::train::{random_weight_file, VaeGanPlan, VaeGanSettings, VaeGanTrainer};
+    let cfg = *model.config();
+    let file = random_weight_file(&cfg, 2016).expect("weights");
+    let plan = VaeGanPlan::new(&cfg, batch, threads).expect("plan");
+    let mut trainer = VaeGanTrainer::new(&file, &plan, VaeGanSettings::default()).expect("trainer");
+    let frames: Vec<f32> = values(6, batch * cfg.frame_len(), 1.0);
+    let (eps, prior) = (values(7, batch * cfg.z_dim, 1.0), values(8, batch * cfg.z_dim, 1.0));
+    // A small rate: the weights stay where they started, step after step.
+    let ms = median_ms(budget, || {
+        trainer.step(black_box(&frames), &eps, &prior, 1e-6).unwrap();
+    });
+    (train_vae_gan_flops(&cfg), ms)
+}
+
+#[cfg(not(feature = "train"))]
+fn measure_vae_gan(_: &Model, _: usize, _: usize, _: Duration) -> (u64, f64) {
+    panic!("{TRAIN_VAE_GAN} needs the train feature: cargo run --release --features train --example bench_report")
 }
 
 #[cfg(not(feature = "train"))]

@@ -220,7 +220,7 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
             recent.discriminator, recent.gan, recent.feature, recent.pixel_l1, recent.kl
         ));
         progress.inc(1);
-        if (step + 1) as u64 % args.every == 0 {
+        if ((step + 1) as u64).is_multiple_of(args.every) {
             last_psnr = psnr(&save(&trainer)?, &picked, threads)?.0;
         }
     }
