@@ -1,11 +1,20 @@
-"""The transition training step: weights/tool -m pytest test_train.py"""
+"""The training steps and fit, in one process and under torchrun: weights/tool -m pytest test_train.py"""
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+import episodes
 import train
 from model import Config, DriveSim, save_drivesim
+
+HERE = Path(__file__).resolve().parent
 
 CFG = Config(16, 32, 2, 3, z_dim=5, hidden_dim=7, action_dim=3)
 
@@ -81,9 +90,9 @@ def gan_files(tmp_path, with_discriminator=True):
     dis = train.Discriminator(CFG) if with_discriminator else None
     save_drivesim(DriveSim(CFG), CFG, weights, "f32", discriminator=dis)
     g = torch.Generator().manual_seed(4)
-    frames = torch.randint(0, 256, (3, CFG.height, CFG.width, CFG.channels), generator=g, dtype=torch.uint8)
-    save_file({"frames": frames, "eps": torch.randn(3, CFG.z_dim, generator=g),
-               "prior": torch.randn(3, CFG.z_dim, generator=g)}, str(batch))
+    frames = torch.randint(0, 256, (4, CFG.height, CFG.width, CFG.channels), generator=g, dtype=torch.uint8)
+    save_file({"frames": frames, "eps": torch.randn(4, CFG.z_dim, generator=g),
+               "prior": torch.randn(4, CFG.z_dim, generator=g)}, str(batch))
     return weights, batch
 
 
@@ -141,3 +150,52 @@ def test_vae_gan_encoder_gradient_is_its_losss_derivative():
     numeric = (up - down) / (2 * h)
     analytic = sum((gr * d).sum() for gr, d in zip(grads["encoder"], direction))
     assert abs(numeric - analytic) <= 1e-5 * max(1.0, abs(float(numeric))), (float(numeric), float(analytic))
+
+
+def torchrun(*args):
+    """train.py ARGS in two processes on the CPU (gloo), as torchrun runs it on several GPUs."""
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "train.py", *args]
+    done = subprocess.run(cmd, cwd=HERE, env=dict(os.environ, OMP_NUM_THREADS="1"), capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+
+def relative(a, b):
+    return float((a - b).abs().max() / b.abs().max().clamp_min(1e-12))
+
+
+def test_two_processes_take_the_step_of_one(tmp_path):
+    # Each process takes half the batch; BatchNorm's statistics and the feature error's variance
+    # are the global batch's and the gradients are averaged: the step of one process on all of it.
+    weights, batch = gan_files(tmp_path)
+    one, two = tmp_path / "one.safetensors", tmp_path / "two.safetensors"
+    args = ["step", "--stage", "vae-gan", "--weights", str(weights), "--batch", str(batch), "--lr", "0"]
+    train.main(args + ["--out", str(one)])
+    torchrun(*args, "--out", str(two))
+    a, b = load_file(str(one)), load_file(str(two))
+    assert set(a) == set(b)
+    for name in a:
+        # The gradient of a convolution's bias before BatchNorm is zero up to rounding.
+        before_bn = name.startswith("grad.") and name.endswith(".bias") and any(
+            name.endswith(f"{layer}.bias") for layer in ("conv1", "conv2", "conv3", "convs.1", "convs.2", "convs.3",
+                                                        "deconv1", "deconv2", "deconv3"))
+        if not before_bn:
+            assert relative(b[name], a[name]) <= 1e-4, name
+
+
+def test_fit_on_two_processes_is_fit_on_one(tmp_path):
+    rng = np.random.default_rng(7)
+    frames = rng.integers(0, 256, (40, 16, 32, 3), dtype=np.uint8)
+    actions = rng.normal(size=(40, 2)).astype(np.float32)
+    data = tmp_path / "data.safetensors"
+    episodes.write(data, episodes.Episodes(frames, actions, np.array([0, 20])), {"source": "test"})
+    args = ["fit", "--data", str(data), "--device", "cpu", "--base-channels", "2", "--z-dim", "4", "--hidden-dim", "6",
+            "--vae-steps", "3", "--batch", "4", "--transition-steps", "3", "--transition-batch", "4",
+            "--lr", "1e-6", "--transition-lr", "1e-6", "--log-every", "1", "--dtype", "f32"]
+    one, two = tmp_path / "one.safetensors", tmp_path / "two.safetensors"
+    train.main(args + ["--out", str(one)])
+    torchrun(*args, "--out", str(two))
+    a, b = load_file(str(one)), load_file(str(two))
+    assert set(a) == set(b)
+    for name in a:
+        assert relative(b[name], a[name]) <= 1e-4, name

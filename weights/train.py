@@ -26,6 +26,7 @@ import argparse
 import contextlib
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -33,6 +34,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from PIL import Image
+import torch.distributed as dist
+import torch.distributed.nn.functional as dist_nn
 from torch import nn
 from torch.nn import functional as F
 
@@ -42,6 +45,93 @@ from model import LEAK, Config, DriveSim, _conv, load_discriminator, load_drives
 SEQ, TEACHER = 15, 5  # transition sequences: 15 frames, the first 5 from the encoder
 STEER = 0.6  # constant steering of the steering-response test, well inside the recorded range
 
+
+# ---------------------------------------------------------------- several processes
+
+def world() -> int:
+    """Processes training together: torchrun's WORLD_SIZE once `start_distributed` ran, else 1."""
+    return dist.get_world_size() if dist.is_available() and dist.is_initialized() else 1
+
+
+def start_distributed(device: str) -> tuple[int, torch.device]:
+    """Under torchrun (WORLD_SIZE set): joins the process group (NCCL on GPUs, gloo on the CPU)
+    and returns this process's rank and device; otherwise rank 0 and `device`."""
+    if "WORLD_SIZE" not in os.environ:
+        return 0, torch.device(device)
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        dev = torch.device("cuda", int(os.environ.get("LOCAL_RANK", 0)))
+        torch.cuda.set_device(dev)
+    dist.init_process_group("nccl" if dev.type == "cuda" else "gloo")
+    return dist.get_rank(), dev
+
+
+def average_gradients(grads):
+    """The mean over the processes of each process's gradients, in place (each process's loss is
+    the mean over its equal share of the global batch, so this is the global batch's gradient)."""
+    if world() > 1:
+        for g in grads:
+            dist.all_reduce(g)
+            g /= world()
+
+
+def share(t: torch.Tensor) -> torch.Tensor:
+    """This process's equal share of a global batch (all of it in a single process)."""
+    if world() == 1:
+        return t
+    if len(t) % world():
+        raise ValueError(f"a batch of {len(t)} does not split over {world()} processes")
+    n = len(t) // world()
+    return t[dist.get_rank() * n:(dist.get_rank() + 1) * n]
+
+
+def global_var(t: torch.Tensor) -> torch.Tensor:
+    """The unbiased variance of every value of `t` on every process (no gradient needed)."""
+    if world() == 1:
+        return t.var()
+    stats = torch.stack([t.sum(), t.square().sum(), torch.tensor(float(t.numel()), device=t.device, dtype=t.dtype)])
+    dist.all_reduce(stats)
+    total, squares, n = stats
+    return (squares - total * total / n) / (n - 1)
+
+
+class GlobalBatchNorm(nn.BatchNorm2d):
+    """BatchNorm2d whose training statistics are those of the global batch, over every process
+    (differentiably, through `all_reduce`), so that a run on several processes trains as one
+    process with the global batch would. Runs on the CPU's gloo too (nn.SyncBatchNorm needs
+    GPUs). In one process, or in eval mode, it is BatchNorm2d; same tensors, same names."""
+
+    def forward(self, x):
+        if not (self.training and world() > 1):
+            return super().forward(x)
+        count = torch.tensor(float(x.numel() // x.shape[1]), device=x.device, dtype=x.dtype)
+        dist.all_reduce(count)
+        sums = dist_nn.all_reduce(torch.stack([x.sum((0, 2, 3)), x.square().sum((0, 2, 3))]))
+        mean = sums[0] / count
+        var = sums[1] / count - mean.square()
+        with torch.no_grad():
+            m = self.momentum
+            self.running_mean.mul_(1 - m).add_(m * mean)
+            self.running_var.mul_(1 - m).add_(m * var * count / (count - 1))
+            self.num_batches_tracked += 1
+        shape = (1, -1, 1, 1)
+        scale = self.weight * torch.rsqrt(var + self.eps)
+        return (x - mean.view(shape)) * scale.view(shape) + self.bias.view(shape)
+
+
+def globalise_batch_norms(module: nn.Module) -> nn.Module:
+    """Every BatchNorm2d of `module` as a GlobalBatchNorm holding the same tensors."""
+    for name, child in module.named_children():
+        if type(child) is nn.BatchNorm2d:
+            g = GlobalBatchNorm(child.num_features, child.eps, child.momentum).to(child.weight.device)
+            g.load_state_dict(child.state_dict())
+            setattr(module, name, g)
+        else:
+            globalise_batch_norms(child)
+    return module
+
+
+# ---------------------------------------------------------------- training
 
 class Discriminator(nn.Module):
     """Mirror of the encoder: 4 strided convs (BN on all but the first) and a logit.
@@ -128,6 +218,7 @@ def vae_gan_step(enc, gen, dis, opts, x, eps, prior, w=LOSS_WEIGHTS, amp=context
         loss_d = bce(d_real, 1) + bce(d_fake, 0)
     opt_d.zero_grad(set_to_none=True)
     loss_d.backward()
+    average_gradients([p.grad for p in dis.parameters()])
     grads_d = [p.grad.detach().clone() for p in dis.parameters()]
     opt_d.step()
 
@@ -140,7 +231,7 @@ def vae_gan_step(enc, gen, dis, opts, x, eps, prior, w=LOSS_WEIGHTS, amp=context
         # Feature error relative to the features' spread: its scale stays fixed while
         # the discriminator's features grow or shrink.
         f_rec, f_real, xr_, mu, logsigma, d_gen = map(wide, (f_rec, f_real, xr, mu, logsigma, d_gen))
-        llike = (f_rec - f_real).square().mean() / f_real.var().clamp_min(1e-6)
+        llike = (f_rec - f_real).square().mean() / global_var(f_real).clamp_min(1e-6)
         pixel = (xr_ - x).abs().mean()
         kl = kl_prior(mu, logsigma)
         gan = bce(d_gen, 1)
@@ -149,6 +240,7 @@ def vae_gan_step(enc, gen, dis, opts, x, eps, prior, w=LOSS_WEIGHTS, amp=context
     loss_g = recon + w["gan"] * gan  # only the generator sees the GAN term
     grads_e = torch.autograd.grad(loss_e, list(enc.parameters()), retain_graph=True)
     grads_g = torch.autograd.grad(loss_g, list(gen.parameters()))
+    average_gradients(list(grads_e) + list(grads_g))
     for params, grads, opt in ((enc.parameters(), grads_e, opt_e), (gen.parameters(), grads_g, opt_g)):
         for p, g in zip(params, grads):
             p.grad = g
@@ -162,7 +254,7 @@ def vae_gan_step(enc, gen, dis, opts, x, eps, prior, w=LOSS_WEIGHTS, amp=context
 def train_vae_gan(model, frames, args, log):
     dev = frames.device
     enc, gen = model.encoder, model.generator
-    dis = Discriminator(model.cfg).to(dev)
+    dis = globalise_batch_norms(Discriminator(model.cfg).to(dev))
     adam = dict(ADAM_VAE_GAN, lr=args.lr)
     opts = [torch.optim.Adam(m.parameters(), **adam) for m in (enc, gen, dis)]
     amp = torch.autocast("cuda", torch.bfloat16) if dev.type == "cuda" else contextlib.nullcontext()
@@ -171,10 +263,11 @@ def train_vae_gan(model, frames, args, log):
     model.train()
     start, deadline = time.time(), time.time() + 60 * args.max_minutes
     for step in range(1, args.vae_steps + 1):
+        # Every process draws the global batch and takes its share: the same run on any number.
         idx = torch.randint(len(frames), (args.batch,), device=dev, generator=gen_rng)
-        x = to_input(frames[idx])
+        x = to_input(frames[share(idx)])
         shape = (args.batch, model.cfg.z_dim)
-        eps, prior = torch.randn(shape, device=dev), torch.randn(shape, device=dev)
+        eps, prior = share(torch.randn(shape, device=dev)), share(torch.randn(shape, device=dev))
         losses, _, xr = vae_gan_step(enc, gen, dis, opts, x, eps, prior, weights, amp)
 
         if step % args.log_every == 0 or step == args.vae_steps:
@@ -183,7 +276,10 @@ def train_vae_gan(model, frames, args, log):
                          pixel_l1=losses["pixel_l1"].item(), kl=losses["kl"].item(), psnr_batch=psnr(xr.float(), x))
             log.append(entry)
             print(json.dumps(entry), flush=True)
-        if time.time() > deadline:
+        late = torch.tensor(float(time.time() > deadline), device=dev)
+        if world() > 1:
+            dist.all_reduce(late, op=dist.ReduceOp.MAX)  # the processes stop together
+        if late.item():
             log.append(dict(phase="vae_gan", stopped_early_at=step, reason="--max-minutes"))
             print(f"VAE-GAN stopped at step {step}: --max-minutes reached", flush=True)
             break
@@ -230,6 +326,7 @@ def transition_step(tr, opt, z, c, teacher, clip, detach=True):
     loss = F.mse_loss(predict(tr, z, c, teacher, detach), z[:, 1:])
     opt.zero_grad(set_to_none=True)
     loss.backward()
+    average_gradients([p.grad for p in tr.parameters()])
     grads = {name: p.grad.detach().clone() for name, p in tr.named_parameters()}
     nn.utils.clip_grad_norm_(tr.parameters(), clip)
     opt.step()
@@ -247,7 +344,7 @@ def train_transition(model, codes, actions, starts, args, log):
     offsets = torch.arange(SEQ, device=dev)
     start = time.time()
     for step in range(1, args.transition_steps + 1):
-        idx = torch.as_tensor(rng.choice(starts, args.transition_batch), device=dev)[:, None] + offsets
+        idx = share(torch.as_tensor(rng.choice(starts, args.transition_batch), device=dev)[:, None] + offsets)
         z, c = codes[idx], norm[idx[:, :-1]]
         loss, _ = transition_step(tr, opt, z, c, TEACHER, 1.0)
         sched.step()
@@ -263,16 +360,18 @@ def train_transition(model, codes, actions, starts, args, log):
 
 
 def fit(args):
+    rank, dev = start_distributed(args.device)
+    if rank:  # one process reports
+        sys.stdout = open(os.devnull, "w")
     torch.manual_seed(args.seed)
     np.random.seed(args.seed)
-    dev = torch.device(args.device)
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
     data = episodes.read(args.data)
     cfg = Config(height=data.frames.shape[1], width=data.frames.shape[2], channels=3,
                  base_channels=args.base_channels, z_dim=args.z_dim, hidden_dim=args.hidden_dim, action_dim=2)
     frames = torch.from_numpy(data.frames).to(dev)
     print(f"{len(data)} episodes, {len(frames)} frames, config {cfg}", flush=True)
-    model = DriveSim(cfg).to(dev)
+    model = globalise_batch_norms(DriveSim(cfg).to(dev))
     log = [dict(args={k: str(v) for k, v in vars(args).items()}, config=json.loads(cfg.to_json()),
                 episodes=len(data), frames=len(frames))]
     t0 = time.time()
@@ -283,15 +382,20 @@ def fit(args):
     norm = train_transition(model, codes, actions, windows(data, SEQ), args, log)
     t2 = time.time()
     log.append(dict(vae_gan_seconds=round(t1 - t0, 1), transition_seconds=round(t2 - t1, 1), **norm))
+    if rank:  # every process holds the same weights: the first writes them
+        dist.destroy_process_group()
+        return
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     # What the actions mean travels with the weights (units as the episodes file recorded them).
     low, high = actions.min(0).values.tolist(), actions.max(0).values.tolist()
     described = [dict(name=name, unit="as recorded", mean=m, std=sd, min=lo, max=hi) for name, m, sd, lo, hi
                  in zip(("speed", "steering"), norm["action_mean"], norm["action_std"], low, high)]
-    save_drivesim(model.cpu(), cfg, out, "f16", actions=described, discriminator=dis.cpu())
+    save_drivesim(model.cpu(), cfg, out, args.dtype, actions=described, discriminator=dis.cpu())
     out.with_suffix(".log.json").write_text(json.dumps(log, indent=1))
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB) in {t2 - t0:.0f} s", flush=True)
+    if world() > 1:
+        dist.destroy_process_group()
 
 
 # ---------------------------------------------------------------- evaluation
@@ -398,6 +502,7 @@ def step_vae_gan(args):
     the discriminator stored in the weight file."""
     from safetensors.torch import load_file, save_file
 
+    rank, _ = start_distributed("cpu")
     model, cfg = load_drivesim(args.weights)
     stored = load_discriminator(args.weights)
     if not stored:
@@ -424,12 +529,24 @@ def step_vae_gan(args):
     for name, t in (("eps", eps), ("prior", prior)):
         if t.dtype != torch.float32 or list(t.shape) != [len(frames), cfg.z_dim]:
             raise ValueError(f"`{name}` is {t.dtype} {list(t.shape)}: expected float32 [{len(frames)}, {cfg.z_dim}]")
+    globalise_batch_norms(model)
+    globalise_batch_norms(dis)
     model.train()
     dis.train()
+    # Under torchrun each process takes its share of the batch: the same step (gradients and
+    # updated tensors within float tolerance) as one process on all of it.
+    x, eps, prior = share(x), share(eps), share(prior)
     nets = dict(encoder=model.encoder, generator=model.generator, discriminator=dis)
     lr = 2e-4 if args.lr is None else args.lr
     opts = [torch.optim.Adam(m.parameters(), **dict(ADAM_VAE_GAN, lr=lr)) for m in nets.values()]
     losses, grads, _ = vae_gan_step(model.encoder, model.generator, dis, opts, x, eps, prior)
+    if world() > 1:
+        for v in losses.values():  # each process's share of the batch is equal
+            dist.all_reduce(v)
+            v /= world()
+        dist.destroy_process_group()
+        if rank:
+            return
     out = {f"loss.{k}": v.reshape(1) for k, v in losses.items()}
     for net, module in nets.items():
         out.update({f"grad.{net}.{name}": g for (name, _), g in zip(module.named_parameters(), grads[net])})
@@ -488,6 +605,7 @@ def main(argv=None):
     f.add_argument("--transition-batch", type=int, default=256)
     f.add_argument("--transition-lr", type=float, default=1e-3)
     f.add_argument("--log-every", type=int, default=1000)
+    f.add_argument("--dtype", default="f16", choices=["f32", "f16", "bf16"], help="dtype of the written weights")
     e = sub.add_parser("eval", help="evaluate a weight file on held-out episodes")
     e.add_argument("--weights", required=True)
     e.add_argument("--data", required=True, help="held-out episodes file")
