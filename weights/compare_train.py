@@ -1,20 +1,25 @@
-"""Compare one transition training step of drivesim (`drivesim::train`) with PyTorch eager on the CPU.
+"""Compare one training step of drivesim (`drivesim::train`) with PyTorch eager on the CPU.
 
-    weights/tool compare-train [--configs default,comma] [--batch 16,256] [--threads 1,2]
-                               [--seconds 1] [--rounds 3] [--no-memory]
+    weights/tool compare-train [--stage transition|vae-gan] [--configs default,comma] [--batch 16,256]
+                               [--threads 1,2] [--seconds 1] [--rounds 3] [--no-memory]
 
-One step as `train.py` trains the transition: 15-code windows, the first 5 inputs
-teacher-forced and later ones the model's own prediction (detached), MSE, backward, gradient
-norm clipped to 1, Adam. The configs: `default` (z 128, hidden 256, the trained default
-model's) and `comma` (z = hidden = 512). drivesim runs in `examples/bench_report --serve`
-(built with `--features train`, network `train_transition`), PyTorch in this process with
-`torch.set_num_threads`; both on seeded random weights of the same shapes. As in
+`--stage transition` (the default): one step as `train.py` trains the transition: 15-code
+windows, the first 5 inputs teacher-forced and later ones the model's own prediction
+(detached), MSE, backward, gradient norm clipped to 1, Adam. `--stage vae-gan`: one
+`vae_gan_step` of `train.py` on a batch of frames (batches 8,32 unless given): the
+discriminator's step, then the encoder's and the generator's. The configs: `default` (80x160,
+b 32, z 128, hidden 256: the trained default model's) and `comma` (b 64, z = hidden = 512).
+drivesim runs in `examples/bench_report --serve` (built with `--features train`, network
+`train_transition` or `train_vae_gan`), PyTorch in this process with `torch.set_num_threads`;
+both on seeded random weights of the same shapes. As in
 `weights/tool compare`, the runtimes take turns configuration by configuration for `--rounds`
 rounds; a row's time is the median of its rounds' medians and "PyTorch/drivesim" the median
 of the rounds' ratios with their range.
 
-GFLOP counts every product of the step (`benches/common/mod.rs`): forward (`[W|V|U]` and
-`A`), the hidden state's data gradient (`[Aᵀ|Wᵀ]`) and both weight gradients. "of peak" is
+GFLOP counts every product of the step (`benches/common/mod.rs`): for the transition, forward
+(`[W|V|U]` and `A`), the hidden state's data gradient (`[Aᵀ|Wᵀ]`) and both weight gradients;
+for the VAE-GAN, every convolution and dense product of its forward and backward passes,
+direct-equivalent (Winograd does fewer multiplications). "of peak" is
 GFLOP/s over the FMA peak bench_report measures with as many threads at once. Peak resident
 memory is measured separately, one process per runtime and configuration (1 thread), with
 /usr/bin/time.
@@ -31,35 +36,54 @@ from pathlib import Path
 import torch
 
 from compare import ROOT, Drivesim, cpu_info, median_ms, spread
-from model import Config, Transition
+from model import Config, DriveSim, Transition
 
 WINDOW, TEACHER = 15, 5
-CONFIGS = {"default": (128, 256), "comma": (512, 512)}
-NET = "train_transition"
+# name: (base channels, z, hidden)
+CONFIGS = {"default": (32, 128, 256), "comma": (64, 512, 512)}
+NETS = {"transition": "train_transition", "vae-gan": "train_vae_gan"}
 
 
 def config(name: str) -> Config:
-    z, hidden = CONFIGS[name]
-    return Config(height=80, width=160, channels=3, base_channels=64, z_dim=z, hidden_dim=hidden, action_dim=2)
+    base, z, hidden = CONFIGS[name]
+    return Config(height=80, width=160, channels=3, base_channels=base, z_dim=z, hidden_dim=hidden, action_dim=2)
 
 
 class TorchStep:
-    """train.py's transition step on random windows, per (config, batch), made once."""
+    """train.py's step of `stage` on random data, per (config, batch), made once."""
 
-    def __init__(self):
+    def __init__(self, stage: str):
+        self.stage = stage
         self.steps = {}
 
     def step(self, name: str, batch: int):
         if (name, batch) not in self.steps:
-            from train import transition_step
-
             torch.manual_seed(0)
-            tr = Transition(config(name))
-            opt = torch.optim.Adam(tr.parameters(), lr=1e-4)
-            z = torch.randn(batch, WINDOW, tr.V.shape[1])
-            c = torch.randn(batch, WINDOW - 1, tr.U.shape[1])
-            self.steps[(name, batch)] = lambda: transition_step(tr, opt, z, c, TEACHER, 1.0)
+            self.steps[(name, batch)] = (self.transition if self.stage == "transition" else self.vae_gan)(name, batch)
         return self.steps[(name, batch)]
+
+    @staticmethod
+    def transition(name: str, batch: int):
+        from train import transition_step
+
+        tr = Transition(config(name))
+        opt = torch.optim.Adam(tr.parameters(), lr=1e-4)
+        z = torch.randn(batch, WINDOW, tr.V.shape[1])
+        c = torch.randn(batch, WINDOW - 1, tr.U.shape[1])
+        return lambda: transition_step(tr, opt, z, c, TEACHER, 1.0)
+
+    @staticmethod
+    def vae_gan(name: str, batch: int):
+        from train import ADAM_VAE_GAN, Discriminator, vae_gan_step
+
+        cfg = config(name)
+        model, dis = DriveSim(cfg).train(), Discriminator(cfg).train()
+        nets = (model.encoder, model.generator, dis)
+        # A small rate: the weights stay where they started, step after step (as drivesim's).
+        opts = [torch.optim.Adam(m.parameters(), **dict(ADAM_VAE_GAN, lr=1e-6)) for m in nets]
+        x = torch.rand(batch, cfg.channels, cfg.height, cfg.width) * 2 - 1
+        eps, prior = torch.randn(batch, cfg.z_dim), torch.randn(batch, cfg.z_dim)
+        return lambda: vae_gan_step(*nets, opts, x, eps, prior)
 
     def time(self, name, batch, threads, seconds) -> float:
         torch.set_num_threads(threads)
@@ -75,8 +99,9 @@ def peak_rss_mib(cmd: list[str]) -> float:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--stage", default="transition", choices=list(NETS))
     p.add_argument("--configs", default="default,comma")
-    p.add_argument("--batch", default="16,256")
+    p.add_argument("--batch", help="batches (default 16,256 for the transition, 8,32 for the VAE-GAN)")
     p.add_argument("--threads", default="1,2")
     p.add_argument("--seconds", type=float, default=1.0)
     p.add_argument("--rounds", type=int, default=3)
@@ -84,20 +109,22 @@ def main() -> int:
     p.add_argument("--torch-only", nargs=2, metavar=("CONFIG", "BATCH"), help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.torch_only:  # one PyTorch configuration alone, for its peak memory
-        TorchStep().time(a.torch_only[0], int(a.torch_only[1]), 1, a.seconds)
+        TorchStep(a.stage).time(a.torch_only[0], int(a.torch_only[1]), 1, a.seconds)
         return 0
-    names, batches = a.configs.split(","), [int(b) for b in a.batch.split(",")]
+    net = NETS[a.stage]
+    batch = a.batch or ("16,256" if a.stage == "transition" else "8,32")
+    names, batches = a.configs.split(","), [int(b) for b in batch.split(",")]
     threads = [int(t) for t in a.threads.split(",")]
     if unknown := [n for n in names if n not in CONFIGS]:
         sys.exit(f"compare-train: unknown config {unknown} (default, comma)")
     subprocess.run(["cargo", "build", "--quiet", "--release", "--features", "train", "--example", "bench_report"], cwd=ROOT, check=True)
     binary = ROOT / "target" / "release" / "examples" / "bench_report"
-    torch_step = TorchStep()
+    torch_step = TorchStep(a.stage)
     samples: dict = {}
     gflop: dict = {}
     for name in names:
-        z, hidden = CONFIGS[name]
-        drivesim = Drivesim(["--z", str(z), "--hidden", str(hidden)], threads, a.seconds, binary)
+        base, z, hidden = CONFIGS[name]
+        drivesim = Drivesim(["--z", str(z), "--hidden", str(hidden), "--base", str(base)], threads, a.seconds, binary)
         try:
             for r in range(a.rounds):
                 for t in threads:
@@ -105,23 +132,24 @@ def main() -> int:
                         order = [("drivesim", drivesim.time), ("pytorch", None)]
                         for runtime, _ in order if r % 2 == 0 else order[::-1]:
                             if runtime == "drivesim":
-                                ms = drivesim.time(None, NET, b, t, a.seconds)
+                                ms = drivesim.time(None, net, b, t, a.seconds)
                             else:
                                 ms = torch_step.time(name, b, t, a.seconds)
                             samples.setdefault((name, runtime, b, t), []).append(ms)
                 print(f"{name}: round {r + 1} of {a.rounds} done", file=sys.stderr)
-            gflop.update({(name, b): drivesim.gflop[(NET, b)] for b in batches})
+            gflop.update({(name, b): drivesim.gflop[(net, b)] for b in batches})
             peaks = drivesim.peaks
         finally:
             drivesim.close()
     memory = {}
     if not a.no_memory:
         for name in names:
-            z, hidden = CONFIGS[name]
+            base, z, hidden = CONFIGS[name]
             for b in batches:
-                rust = [str(binary), "--z", str(z), "--hidden", str(hidden), "--networks", NET, "--batch", str(b),
-                        "--threads", "1", "--seconds", "1"]
-                python = [sys.executable, str(Path(__file__)), "--torch-only", name, str(b), "--seconds", "1"]
+                rust = [str(binary), "--z", str(z), "--hidden", str(hidden), "--base", str(base), "--networks", net,
+                        "--batch", str(b), "--threads", "1", "--seconds", "1"]
+                python = [sys.executable, str(Path(__file__)), "--stage", a.stage, "--torch-only", name, str(b),
+                          "--seconds", "1"]
                 memory[(name, b)] = (peak_rss_mib(rust), peak_rss_mib(python))
 
     model, flags = cpu_info()

@@ -97,3 +97,26 @@ pub fn train_transition_flops(c: &Config, window: usize) -> u64 {
     let products = h * (h + z + a) + z * h;
     2 * (window as u64 - 1) * (2 * products + h * (z + h))
 }
+
+/// FLOPs of one VAE-GAN training step per frame of the batch (`drivesim::train`'s and
+/// `weights/train.py`'s step), every convolution counted by [`conv_flops`] (direct-equivalent,
+/// the discriminator has the encoder's shapes): forward, the encoder (once), the generator on
+/// reconstructions and prior samples, the discriminator six times (real frames twice, the
+/// two fakes twice); backward, the discriminator's loss (weights and data gradients but the
+/// input's, on real frames and fakes), the encoder's feature error through the discriminator
+/// from its third convolution and the generator's loss through all of it (data gradients, on
+/// the fakes), the generator for the encoder (data, reconstructions) and for itself (weights
+/// and data, both fakes), and the encoder (weights, and data gradients but the input's).
+pub fn train_vae_gan_flops(c: &Config) -> u64 {
+    let e: Vec<u64> = encoder_convs(c).iter().map(conv_flops).collect();
+    let g: u64 = generator_convs(c).iter().map(conv_flops).sum();
+    let (all, above_first) = (e.iter().sum::<u64>(), e[1..].iter().sum::<u64>());
+    let (flat, z) = (c.flat_len(), c.z_dim);
+    let (heads, fc, logit) = (dense_flops(2 * z, flat), dense_flops(flat, z), dense_flops(1, flat));
+    let forward = (all + heads) + 2 * (g + fc) + 6 * (all + logit);
+    let discriminator = 3 * (all + above_first + 2 * logit);
+    let through_discriminator = 2 * (e[0] + e[1] + e[2]) + 2 * (all + logit);
+    let generator = (g + fc) + 2 * (2 * g + fc);
+    let encoder = all + above_first + 2 * heads;
+    forward + discriminator + through_discriminator + generator + encoder
+}
