@@ -9,9 +9,10 @@ mod common;
 
 use common::*;
 use criterion::{criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput};
-use drivesim::{Model, Simulator, WeightDtype};
+use drivesim::{Config, Model, Simulator, WeightDtype};
 use drivesim_kernels::{
-    conv, dense, f16, pack, winograd_conv, Activation, ConvParams, ConvShape, Isa, Matrix, MatrixData, Winograd,
+    conv, conv_patch_len, conv_weight_grad, conv_weight_grad_scratch_len, dense, f16, pack, winograd_conv, Activation,
+    ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, Winograd,
 };
 use std::hint::black_box;
 use std::time::Duration;
@@ -130,6 +131,85 @@ fn conv_layers(c: &mut Criterion) {
     g.finish();
 }
 
+/// The backward kernels of training on the default model's layers (80x160, b = 32): each
+/// layer's data gradient (the forward kernel of its transposed shape, direct and Winograd) on
+/// one image, and its weight gradient (`conv_weight_grad`, the dense weight gradient over
+/// patches) over a batch of 8. Throughput counts the layer's forward FLOPs per image, the same
+/// work (`cargo bench --bench networks -- backward`).
+fn conv_backward(c: &mut Criterion) {
+    let isa = Isa::best();
+    let cfg = Config {
+        base_channels: 32,
+        ..comma(128)
+    };
+    let mut g = group(c, "backward");
+    let layers = encoder_convs(&cfg)
+        .into_iter()
+        .enumerate()
+        .map(|(i, s)| (format!("encoder.conv{i}"), s))
+        .chain(
+            generator_convs(&cfg)
+                .into_iter()
+                .enumerate()
+                .map(|(i, s)| (format!("generator.deconv{}", i + 1), s)),
+        );
+    for (name, shape) in layers {
+        g.throughput(Throughput::Elements(conv_flops(&shape)));
+        let back = shape.transposed();
+        let torch = values(
+            5,
+            shape.input.channels * shape.output.channels * shape.kernel.pow(2),
+            0.05,
+        );
+        let mut direct = vec![0.0; back.packed_len()];
+        pack::conv_weights_into(&back, &torch, &mut direct);
+        let zero = vec![0.0; back.output.channels];
+        let mut dy = vec![0.0; back.input.len()];
+        back.input
+            .write_interior(&mut dy, &values(4, back.input.interior_len(), 1.0));
+        let mut dx = vec![0.0; back.output.len()];
+        let layer = ConvParams {
+            shape: back,
+            weights: &direct,
+            bias: &zero,
+            act: Activation::Identity,
+        };
+        g.bench_function(format!("{name}.data"), |b| {
+            b.iter(|| conv(isa, layer, black_box(&dy), &mut dx))
+        });
+        if let Some(wino) = Winograd::new(back) {
+            let mut u = vec![0.0; wino.packed_len()];
+            pack::winograd_weights_from_direct(&wino, &direct, &mut u);
+            let (mut v, mut scratch) = (vec![0.0; wino.input_len()], vec![0.0; wino.scratch_len()]);
+            let layer = ConvParams { weights: &u, ..layer };
+            g.bench_function(format!("{name}.data.winograd"), |b| {
+                b.iter(|| winograd_conv(isa, &wino, layer, black_box(&dy), &mut v, &mut scratch, &mut dx))
+            });
+        }
+        // The weight gradient of a strided layer, or of a transposed one's transposed shape
+        // with input and output gradient swapped.
+        let items = 8;
+        let down = if shape.kind == ConvKind::Down { shape } else { back };
+        let mut input = vec![0.0; items * down.input.len()];
+        let mut grad_out = vec![0.0; items * down.output.len()];
+        for (n, item) in input.chunks_exact_mut(down.input.len()).enumerate() {
+            down.input
+                .write_interior(item, &values(7 + n as u64, down.input.interior_len(), 1.0));
+        }
+        for (n, item) in grad_out.chunks_exact_mut(down.output.len()).enumerate() {
+            down.output
+                .write_interior(item, &values(20 + n as u64, down.output.interior_len(), 1.0));
+        }
+        let mut scratch = vec![0.0; conv_weight_grad_scratch_len(&down)];
+        let mut grad = vec![0.0; Matrix::packed_len(down.output.channels, conv_patch_len(&down))];
+        g.throughput(Throughput::Elements(items as u64 * conv_flops(&shape)));
+        g.bench_function(format!("{name}.weights/batch{items}"), |b| {
+            b.iter(|| conv_weight_grad(isa, down, black_box(&input), &grad_out, &mut scratch, &mut grad))
+        });
+    }
+    g.finish();
+}
+
 /// The dense layers of both sizes through the kernels crate; f16 weights for z = 2048.
 fn dense_layers(c: &mut Criterion) {
     let isa = Isa::best();
@@ -170,5 +250,5 @@ fn dense_layers(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, dense_layers, networks, conv_layers);
+criterion_group!(benches, dense_layers, networks, conv_layers, conv_backward);
 criterion_main!(benches);

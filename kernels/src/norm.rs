@@ -63,10 +63,89 @@ fn inv_std(var: f32) -> f64 {
     1.0 / crate::math::sqrt(var as f64 + BN_EPS)
 }
 
-/// BatchNorm in training mode followed by `act`: normalises each channel of the batch `x` by
-/// its mean and biased variance over every item and pixel (written to `mean` and `var`), then
-/// `y = act(gamma · x̂ + beta)` into the interior of `y`.
-#[allow(clippy::too_many_arguments)] // a layer's input, parameters, output and two statistics
+/// Adds `Σ f(i, c).0` and `Σ f(i, c).1` over one plane's interior values (`i` a value's index,
+/// `c` its channel) to `sums[c]` and `sums[channels + c]`.
+fn add_sums(plane: Plane, sums: &mut [f64], f: impl Fn(usize, usize) -> (f64, f64)) {
+    let c = plane.channels;
+    assert_eq!(sums.len(), 2 * c);
+    for block in blocks(c) {
+        let (mut a, mut b) = ([0.0f64; BLOCK], [0.0f64; BLOCK]);
+        for p in pixels(plane, 1) {
+            for (j, ch) in block.clone().enumerate() {
+                let (u, v) = f(p + ch, ch);
+                a[j] += u;
+                b[j] += v;
+            }
+        }
+        for (j, ch) in block.enumerate() {
+            sums[ch] += a[j];
+            sums[c + ch] += b[j];
+        }
+    }
+}
+
+/// f64 sums a batch's statistics take: two per channel.
+pub const fn sums_len(channels: usize) -> usize {
+    2 * channels
+}
+
+/// Step 1 of BatchNorm in training mode, for one plane `x` of a batch: adds its per-channel sums
+/// of values and of squares to `sums` (`[Σ x | Σ x²]`, [`sums_len`] f64). Threads may take the
+/// planes of a batch, each into sums of its own, added up after in the planes' order.
+pub fn moments(plane: Plane, x: &[f32], sums: &mut [f64]) {
+    assert_eq!(x.len(), plane.len());
+    add_sums(plane, sums, |i, _| (x[i] as f64, x[i] as f64 * x[i] as f64));
+}
+
+/// Step 2: a batch's mean and biased variance from its sums over `count` values per channel
+/// (the variance `E[x²] - E[x]²` in f64: f32 accuracy unless the mean is a million times the
+/// spread).
+pub fn statistics(sums: &[f64], count: usize, mean: &mut [f32], var: &mut [f32]) {
+    let c = mean.len();
+    assert!(sums.len() == sums_len(c) && var.len() == c);
+    let n = count as f64;
+    for ch in 0..c {
+        let m = sums[ch] / n;
+        mean[ch] = m as f32;
+        var[ch] = (sums[c + ch] / n - m * m).max(0.0) as f32;
+    }
+}
+
+/// Step 3, for one plane: `y = act(gamma · (x - mean) / sqrt(var + eps) + beta)` into the
+/// interior of `y`, computed as PyTorch's CPU kernel folds it, `x · scale + shift`.
+#[allow(clippy::too_many_arguments)] // a plane in and out, the statistics and the parameters
+pub fn normalize(
+    plane: Plane,
+    x: &[f32],
+    mean: &[f32],
+    var: &[f32],
+    gamma: &[f32],
+    beta: &[f32],
+    act: Activation,
+    y: &mut [f32],
+) {
+    let c = plane.channels;
+    assert!(x.len() == plane.len() && y.len() == plane.len());
+    assert!(mean.len() == c && var.len() == c && gamma.len() == c && beta.len() == c);
+    for block in blocks(c) {
+        let (mut scale, mut shift) = ([0.0f32; BLOCK], [0.0f32; BLOCK]);
+        for (j, ch) in block.clone().enumerate() {
+            scale[j] = (gamma[ch] as f64 * inv_std(var[ch])) as f32;
+            shift[j] = beta[ch] - mean[ch] * scale[j];
+        }
+        for p in pixels(plane, 1) {
+            let span = p + block.start..p + block.end;
+            for (j, (o, &v)) in y[span.clone()].iter_mut().zip(&x[span]).enumerate() {
+                *o = act.apply(v * scale[j] + shift[j]);
+            }
+        }
+    }
+}
+
+/// Steps 1 to 3 on a whole batch `x` on one thread (`sums`: [`sums_len`] f64 of scratch):
+/// normalises each channel by its mean and biased variance over every item and pixel (written
+/// to `mean` and `var`), then `y = act(gamma · x̂ + beta)` into the interior of `y`.
+#[allow(clippy::too_many_arguments)] // a layer's input, parameters, output, statistics, scratch
 pub fn batch_norm_train(
     plane: Plane,
     x: &[f32],
@@ -76,49 +155,88 @@ pub fn batch_norm_train(
     y: &mut [f32],
     mean: &mut [f32],
     var: &mut [f32],
+    sums: &mut [f64],
 ) {
-    let c = plane.channels;
-    assert!(gamma.len() == c && beta.len() == c && mean.len() == c && var.len() == c);
     assert_eq!(x.len(), y.len());
     let n = items(plane, x);
-    let count = (n * plane.height * plane.width) as f64;
+    sums.fill(0.0);
+    for x in x.chunks_exact(plane.len()) {
+        moments(plane, x, sums);
+    }
+    statistics(sums, n * plane.height * plane.width, mean, var);
+    for (x, y) in x.chunks_exact(plane.len()).zip(y.chunks_exact_mut(plane.len())) {
+        normalize(plane, x, mean, var, gamma, beta, act, y);
+    }
+}
+
+/// Backward step 1, for one plane: adds `Σ g` and `Σ (x - mean) · g` per channel to `sums`
+/// ([`sums_len`] f64), `g` the gradient before the activation (see
+/// [`crate::activation_backward`]), `x` the layer's input.
+pub fn gradient_moments(plane: Plane, x: &[f32], g: &[f32], mean: &[f32], sums: &mut [f64]) {
+    assert!(x.len() == plane.len() && g.len() == plane.len() && mean.len() == plane.channels);
+    add_sums(plane, sums, |i, c| {
+        (g[i] as f64, (x[i] as f64 - mean[c] as f64) * g[i] as f64)
+    });
+}
+
+/// Backward step 2: the gradients of `gamma` and `beta` from a batch's sums.
+pub fn parameter_gradients(sums: &[f64], var: &[f32], dgamma: &mut [f32], dbeta: &mut [f32]) {
+    let c = var.len();
+    assert!(sums.len() == sums_len(c) && dgamma.len() == c && dbeta.len() == c);
+    for ch in 0..c {
+        dgamma[ch] = (sums[c + ch] * inv_std(var[ch])) as f32;
+        dbeta[ch] = sums[ch] as f32;
+    }
+}
+
+/// Backward step 3, for one plane: the gradient of `x`,
+/// `dx = gamma / σ · (g - mean(g) - x̂ · mean(g · x̂))`, from the batch's sums over `count`
+/// values per channel, into the interior of `dx`.
+#[allow(clippy::too_many_arguments)] // a plane in and out, the batch's statistics and sums
+pub fn normalize_gradient(
+    plane: Plane,
+    x: &[f32],
+    g: &[f32],
+    mean: &[f32],
+    var: &[f32],
+    gamma: &[f32],
+    sums: &[f64],
+    count: usize,
+    dx: &mut [f32],
+) {
+    let c = plane.channels;
+    assert!(x.len() == plane.len() && g.len() == plane.len() && dx.len() == plane.len());
+    assert!(mean.len() == c && var.len() == c && gamma.len() == c && sums.len() == sums_len(c));
+    let n = count as f64;
     for block in blocks(c) {
-        // Sums of values and squares in f64, in one pass: the variance E[x²] - E[x]² keeps
-        // f32 accuracy unless the mean is a million times the spread.
-        let (mut sum, mut squares) = ([0.0f64; BLOCK], [0.0f64; BLOCK]);
-        for p in pixels(plane, n) {
-            let values = &x[p + block.start..p + block.end];
-            for ((s, q), &v) in sum.iter_mut().zip(squares.iter_mut()).zip(values) {
-                *s += v as f64;
-                *q += v as f64 * v as f64;
-            }
-        }
-        // y = x · scale + shift, as PyTorch's CPU kernel folds it.
-        let (mut scale, mut shift) = ([0.0f32; BLOCK], [0.0f32; BLOCK]);
+        // dx = (g - sum / n - (x - mean) · dot · s² / n) · s · gamma
+        let mut coef = [(0.0f64, 0.0f64, 0.0f64, 0.0f64); BLOCK];
         for (j, ch) in block.clone().enumerate() {
-            let m = sum[j] / count;
-            mean[ch] = m as f32;
-            var[ch] = (squares[j] / count - m * m).max(0.0) as f32;
-            scale[j] = (gamma[ch] as f64 * inv_std(var[ch])) as f32;
-            shift[j] = beta[ch] - mean[ch] * scale[j];
-        }
-        for p in pixels(plane, n) {
-            let (values, out) = (
-                &x[p + block.start..p + block.end],
-                &mut y[p + block.start..p + block.end],
+            let s = inv_std(var[ch]);
+            coef[j] = (
+                sums[ch] / n,
+                sums[c + ch] * s * s / n,
+                s * gamma[ch] as f64,
+                mean[ch] as f64,
             );
-            for (j, (o, &v)) in out.iter_mut().zip(values).enumerate() {
-                *o = act.apply(v * scale[j] + shift[j]);
+        }
+        for p in pixels(plane, 1) {
+            let span = p + block.start..p + block.end;
+            let (xs, gs) = (&x[span.clone()], &g[span.clone()]);
+            for (j, ((o, &xv), &gv)) in dx[span].iter_mut().zip(xs).zip(gs).enumerate() {
+                let (mean_g, proj, scale, m) = coef[j];
+                *o = ((gv as f64 - mean_g - (xv as f64 - m) * proj) * scale) as f32;
             }
         }
     }
 }
 
-/// The backward pass of [`batch_norm_train`] (its `x`, `y`, `mean`, `var`, `gamma`): turns
-/// `dy`, the gradient of `y`, into the gradient before the activation in place, then writes the
-/// gradient of `x` to the interior of `dx` and those of `gamma` and `beta`:
-/// `dx = gamma / σ · (g - mean(g) - x̂ · mean(g · x̂))`, `dgamma = Σ g · x̂`, `dbeta = Σ g`.
-#[allow(clippy::too_many_arguments)] // one layer's saved forward values and its three gradients
+/// The backward pass of [`batch_norm_train`] on one thread (its `x`, `y`, `mean`, `var`,
+/// `gamma`; `sums`: [`sums_len`] f64 of scratch): turns `dy`, the gradient of `y`, into the
+/// gradient before the activation in place, then writes the gradient of `x` to the interior of
+/// `dx` and those of `gamma` and `beta`: `dx = gamma / σ · (g - mean(g) - x̂ · mean(g · x̂))`,
+/// `dgamma = Σ g · x̂`, `dbeta = Σ g`.
+#[allow(clippy::too_many_arguments)] // one layer's saved forward values, its gradients, scratch
 pub fn batch_norm_backward(
     isa: Isa,
     plane: Plane,
@@ -132,42 +250,21 @@ pub fn batch_norm_backward(
     dx: &mut [f32],
     dgamma: &mut [f32],
     dbeta: &mut [f32],
+    sums: &mut [f64],
 ) {
-    let c = plane.channels;
-    assert!(gamma.len() == c && mean.len() == c && var.len() == c && dgamma.len() == c && dbeta.len() == c);
     assert!(x.len() == y.len() && x.len() == dy.len() && x.len() == dx.len());
     let n = items(plane, x);
-    let count = (n * plane.height * plane.width) as f64;
     // The activation's gradient by its vector kernel (the borders are zero and stay so).
     crate::activation_backward(isa, act, y, dy);
-    for block in blocks(c) {
-        let m = &mean[block.clone()];
-        // The sums of g and (x - mean) · g, in one pass.
-        let (mut sum, mut dot) = ([0.0f64; BLOCK], [0.0f64; BLOCK]);
-        for p in pixels(plane, n) {
-            let span = p + block.start..p + block.end;
-            let (xs, gs) = (&x[span.clone()], &dy[span]);
-            for (j, (&g, &xv)) in gs.iter().zip(xs).enumerate() {
-                sum[j] += g as f64;
-                dot[j] += (xv as f64 - m[j] as f64) * g as f64;
-            }
-        }
-        // dx = (g - sum / count - (x - mean) · dot · s² / count) · s · gamma
-        let mut coef = [(0.0f64, 0.0f64, 0.0f64); BLOCK];
-        for (j, ch) in block.clone().enumerate() {
-            let s = inv_std(var[ch]);
-            dgamma[ch] = (dot[j] * s) as f32;
-            dbeta[ch] = sum[j] as f32;
-            coef[j] = (sum[j] / count, dot[j] * s * s / count, s * gamma[ch] as f64);
-        }
-        for p in pixels(plane, n) {
-            let span = p + block.start..p + block.end;
-            let (xs, gs, out) = (&x[span.clone()], &dy[span.clone()], &mut dx[span]);
-            for (j, ((o, &xv), &g)) in out.iter_mut().zip(xs).zip(gs).enumerate() {
-                let (mean_g, proj, scale) = coef[j];
-                *o = ((g as f64 - mean_g - (xv as f64 - m[j] as f64) * proj) * scale) as f32;
-            }
-        }
+    sums.fill(0.0);
+    for (x, g) in x.chunks_exact(plane.len()).zip(dy.chunks_exact(plane.len())) {
+        gradient_moments(plane, x, g, mean, sums);
+    }
+    parameter_gradients(sums, var, dgamma, dbeta);
+    let count = n * plane.height * plane.width;
+    let items = x.chunks_exact(plane.len()).zip(dy.chunks_exact(plane.len()));
+    for ((x, g), dx) in items.zip(dx.chunks_exact_mut(plane.len())) {
+        normalize_gradient(plane, x, g, mean, var, gamma, sums, count, dx);
     }
 }
 

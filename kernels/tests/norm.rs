@@ -5,7 +5,7 @@
 mod common;
 
 use common::{Rng, ACTS};
-use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, update_running_stats};
+use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, sums_len, update_running_stats};
 use drivesim_kernels::{Activation, Isa, Plane};
 
 /// Odd channel counts around the block of 16, small planes with and without a border.
@@ -65,7 +65,17 @@ fn forward_matches_its_definition() {
             let (gamma, beta) = (rng.fill(c, 1.5), rng.fill(c, 1.0));
             let mut y = vec![0.0; x.len()];
             let (mut mean, mut var) = (vec![0.0; c], vec![0.0; c]);
-            batch_norm_train(plane, &x, &gamma, &beta, act, &mut y, &mut mean, &mut var);
+            batch_norm_train(
+                plane,
+                &x,
+                &gamma,
+                &beta,
+                act,
+                &mut y,
+                &mut mean,
+                &mut var,
+                &mut vec![0.0; sums_len(c)],
+            );
             let at = interior(plane, ITEMS);
             let count = (at.len() / c) as f64;
             for ch in 0..c {
@@ -103,7 +113,17 @@ fn backward_matches_central_differences() {
             let weights = rng.fill(x.len(), 1.0);
             let mut y = vec![0.0; x.len()];
             let (mut mean, mut var) = (vec![0.0; c], vec![0.0; c]);
-            batch_norm_train(plane, &x, &gamma, &beta, act, &mut y, &mut mean, &mut var);
+            batch_norm_train(
+                plane,
+                &x,
+                &gamma,
+                &beta,
+                act,
+                &mut y,
+                &mut mean,
+                &mut var,
+                &mut vec![0.0; sums_len(c)],
+            );
             let mut dy = weights.clone();
             let mut dx = vec![0.0; x.len()];
             let (mut dgamma, mut dbeta) = (vec![0.0; c], vec![0.0; c]);
@@ -120,6 +140,7 @@ fn backward_matches_central_differences() {
                 &mut dx,
                 &mut dgamma,
                 &mut dbeta,
+                &mut vec![0.0; sums_len(c)],
             );
             let f64s = |v: &[f32]| v.iter().map(|&v| v as f64).collect::<Vec<f64>>();
             let (x64, g64, b64) = (f64s(&x), f64s(&gamma), f64s(&beta));

@@ -29,7 +29,10 @@ use alloc::format;
 use alloc::string::String;
 use alloc::vec::Vec;
 use core::ops::Range;
-use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, channel_sums, update_running_stats};
+use drivesim_kernels::norm::{
+    channel_sums, gradient_moments, moments, normalize, normalize_gradient, parameter_gradients, statistics, sums_len,
+    update_running_stats,
+};
 use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, transpose_packed, winograd_weights_from_direct};
 use drivesim_kernels::{
     activation_backward, conv, conv_patch_len, conv_patches, dense_weight_grad_add_rows, dense_weight_grad_rows, math,
@@ -104,23 +107,39 @@ struct Budget {
 }
 
 impl Budget {
+    /// A buffer of `len` f64 zeros, counted as two floats each under `what`.
+    fn take_f64(&mut self, what: &'static str, len: usize) -> Result<Vec<f64>> {
+        self.count(what, mul(len, 2)?)?;
+        zeros(self.allocate, len)
+    }
+
     /// A buffer of `len` zeros, counted under `what` (empty when only measuring).
     fn take(&mut self, what: &'static str, len: usize) -> Result<Vec<f32>> {
+        self.count(what, len)?;
+        zeros(self.allocate, len)
+    }
+
+    /// Adds `len` floats to `what`'s count.
+    fn count(&mut self, what: &'static str, len: usize) -> Result<()> {
         match self.floats.iter_mut().find(|(w, _)| *w == what) {
             Some((_, n)) => *n = n.checked_add(len).ok_or(OVERFLOW)?,
             None => self.floats.push((what, len)),
         }
-        if !self.allocate {
-            return Ok(Vec::new());
-        }
-        let mut v = Vec::new();
+        Ok(())
+    }
+}
+
+/// `len` zeros if `allocate`, else nothing; an allocation refused is [`Error::OutOfMemory`].
+fn zeros<T: Copy + Default>(allocate: bool, len: usize) -> Result<Vec<T>> {
+    let mut v = Vec::new();
+    if allocate {
         v.try_reserve_exact(len).map_err(|_| Error::OutOfMemory {
             what: WHAT,
-            bytes: len.checked_mul(4),
+            bytes: len.checked_mul(core::mem::size_of::<T>()),
         })?;
-        v.resize(len, 0.0);
-        Ok(v)
+        v.resize(len, T::default());
     }
+    Ok(v)
 }
 
 const WHAT: &str = "the VAE-GAN trainer's buffers";
@@ -620,6 +639,9 @@ struct Work {
     channel_tmp: Vec<f32>,
     /// Zeros: the bias of the data-gradient convolutions and dense layers.
     zero: Vec<f32>,
+    /// BatchNorm's per-channel sums of each item of a pass, and of the pass.
+    item_sums: Vec<f64>,
+    sums: Vec<f64>,
 }
 
 fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> Result<Networks> {
@@ -791,6 +813,8 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
             torch_grad: budget.take("scratch", sizes.torch_grad)?,
             channel_tmp: budget.take("scratch", 2 * sizes.channels.max(top_c))?,
             zero: budget.take("scratch", sizes.channels.max(sizes.dense_zero))?,
+            item_sums: budget.take_f64("scratch", mul(pair, sums_len(sizes.channels.max(top_c)))?)?,
+            sums: budget.take_f64("scratch", sums_len(sizes.channels.max(top_c)))?,
         },
     };
     Ok(Networks {
@@ -1167,6 +1191,7 @@ fn add(dst: &mut [f32], src: &[f32]) {
 /// statistics if `update`.
 #[allow(clippy::too_many_arguments)] // a layer's tensors, its input and output, its statistics
 fn norm_forward(
+    exec: Exec<'_>,
     plane: Plane,
     norm: &Norm,
     params: &[f32],
@@ -1176,23 +1201,103 @@ fn norm_forward(
     y: &mut [f32],
     (mean, var): (&mut [f32], &mut [f32]),
     update: bool,
+    work: &mut Work,
 ) {
-    batch_norm_train(
-        plane,
-        z,
-        &params[norm.gamma.clone()],
-        &params[norm.beta.clone()],
-        act,
-        y,
-        mean,
-        var,
-    );
+    let (items, pl) = (z.len() / plane.len(), plane.len());
+    let count = items * plane.height * plane.width;
+    let slots = (&mut work.item_sums[..], &mut work.sums[..]);
+    let sums = batch_sums(exec, plane, items, slots, &|n, slot| {
+        moments(plane, &z[n * pl..][..pl], slot)
+    });
+    statistics(sums, count, mean, var);
+    let (mean, var) = (&*mean, &*var);
+    let (gamma, beta) = (&params[norm.gamma.clone()], &params[norm.beta.clone()]);
+    let outputs = Parts::chunks(&mut y[..items * pl], pl);
+    exec.run(&|| {
+        while let Some((n, y)) = outputs.take() {
+            normalize(plane, &z[n * pl..][..pl], mean, var, gamma, beta, act, y);
+        }
+    });
     if update {
-        let count = z.len() / plane.len() * plane.height * plane.width;
         // The running mean and variance were declared one after the other.
         let (rm, rv) = stats[norm.mean.start..norm.var.end].split_at_mut(norm.mean.len());
         update_running_stats(mean, var, count, rm, rv);
     }
+}
+
+/// A batch's per-channel sums for BatchNorm: `add(item, sums)` adds each item's into sums of
+/// its own in `slots` (threads taking items), then these are added up in the items' order, so
+/// that the result is the same for any thread count. Returns them, in the first floats of
+/// `sums`.
+fn batch_sums<'w>(
+    exec: Exec<'_>,
+    plane: Plane,
+    items: usize,
+    (slots, sums): (&mut [f64], &'w mut [f64]),
+    add: &(dyn Fn(usize, &mut [f64]) + Sync),
+) -> &'w [f64] {
+    let len = sums_len(plane.channels);
+    let slots = &mut slots[..items * len];
+    slots.fill(0.0);
+    let parts = Parts::chunks(&mut *slots, len);
+    exec.run(&|| {
+        while let Some((n, slot)) = parts.take() {
+            add(n, slot);
+        }
+    });
+    let sums = &mut sums[..len];
+    sums.fill(0.0);
+    for slot in slots.chunks_exact(len) {
+        sums.iter_mut().zip(slot).for_each(|(s, v)| *s += v);
+    }
+    sums
+}
+
+/// The backward pass of BatchNorm + `act` over one pass's planes (`z` its input, `y` its
+/// output, `mean` and `var` its statistics): `gy`, the gradient of `y`, becomes the gradient
+/// before the activation; the gradient of `z` goes to `gz`, those of `gamma` and `beta` are
+/// added to `grads` if given. Threads take items.
+#[allow(clippy::too_many_arguments)]
+fn norm_backward(
+    exec: Exec<'_>,
+    plane: Plane,
+    norm: &Norm,
+    params: &[f32],
+    grads: Option<&mut [f32]>,
+    act: Activation,
+    (z, y): (&[f32], &[f32]),
+    (mean, var): (&[f32], &[f32]),
+    gy: &mut [f32],
+    gz: &mut [f32],
+    work: &mut Work,
+) {
+    let (items, pl, c) = (z.len() / plane.len(), plane.len(), plane.channels);
+    let count = items * plane.height * plane.width;
+    let gradients = Parts::chunks(&mut gy[..items * pl], pl);
+    exec.run(&|| {
+        while let Some((n, g)) = gradients.take() {
+            activation_backward(exec.isa, act, &y[n * pl..][..pl], g);
+        }
+    });
+    let g = &*gy;
+    let slots = (&mut work.item_sums[..], &mut work.sums[..]);
+    let sums = batch_sums(exec, plane, items, slots, &|n, slot| {
+        gradient_moments(plane, &z[n * pl..][..pl], &g[n * pl..][..pl], mean, slot)
+    });
+    if let Some(grads) = grads {
+        let (dgamma, dbeta) = work.channel_tmp[..2 * c].split_at_mut(c);
+        parameter_gradients(sums, var, dgamma, dbeta);
+        add(&mut grads[norm.gamma.clone()], dgamma);
+        add(&mut grads[norm.beta.clone()], dbeta);
+    }
+    let gamma = &params[norm.gamma.clone()];
+    let outputs = Parts::chunks(&mut gz[..items * pl], pl);
+    exec.run(&|| {
+        while let Some((n, dz)) = outputs.take() {
+            let (z, g) = (&z[n * pl..][..pl], &g[n * pl..][..pl]);
+            normalize_gradient(plane, z, g, mean, var, gamma, sums, count, dz);
+        }
+    });
 }
 
 /// The forward pass of a stack of convolutions over the items of `passes` (each pass a batch
@@ -1206,7 +1311,7 @@ fn stack_forward(
     input: &[f32],
     acts: &mut Stack,
     passes: &[(Range<usize>, bool)],
-    scratch: &mut [Scratch],
+    work: &mut Work,
 ) {
     let items = passes.last().map_or(0, |p| p.0.end);
     for (i, l) in layers.iter().enumerate() {
@@ -1216,8 +1321,14 @@ fn stack_forward(
         let y = &mut rest[0];
         let bias = &params[l.bias.clone()];
         let Some(norm) = &l.norm else {
-            l.forward
-                .run_items(exec, bias, l.act, &x[..items * il], &mut y[..items * ol], scratch);
+            l.forward.run_items(
+                exec,
+                bias,
+                l.act,
+                &x[..items * il],
+                &mut y[..items * ol],
+                &mut work.scratch,
+            );
             continue;
         };
         let z = &mut acts.z[i];
@@ -1227,22 +1338,25 @@ fn stack_forward(
             Activation::Identity,
             &x[..items * il],
             &mut z[..items * ol],
-            scratch,
+            &mut work.scratch,
         );
         let (mean, var) = (&mut acts.mean[i], &mut acts.var[i]);
         for (p, (range, update)) in passes.iter().enumerate() {
             let span = range.start * ol..range.end * ol;
             let statistics = (&mut mean[p * oc..][..oc], &mut var[p * oc..][..oc]);
+            let (z, y) = (&z[span.clone()], &mut y[span]);
             norm_forward(
+                exec,
                 l.shape.output,
                 norm,
                 params,
                 stats,
                 l.act,
-                &z[span.clone()],
-                &mut y[span],
+                z,
+                y,
                 statistics,
                 *update,
+                work,
             );
         }
     }
@@ -1369,28 +1483,11 @@ fn stack_backward(
                 Some(norm) => {
                     for (p, r) in passes.iter().enumerate() {
                         let s = r.start * ol..r.end * ol;
-                        let (dgamma, dbeta) = work.channel_tmp[..2 * oc].split_at_mut(oc);
-                        let gamma = &params[norm.gamma.clone()];
-                        let (mean, var) = (&acts.mean[i][p * oc..][..oc], &acts.var[i][p * oc..][..oc]);
-                        let (z, y) = (&acts.z[i][s.clone()], &acts.y[i][s.clone()]);
-                        batch_norm_backward(
-                            exec.isa,
-                            plane,
-                            z,
-                            y,
-                            l.act,
-                            gamma,
-                            mean,
-                            var,
-                            &mut gy[s.clone()],
-                            &mut gz[s],
-                            dgamma,
-                            dbeta,
-                        );
-                        if let Some(grads) = grads.as_deref_mut() {
-                            add(&mut grads[norm.gamma.clone()], dgamma);
-                            add(&mut grads[norm.beta.clone()], dbeta);
-                        }
+                        let statistics = (&acts.mean[i][p * oc..][..oc], &acts.var[i][p * oc..][..oc]);
+                        let saved = (&acts.z[i][s.clone()], &acts.y[i][s.clone()]);
+                        let (gy, gz) = (&mut gy[s.clone()], &mut gz[s]);
+                        let grads = grads.as_deref_mut();
+                        norm_backward(exec, plane, norm, params, grads, l.act, saved, statistics, gy, gz, work);
                     }
                 }
                 None => {
@@ -1517,14 +1614,22 @@ impl Networks {
     fn update(&mut self, net: usize, exec: Exec<'_>, adam: &Adam, t: u32, lr: f32) {
         let r = self.nets[net].clone();
         let [m, v] = &mut self.moments;
-        adam.update(
-            t,
-            lr,
-            1.0,
-            &mut self.params[r.clone()],
-            &self.grads[r.clone()],
-            [&mut m[r.clone()], &mut v[r]],
-        );
+        // Adam is elementwise: threads take pieces (the same values whatever their number).
+        const PIECES: usize = 16;
+        let len = r.len().div_ceil(PIECES).max(1);
+        let (params, grads) = (&mut self.params[r.clone()], &self.grads[r.clone()]);
+        let mut pieces = params
+            .chunks_mut(len)
+            .zip(grads.chunks(len))
+            .zip(m[r.clone()].chunks_mut(len).zip(v[r].chunks_mut(len)));
+        let mut jobs: [_; PIECES] = core::array::from_fn(|_| pieces.next().unwrap_or_default());
+        let jobs = Parts::chunks(&mut jobs, 1);
+        exec.run(&|| {
+            while let Some((_, job)) = jobs.take() {
+                let ((p, g), (m, v)) = &mut job[0];
+                adam.update(t, lr, 1.0, p, g, [m, v]);
+            }
+        });
         self.pack(net, exec);
     }
 
@@ -1546,7 +1651,7 @@ impl Networks {
             input,
             acts,
             &passes,
-            &mut b.work.scratch,
+            &mut b.work,
         );
         gather(self.dis[3].shape.output, &acts.y[3], items, flat);
         self.logit.run(
@@ -1638,27 +1743,24 @@ impl Networks {
         let norm = &self.top_norm;
         for (p, r) in passes.iter().enumerate() {
             let s = r.start * tl..r.end * tl;
-            let (dgamma, dbeta) = b.work.channel_tmp[..2 * c].split_at_mut(c);
-            let gamma = &self.params[norm.gamma.clone()];
-            let (mean, var) = (&b.top_mean[p * c..][..c], &b.top_var[p * c..][..c]);
-            batch_norm_backward(
-                exec.isa,
+            let statistics = (&b.top_mean[p * c..][..c], &b.top_var[p * c..][..c]);
+            let saved = (&b.top_z[s.clone()], &b.top_y[s.clone()]);
+            let (gy, gz) = (&mut b.top_gy[s.clone()], &mut b.top_gz[s]);
+            let grads = weights.then_some(&mut self.grads[..]);
+            let relu = Activation::Relu;
+            norm_backward(
+                exec,
                 top,
-                &b.top_z[s.clone()],
-                &b.top_y[s.clone()],
-                Activation::Relu,
-                gamma,
-                mean,
-                var,
-                &mut b.top_gy[s.clone()],
-                &mut b.top_gz[s],
-                dgamma,
-                dbeta,
+                norm,
+                &self.params,
+                grads,
+                relu,
+                saved,
+                statistics,
+                gy,
+                gz,
+                &mut b.work,
             );
-            if weights {
-                add(&mut self.grads[norm.gamma.clone()], dgamma);
-                add(&mut self.grads[norm.beta.clone()], dbeta);
-            }
         }
         let flat = self.fc.rows;
         gather(top, &b.top_gz, items, &mut b.dflat);
@@ -1711,7 +1813,7 @@ impl Networks {
                 &b.real,
                 &mut b.enc,
                 &passes,
-                &mut b.work.scratch,
+                &mut b.work,
             );
             gather(self.enc[3].shape.output, &b.enc.y[3], n, &mut b.enc_flat);
             let flat = self.heads.cols;
@@ -1739,16 +1841,20 @@ impl Networks {
             for (p, update) in [(0, true), (1, false)] {
                 let span = p * n * tl..(p + 1) * n * tl;
                 let statistics = (&mut b.top_mean[p * tc..][..tc], &mut b.top_var[p * tc..][..tc]);
+                let (z, y) = (&b.top_z[span.clone()], &mut b.top_y[span]);
+                let (norm, relu) = (&self.top_norm, Activation::Relu);
                 norm_forward(
+                    exec,
                     self.top,
-                    &self.top_norm,
+                    norm,
                     &self.params,
                     &mut self.stats,
-                    Activation::Relu,
-                    &b.top_z[span.clone()],
-                    &mut b.top_y[span],
+                    relu,
+                    z,
+                    y,
                     statistics,
                     update,
+                    &mut b.work,
                 );
             }
             let passes = [(0..n, true), (n..2 * n, false)];
@@ -1760,7 +1866,7 @@ impl Networks {
                 &b.top_y,
                 &mut b.gen,
                 &passes,
-                &mut b.work.scratch,
+                &mut b.work,
             );
         }
 
