@@ -1,4 +1,5 @@
-//! BatchNorm in training mode, and the per-channel sums of the backward passes, over a batch
+//! BatchNorm in training mode and its backward pass (whose per-channel sums, [`moments`], are
+//! also a bias's gradient), over a batch
 //! of planes (items of [`Plane::len`] floats one after another; only interiors are read or
 //! written, borders stay zero).
 //!
@@ -39,23 +40,6 @@ fn pixels(plane: Plane, items: usize) -> impl Iterator<Item = usize> {
             (start..start + row).step_by(plane.channels.max(1))
         })
     })
-}
-
-/// `sums[c] = Σ batch[c]` over every interior pixel of every item: a bias's gradient.
-pub fn channel_sums(plane: Plane, batch: &[f32], sums_out: &mut [f32]) {
-    assert_eq!(sums_out.len(), plane.channels);
-    let n = items(plane, batch);
-    for block in blocks(plane.channels) {
-        let mut sum = [0.0f64; BLOCK];
-        for p in pixels(plane, n) {
-            let values = &batch[p + block.start..p + block.end];
-            sum.iter_mut().zip(values).for_each(|(s, &v)| *s += v as f64);
-        }
-        sums_out[block.clone()]
-            .iter_mut()
-            .zip(sum)
-            .for_each(|(o, s)| *o = s as f32);
-    }
 }
 
 /// `1 / sqrt(var + eps)` as PyTorch computes it for a biased batch variance.

@@ -30,7 +30,7 @@ use alloc::string::String;
 use alloc::vec::Vec;
 use core::ops::Range;
 use drivesim_kernels::norm::{
-    channel_sums, gradient_moments, moments, normalize, normalize_gradient, parameter_gradients, statistics, sums_len,
+    gradient_moments, moments, normalize, normalize_gradient, parameter_gradients, statistics, sums_len,
     update_running_stats,
 };
 use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, transpose_packed, winograd_weights_from_direct};
@@ -1491,8 +1491,15 @@ fn stack_backward(
                     }
                 }
                 None => {
-                    activation_backward(exec.isa, l.act, &acts.y[i][..items * ol], gy);
-                    gz.copy_from_slice(gy);
+                    let y = &acts.y[i];
+                    let outputs = Parts::chunks(&mut *gz, ol);
+                    let inputs = &*gy;
+                    exec.run(&|| {
+                        while let Some((n, gz)) = outputs.take() {
+                            gz.copy_from_slice(&inputs[n * ol..][..ol]);
+                            activation_backward(exec.isa, l.act, &y[n * ol..][..ol], gz);
+                        }
+                    });
                 }
             }
         }
@@ -1502,9 +1509,16 @@ fn stack_backward(
         let x = if i == 0 { input } else { &acts.y[i - 1][..] };
         let x = &x[..items * il];
         if let Some(grads) = grads.as_deref_mut() {
-            let sums = &mut work.channel_tmp[..oc];
-            channel_sums(plane, gz, sums);
-            add(&mut grads[l.bias.clone()], sums);
+            // The bias's gradient: the channel sums of gz, item by item (the first half of
+            // their moments).
+            let g = &*gz;
+            let slots = (&mut work.item_sums[..], &mut work.sums[..]);
+            let sums = batch_sums(exec, plane, items, slots, &|n, slot| {
+                moments(plane, &g[n * ol..][..ol], slot)
+            });
+            for (g, &s) in grads[l.bias.clone()].iter_mut().zip(&sums[..oc]) {
+                *g += s as f32;
+            }
             // A transposed layer's weight gradient is its transposed shape's, with the input
             // and the output gradient swapped.
             let (down, a, b) = match l.shape.kind {
