@@ -8,13 +8,15 @@
 //!     --weights weights/default.safetensors --episodes DATA.safetensors.gz --out tuned.safetensors \
 //!     [--heldout HELDOUT.safetensors.gz] [--steps 1000] [--batch 32] [--threads 2] [--minutes 20] \
 //!     [--every 200] [--sheet sheet.png] [--from-scratch]
+//! cargo run --release --features train --example train -- fit --weights W --episodes DATA \
+//!     --out model.safetensors [--from-scratch] [--vae-steps 1000] [--transition-steps 2000] [--threads 2]
 //! cargo run --release --features train --example train -- step --stage transition|vae-gan \
 //!     --weights W.safetensors --batch B.safetensors --out O.safetensors [--lr ...] [--teacher 5] [--clip 1.0]
 //! ```
 //! `vae-gan` trains the encoder and generator with a discriminator as `weights/train.py fit`'s
 //! first stage does, measures held-out reconstruction PSNR every `--every` steps, and writes
 //! the weights (discriminator included, so a run resumes from its `--out`; Adam's moments
-//! start again).
+//! start again). `fit` runs both stages, as `weights/tool train fit` does.
 //! `transition` encodes the episodes with the crate's encoder, trains (or fine-tunes) the
 //! transition on windows of 15 codes as `weights/train.py` does, reports the held-out latent
 //! error before and after, and writes a weight file `Model::load` reads. `step` is the
@@ -49,6 +51,8 @@ enum Command {
     Transition(TransitionArgs),
     /// Train or fine-tune the encoder and generator as a VAE-GAN on episodes' frames
     VaeGan(vae_gan::VaeGanArgs),
+    /// Both stages, as `weights/tool train fit`: the VAE-GAN, then the transition on its codes
+    Fit(FitArgs),
     /// One step on a batch file; write the loss, gradients and updated tensors
     Step(StepArgs),
 }
@@ -100,6 +104,88 @@ struct TransitionArgs {
     seed: u64,
 }
 
+#[derive(Parser)]
+struct FitArgs {
+    /// Weight file to start from (or, with --from-scratch, whose config to train)
+    #[arg(long)]
+    weights: PathBuf,
+    #[arg(long)]
+    episodes: PathBuf,
+    #[arg(long)]
+    heldout: Option<PathBuf>,
+    #[arg(long, default_value_t = 1)]
+    holdout: usize,
+    /// Where to write the weights (the autoencoder stage's go beside it, OUT.autoencoder.safetensors)
+    #[arg(long)]
+    out: PathBuf,
+    /// Start both stages from seeded random weights
+    #[arg(long)]
+    from_scratch: bool,
+    #[arg(long, default_value_t = 1000)]
+    vae_steps: usize,
+    /// Frames per VAE-GAN step
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    batch: u32,
+    #[arg(long, default_value_t = drivesim::train::VAE_GAN_LR)]
+    lr: f32,
+    /// Stop the VAE-GAN stage after this many minutes
+    #[arg(long)]
+    minutes: Option<f64>,
+    #[arg(long, default_value_t = 2000)]
+    transition_steps: usize,
+    /// Windows per transition step
+    #[arg(long, default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    transition_batch: u32,
+    #[arg(long, default_value_t = 1e-3)]
+    transition_lr: f32,
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
+    threads: u32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Dtype of the written file (default: the input file's)
+    #[arg(long)]
+    dtype: Option<DtypeArg>,
+}
+
+/// `fit`: the VAE-GAN stage into OUT.autoencoder.safetensors (f32), then the transition from it.
+fn fit(args: &FitArgs) -> Result<(), String> {
+    let autoencoder = args.out.with_extension("autoencoder.safetensors");
+    vae_gan::vae_gan(&vae_gan::VaeGanArgs {
+        weights: args.weights.clone(),
+        episodes: args.episodes.clone(),
+        heldout: args.heldout.clone(),
+        holdout: args.holdout,
+        out: autoencoder.clone(),
+        steps: args.vae_steps,
+        batch: args.batch,
+        lr: args.lr,
+        threads: args.threads,
+        seed: args.seed,
+        minutes: args.minutes,
+        every: 200,
+        sheet: None,
+        from_scratch: args.from_scratch,
+        dtype: Some(DtypeArg::F32),
+    })?;
+    transition(&TransitionArgs {
+        weights: autoencoder,
+        episodes: args.episodes.clone(),
+        heldout: args.heldout.clone(),
+        holdout: args.holdout,
+        out: args.out.clone(),
+        steps: args.transition_steps,
+        batch: args.transition_batch,
+        window: 15,
+        teacher: 5,
+        lr: args.transition_lr,
+        threads: args.threads,
+        full_bptt: false,
+        restart: args.from_scratch,
+        dtype: args.dtype,
+        seed: args.seed,
+    })
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum DtypeArg {
     F32,
@@ -147,6 +233,7 @@ fn main() -> ExitCode {
     common::exit(match Args::parse().command {
         Command::Transition(args) => transition(&args),
         Command::VaeGan(args) => vae_gan::vae_gan(&args),
+        Command::Fit(args) => fit(&args),
         Command::Step(args) => step(&args),
     })
 }

@@ -15,46 +15,46 @@ pub struct VaeGanArgs {
     /// Weight file to start from: its encoder, generator and discriminator (`discriminator.*`,
     /// seeded random ones if it has none); resume an interrupted run from its --out
     #[arg(long)]
-    weights: PathBuf,
+    pub weights: PathBuf,
     /// Episodes to train on (weights/tool record writes them)
     #[arg(long)]
-    episodes: PathBuf,
+    pub episodes: PathBuf,
     /// Episodes to measure reconstruction on; without it, the last --holdout episodes of
     /// --episodes
     #[arg(long)]
-    heldout: Option<PathBuf>,
+    pub heldout: Option<PathBuf>,
     #[arg(long, default_value_t = 1)]
-    holdout: usize,
+    pub holdout: usize,
     /// Where to write the trained weights (every --every steps, and at the end)
     #[arg(long)]
-    out: PathBuf,
+    pub out: PathBuf,
     #[arg(long, default_value_t = 1000)]
-    steps: usize,
+    pub steps: usize,
     /// Frames per step
     #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=4096))]
-    batch: u32,
+    pub batch: u32,
     #[arg(long, default_value_t = VAE_GAN_LR)]
-    lr: f32,
+    pub lr: f32,
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
-    threads: u32,
+    pub threads: u32,
     /// Seed of the batches, the reparametrisation draws and the prior samples
     #[arg(long, default_value_t = 0)]
-    seed: u64,
+    pub seed: u64,
     /// Stop after this many minutes (what was trained is written)
     #[arg(long)]
-    minutes: Option<f64>,
+    pub minutes: Option<f64>,
     /// Measure held-out PSNR and write --out every this many steps
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u64).range(1..))]
-    every: u64,
+    pub every: u64,
     /// Write a contact sheet of held-out frames (top) and their reconstructions (bottom)
     #[arg(long)]
-    sheet: Option<PathBuf>,
+    pub sheet: Option<PathBuf>,
     /// Start from seeded random weights of --weights' config (training from scratch)
     #[arg(long)]
-    from_scratch: bool,
+    pub from_scratch: bool,
     /// Dtype of the written tensors (default: --weights' own)
     #[arg(long, value_enum)]
-    dtype: Option<DtypeArg>,
+    pub dtype: Option<DtypeArg>,
 }
 
 /// Frames of the held-out episodes spread evenly over them, at most this many.
