@@ -173,23 +173,22 @@ pub fn parameter_gradients(sums: &[f64], var: &[f32], dgamma: &mut [f32], dbeta:
     }
 }
 
-/// Backward step 3, for one plane: the gradient of `x`,
-/// `dx = gamma / σ · (g - mean(g) - x̂ · mean(g · x̂))`, from the batch's sums over `count`
-/// values per channel, into the interior of `dx`.
+/// Backward step 3, for one plane, in place: `g` (the gradient before the activation) becomes
+/// the gradient of `x`, `dx = gamma / σ · (g - mean(g) - x̂ · mean(g · x̂))`, from the batch's
+/// sums over `count` values per channel. Only the interior is read and written.
 #[allow(clippy::too_many_arguments)] // a plane in and out, the batch's statistics and sums
 pub fn normalize_gradient(
     plane: Plane,
     x: &[f32],
-    g: &[f32],
+    g: &mut [f32],
     mean: &[f32],
     var: &[f32],
     gamma: &[f32],
     sums: &[f64],
     count: usize,
-    dx: &mut [f32],
 ) {
     let c = plane.channels;
-    assert!(x.len() == plane.len() && g.len() == plane.len() && dx.len() == plane.len());
+    assert!(x.len() == plane.len() && g.len() == plane.len());
     assert!(mean.len() == c && var.len() == c && gamma.len() == c && sums.len() == sums_len(c));
     let n = count as f64;
     for block in blocks(c) {
@@ -206,10 +205,9 @@ pub fn normalize_gradient(
         }
         for p in pixels(plane, 1) {
             let span = p + block.start..p + block.end;
-            let (xs, gs) = (&x[span.clone()], &g[span.clone()]);
-            for (j, ((o, &xv), &gv)) in dx[span].iter_mut().zip(xs).zip(gs).enumerate() {
+            for (j, (gv, &xv)) in g[span.clone()].iter_mut().zip(&x[span]).enumerate() {
                 let (mean_g, proj, scale, m) = coef[j];
-                *o = ((gv as f64 - mean_g - (xv as f64 - m) * proj) * scale) as f32;
+                *gv = ((*gv as f64 - mean_g - (xv as f64 - m) * proj) * scale) as f32;
             }
         }
     }
@@ -246,9 +244,9 @@ pub fn batch_norm_backward(
     }
     parameter_gradients(sums, var, dgamma, dbeta);
     let count = n * plane.height * plane.width;
-    let items = x.chunks_exact(plane.len()).zip(dy.chunks_exact(plane.len()));
-    for ((x, g), dx) in items.zip(dx.chunks_exact_mut(plane.len())) {
-        normalize_gradient(plane, x, g, mean, var, gamma, sums, count, dx);
+    dx.copy_from_slice(dy);
+    for (x, dx) in x.chunks_exact(plane.len()).zip(dx.chunks_exact_mut(plane.len())) {
+        normalize_gradient(plane, x, dx, mean, var, gamma, sums, count);
     }
 }
 

@@ -527,10 +527,10 @@ struct Stack {
     var: Vec<Vec<f32>>,
 }
 
-/// The gradients of a stack's activations (`gy` of the outputs, `gz` before BatchNorm).
+/// The gradients of a stack's activations, one buffer per layer: of the layer's output, then in
+/// place of its convolution's output (before BatchNorm and the activation).
 struct StackGrads {
-    gy: Vec<Vec<f32>>,
-    gz: Vec<Vec<f32>>,
+    g: Vec<Vec<f32>>,
 }
 
 const PASSES: usize = 2;
@@ -549,13 +549,12 @@ fn stack(budget: &mut Budget, layers: &[Conv], items: usize, what: &'static str)
 }
 
 fn stack_grads(budget: &mut Budget, layers: &[Conv], items: usize) -> Result<StackGrads> {
-    let (mut gy, mut gz) = (Vec::new(), Vec::new());
+    let mut g = Vec::new();
     for l in layers {
         let len = mul(items, l.shape.output.len())?;
-        gy.push(budget.take("activation gradients", len)?);
-        gz.push(budget.take("activation gradients", len)?);
+        g.push(budget.take("activation gradients", len)?);
     }
-    Ok(StackGrads { gy, gz })
+    Ok(StackGrads { g })
 }
 
 /// The planes of a strided stack from `input` through `channels`, each in a border of [`HALO`].
@@ -616,8 +615,8 @@ struct Buffers {
     enc_grads: StackGrads,
     gen_grads: StackGrads,
     dis_grads: StackGrads,
-    top_gz: Vec<f32>,
-    top_gy: Vec<f32>,
+    /// The gradient of the generator's first feature map, then of the dense layer's output.
+    top_g: Vec<f32>,
     /// Gradients of the discriminator's input, the feature error, dense outputs and inputs.
     dx: Vec<f32>,
     dfeature: Vec<f32>,
@@ -791,8 +790,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
         enc_grads: stack_grads(budget, &enc, batch)?,
         gen_grads: stack_grads(budget, &gen, pair)?,
         dis_grads: stack_grads(budget, &dis, pair)?,
-        top_gz: budget.take("activation gradients", mul(pair, top.len())?)?,
-        top_gy: budget.take("activation gradients", mul(pair, top.len())?)?,
+        top_g: budget.take("activation gradients", mul(pair, top.len())?)?,
         dx: budget.take("activation gradients", mul(pair, image.len())?)?,
         dfeature: budget.take("activation gradients", mul(pair, down[2].output.len())?)?,
         dlogits: budget.take("activation gradients", pair)?,
@@ -1254,9 +1252,8 @@ fn batch_sums<'w>(
 }
 
 /// The backward pass of BatchNorm + `act` over one pass's planes (`z` its input, `y` its
-/// output, `mean` and `var` its statistics): `gy`, the gradient of `y`, becomes the gradient
-/// before the activation; the gradient of `z` goes to `gz`, those of `gamma` and `beta` are
-/// added to `grads` if given. Threads take items.
+/// output, `mean` and `var` its statistics), in place: `g`, the gradient of `y`, becomes that
+/// of `z`; those of `gamma` and `beta` are added to `grads` if given. Threads take items.
 #[allow(clippy::too_many_arguments)]
 fn norm_backward(
     exec: Exec<'_>,
@@ -1267,22 +1264,22 @@ fn norm_backward(
     act: Activation,
     (z, y): (&[f32], &[f32]),
     (mean, var): (&[f32], &[f32]),
-    gy: &mut [f32],
-    gz: &mut [f32],
+    g: &mut [f32],
     work: &mut Work,
 ) {
     let (items, pl, c) = (z.len() / plane.len(), plane.len(), plane.channels);
     let count = items * plane.height * plane.width;
-    let gradients = Parts::chunks(&mut gy[..items * pl], pl);
+    let g = &mut g[..items * pl];
+    let gradients = Parts::chunks(&mut *g, pl);
     exec.run(&|| {
         while let Some((n, g)) = gradients.take() {
             activation_backward(exec.isa, act, &y[n * pl..][..pl], g);
         }
     });
-    let g = &*gy;
+    let gradient = &*g;
     let slots = (&mut work.item_sums[..], &mut work.sums[..]);
     let sums = batch_sums(exec, plane, items, slots, &|n, slot| {
-        gradient_moments(plane, &z[n * pl..][..pl], &g[n * pl..][..pl], mean, slot)
+        gradient_moments(plane, &z[n * pl..][..pl], &gradient[n * pl..][..pl], mean, slot)
     });
     if let Some(grads) = grads {
         let (dgamma, dbeta) = work.channel_tmp[..2 * c].split_at_mut(c);
@@ -1291,11 +1288,10 @@ fn norm_backward(
         add(&mut grads[norm.beta.clone()], dbeta);
     }
     let gamma = &params[norm.gamma.clone()];
-    let outputs = Parts::chunks(&mut gz[..items * pl], pl);
+    let outputs = Parts::chunks(g, pl);
     exec.run(&|| {
-        while let Some((n, dz)) = outputs.take() {
-            let (z, g) = (&z[n * pl..][..pl], &g[n * pl..][..pl]);
-            normalize_gradient(plane, z, g, mean, var, gamma, sums, count, dz);
+        while let Some((n, g)) = outputs.take() {
+            normalize_gradient(plane, &z[n * pl..][..pl], g, mean, var, gamma, sums, count);
         }
     });
 }
@@ -1441,7 +1437,7 @@ fn conv_weight_grad<'p>(
 }
 
 /// Where a backward pass through a stack starts: from the gradient of layer `i`'s output (in
-/// `gy[i]`), or of its convolution's output before BatchNorm (in `gz[i]`).
+/// `g[i]`), or of its convolution's output before BatchNorm and the activation (in `g[i]` too).
 #[derive(Clone, Copy)]
 enum Start {
     Output(usize),
@@ -1476,8 +1472,9 @@ fn stack_backward(
         let l = &layers[i];
         let (plane, il, ol) = (l.shape.output, l.shape.input.len(), l.shape.output.len());
         let oc = plane.channels;
-        let (below, rest) = g.gy.split_at_mut(i);
-        let (gy, gz) = (&mut rest[0][..items * ol], &mut g.gz[i][..items * ol]);
+        let (below, rest) = g.g.split_at_mut(i);
+        // The output's gradient, turned in place into the convolution output's.
+        let gz = &mut rest[0][..items * ol];
         if !(norm_done && i == top) {
             match &l.norm {
                 Some(norm) => {
@@ -1485,18 +1482,17 @@ fn stack_backward(
                         let s = r.start * ol..r.end * ol;
                         let statistics = (&acts.mean[i][p * oc..][..oc], &acts.var[i][p * oc..][..oc]);
                         let saved = (&acts.z[i][s.clone()], &acts.y[i][s.clone()]);
-                        let (gy, gz) = (&mut gy[s.clone()], &mut gz[s]);
                         let grads = grads.as_deref_mut();
-                        norm_backward(exec, plane, norm, params, grads, l.act, saved, statistics, gy, gz, work);
+                        norm_backward(
+                            exec, plane, norm, params, grads, l.act, saved, statistics, &mut gz[s], work,
+                        );
                     }
                 }
                 None => {
                     let y = &acts.y[i];
                     let outputs = Parts::chunks(&mut *gz, ol);
-                    let inputs = &*gy;
                     exec.run(&|| {
                         while let Some((n, gz)) = outputs.take() {
-                            gz.copy_from_slice(&inputs[n * ol..][..ol]);
                             activation_backward(exec.isa, l.act, &y[n * ol..][..ol], gz);
                         }
                     });
@@ -1707,7 +1703,7 @@ impl Networks {
         }
         self.logit
             .data_grad(exec, &b.work.zero, dlogits, &mut b.dflat[..items * flat_len]);
-        scatter(self.dis[3].shape.output, &b.dflat, items, &mut b.dis_grads.gy[3]);
+        scatter(self.dis[3].shape.output, &b.dflat, items, &mut b.dis_grads.g[3]);
         let grads = weights.then_some(&mut self.grads[..]);
         let inject = inject.then_some((2, &b.dfeature[..]));
         let dx = input.then_some(&mut b.dx[..]);
@@ -1735,7 +1731,7 @@ impl Networks {
         let b = &mut self.buffers;
         let items = passes.last().map_or(0, |p| p.end);
         let image = self.gen[3].shape.output.len();
-        b.gen_grads.gy[3][..items * image].copy_from_slice(&b.dx[..items * image]);
+        b.gen_grads.g[3][..items * image].copy_from_slice(&b.dx[..items * image]);
         let grads = weights.then_some(&mut self.grads[..]);
         let (top_y, gen) = (&b.top_y, &b.gen);
         stack_backward(
@@ -1749,7 +1745,7 @@ impl Networks {
             passes,
             Start::Output(3),
             None,
-            Some(&mut b.top_gy),
+            Some(&mut b.top_g),
             &mut b.work,
         );
         // BatchNorm0 + ReLU on the fully connected layer's output, per pass.
@@ -1759,9 +1755,8 @@ impl Networks {
             let s = r.start * tl..r.end * tl;
             let statistics = (&b.top_mean[p * c..][..c], &b.top_var[p * c..][..c]);
             let saved = (&b.top_z[s.clone()], &b.top_y[s.clone()]);
-            let (gy, gz) = (&mut b.top_gy[s.clone()], &mut b.top_gz[s]);
             let grads = weights.then_some(&mut self.grads[..]);
-            let relu = Activation::Relu;
+            let (relu, g) = (Activation::Relu, &mut b.top_g[s]);
             norm_backward(
                 exec,
                 top,
@@ -1771,13 +1766,12 @@ impl Networks {
                 relu,
                 saved,
                 statistics,
-                gy,
-                gz,
+                g,
                 &mut b.work,
             );
         }
         let flat = self.fc.rows;
-        gather(top, &b.top_gz, items, &mut b.dflat);
+        gather(top, &b.top_g, items, &mut b.dflat);
         let (dflat, z) = (&b.dflat[..items * flat], self.fc.cols);
         if weights {
             self.fc.weight_grad(
@@ -1956,7 +1950,7 @@ impl Networks {
         // convolution down), plus the pixel error, back through the reconstructions' pass of
         // the generator to the codes, the reparametrisation and the KL prior.
         let fake_len = 2 * n * fl;
-        b.dis_grads.gz[2][..fake_len].copy_from_slice(&b.dfeature[..fake_len]);
+        b.dis_grads.g[2][..fake_len].copy_from_slice(&b.dfeature[..fake_len]);
         let passes = [0..2 * n];
         stack_backward(
             exec,
@@ -2004,7 +1998,7 @@ impl Networks {
         );
         self.heads
             .data_grad(exec, &b.work.zero, dheads, &mut b.dflat[..n * flat]);
-        scatter(self.enc[3].shape.output, &b.dflat, n, &mut b.enc_grads.gy[3]);
+        scatter(self.enc[3].shape.output, &b.dflat, n, &mut b.enc_grads.g[3]);
         let passes = [0..n];
         stack_backward(
             exec,
