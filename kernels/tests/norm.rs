@@ -55,6 +55,15 @@ fn loss_f64(plane: Plane, x: &[f64], gamma: &[f64], beta: &[f64], act: Activatio
         .sum()
 }
 
+/// `batch_norm_train`'s output and statistics.
+fn forward(plane: Plane, x: &[f32], gamma: &[f32], beta: &[f32], act: Activation) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let c = plane.channels;
+    let (mut y, mut mean, mut var) = (vec![0.0; x.len()], vec![0.0; c], vec![0.0; c]);
+    let mut sums = vec![0.0; sums_len(c)];
+    batch_norm_train(plane, x, gamma, beta, act, &mut y, &mut mean, &mut var, &mut sums);
+    (y, mean, var)
+}
+
 #[test]
 fn forward_matches_its_definition() {
     let mut rng = Rng::new(21);
@@ -63,19 +72,7 @@ fn forward_matches_its_definition() {
         for act in ACTS {
             let x = batch(&mut rng, plane, ITEMS, 2.0);
             let (gamma, beta) = (rng.fill(c, 1.5), rng.fill(c, 1.0));
-            let mut y = vec![0.0; x.len()];
-            let (mut mean, mut var) = (vec![0.0; c], vec![0.0; c]);
-            batch_norm_train(
-                plane,
-                &x,
-                &gamma,
-                &beta,
-                act,
-                &mut y,
-                &mut mean,
-                &mut var,
-                &mut vec![0.0; sums_len(c)],
-            );
+            let (y, mean, var) = forward(plane, &x, &gamma, &beta, act);
             let at = interior(plane, ITEMS);
             let count = (at.len() / c) as f64;
             for ch in 0..c {
@@ -111,19 +108,7 @@ fn backward_matches_central_differences() {
             let (gamma, beta) = (rng.fill(c, 1.5), rng.fill(c, 1.0));
             // The loss Σ w·y: its gradient with respect to y is w.
             let weights = rng.fill(x.len(), 1.0);
-            let mut y = vec![0.0; x.len()];
-            let (mut mean, mut var) = (vec![0.0; c], vec![0.0; c]);
-            batch_norm_train(
-                plane,
-                &x,
-                &gamma,
-                &beta,
-                act,
-                &mut y,
-                &mut mean,
-                &mut var,
-                &mut vec![0.0; sums_len(c)],
-            );
+            let (y, mean, var) = forward(plane, &x, &gamma, &beta, act);
             let mut dy = weights.clone();
             let mut dx = vec![0.0; x.len()];
             let (mut dgamma, mut dbeta) = (vec![0.0; c], vec![0.0; c]);

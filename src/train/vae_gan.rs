@@ -567,6 +567,23 @@ fn down_shapes(input: Plane, channels: [usize; 4], k: usize) -> [ConvShape; 4] {
     })
 }
 
+/// The encoder's or the discriminator's convolutions on `shapes`: layer `i` named
+/// `{conv}{i}`, BatchNorm `{norm}{i}` after all but the first, LeakyReLU after each.
+fn strided(
+    t: &mut Table,
+    budget: &mut Budget,
+    sizes: &mut Sizes,
+    shapes: &[ConvShape],
+    (conv, norm): (&str, &str),
+) -> Result<Vec<Conv>> {
+    let leaky = Activation::LeakyRelu(LEAKY_SLOPE);
+    let layers = shapes.iter().enumerate().map(|(i, &shape)| {
+        let norm = (i > 0).then(|| format!("{norm}{i}"));
+        Conv::new(t, budget, sizes, &format!("{conv}{i}"), norm.as_deref(), shape, leaky)
+    });
+    layers.collect()
+}
+
 /// The three networks, their tensors and every buffer of a step.
 struct Networks {
     table: Table,
@@ -655,7 +672,6 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
     let c = config;
     let (k, b, z) = (c.kernel, c.base_channels, c.z_dim);
     let (flat, top_c, (top_h, top_w)) = (c.flat_len(), c.top_channels(), c.top_size());
-    let leaky = Activation::LeakyRelu(LEAKY_SLOPE);
     let mut t = Table::default();
     let mut sizes = Sizes::default();
     let image = Plane::new(c.height, c.width, c.channels, HALO);
@@ -663,20 +679,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
 
     // Encoder: its dense heads are one layer of 2z rows, mean then logsigma (their tensors
     // side by side in the table).
-    let mut enc = Vec::new();
-    for (i, &shape) in down.iter().enumerate() {
-        let norm = (i > 0).then(|| format!("encoder.bn{i}"));
-        let name = format!("encoder.conv{i}");
-        enc.push(Conv::new(
-            &mut t,
-            budget,
-            &mut sizes,
-            &name,
-            norm.as_deref(),
-            shape,
-            leaky,
-        )?);
-    }
+    let enc = strided(&mut t, budget, &mut sizes, &down, ("encoder.conv", "encoder.bn"))?;
     let fan = Init::FanIn(flat);
     let heads_weight = t.packed(
         0,
@@ -736,20 +739,8 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
     let gen_end = t.params;
 
     // Discriminator.
-    let mut dis = Vec::new();
-    for (i, &shape) in down.iter().enumerate() {
-        let norm = (i > 0).then(|| format!("discriminator.bns.{i}"));
-        let name = format!("discriminator.convs.{i}");
-        dis.push(Conv::new(
-            &mut t,
-            budget,
-            &mut sizes,
-            &name,
-            norm.as_deref(),
-            shape,
-            leaky,
-        )?);
-    }
+    let names = ("discriminator.convs.", "discriminator.bns.");
+    let dis = strided(&mut t, budget, &mut sizes, &down, names)?;
     let logit_tensors = (
         t.packed(2, &[("discriminator.out.weight", 1)], flat, Init::FanIn(flat)),
         t.param("discriminator.out.bias".into(), &[1], Init::FanIn(flat)),
