@@ -1892,13 +1892,13 @@ impl Networks {
         let (mut sum, mut sq, mut err) = (0.0f64, 0.0f64, 0.0f64);
         for (&r, &f) in f_real.iter().zip(f_fake) {
             sum += r as f64;
-            err += ((f - r) as f64).powi(2);
+            err += ((f - r) as f64) * ((f - r) as f64);
         }
         let mean = sum / f_len as f64;
         for item in f_real.chunks_exact(fl) {
             for y in 0..features.height {
                 for &r in &item[features.index(y, 0)..][..features.width * features.channels] {
-                    sq += (r as f64 - mean).powi(2);
+                    sq += (r as f64 - mean) * (r as f64 - mean);
                 }
             }
         }
