@@ -9,10 +9,12 @@
 //!
 //! Every buffer is sized before anything is allocated: [`VaeGanPlan`] builds the trainer once
 //! in a measuring mode (as ggml's allocator measures a graph), adding up what each buffer would
-//! take; [`VaeGanTrainer::new`] then allocates exactly that. Parameters, gradients and Adam
-//! moments are kept in PyTorch's layout; each network's packed weights (the forward packing, and
-//! the packing of its data gradient: the forward kernel of the transposed convolution or dense
-//! layer) are rebuilt in place after each update. A step allocates nothing.
+//! take; [`VaeGanTrainer::new`] then allocates exactly that. Convolutions keep their parameters,
+//! gradients and Adam moments in PyTorch's layout and dense layers in the kernels' packed one
+//! (the forward pass multiplies by them as they are); each network's packings (convolutions'
+//! forward ones, and every layer's data gradient: the forward kernel of the transposed
+//! convolution or dense layer) are rebuilt in place after each update. A step allocates
+//! nothing.
 
 // Passes are lists of item ranges, each a batch of its own for BatchNorm: often just one.
 #![allow(clippy::single_range_in_vec_init)]
@@ -651,7 +653,7 @@ struct Work {
     weight_scratch: Vec<f32>,
     packed_grad: Vec<f32>,
     torch_grad: Vec<f32>,
-    /// Per-channel gradients of a BatchNorm pass, and bias sums.
+    /// The gradients of a BatchNorm pass's scale and shift.
     channel_tmp: Vec<f32>,
     /// Zeros: the bias of the data-gradient convolutions and dense layers.
     zero: Vec<f32>,
@@ -898,7 +900,7 @@ impl VaeGanPlan {
 ///
 /// ```
 /// use drivesim::train::{VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR};
-/// use drivesim::{Config, Model, WeightDtype};
+/// use drivesim::{Config, Model};
 ///
 /// let config = Config { height: 32, width: 64, base_channels: 4, z_dim: 8, hidden_dim: 8, ..Config::COMMA };
 /// let file = drivesim::train::random_weight_file(&config, 7)?;
@@ -907,11 +909,14 @@ impl VaeGanPlan {
 /// let frames: Vec<f32> = (0..2 * 32 * 64 * 3).map(|i| ((i % 7) as f32 / 3.0 - 1.0)).collect();
 /// let eps = vec![0.5; 2 * 8];
 /// let prior = vec![-0.5; 2 * 8];
-/// let losses = trainer.step(&frames, &eps, &prior, VAE_GAN_LR)?;
-/// assert!(losses.pixel_l1 > 0.0 && losses.discriminator > 0.0);
+/// let first = trainer.step(&frames, &eps, &prior, VAE_GAN_LR)?;
+/// for _ in 0..20 {
+///     trainer.step(&frames, &eps, &prior, VAE_GAN_LR)?;
+/// }
+/// assert!(trainer.step(&frames, &eps, &prior, VAE_GAN_LR)?.pixel_l1 < first.pixel_l1);
 /// // The trained networks as a weight file the simulator loads (discriminator included).
 /// let model = Model::from_bytes(&trainer.weight_file(&file, None)?)?;
-/// # let _ = (model, WeightDtype::F32);
+/// assert_eq!(model.config(), &config);
 /// # Ok::<(), drivesim::Error>(())
 /// ```
 pub struct VaeGanTrainer {
