@@ -1,14 +1,21 @@
-//! Training inside planned memory (the `train` feature): the transition model today.
+//! Training inside planned memory (the `train` feature): every network of the paper.
 //!
-//! As llm.c does for GPT-2, every parameter, gradient, optimiser moment and saved activation
-//! lives in one block allocated once, sized by a plan before anything is allocated
-//! ([`TransitionPlan`]); the caller may hand that block in ([`TransitionTrainer::with_arena`]),
-//! so that training needs no allocator. Steps allocate nothing. The backward pass runs on the
-//! forward kernels where the maths allows (the data gradient of a dense layer is the forward
-//! product by the transposed packing) and on the kernels crate's backward operations
-//! otherwise ([`drivesim_kernels::dense_weight_grad`], [`drivesim_kernels::activation_backward`]).
-//! Each step agrees with PyTorch's (`weights/train.py`, checked by the fixtures of
-//! `tests/train.rs`).
+//! - [`TransitionTrainer`] trains the transition RNN. As llm.c does for GPT-2, every parameter,
+//!   gradient, optimiser moment and saved activation lives in one block allocated once, sized
+//!   by a plan before anything is allocated ([`TransitionPlan`]); the caller may hand that block
+//!   in ([`TransitionTrainer::with_arena`]), so that training needs no allocator.
+//! - [`VaeGanTrainer`] trains the encoder and generator with a discriminator; its
+//!   [`VaeGanPlan`] is measured by building the trainer without allocating (as ggml's
+//!   allocator measures a graph), then exactly that is allocated.
+//!
+//! Steps allocate nothing. The backward passes run on the forward kernels where the maths
+//! allows (the data gradient of a dense layer is the forward product by the transposed
+//! packing, that of a convolution the forward kernel of its transposed shape,
+//! [`drivesim_kernels::ConvShape::transposed`]) and on the kernels crate's backward operations
+//! otherwise ([`drivesim_kernels::dense_weight_grad`], [`drivesim_kernels::conv_weight_grad`],
+//! [`drivesim_kernels::activation_backward`], [`drivesim_kernels::norm`]). Each step agrees with
+//! PyTorch's (`weights/train.py`, checked by the fixtures of `tests/train.rs` and
+//! `tests/train_vae_gan.rs`), and threads change no bit of it.
 
 mod adam;
 mod arena;
