@@ -117,11 +117,35 @@ pub fn normalize(
             scale[j] = (gamma[ch] as f64 * inv_std(var[ch])) as f32;
             shift[j] = beta[ch] - mean[ch] * scale[j];
         }
-        for p in pixels(plane, 1) {
-            let span = p + block.start..p + block.end;
-            for (j, (o, &v)) in y[span.clone()].iter_mut().zip(&x[span]).enumerate() {
-                *o = act.apply(v * scale[j] + shift[j]);
+        let (scale, shift) = (&scale[..block.len()], &shift[..block.len()]);
+        // One loop per activation, each with its activation known (a match per value stops
+        // the loop vectorising).
+        match act {
+            Activation::Identity => affine(plane, x, y, &block, scale, shift, |v| v),
+            Activation::Relu => affine(plane, x, y, &block, scale, shift, |v| Activation::Relu.apply(v)),
+            Activation::LeakyRelu(s) => {
+                affine(plane, x, y, &block, scale, shift, |v| Activation::LeakyRelu(s).apply(v))
             }
+            Activation::Tanh => affine(plane, x, y, &block, scale, shift, |v| Activation::Tanh.apply(v)),
+        }
+    }
+}
+
+/// `y = f(x · scale + shift)` for the channels of `block` of one plane's interior.
+#[inline(always)]
+fn affine(
+    plane: Plane,
+    x: &[f32],
+    y: &mut [f32],
+    block: &Range<usize>,
+    scale: &[f32],
+    shift: &[f32],
+    f: impl Fn(f32) -> f32,
+) {
+    for p in pixels(plane, 1) {
+        let span = p + block.start..p + block.end;
+        for (((o, &v), &a), &b) in y[span.clone()].iter_mut().zip(&x[span]).zip(scale).zip(shift) {
+            *o = f(v * a + b);
         }
     }
 }
