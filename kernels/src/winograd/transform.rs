@@ -4,7 +4,7 @@
 use super::filters::{with_phase, Filter, PhaseFn};
 use super::Winograd;
 use crate::simd::vector::Lane;
-use crate::{Activation, ConvKind};
+use crate::{Activation, ConvKind, OC_ALIGN};
 
 /// The tile's columns, each a `PY`-array.
 #[inline(always)]
@@ -261,33 +261,45 @@ impl PhaseFn for WeightTransform<'_> {
     {
         let (w, shape) = (self.w, &self.w.shape);
         let (py, px, first) = (phase / 2, phase % 2, w.phase_points(phase).0);
-        // Trainers repack after every update: the taps' and points' offsets are computed once
-        // per phase, and G g G^T is two products (G g, then by G^T), in f64, rounded once.
-        let taps: [[usize; KX]; KY] = core::array::from_fn(|my| {
-            core::array::from_fn(|mx| shape.packed_index(w.tap(py, my), w.tap(px, mx), 0, 0))
-        });
-        let (ic_stride, oc_step) = (shape.packed_index(0, 0, 1, 0), shape.packed_index(0, 0, 0, 1));
-        for oc in 0..shape.output.channels {
-            // Within a panel, output channels are adjacent; across panels a panel apart.
-            let oc_at = if shape.is_narrow() {
-                oc * oc_step
-            } else {
-                shape.packed_index(0, 0, 0, oc)
-            };
+        // Trainers repack after every update, so this runs on a panel of output channels at
+        // once (adjacent in both layouts, so the lanes vectorise): G g G^T is two products (G g,
+        // then by G^T), in f64, rounded once.
+        let taps: [[(usize, usize); KX]; KY] =
+            core::array::from_fn(|my| core::array::from_fn(|mx| (w.tap(py, my), w.tap(px, mx))));
+        let channels = shape.output.channels;
+        for oc0 in (0..channels).step_by(OC_ALIGN) {
+            let lanes = OC_ALIGN.min(channels - oc0);
             for ic in 0..shape.input.channels {
-                let at = oc_at + ic * ic_stride;
-                let mut gg = [[0.0f64; KX]; PY];
+                let mut g = [[[0.0f64; OC_ALIGN]; KX]; KY];
+                for (g, taps) in g.iter_mut().zip(&taps) {
+                    for (g, &(ty, tx)) in g.iter_mut().zip(taps) {
+                        for (lane, g) in g[..lanes].iter_mut().enumerate() {
+                            *g = self.direct[shape.packed_index(ty, tx, ic, oc0 + lane)] as f64;
+                        }
+                    }
+                }
+                let mut gg = [[[0.0f64; OC_ALIGN]; KX]; PY];
                 for (row, gy) in gg.iter_mut().zip(FY::G.iter()) {
-                    for (taps, &cy) in taps.iter().zip(gy) {
-                        for (r, &tap) in row.iter_mut().zip(taps) {
-                            *r += cy * self.direct[at + tap] as f64;
+                    for (g, &cy) in g.iter().zip(gy) {
+                        for (r, g) in row.iter_mut().zip(g) {
+                            for (r, &g) in r.iter_mut().zip(g) {
+                                *r += cy * g;
+                            }
                         }
                     }
                 }
                 for (r, row) in gg.iter().enumerate() {
                     for (s, gx) in FX::G.iter().enumerate() {
-                        let sum: f64 = row.iter().zip(gx).map(|(&v, &cx)| v * cx).sum();
-                        self.packed[w.packed_index(first + r * PX + s, ic, oc)] = sum as f32;
+                        let mut sum = [0.0f64; OC_ALIGN];
+                        for (v, &cx) in row.iter().zip(gx) {
+                            for (sum, &v) in sum.iter_mut().zip(v) {
+                                *sum += v * cx;
+                            }
+                        }
+                        let at = w.packed_index(first + r * PX + s, ic, oc0);
+                        for (p, &sum) in self.packed[at..at + lanes].iter_mut().zip(&sum) {
+                            *p = sum as f32;
+                        }
                     }
                 }
             }
