@@ -267,20 +267,30 @@ impl PhaseFn for WeightTransform<'_> {
         let taps: [[(usize, usize); KX]; KY] =
             core::array::from_fn(|my| core::array::from_fn(|mx| (w.tap(py, my), w.tap(px, mx))));
         let channels = shape.output.channels;
+        let oc_step = shape.packed_index(0, 0, 0, 1) - shape.packed_index(0, 0, 0, 0);
         for oc0 in (0..channels).step_by(OC_ALIGN) {
             let lanes = OC_ALIGN.min(channels - oc0);
             for ic in 0..shape.input.channels {
                 let mut g = [[[0.0f64; OC_ALIGN]; KX]; KY];
                 for (g, taps) in g.iter_mut().zip(&taps) {
                     for (g, &(ty, tx)) in g.iter_mut().zip(taps) {
-                        for (lane, g) in g[..lanes].iter_mut().enumerate() {
-                            *g = self.direct[shape.packed_index(ty, tx, ic, oc0 + lane)] as f64;
+                        let at = shape.packed_index(ty, tx, ic, oc0);
+                        if oc_step == 1 {
+                            for (g, &d) in g.iter_mut().zip(&self.direct[at..at + lanes]) {
+                                *g = d as f64;
+                            }
+                        } else {
+                            for (lane, g) in g[..lanes].iter_mut().enumerate() {
+                                *g = self.direct[at + lane * oc_step] as f64;
+                            }
                         }
                     }
                 }
+                // The coefficients are constants: the zeros among them are skipped at compile
+                // time (their products could only change the sign of a zero).
                 let mut gg = [[[0.0f64; OC_ALIGN]; KX]; PY];
                 for (row, gy) in gg.iter_mut().zip(FY::G.iter()) {
-                    for (g, &cy) in g.iter().zip(gy) {
+                    for (g, &cy) in g.iter().zip(gy).filter(|&(_, &cy)| cy != 0.0) {
                         for (r, g) in row.iter_mut().zip(g) {
                             for (r, &g) in r.iter_mut().zip(g) {
                                 *r += cy * g;
@@ -291,7 +301,7 @@ impl PhaseFn for WeightTransform<'_> {
                 for (r, row) in gg.iter().enumerate() {
                     for (s, gx) in FX::G.iter().enumerate() {
                         let mut sum = [0.0f64; OC_ALIGN];
-                        for (v, &cx) in row.iter().zip(gx) {
+                        for (v, &cx) in row.iter().zip(gx).filter(|&(_, &cx)| cx != 0.0) {
                             for (sum, &v) in sum.iter_mut().zip(v) {
                                 *sum += v * cx;
                             }
