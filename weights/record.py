@@ -1,11 +1,23 @@
 """Record CarRacing driving as an episodes file (see episodes.py).
 
-A scripted driver follows the track centre line with pure pursuit. The point it aims at
-drifts across the road (smooth random lateral offset), the steering gets coloured noise and
-the target speed changes every few seconds, so the controls vary while the car mostly stays
-on the road.
+A scripted driver follows the track centre line with pure pursuit; `--driver` picks its style:
+
+- `steady` (the default model's training data): the point it aims at drifts across the road
+  (smooth random lateral offset), the steering gets coloured noise and the target speed
+  changes every few seconds, so the controls vary while the car mostly stays on the road.
+- `varied` (data that teaches steering): every few seconds a new manoeuvre, drawn at random:
+  steady driving with a random steering gain (soft or hard turns), a swerve that aims up to
+  one and a half half-roads to one side (off the road sometimes) and then recovers to the
+  centre, as the recovery laps of behavioural-cloning data; target speeds from crawling to
+  fast.
+- `hard` (a second style, held out for evaluation): twice the steering gain, stronger
+  steering noise and slower, as a nervous human driver.
+
+`--colours random` redraws the road and grass colours for every episode (gymnasium's
+`domain_randomize`); `mixed` does so for every other seed.
 
   weights/tool record --seeds 0-39 --frames 600 --out data/train.safetensors.gz
+  weights/tool record --seeds 100-139 --driver varied --colours mixed --out data/varied.safetensors.gz
 """
 
 import argparse
@@ -65,18 +77,29 @@ class OU:
         return self.x
 
 
+DRIVERS = ("steady", "varied", "hard")
+COLOURS = ("default", "random", "mixed")
+
+
 class Driver:
-    def __init__(self, track, rng):
+    """Pure pursuit on a point ahead of the car, shifted sideways, in one of `DRIVERS`' styles."""
+
+    def __init__(self, track, rng, style="steady"):
         self.centre = np.array([(x, y) for _, _, x, y in track])
         seg = np.roll(self.centre, -1, axis=0) - self.centre
         self.seg_len = np.linalg.norm(seg, axis=1)
         tangent = seg / self.seg_len[:, None]
         self.left = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
         self.heading = np.unwrap(np.arctan2(tangent[:, 1], tangent[:, 0]))
-        self.rng = rng
+        self.rng, self.style = rng, style
         self.offset = OU(rng, theta=0.02, sigma=0.08)
-        self.steer_noise = OU(rng, theta=0.15, sigma=0.06)
-        self.target_speed = rng.uniform(25, 60)
+        self.steer_noise = OU(rng, theta=0.15, sigma=0.12 if style == "hard" else 0.06)
+        self.gain = 2 * GAIN if style == "hard" else GAIN
+        self.speeds = {"steady": (25, 60), "varied": (10, 70), "hard": (15, 40)}[style]
+        self.target_speed = rng.uniform(*self.speeds)
+        # `varied`: the current manoeuvre's lateral aim (half-roads; None follows the drift)
+        # and the seconds it has left.
+        self.aim, self.manoeuvre_left = None, 0.0
         self.i = None
 
     def nearest(self, pos):
@@ -96,28 +119,41 @@ class Driver:
             j += 1
         return j % n
 
+    def lateral(self, frame_seconds):
+        """Where across the road to aim, in half-roads (positive: left of the centre line)."""
+        drift = float(np.clip(self.offset(), -0.6, 0.6))
+        if self.style != "varied":
+            return drift
+        self.manoeuvre_left -= frame_seconds
+        if self.manoeuvre_left <= 0:
+            kind = self.rng.choice(["follow", "swerve", "recover"], p=[0.5, 0.3, 0.2])
+            self.gain = GAIN * self.rng.uniform(0.6, 2.5)  # soft or hard turns
+            self.aim = {"follow": None, "swerve": self.rng.choice([-1, 1]) * self.rng.uniform(0.7, 1.5),
+                        "recover": 0.0}[kind]
+            self.manoeuvre_left = self.rng.uniform(1.0, 4.0)
+        return drift if self.aim is None else self.aim
+
     def act(self, car, frame_seconds):
         pos = np.array(car.hull.position)
         speed = float(np.linalg.norm(car.hull.linearVelocity))
         i, off_centre = self.nearest(pos)
 
         if self.rng.random() < frame_seconds / 3.0:  # new target speed every ~3 s
-            self.target_speed = self.rng.uniform(25, 60)
+            self.target_speed = self.rng.uniform(*self.speeds)
         # Slow down before bends: heading change over the next 40 units of track.
         j = self.ahead(i, 40.0)
         bend = abs(math.remainder(self.heading[j] - self.heading[i], 2 * math.pi))
         target_speed = min(self.target_speed, 60.0 / (1.0 + 3.0 * bend))
 
-        # Pure pursuit on a point ahead, shifted sideways by the drifting offset.
+        # Pure pursuit on a point ahead, shifted sideways.
         lookahead = 6.0 + 0.35 * speed
         j = self.ahead(i, lookahead)
-        offset = float(np.clip(self.offset(), -0.6, 0.6))
-        target = self.centre[j] + offset * HALF_ROAD * self.left[j]
+        target = self.centre[j] + self.lateral(frame_seconds) * HALF_ROAD * self.left[j]
         forward = np.array([-math.sin(car.hull.angle), math.cos(car.hull.angle)])
         left = np.array([-forward[1], forward[0]])
         to = target - pos
         alpha = math.atan2(float(to @ left), float(to @ forward))
-        steer = float(np.clip(-GAIN * alpha + self.steer_noise(), -1.0, 1.0))  # env: -1 steers left
+        steer = float(np.clip(-self.gain * alpha + self.steer_noise(), -1.0, 1.0))  # env: -1 steers left
 
         gas = float(np.clip(0.05 * (target_speed - speed), 0.0, 0.5))
         brake = float(np.clip(0.05 * (speed - target_speed - 5.0), 0.0, 0.8))
@@ -128,11 +164,11 @@ def off_playfield(car):
     return max(abs(car.hull.position[0]), abs(car.hull.position[1])) > car_racing.PLAYFIELD
 
 
-def record_episode(seed, frames, frame_skip):
+def record_episode(seed, frames, frame_skip, style="steady", random_colours=False):
     """One episode from a seed: (frames [M,H,W,3], actions [M,2], fraction of frames on the road)."""
-    env = car_racing.CarRacing()
+    env = car_racing.CarRacing(domain_randomize=random_colours)
     env.reset(seed=seed)
-    driver = Driver(env.track, np.random.default_rng(seed))
+    driver = Driver(env.track, np.random.default_rng(seed), style)
     for _ in range(WARMUP_STEPS):
         env.step(np.array([0.0, 0.3, 0.0], dtype=np.float32))
     out_frames, out_actions, on_road = [], [], 0
@@ -149,9 +185,10 @@ def record_episode(seed, frames, frame_skip):
 
 
 def _record(job):
-    seed, frames, frame_skip = job
-    f, a, on_road = record_episode(seed, frames, frame_skip)
-    print(f"seed {seed}: {len(f)} frames, {on_road:.0%} on the road, "
+    seed, frames, frame_skip, style, random_colours = job
+    f, a, on_road = record_episode(seed, frames, frame_skip, style, random_colours)
+    colours = ", random colours" if random_colours else ""
+    print(f"seed {seed}{colours}: {len(f)} frames, {on_road:.0%} on the road, "
           f"speed {a[:, 0].mean():.1f}±{a[:, 0].std():.1f}, steering ±{np.abs(a[:, 1]).mean():.2f}",
           flush=True)
     return episodes.Episodes(f, a, np.zeros(1, dtype=np.int64))
@@ -163,16 +200,21 @@ def main(argv=None):
     p.add_argument("--frames", type=int, default=600, help="frames per episode")
     p.add_argument("--frame-skip", type=int, default=4, help="env steps (50 Hz) per recorded frame")
     p.add_argument("--workers", type=int, default=os.cpu_count(), help="parallel processes")
+    p.add_argument("--driver", choices=DRIVERS, default="steady", help="driving style (see above)")
+    p.add_argument("--colours", choices=COLOURS, default="default",
+                   help="road and grass colours: the env's, random per episode, or random for every other seed")
     p.add_argument("--out", required=True, help="episodes file (.safetensors or .safetensors.gz)")
     args = p.parse_args(argv)
     if args.frames < 1 or args.frame_skip < 1 or args.workers < 1:
         p.error("--frames, --frame-skip and --workers must be positive")
 
-    jobs = [(s, args.frames, args.frame_skip) for s in args.seeds]
+    random = {"default": lambda s: False, "random": lambda s: True, "mixed": lambda s: s % 2 == 1}[args.colours]
+    jobs = [(s, args.frames, args.frame_skip, args.driver, random(s)) for s in args.seeds]
     with Pool(min(args.workers, len(jobs))) as pool:
         parts = pool.map(_record, jobs, chunksize=1)
     data = episodes.Episodes.concat(parts)
     meta = {"source": "gymnasium CarRacing-v3 scripted driver", "seeds": ",".join(map(str, args.seeds)),
+            "driver": args.driver, "colours": args.colours,
             "frame_hz": str(car_racing.FPS / args.frame_skip)}
     episodes.write(args.out, data, meta)
     print(f"wrote {args.out}: {len(data)} episodes, {len(data.frames)} frames")

@@ -1,5 +1,6 @@
 """Tests of the data tools: episodes format, comma converter, CarRacing recorder."""
 
+import json
 import re
 
 import h5py
@@ -202,6 +203,27 @@ def test_record_short_episode():
     assert record.parse_seeds("0-2,7") == [0, 1, 2, 7]
 
 
+@pytest.mark.parametrize("style", ["varied", "hard"])
+def test_record_driver_styles(style):
+    record = pytest.importorskip("record")
+    frames, actions, _ = record.record_episode(seed=4, frames=40, frame_skip=2, style=style, random_colours=True)
+    assert frames.shape == (40, 80, 160, 3) and np.all(np.abs(actions[:, 1]) <= 1)
+    steady, _, _ = record.record_episode(seed=4, frames=1, frame_skip=2)
+    # Random colours: the first frame (the car still at the start line) differs from the env's colours.
+    assert np.abs(frames[0].astype(int) - steady[0]).mean() > 10
+
+
+def test_road_offset_finds_a_grey_band():
+    pytest.importorskip("torch")
+    import train
+
+    frame = np.zeros((80, 160, 3), np.uint8)
+    frame[..., 1] = 200  # grass
+    assert train.road_offset(frame) is None
+    frame[:, 100:120] = 105  # road from column 100 to 119: its centre 29.5 px right of the car
+    assert train.road_offset(frame) == pytest.approx(29.5)
+
+
 def test_fit_and_eval_tiny(tmp_path):
     """A few steps of both training phases and the evaluation, on a tiny model and data set."""
     pytest.importorskip("torch")
@@ -224,6 +246,10 @@ def test_fit_and_eval_tiny(tmp_path):
                 "--figures", str(tmp_path / "fig"), "--seed-clip", str(tmp_path / "clip.safetensors")])
     for name in ("eval.json", "reconstruction.png", "steering.png", "contact_sheet.png"):
         assert (tmp_path / "fig" / name).is_file()
+    fidelity = json.loads((tmp_path / "fig" / "eval.json").read_text())["fidelity"]
+    assert fidelity["psnr_p10_db"] <= fidelity["psnr_db"]
+    assert fidelity["latent"]["windows"] > 0 and fidelity["latent"]["ratio_30"] > 0
+    assert set(fidelity["road_moves_right_way"]) == {"0.3", "0.6"}
     assert episodes.read(tmp_path / "clip.safetensors").frames.shape == (8, 32, 64, 3)
 
 

@@ -419,6 +419,72 @@ def rollout(model, seed_codes, actions):
     return predict(model.transition, z[None], actions[None], len(seed_codes))[0, len(seed_codes) - 1:]
 
 
+def road_offset(frame):
+    """The road's centre in a band just ahead of the car minus the car's column, in pixels, or
+    None where no road shows (grey pixels against grass, as examples/drive.rs measures it)."""
+    h, w, _ = frame.shape
+    band = frame[h * 6 // 10:h * 3 // 4].astype(np.int16)
+    lo, hi = band.min(2), band.max(2)
+    grey = (hi - lo < 25) & (hi < 170) & (hi > 60)
+    xs = np.nonzero(grey)[1]
+    return float(xs.mean() - w // 2) if len(xs) else None
+
+
+FED_BACK = (10, 30)  # fed-back steps at which the latent error is reported
+DIRECTION_SEEDS, DIRECTION_STEPS, DIRECTION_STEER = 50, 30, (0.3, 0.6)
+
+
+@torch.no_grad()
+def fidelity(model, data, codes, recon, frames, actions, decode):
+    """The fidelity figures of issue 19 on held-out episodes: reconstruction PSNR (mean and
+    10th percentile over frames); the latent error after 10 and 30 fed-back steps against
+    predicting the data's mean code; how often the road ends up further left under constant
+    right steering than under left (road centre in the band ahead, 30 steps, 50 starts); and the
+    norm of rolled-out codes against encoded frames."""
+    per_frame = ((recon.clamp(-1, 1) - to_input(frames)) * 127.5).square().flatten(1).mean(1)
+    per_frame = 10 * torch.log10(255.0**2 / per_frame.clamp_min(1e-10))
+    out = dict(psnr_db=float(per_frame.mean()), psnr_p10_db=float(per_frame.quantile(0.1)))
+
+    horizon = max(FED_BACK)
+    starts = windows(data, TEACHER + horizon)
+    if len(starts):
+        starts = starts[::5]
+        idx = torch.as_tensor(starts)[:, None] + torch.arange(TEACHER + horizon)
+        z, c = codes[idx], actions[idx[:, :-1]]
+        pred = predict(model.transition, z, c, TEACHER)  # pred[:, t]: the code of frame t+1
+        mean_code = codes.mean(0)
+        latent = dict(windows=len(starts))
+        for k in FED_BACK:
+            t = TEACHER - 1 + k  # the k-th fed-back prediction
+            err = float((pred[:, t - 1] - z[:, t]).square().mean())
+            base = float((mean_code - z[:, t]).square().mean())
+            latent[f"mse_{k}"], latent[f"mean_code_mse_{k}"], latent[f"ratio_{k}"] = err, base, err / base
+        out["latent"] = latent
+        fed = pred[:, TEACHER - 1:]
+        out["code_norm"] = dict(rollout=float(fed.norm(dim=2).mean()), encoded=float(codes.norm(dim=1).mean()))
+        out["code_norm"]["ratio"] = out["code_norm"]["rollout"] / out["code_norm"]["encoded"]
+
+    starts = windows(data, TEACHER)
+    if len(starts):
+        picks = starts[np.linspace(0, len(starts) - 1, DIRECTION_SEEDS).astype(int)]
+        seeds = codes[torch.as_tensor(picks)[:, None] + torch.arange(TEACHER)]
+        speed = actions[torch.as_tensor(picks) + TEACHER - 1, 0]
+        direction = {}
+        for steer in DIRECTION_STEER:
+            ends = {}
+            for sign in (-1, 1):
+                c = torch.stack([speed, torch.full_like(speed, sign * steer)], 1)[:, None]
+                c = c.expand(-1, TEACHER - 1 + DIRECTION_STEPS, -1)
+                z = torch.cat([seeds, seeds.new_zeros(len(seeds), DIRECTION_STEPS, seeds.shape[2])], 1)
+                last = predict(model.transition, z, c, TEACHER)[:, -1]
+                ends[sign] = [road_offset(f) for f in decode(last)]
+            # Steering right (positive) turns the car right: the road moves left in the image.
+            right_way = [l is not None and r is not None and r < l for l, r in zip(ends[-1], ends[1])]
+            direction[str(steer)] = float(np.mean(right_way))
+        out["road_moves_right_way"] = direction
+    return out
+
+
 @torch.no_grad()
 def evaluate(args):
     model, cfg = load_drivesim(args.weights)
@@ -452,6 +518,8 @@ def evaluate(args):
         copy_last_10_step=mse(z[:, first], z[:, last + 1]),
         code_variance=float(codes.var(0).mean()),  # baseline: predict the mean code
     )
+
+    result["fidelity"] = fidelity(model, data, codes, recon, frames, actions, decode)
 
     # Steering response: same seed frames, constant actions, 30 steps.
     s0, _ = data.bounds()[0]
