@@ -222,6 +222,13 @@ def test_road_offset_finds_a_grey_band():
     assert train.road_offset(frame) is None
     frame[:, 100:120] = 105  # road from column 100 to 119: its centre 29.5 px right of the car
     assert train.road_offset(frame) == pytest.approx(29.5)
+    grass = np.zeros_like(frame)
+    grass[..., 1] = 200
+    left = grass.copy()
+    left[:, 40:60] = 105  # centre 49.5: 30.5 px left of the car
+    # Frames without road do not count; the others' offsets are averaged.
+    assert train.mean_offset([frame, grass, left]) == pytest.approx((29.5 - 30.5) / 2)
+    assert train.mean_offset([grass]) is None
 
 
 def test_fit_and_eval_tiny(tmp_path):
