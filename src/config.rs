@@ -124,7 +124,9 @@ impl Config {
 
     /// Parses the `drivesim.config` JSON object and validates it.
     pub fn from_json(json: &str) -> Result<Config> {
-        let bad = |reason: String| Error::Metadata { reason };
+        let bad = |reason: String| Error::Metadata {
+            reason: format!("`{}`: {reason}", Config::METADATA_KEY),
+        };
         let value: serde_json::Value = serde_json::from_str(json).map_err(|e| bad(format!("{e} in {json:?}")))?;
         let object = value
             .as_object()

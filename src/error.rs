@@ -16,7 +16,8 @@ pub enum Error {
         /// What the parser found wrong.
         reason: String,
     },
-    /// The `drivesim.config` metadata is missing or is not the expected JSON object.
+    /// The `drivesim.config` metadata is missing or is not the expected JSON object, or another
+    /// `drivesim.*` key (`drivesim.actions`, `drivesim.frame_hz`) cannot be read.
     Metadata {
         /// What is missing or wrong, with the JSON found.
         reason: String,
@@ -210,7 +211,7 @@ impl fmt::Display for Error {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Error::Malformed { what, reason } => write!(f, "not a readable safetensors {what}: {reason}"),
-            Error::Metadata { reason } => write!(f, "bad `drivesim.config` metadata: {reason}"),
+            Error::Metadata { reason } => write!(f, "bad weight-file metadata: {reason}"),
             Error::Config { field, expected, found } => {
                 write!(f, "config `{field}`: expected {expected}, found {found}")
             }

@@ -4,7 +4,7 @@ use crate::actions::ActionSpec;
 use crate::encoder::Encoder;
 use crate::generator::Generator;
 use crate::transition::Transition;
-use crate::weights::{RandomSource, SafetensorsSource, TensorSource, WeightDtype};
+use crate::weights::{Described, RandomSource, SafetensorsSource, TensorSource, WeightDtype};
 use crate::{Config, Result};
 use alloc::vec::Vec;
 
@@ -17,6 +17,7 @@ use alloc::vec::Vec;
 pub struct Model {
     config: Config,
     actions: Option<Vec<ActionSpec>>,
+    frame_hz: Option<f32>,
     pub(crate) encoder: Encoder,
     pub(crate) generator: Generator,
     pub(crate) transition: Transition,
@@ -44,20 +45,25 @@ impl Model {
     /// Builds a model from the bytes of a weight file. The bytes need no particular alignment,
     /// so `include_bytes!` works on targets without a file system.
     pub fn from_bytes(bytes: &[u8]) -> Result<Model> {
-        let (config, actions, mut src) = SafetensorsSource::parse(bytes)?;
-        Model::build(config, actions, &mut src)
+        let (config, described, mut src) = SafetensorsSource::parse(bytes)?;
+        Model::build(config, described, &mut src)
     }
 
     /// A model with seeded pseudo-random weights (for tests and benchmarks): the same seed and
     /// config give the same model on every platform.
     pub fn random(config: &Config, seed: u64, dtype: WeightDtype) -> Result<Model> {
         config.validate()?;
-        Model::build(*config, None, &mut RandomSource::new(seed, dtype))
+        let described = Described {
+            actions: None,
+            frame_hz: None,
+        };
+        Model::build(*config, described, &mut RandomSource::new(seed, dtype))
     }
 
-    fn build(config: Config, actions: Option<Vec<ActionSpec>>, src: &mut dyn TensorSource) -> Result<Model> {
+    fn build(config: Config, described: Described, src: &mut dyn TensorSource) -> Result<Model> {
         let model = Model {
-            actions,
+            actions: described.actions,
+            frame_hz: described.frame_hz,
             encoder: Encoder::load(&config, src)?,
             generator: Generator::load(&config, src)?,
             transition: Transition::load(&config, src)?,
@@ -71,6 +77,19 @@ impl Model {
     /// `drivesim.actions` metadata; `None` for files without it (and random models).
     pub fn actions(&self) -> Option<&[ActionSpec]> {
         self.actions.as_deref()
+    }
+
+    /// The frame rate the model was trained at, in frames per second (one transition step is
+    /// `1 / frame_hz` seconds), from the file's `drivesim.frame_hz` metadata; `None` for files
+    /// without it (and random models).
+    ///
+    /// ```
+    /// let model = drivesim::Model::load("weights/default.safetensors")?;
+    /// assert_eq!(model.frame_hz(), Some(12.5)); // CarRacing's 50 Hz physics, every 4th step
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
+    pub fn frame_hz(&self) -> Option<f32> {
+        self.frame_hz
     }
 
     /// Checks a plan of actions (`action_dim` values per step) against the ranges the model

@@ -79,7 +79,7 @@ fn expect_finite_weights(name: &str, values: impl Iterator<Item = f32>) -> Resul
 impl<'a> SafetensorsSource<'a> {
     /// Parses the header, the config and the action metadata (if any); tensors are read on
     /// demand.
-    pub(crate) fn parse(bytes: &'a [u8]) -> Result<(Config, Option<Vec<ActionSpec>>, Self)> {
+    pub(crate) fn parse(bytes: &'a [u8]) -> Result<(Config, Described, Self)> {
         let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
         let json = metadata
             .metadata()
@@ -89,9 +89,12 @@ impl<'a> SafetensorsSource<'a> {
                 reason: format!("no `{}` key in the file's metadata", Config::METADATA_KEY),
             })?;
         let config = Config::from_json(json)?;
-        let actions = match metadata.metadata().as_ref().and_then(|m| m.get(ACTIONS_KEY)) {
-            Some(json) => Some(ActionSpec::parse_all(json, config.action_dim)?),
-            None => None,
+        let key = |k: &str| metadata.metadata().as_ref().and_then(|m| m.get(k));
+        let described = Described {
+            actions: key(ACTIONS_KEY)
+                .map(|json| ActionSpec::parse_all(json, config.action_dim))
+                .transpose()?,
+            frame_hz: key(FRAME_HZ_KEY).map(|text| parse_frame_hz(text)).transpose()?,
         };
         let file = SafeTensors::deserialize(bytes).map_err(malformed)?;
         // One supported dtype per file (`weights/README.md`): name the first tensor, in name
@@ -114,7 +117,28 @@ impl<'a> SafetensorsSource<'a> {
                 });
             }
         }
-        Ok((config, actions, SafetensorsSource { file, read: Vec::new() }))
+        Ok((config, described, SafetensorsSource { file, read: Vec::new() }))
+    }
+}
+
+/// The metadata key of the frame rate a model was trained at: a decimal number of frames per
+/// second (`"12.5"`), as the episodes files' `frame_hz`.
+pub(crate) const FRAME_HZ_KEY: &str = "drivesim.frame_hz";
+
+/// What a weight file says about its inputs beyond the config: what the actions mean
+/// (`drivesim.actions`) and how far apart its frames are (`drivesim.frame_hz`).
+pub(crate) struct Described {
+    pub actions: Option<Vec<ActionSpec>>,
+    pub frame_hz: Option<f32>,
+}
+
+/// A `drivesim.frame_hz` value: a finite number above zero.
+fn parse_frame_hz(text: &str) -> Result<f32> {
+    match text.trim().parse::<f32>() {
+        Ok(hz) if hz.is_finite() && hz > 0.0 => Ok(hz),
+        _ => Err(Error::Metadata {
+            reason: format!("`{FRAME_HZ_KEY}`: expected frames per second above zero, found {text:?}"),
+        }),
     }
 }
 

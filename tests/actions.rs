@@ -1,5 +1,5 @@
-//! `drivesim.actions`: the action metadata of a weight file, read, checked, written back by
-//! the trainer, and absent from older files.
+//! `drivesim.actions` and `drivesim.frame_hz`: what a weight file says its inputs mean, read,
+//! checked, written back by the trainer, and absent from older files.
 
 mod common;
 
@@ -10,10 +10,15 @@ use std::collections::HashMap;
 
 /// A fixture weight file (no action metadata) with `drivesim.actions` set to `json`.
 fn with_actions(json: &str) -> Vec<u8> {
+    with_metadata("drivesim.actions", json)
+}
+
+/// A fixture weight file with the metadata `key` set to `value`.
+fn with_metadata(key: &str, value: &str) -> Vec<u8> {
     let bytes = std::fs::read(fixture_path("small_f32.safetensors")).unwrap();
     let (_, metadata) = SafeTensors::read_metadata(&bytes).unwrap();
     let mut metadata: HashMap<String, String> = metadata.metadata().clone().unwrap();
-    metadata.insert("drivesim.actions".into(), json.into());
+    metadata.insert(key.into(), value.into());
     let file = SafeTensors::deserialize(&bytes).unwrap();
     safetensors::serialize(file.tensors(), Some(metadata)).unwrap()
 }
@@ -88,5 +93,22 @@ fn bad_metadata_is_an_error() {
             matches!(Model::from_bytes(&with_actions(&json)), Err(Error::Metadata { .. })),
             "{json}"
         );
+    }
+}
+
+#[test]
+fn frame_rate_is_read_and_checked() {
+    let model = Model::from_bytes(&with_metadata("drivesim.frame_hz", "12.5")).unwrap();
+    assert_eq!(model.frame_hz(), Some(12.5));
+    let plain = std::fs::read(fixture_path("small_f32.safetensors")).unwrap();
+    assert_eq!(Model::from_bytes(&plain).unwrap().frame_hz(), None);
+    for bad in ["0", "-12.5", "inf", "NaN", "twelve", ""] {
+        match Model::from_bytes(&with_metadata("drivesim.frame_hz", bad)) {
+            Err(Error::Metadata { reason }) => assert!(reason.contains("drivesim.frame_hz"), "{reason}"),
+            other => panic!(
+                "{bad:?}: expected a metadata error, got {:?}",
+                other.map(|m| m.frame_hz())
+            ),
+        }
     }
 }

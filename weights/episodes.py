@@ -7,6 +7,7 @@ Tensors (see the "Episodes format" section of weights/README.md):
 """
 
 import gzip
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -107,14 +108,31 @@ def write(path, episodes, metadata=None):
     path.write_bytes(blob)
 
 
-def read(path):
+def _blob(path):
     path = Path(path)
     if not path.is_file():
         raise EpisodesError(f"{path}: no such file")
     blob = path.read_bytes()
     try:
-        if path.suffix == ".gz":
-            blob = gzip.decompress(blob)
+        return gzip.decompress(blob) if path.suffix == ".gz" else blob
+    except Exception as e:
+        raise EpisodesError(f"{path}: not a (gzipped) safetensors file ({e})") from e
+
+
+def metadata(path):
+    """The str->str metadata of an episodes file (`source`, `seeds`, `frame_hz`, ...), {} if none."""
+    blob = _blob(path)
+    try:
+        size = int.from_bytes(blob[:8], "little")
+        header = json.loads(blob[8:8 + size])
+    except Exception as e:
+        raise EpisodesError(f"{path}: not a (gzipped) safetensors file ({e})") from e
+    return dict(header.get("__metadata__") or {})
+
+
+def read(path):
+    blob = _blob(path)
+    try:
         tensors = load(blob)
     except Exception as e:  # safetensors raises several types for a bad header
         raise EpisodesError(f"{path}: not a (gzipped) safetensors file ({e})") from e

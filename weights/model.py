@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,7 @@ CONFIG_KEY = "drivesim.config"
 # What each action input means and the range it was trained on: a JSON array of
 # {"name", "unit", "mean", "std", "min", "max"}, one per action (weights/README.md §3).
 ACTIONS_KEY = "drivesim.actions"
+FRAME_HZ_KEY = "drivesim.frame_hz"  # frames per second the model was trained at, e.g. "12.5"
 # A weight file may also carry the VAE-GAN's discriminator (train.py's `Discriminator`) under
 # this prefix, so that training can resume from it; inference ignores those tensors.
 DISCRIMINATOR = "discriminator."
@@ -204,9 +206,11 @@ def state_tensors(model: nn.Module, dtype: str | torch.dtype = "f32") -> dict[st
 
 
 def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | torch.dtype = "f32",
-                  actions: list[dict] | None = None, discriminator: nn.Module | None = None) -> None:
+                  actions: list[dict] | None = None, discriminator: nn.Module | None = None,
+                  frame_hz: float | None = None) -> None:
     """Write the drivesim safetensors file; dtype is "f32", "f16", "bf16" or a torch dtype;
     `actions`, if given, becomes the `drivesim.actions` metadata (one dict per action);
+    `frame_hz`, if given, the `drivesim.frame_hz` metadata (the training data's frame rate);
     `discriminator`, if given, is stored under the prefix `discriminator.`."""
     if DTYPES.get(dtype, dtype) not in DTYPES.values():
         raise ValueError(f"unsupported dtype {dtype!r}")
@@ -215,6 +219,10 @@ def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | t
         if len(actions) != cfg.action_dim:
             raise ValueError(f"{len(actions)} action descriptions for {cfg.action_dim} actions")
         metadata[ACTIONS_KEY] = json.dumps(actions)
+    if frame_hz is not None:
+        if not (math.isfinite(frame_hz) and frame_hz > 0):
+            raise ValueError(f"frame_hz must be a number above zero, got {frame_hz!r}")
+        metadata[FRAME_HZ_KEY] = repr(float(frame_hz))
     tensors = state_tensors(model, dtype)
     if discriminator is not None:
         tensors.update({DISCRIMINATOR + k: v for k, v in state_tensors(discriminator, dtype).items()})

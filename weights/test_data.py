@@ -243,12 +243,16 @@ def test_fit_and_eval_tiny(tmp_path):
         np.stack([rng.uniform(10, 40, 240), rng.uniform(-1, 1, 240)], 1).astype(np.float32),
         np.array([0, 120], dtype=np.int64),
     )
-    episodes.write(tmp_path / "d.safetensors", data)
+    episodes.write(tmp_path / "d.safetensors", data, {"frame_hz": "12.5"})
+    assert episodes.metadata(tmp_path / "d.safetensors") == {"frame_hz": "12.5"}
     train.main(["fit", "--data", str(tmp_path / "d.safetensors"), "--out", str(tmp_path / "m.safetensors"),
                 "--device", "cpu", "--base-channels", "4", "--z-dim", "8", "--hidden-dim", "8",
                 "--vae-steps", "2", "--transition-steps", "2", "--batch", "4", "--transition-batch", "4"])
     model, cfg = load_drivesim(tmp_path / "m.safetensors")
     assert (cfg.height, cfg.width, cfg.z_dim) == (32, 64, 8)
+    from safetensors import safe_open
+    with safe_open(str(tmp_path / "m.safetensors"), framework="pt") as f:
+        assert f.metadata()["drivesim.frame_hz"] == "12.5"  # the data's rate travels with the weights
     train.main(["eval", "--weights", str(tmp_path / "m.safetensors"), "--data", str(tmp_path / "d.safetensors"),
                 "--figures", str(tmp_path / "fig"), "--seed-clip", str(tmp_path / "clip.safetensors")])
     for name in ("eval.json", "reconstruction.png", "steering.png", "contact_sheet.png"):

@@ -391,7 +391,9 @@ def fit(args):
     low, high = actions.min(0).values.tolist(), actions.max(0).values.tolist()
     described = [dict(name=name, unit="as recorded", mean=m, std=sd, min=lo, max=hi) for name, m, sd, lo, hi
                  in zip(("speed", "steering"), norm["action_mean"], norm["action_std"], low, high)]
-    save_drivesim(model.cpu(), cfg, out, args.dtype, actions=described, discriminator=dis.cpu())
+    hz = episodes.metadata(args.data).get("frame_hz")
+    save_drivesim(model.cpu(), cfg, out, args.dtype, actions=described, discriminator=dis.cpu(),
+                  frame_hz=float(hz) if hz else None)
     out.with_suffix(".log.json").write_text(json.dumps(log, indent=1))
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB) in {t2 - t0:.0f} s", flush=True)
     if world() > 1:
