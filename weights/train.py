@@ -550,8 +550,10 @@ def evaluate(args):
         identical_actions_pixel_mad=float(np.abs(img["l"] - img["l2"]).mean()),
         identical_actions_latent_mse=mse(left, left_again),
     )
+    straight = decode(constant(0.0))
     every = list(range(2, steps, 3))
-    sheet([list(img["l"][every].astype(np.uint8)), list(img["r"][every].astype(np.uint8))]).save(figs / "steering.png")
+    rows = [img["l"][every].astype(np.uint8), straight[every], img["r"][every].astype(np.uint8)]
+    sheet([list(row) for row in rows]).save(figs / "steering.png")  # left, straight, right
 
     # Contact sheet: 5 seed frames, then every 10th frame of a 100-step rollout driven by
     # the recorded actions; the row below shows the recorded frames at the same steps.
