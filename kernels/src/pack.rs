@@ -131,10 +131,15 @@ pub fn conv_grad_to_torch(shape: &ConvShape, packed: &[f32], torch: &mut [f32]) 
     let cols = k * k * ic;
     assert_eq!(packed.len(), Matrix::packed_len(oc, cols));
     assert_eq!(torch.len(), oc * cols);
-    for (o, row) in torch.chunks_exact_mut(cols).enumerate() {
-        for (i, per_input) in row.chunks_exact_mut(k * k).enumerate() {
-            for (tap, t) in per_input.iter_mut().enumerate() {
-                *t = packed[Matrix::packed_index(o, tap * ic + i, cols)];
+    // In the packed layout's order, so that it is read in one stream (a trainer converts every
+    // gradient after every step): panel, column (tap, then input), lane (output channel).
+    for (panel, values) in packed.chunks_exact(OC_ALIGN * cols).enumerate() {
+        let first = panel * OC_ALIGN;
+        let lanes = OC_ALIGN.min(oc - first);
+        for (col, column) in values.chunks_exact(OC_ALIGN).enumerate() {
+            let (tap, i) = (col / ic, col % ic);
+            for (lane, &v) in column[..lanes].iter().enumerate() {
+                torch[(first + lane) * cols + i * k * k + tap] = v;
             }
         }
     }
