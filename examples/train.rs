@@ -7,7 +7,7 @@
 //! cargo run --release --features train --example train -- vae-gan \
 //!     --weights weights/default.safetensors --episodes DATA.safetensors.gz --out tuned.safetensors \
 //!     [--heldout HELDOUT.safetensors.gz] [--steps 1000] [--batch 32] [--threads 2] [--minutes 20] \
-//!     [--every 200] [--sheet sheet.png] [--from-scratch]
+//!     [--every 200] [--sheet sheet.png] [--from-scratch] [--w-pixel 1 --w-feature 0.1 --w-kl 0.001 --w-gan 0.01]
 //! cargo run --release --features train --example train -- fit --weights W --episodes DATA \
 //!     --out model.safetensors [--from-scratch] [--vae-steps 1000] [--transition-steps 2000] [--threads 2]
 //! cargo run --release --features train --example train -- step --stage transition|vae-gan \
@@ -31,7 +31,7 @@ mod vae_gan;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use common::{bar, encode, Encoded};
-use drivesim::train::{cosine_lr, TransitionPlan, TransitionSettings, TransitionTrainer};
+use drivesim::train::{cosine_lr, TransitionPlan, TransitionSettings, TransitionTrainer, VaeGanSettings};
 use drivesim::{ActionSpec, Episodes, Model, WeightDtype};
 use safetensors::{Dtype, SafeTensors};
 use std::path::{Path, PathBuf};
@@ -150,6 +150,7 @@ struct FitArgs {
 /// `fit`: the VAE-GAN stage into OUT.autoencoder.safetensors (f32), then the transition from it.
 fn fit(args: &FitArgs) -> Result<(), String> {
     let autoencoder = args.out.with_extension("autoencoder.safetensors");
+    let defaults = VaeGanSettings::default();
     vae_gan::vae_gan(&vae_gan::VaeGanArgs {
         weights: args.weights.clone(),
         episodes: args.episodes.clone(),
@@ -166,6 +167,10 @@ fn fit(args: &FitArgs) -> Result<(), String> {
         sheet: None,
         from_scratch: args.from_scratch,
         dtype: Some(DtypeArg::F32),
+        w_pixel: defaults.pixel,
+        w_feature: defaults.feature,
+        w_kl: defaults.kl,
+        w_gan: defaults.gan,
     })?;
     transition(&TransitionArgs {
         weights: autoencoder,

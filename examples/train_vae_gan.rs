@@ -55,6 +55,18 @@ pub struct VaeGanArgs {
     /// Dtype of the written tensors (default: --weights' own)
     #[arg(long, value_enum)]
     pub dtype: Option<DtypeArg>,
+    /// Weight of the pixel L1 term (as train.py fit's --w-pixel)
+    #[arg(long, default_value_t = VaeGanSettings::default().pixel)]
+    pub w_pixel: f32,
+    /// Weight of the discriminator-feature term
+    #[arg(long, default_value_t = VaeGanSettings::default().feature)]
+    pub w_feature: f32,
+    /// Weight of the KL prior
+    #[arg(long, default_value_t = VaeGanSettings::default().kl)]
+    pub w_kl: f32,
+    /// Weight of the generator's GAN term
+    #[arg(long, default_value_t = VaeGanSettings::default().gan)]
+    pub w_gan: f32,
 }
 
 /// Frames of the held-out episodes spread evenly over them, at most this many.
@@ -175,7 +187,14 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
         picked.len() / c.frame_len(),
         plan.bytes() >> 20
     );
-    let mut trainer = VaeGanTrainer::new(&start_file, &plan, VaeGanSettings::default()).map_err(|e| e.to_string())?;
+    let settings = VaeGanSettings {
+        pixel: args.w_pixel,
+        feature: args.w_feature,
+        kl: args.w_kl,
+        gan: args.w_gan,
+        ..VaeGanSettings::default()
+    };
+    let mut trainer = VaeGanTrainer::new(&start_file, &plan, settings).map_err(|e| e.to_string())?;
     let dtype = dtype(args.dtype);
     let save = |trainer: &VaeGanTrainer| -> Result<Vec<u8>, String> {
         let bytes = trainer.weight_file(&original, dtype).map_err(|e| e.to_string())?;

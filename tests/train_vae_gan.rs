@@ -285,4 +285,35 @@ fn bad_input_is_a_typed_error() {
         Err(Error::Config { field: "batch", .. })
     ));
     assert!(VaeGanTrainer::new(b"not a weight file", &plan, VaeGanSettings::default()).is_err());
+
+    // Loss weights must be finite and not negative.
+    let plan = VaeGanPlan::new(Model::from_bytes(&f.weights).unwrap().config(), 2, 1).unwrap();
+    for (settings, name) in [
+        (
+            VaeGanSettings {
+                gan: -0.01,
+                ..Default::default()
+            },
+            "gan",
+        ),
+        (
+            VaeGanSettings {
+                kl: f32::NAN,
+                ..Default::default()
+            },
+            "kl",
+        ),
+        (
+            VaeGanSettings {
+                pixel: f32::INFINITY,
+                ..Default::default()
+            },
+            "pixel",
+        ),
+    ] {
+        match VaeGanTrainer::new(&f.weights, &plan, settings) {
+            Err(Error::Setting { name: got, .. }) => assert_eq!(got, name),
+            other => panic!("{name}: expected a setting error, got {:?}", other.map(|t| t.steps())),
+        }
+    }
 }

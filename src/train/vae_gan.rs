@@ -81,6 +81,26 @@ impl Default for VaeGanSettings {
     }
 }
 
+impl VaeGanSettings {
+    /// Every loss weight finite and at least zero, and Adam's constants valid.
+    fn check(&self) -> Result<()> {
+        let weights = [
+            ("kl", self.kl),
+            ("feature", self.feature),
+            ("pixel", self.pixel),
+            ("gan", self.gan),
+        ];
+        if let Some(&(name, value)) = weights.iter().find(|(_, w)| !(w.is_finite() && *w >= 0.0)) {
+            return Err(Error::Setting {
+                name,
+                expected: "a finite number >= 0",
+                value,
+            });
+        }
+        self.adam.check()
+    }
+}
+
 /// The losses of one step (each network's, and the terms they are made of).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct VaeGanLosses {
@@ -941,7 +961,7 @@ impl VaeGanTrainer {
                 found: 0,
             });
         }
-        settings.adam.check()?;
+        settings.check()?;
         let mut budget = Budget {
             allocate: true,
             floats: Vec::new(),
