@@ -53,11 +53,7 @@ impl Model {
     /// config give the same model on every platform.
     pub fn random(config: &Config, seed: u64, dtype: WeightDtype) -> Result<Model> {
         config.validate()?;
-        let described = Described {
-            actions: None,
-            frame_hz: None,
-        };
-        Model::build(*config, described, &mut RandomSource::new(seed, dtype))
+        Model::build(*config, Described::default(), &mut RandomSource::new(seed, dtype))
     }
 
     fn build(config: Config, described: Described, src: &mut dyn TensorSource) -> Result<Model> {

@@ -77,8 +77,8 @@ fn expect_finite_weights(name: &str, values: impl Iterator<Item = f32>) -> Resul
 }
 
 impl<'a> SafetensorsSource<'a> {
-    /// Parses the header, the config and the action metadata (if any); tensors are read on
-    /// demand.
+    /// Parses the header, the config and what the file describes (actions, frame rate, if
+    /// given); tensors are read on demand.
     pub(crate) fn parse(bytes: &'a [u8]) -> Result<(Config, Described, Self)> {
         let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
         let json = metadata
@@ -127,6 +127,7 @@ pub(crate) const FRAME_HZ_KEY: &str = "drivesim.frame_hz";
 
 /// What a weight file says about its inputs beyond the config: what the actions mean
 /// (`drivesim.actions`) and how far apart its frames are (`drivesim.frame_hz`).
+#[derive(Default)]
 pub(crate) struct Described {
     pub actions: Option<Vec<ActionSpec>>,
     pub frame_hz: Option<f32>,
