@@ -19,7 +19,10 @@ transition, before clipping) and the updated tensors: the reference of the Rust 
 stores it (`discriminator.*`), so training can resume from either side.
 
 eval: reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
-a contact sheet of a 100-step rollout, all from frames the model never saw.
+a contact sheet of a 100-step rollout, all from frames the model never saw; and the fidelity
+figures (`fidelity` in eval.json, weights/README.md §5): PSNR percentiles, the latent error
+after 10 and 30 fed-back steps against the mean code, the road's direction under constant
+steering, the fed-back codes' norm.
 """
 
 import argparse
@@ -480,7 +483,7 @@ def fidelity(model, data, codes, recon, frames, actions, decode):
         speed = actions[torch.as_tensor(picks) + TEACHER - 1, 0]
         direction = {}
         for steer in DIRECTION_STEER:
-            ends = {}
+            offsets = {}
             for sign in (-1, 1):
                 c = torch.stack([speed, torch.full_like(speed, sign * steer)], 1)[:, None]
                 c = c.expand(-1, TEACHER - 1 + DIRECTION_STEPS, -1)
@@ -488,9 +491,9 @@ def fidelity(model, data, codes, recon, frames, actions, decode):
                 # Every 3rd step: a road that turns out of the band late still counts its way.
                 fed = predict(model.transition, z, c, TEACHER)[:, TEACHER - 1 + 2::3]
                 frames_of = decode(fed.flatten(0, 1)).reshape(len(seeds), fed.shape[1], *frames.shape[1:])
-                ends[sign] = [mean_offset(rollout) for rollout in frames_of]
+                offsets[sign] = [mean_offset(rollout) for rollout in frames_of]
             # Steering right (positive) turns the car right: the road moves left in the image.
-            right_way = [l is not None and r is not None and r < l for l, r in zip(ends[-1], ends[1])]
+            right_way = [l is not None and r is not None and r < l for l, r in zip(offsets[-1], offsets[1])]
             direction[str(steer)] = float(np.mean(right_way))
         out["road_moves_right_way"] = direction
     return out
