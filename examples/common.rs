@@ -122,6 +122,8 @@ impl Gaussian {
 /// frame.
 pub struct Gif {
     encoder: gif::Encoder<BufWriter<File>>,
+    /// Hundredths of a second per frame.
+    delay: u16,
     path: PathBuf,
     w: usize,
     h: usize,
@@ -129,14 +131,19 @@ pub struct Gif {
 }
 
 impl Gif {
-    pub fn create(path: &Path, w: usize, h: usize) -> Result<Gif, String> {
+    /// A GIF of `w x h` frames (drawn at twice the size) played at `frame_hz` frames per second
+    /// (the model's, so that it plays in real time), 10 without one.
+    pub fn create(path: &Path, w: usize, h: usize, frame_hz: Option<f32>) -> Result<Gif, String> {
         let fail = |e: &dyn std::fmt::Display| format!("cannot write {}: {e}", path.display());
         let file = File::create(path).map_err(|e| fail(&e))?;
         let mut encoder =
             gif::Encoder::new(BufWriter::new(file), 2 * w as u16, 2 * h as u16, &[]).map_err(|e| fail(&e))?;
         encoder.set_repeat(gif::Repeat::Infinite).map_err(|e| fail(&e))?;
+        // GIF delays are whole hundredths of a second; browsers play delays under 2 slowly.
+        let delay = frame_hz.map_or(10.0, |hz| (100.0 / hz).round()).clamp(2.0, 100.0) as u16;
         Ok(Gif {
             encoder,
+            delay,
             path: path.to_path_buf(),
             w,
             h,
@@ -152,7 +159,7 @@ impl Gif {
             }
         }
         let mut frame = gif::Frame::from_rgb_speed(2 * w as u16, 2 * h as u16, &self.doubled, 10);
-        frame.delay = 10; // hundredths of a second
+        frame.delay = self.delay;
         self.encoder
             .write_frame(&frame)
             .map_err(|e| format!("cannot write {}: {e}", self.path.display()))

@@ -317,7 +317,10 @@ fn drive(
     let mut sheet = Vec::new();
     // The planner's drive, its first 300 frames.
     let mut gif = match driver {
-        Driver::Planner => Some(Gif::create(&args.out.join("drive.gif"), c.width, c.height)?),
+        Driver::Planner => {
+            let hz = env.simulator().model().frame_hz();
+            Some(Gif::create(&args.out.join("drive.gif"), c.width, c.height, hz)?)
+        }
         _ => None,
     };
     let mut figures = Figures {

@@ -56,8 +56,8 @@ struct Args {
     /// Output folder
     #[arg(long, default_value = "hallucination")]
     out: PathBuf,
-    /// At most this many frames (seed frames included) go into rollout.gif, at 10 per second;
-    /// 0 writes no GIF
+    /// At most this many frames (seed frames included) go into rollout.gif, at the model's
+    /// frame rate (`drivesim.frame_hz`; 10 per second without it); 0 writes no GIF
     #[arg(long, default_value_t = 300)]
     gif_frames: usize,
     /// Random seed for --sample
@@ -140,7 +140,7 @@ fn run(args: &Args) -> Result<(), String> {
     let gif_frames = args.gif_frames.min(seeds + steps);
     let mut gif = match gif_frames {
         0 => None,
-        _ => Some(Gif::create(&gif_path, w, h)?),
+        _ => Some(Gif::create(&gif_path, w, h, model.frame_hz())?),
     };
     if let Some(gif) = gif.as_mut() {
         for i in 0..seeds.min(gif_frames) {
