@@ -118,7 +118,7 @@ impl Gaussian {
     }
 }
 
-/// An endless GIF at 10 frames per second, each frame shown twice as large, written frame by
+/// An endless GIF at the model's frame rate, each frame shown twice as large, written frame by
 /// frame.
 pub struct Gif {
     encoder: gif::Encoder<BufWriter<File>>,
