@@ -120,14 +120,21 @@ def _blob(path):
 
 
 def metadata(path):
-    """The str->str metadata of an episodes file (`source`, `seeds`, `frame_hz`, ...), {} if none."""
-    blob = _blob(path)
+    """The str->str metadata of an episodes file (`source`, `seeds`, `frame_hz`, ...), {} if none.
+    Reads only the safetensors header (an 8-byte little-endian length, then that much JSON), so a
+    gzipped file is not decompressed past it."""
+    path = Path(path)
+    if not path.is_file():
+        raise EpisodesError(f"{path}: no such file")
     try:
-        size = int.from_bytes(blob[:8], "little")
-        header = json.loads(blob[8:8 + size])
+        with (gzip.open if path.suffix == ".gz" else open)(path, "rb") as f:
+            size = int.from_bytes(f.read(8), "little")
+            if size > 100_000_000:  # safetensors' own limit on a header
+                raise ValueError(f"a header of {size} bytes")
+            header = json.loads(f.read(size))
+        return dict(header.get("__metadata__") or {})
     except Exception as e:
-        raise EpisodesError(f"{path}: not a (gzipped) safetensors file ({e})") from e
-    return dict(header.get("__metadata__") or {})
+        raise EpisodesError(f"{path}: not a (gzipped) safetensors file ({e!r})") from e
 
 
 def read(path):

@@ -245,6 +245,9 @@ def test_fit_and_eval_tiny(tmp_path):
     )
     episodes.write(tmp_path / "d.safetensors", data, {"frame_hz": "12.5"})
     assert episodes.metadata(tmp_path / "d.safetensors") == {"frame_hz": "12.5"}
+    (tmp_path / "text.safetensors").write_text("# not a safetensors file\n")
+    with pytest.raises(episodes.EpisodesError, match="not a .gzipped. safetensors file"):
+        episodes.metadata(tmp_path / "text.safetensors")
     train.main(["fit", "--data", str(tmp_path / "d.safetensors"), "--out", str(tmp_path / "m.safetensors"),
                 "--device", "cpu", "--base-channels", "4", "--z-dim", "8", "--hidden-dim", "8",
                 "--vae-steps", "2", "--transition-steps", "2", "--batch", "4", "--transition-batch", "4"])
