@@ -179,7 +179,7 @@ pub const fn conv_weight_grad_scratch_len(shape: &ConvShape) -> usize {
 /// `scratch` ([`conv_weight_grad_scratch_len`]). The gradient of a transposed convolution
 /// `x -> y` is this one for its [`ConvShape::transposed`] shape with the roles swapped: `input`
 /// the gradient of `y`, `dy` the layer's input `x`; its rows are then the layer's input
-/// channels, as in PyTorch's `[in, out, k, k]` tensor (see [`crate::pack::conv_grad_to_torch`]).
+/// channels, as in PyTorch's `[in, out, k, k]` tensor (see [`crate::pack::conv_matrix_to_torch`]).
 pub fn conv_weight_grad(isa: Isa, shape: ConvShape, input: &[f32], dy: &[f32], scratch: &mut [f32], grad: &mut [f32]) {
     let rows = shape.output.channels;
     conv_weight_grad_rows(isa, shape, input, dy, scratch, OutputPart::whole(grad, rows));

@@ -48,7 +48,7 @@ pub fn conv_weights(
     let affine = bn.map(|bn| bn.affine()).unwrap_or_else(|| alloc::vec![(1.0, 0.0); oc]);
     assert_eq!(affine.len(), oc);
     let mut packed = alloc::vec![0.0f32; shape.packed_len()];
-    for_each_conv_weight(shape, torch_weight.len(), |src, at, o| {
+    for_each_conv_weight(shape, torch_weight.len(), |src, _, at, o| {
         packed[at] = (torch_weight[src] as f64 * affine[o].0) as f32
     });
     let bias = bias
@@ -60,18 +60,57 @@ pub fn conv_weights(
 }
 
 /// [`conv_weights`] without BatchNorm and without allocating: packs `torch_weight` into
-/// `packed` ([`ConvShape::packed_len`] floats, its padding left as it was). Training repacks
-/// its weights after every update with it, and packs a layer's data gradient, the forward
-/// pass of [`ConvShape::transposed`], from the layer's own PyTorch weights.
+/// `packed` ([`ConvShape::packed_len`] floats, its padding left as it was). Packs a layer's data
+/// gradient, the forward pass of [`ConvShape::transposed`], from the layer's own PyTorch
+/// weights.
 pub fn conv_weights_into(shape: &ConvShape, torch_weight: &[f32], packed: &mut [f32]) {
     assert_eq!(packed.len(), shape.packed_len());
-    for_each_conv_weight(shape, torch_weight.len(), |src, at, _| packed[at] = torch_weight[src]);
+    for_each_conv_weight(shape, torch_weight.len(), |src, _, at, _| {
+        packed[at] = torch_weight[src]
+    });
 }
 
-/// Calls `f(source, packed, out_channel)` for every weight of a PyTorch convolution tensor
-/// of `torch_len` values (checked to be `shape`'s size): its index there, its index in the
-/// packed layout.
-fn for_each_conv_weight(shape: &ConvShape, torch_len: usize, mut f: impl FnMut(usize, usize, usize)) {
+/// A convolution's weights in the layout of its gradient ([`crate::conv_weight_grad`]): the
+/// packed `out x (k·k·in)` [`Matrix`] of its strided form, `shape` itself or, for a transposed
+/// layer, [`ConvShape::transposed`]. A trainer keeps its weights so, for the gradients to add
+/// to them as they come; this packs them for `shape` (either form) after every update, its
+/// padding left as it was.
+pub fn conv_weights_from_matrix(shape: &ConvShape, matrix: &[f32], packed: &mut [f32]) {
+    assert_eq!(packed.len(), shape.packed_len());
+    assert_eq!(matrix.len(), conv_matrix_len(shape));
+    // A strided layer with panels of outputs is packed as its matrix is.
+    if matches!(shape.kind, ConvKind::Down) && !shape.is_narrow() {
+        return packed.copy_from_slice(matrix);
+    }
+    let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
+    for_each_conv_weight(shape, oc * ic * k * k, |_, m, at, _| packed[at] = matrix[m]);
+}
+
+/// Floats in [`conv_weights_from_matrix`]'s layout for `shape`.
+pub fn conv_matrix_len(shape: &ConvShape) -> usize {
+    let down = strided(shape);
+    Matrix::packed_len(down.output.channels, down.kernel * down.kernel * down.input.channels)
+}
+
+/// Fills [`conv_weights_from_matrix`]'s layout for `shape` from PyTorch weights (`[out, in,
+/// k, k]`, or `[in, out, k, k]` for a transposed layer), its padding left as it was.
+pub fn conv_matrix_from_torch(shape: &ConvShape, torch_weight: &[f32], matrix: &mut [f32]) {
+    assert_eq!(matrix.len(), conv_matrix_len(shape));
+    for_each_conv_weight(shape, torch_weight.len(), |src, m, _, _| matrix[m] = torch_weight[src]);
+}
+
+/// The strided form of a layer: itself, or a transposed layer's [`ConvShape::transposed`].
+fn strided(shape: &ConvShape) -> ConvShape {
+    match shape.kind {
+        ConvKind::Down => *shape,
+        ConvKind::Up => shape.transposed(),
+    }
+}
+
+/// Calls `f(source, matrix, packed, out_channel)` for every weight of a PyTorch convolution
+/// tensor of `torch_len` values (checked to be `shape`'s size): its index there, in
+/// [`conv_weights_from_matrix`]'s layout and in the packed layout.
+fn for_each_conv_weight(shape: &ConvShape, torch_len: usize, mut f: impl FnMut(usize, usize, usize, usize)) {
     let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
     assert_eq!(torch_len, oc * ic * k * k);
     // In the packed layout's own order, so that it is written in one stream: a trainer repacks
@@ -79,16 +118,20 @@ fn for_each_conv_weight(shape: &ConvShape, torch_len: usize, mut f: impl FnMut(u
     // a few L1 sets and evict each other (the 128 x 256 layers ran 4x slower).
     let (tap_stride, ic_stride) = (shape.packed_index(0, 1, 0, 0), shape.packed_index(0, 0, 1, 0));
     let lanes = if shape.is_narrow() { 1 } else { OC_ALIGN };
+    // The matrix's rows are the strided form's output channels, its columns (tap, input).
+    let down_in = strided(shape).input.channels;
+    let row_panel = OC_ALIGN * k * k * down_in;
     for first in (0..oc).step_by(lanes) {
         for tap in 0..k * k {
             for i in 0..ic {
                 for o in first..oc.min(first + lanes) {
-                    let src = match shape.kind {
-                        ConvKind::Down => (o * ic + i) * k * k,
-                        ConvKind::Up => (i * oc + o) * k * k,
+                    let (src, (row, col)) = match shape.kind {
+                        ConvKind::Down => ((o * ic + i) * k * k, (o, i)),
+                        ConvKind::Up => ((i * oc + o) * k * k, (i, o)),
                     };
+                    let m = (row / OC_ALIGN) * row_panel + (tap * down_in + col) * OC_ALIGN + row % OC_ALIGN;
                     let dst = shape.packed_index(0, 0, 0, o) + i * ic_stride + tap * tap_stride;
-                    f(src + tap, dst, o);
+                    f(src + tap, m, dst, o);
                 }
             }
         }
@@ -122,12 +165,13 @@ pub fn winograd_weights_from_direct(w: &Winograd, direct: &[f32], packed: &mut [
     }
 }
 
-/// The inverse of [`conv_weights_into`] for a gradient: `packed` is the `out x (k·k·in)`
-/// [`crate::Matrix`] of [`crate::conv_weight_grad`] for the strided `shape`, `torch` the
-/// PyTorch `[out, in, k, k]` tensor it fills (for a transposed layer, whose gradient is that of
-/// its [`ConvShape::transposed`] shape, this is its own `[in, out, k, k]` tensor).
-pub fn conv_grad_to_torch(shape: &ConvShape, packed: &[f32], torch: &mut [f32]) {
-    let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
+/// The inverse of [`conv_matrix_from_torch`], also for a gradient (the layout is that of
+/// [`crate::conv_weight_grad`]'s `out x (k·k·in)` [`crate::Matrix`] for the strided form):
+/// fills `torch`, the layer's PyTorch tensor (`[out, in, k, k]`, or `[in, out, k, k]` for a
+/// transposed layer), from `packed`. `shape` is the layer, in either form.
+pub fn conv_matrix_to_torch(shape: &ConvShape, packed: &[f32], torch: &mut [f32]) {
+    let down = strided(shape);
+    let (k, ic, oc) = (down.kernel, down.input.channels, down.output.channels);
     let cols = k * k * ic;
     assert_eq!(packed.len(), Matrix::packed_len(oc, cols));
     assert_eq!(torch.len(), oc * cols);

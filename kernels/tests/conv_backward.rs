@@ -197,7 +197,7 @@ fn weight_grad(isa: Isa, shape: ConvShape, x: &[f32], dy: &[f32], items: usize) 
         assert!(split == packed, "{:?} {shape:?}: split rows differ", isa.level());
     }
     let mut torch = vec![0.0; rows * cols];
-    pack::conv_grad_to_torch(&down, &packed, &mut torch);
+    pack::conv_matrix_to_torch(&down, &packed, &mut torch);
     torch
 }
 
@@ -252,5 +252,36 @@ fn weight_gradient_is_the_adjoint_of_the_weights() {
                 isa.level()
             );
         }
+    }
+}
+
+#[test]
+fn weights_in_the_gradient_layout_pack_as_pytorch_weights_do() {
+    let mut rng = Rng::new(13);
+    for dims in &SHAPES {
+        let shape = layer(dims);
+        let (ic, oc) = (shape.input.channels, shape.output.channels);
+        let torch = rng.fill(oc * ic * K * K, 1.0);
+        let mut matrix = vec![0.0; pack::conv_matrix_len(&shape)];
+        pack::conv_matrix_from_torch(&shape, &torch, &mut matrix);
+        // The layer and its transposed shape (its data gradient) share one matrix.
+        let mut from_transposed = vec![0.0; matrix.len()];
+        pack::conv_matrix_from_torch(&shape.transposed(), &torch, &mut from_transposed);
+        assert!(from_transposed == matrix, "{dims:?}");
+        for s in [shape, shape.transposed()] {
+            let (mut want, mut got) = (vec![0.0; s.packed_len()], vec![0.0; s.packed_len()]);
+            pack::conv_weights_into(&s, &torch, &mut want);
+            pack::conv_weights_from_matrix(&s, &matrix, &mut got);
+            assert!(got == want, "{dims:?} {:?}", s.kind);
+        }
+        // The gradient's conversion reads the same layout back.
+        let strided = if matches!(shape.kind, ConvKind::Down) {
+            shape
+        } else {
+            shape.transposed()
+        };
+        let mut back = vec![0.0; torch.len()];
+        pack::conv_matrix_to_torch(&strided, &matrix, &mut back);
+        assert!(back == torch, "{dims:?}");
     }
 }

@@ -35,11 +35,13 @@ use drivesim_kernels::norm::{
     gradient_moments, moments, normalize, normalize_gradient, parameter_gradients, statistics, sums_len,
     update_running_stats,
 };
-use drivesim_kernels::pack::{conv_grad_to_torch, conv_weights_into, transpose_packed, winograd_weights_from_direct};
+use drivesim_kernels::pack::{
+    conv_matrix_from_torch, conv_matrix_len, conv_matrix_to_torch, conv_weights_from_matrix, transpose_packed,
+    winograd_weights_from_direct,
+};
 use drivesim_kernels::{
-    activation_backward, conv, conv_patch_len, conv_patches, dense_weight_grad_add_rows, dense_weight_grad_rows, math,
-    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane, Winograd,
-    GRAD_PIXELS,
+    activation_backward, conv, conv_patch_len, conv_patches, dense_weight_grad_add_rows, math, winograd_conv,
+    Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane, Winograd, GRAD_PIXELS,
 };
 
 /// The border of every plane of the training networks: strided convolutions read 2 pixels
@@ -182,9 +184,20 @@ struct Entry {
     at: Range<usize>,
     param: bool,
     init: Init,
-    /// For a dense layer's weights, kept packed: the layer (see [`Networks::dense`]) and the
-    /// tensor's first row in it; `at` is then the whole layer's packed matrix.
-    packed: Option<(usize, usize)>,
+    layout: Layout,
+}
+
+/// How a tensor is kept in the parameters.
+#[derive(Clone, Copy)]
+enum Layout {
+    /// As PyTorch's.
+    Torch,
+    /// A dense layer's weights, packed: the layer (see [`Networks::dense`]) and the tensor's
+    /// first row in it; `at` is then the whole layer's packed matrix.
+    Dense(usize, usize),
+    /// A convolution's weights, in the layout of their gradient for this shape (see
+    /// [`conv_weights_from_matrix`]).
+    Conv(ConvShape),
 }
 
 /// The tensors, laid out as they are declared.
@@ -207,7 +220,28 @@ impl Table {
             at: at.clone(),
             param,
             init,
-            packed: None,
+            layout: Layout::Torch,
+        });
+        at
+    }
+
+    /// A convolution's weights `[out, in, k, k]` (`[in, out, k, k]` if transposed), in the
+    /// layout of their gradient: Adam updates them where the gradients add up.
+    fn conv(&mut self, name: String, shape: ConvShape, init: Init) -> Range<usize> {
+        let at = self.params..self.params + conv_matrix_len(&shape);
+        self.params = at.end;
+        let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
+        let torch = match shape.kind {
+            ConvKind::Down => [oc, ic, k, k],
+            ConvKind::Up => [ic, oc, k, k],
+        };
+        self.entries.push(Entry {
+            name,
+            shape: torch.to_vec(),
+            at: at.clone(),
+            param: true,
+            init,
+            layout: Layout::Conv(shape),
         });
         at
     }
@@ -227,7 +261,7 @@ impl Table {
                 at: at.clone(),
                 param: true,
                 init,
-                packed: Some((layer, first)),
+                layout: Layout::Dense(layer, first),
             });
             first += n;
         }
@@ -288,9 +322,10 @@ impl Packed {
         })
     }
 
-    /// Packs PyTorch weights (the layer's own tensor, for its transposed shape too).
-    fn pack(&mut self, torch: &[f32]) {
-        conv_weights_into(&self.shape, torch, &mut self.direct);
+    /// Packs the layer's weights, kept as [`Table::conv`] keeps them (for its transposed shape
+    /// too).
+    fn pack(&mut self, matrix: &[f32]) {
+        conv_weights_from_matrix(&self.shape, matrix, &mut self.direct);
         if let Some(w) = &self.winograd {
             winograd_weights_from_direct(w, &self.direct, &mut self.transformed);
         }
@@ -363,9 +398,9 @@ impl Conv {
         act: Activation,
     ) -> Result<Conv> {
         let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
-        let (torch, fan_in) = match shape.kind {
-            ConvKind::Down => ([oc, ic, k, k], ic * k * k),
-            ConvKind::Up => ([ic, oc, k, k], oc * k * k),
+        let fan_in = match shape.kind {
+            ConvKind::Down => ic * k * k,
+            ConvKind::Up => oc * k * k,
         };
         let down = match shape.kind {
             ConvKind::Down => shape,
@@ -373,14 +408,10 @@ impl Conv {
         };
         let block = grad_chunks(&down) * GRAD_PIXELS * (conv_patch_len(&down) + down.output.channels);
         sizes.weight_scratch = sizes.weight_scratch.max(block);
-        sizes.packed_grad = sizes
-            .packed_grad
-            .max(Matrix::packed_len(down.output.channels, k * k * down.input.channels));
-        sizes.torch_grad = sizes.torch_grad.max(oc * ic * k * k);
         sizes.channels = sizes.channels.max(oc).max(ic);
         Ok(Conv {
             shape,
-            weight: t.param(format!("{name}.weight"), &torch, Init::FanIn(fan_in)),
+            weight: t.conv(format!("{name}.weight"), shape, Init::FanIn(fan_in)),
             bias: t.param(format!("{name}.bias"), &[oc], Init::FanIn(fan_in)),
             norm: norm.map(|n| t.norm(n, oc)),
             act,
@@ -461,7 +492,6 @@ impl Dense {
         cols: usize,
         order: Order,
     ) -> Result<Dense> {
-        sizes.packed_grad = sizes.packed_grad.max(Matrix::packed_len(rows, cols));
         sizes.dense_zero = sizes.dense_zero.max(cols);
         Ok(Dense {
             rows,
@@ -505,17 +535,16 @@ impl Dense {
     }
 
     /// Adds the weight and bias gradients of a batch (`dy` of the outputs, `x` the inputs) to
-    /// `grads`, in PyTorch's layout.
-    fn weight_grad(&self, exec: Exec<'_>, dy: &[f32], x: &[f32], packed: &mut [f32], grads: &mut [f32]) {
+    /// `grads` (the weight's in the packed layout of the parameters, which the kernel adds to
+    /// in place).
+    fn weight_grad(&self, exec: Exec<'_>, dy: &[f32], x: &[f32], grads: &mut [f32]) {
         let (rows, cols) = (self.rows, self.cols);
-        let packed = &mut packed[..Matrix::packed_len(rows, cols)];
-        let parts = OutputParts::new(packed, rows, exec.threads());
+        let parts = OutputParts::new(&mut grads[self.weight.clone()], rows, exec.threads());
         exec.run(&|| {
             while let Some(part) = parts.take() {
-                dense_weight_grad_rows(exec.isa, dy, x, rows, cols, part);
+                dense_weight_grad_add_rows(exec.isa, dy, x, rows, cols, part);
             }
         });
-        add(&mut grads[self.weight.clone()], packed);
         let gb = &mut grads[self.bias.clone()];
         for dy in dy.chunks_exact(rows) {
             for (r, &d) in dy.iter().enumerate() {
@@ -531,8 +560,6 @@ struct Sizes {
     winograd_v: usize,
     winograd_products: usize,
     weight_scratch: usize,
-    packed_grad: usize,
-    torch_grad: usize,
     channels: usize,
     dense_zero: usize,
 }
@@ -671,8 +698,6 @@ struct Work {
     /// One per thread.
     scratch: Vec<Scratch>,
     weight_scratch: Vec<f32>,
-    packed_grad: Vec<f32>,
-    torch_grad: Vec<f32>,
     /// The gradients of a BatchNorm pass's scale and shift.
     channel_tmp: Vec<f32>,
     /// Zeros: the bias of the data-gradient convolutions and dense layers.
@@ -820,8 +845,6 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
                 })
                 .collect::<Result<_>>()?,
             weight_scratch: budget.take("scratch", sizes.weight_scratch)?,
-            packed_grad: budget.take("scratch", sizes.packed_grad)?,
-            torch_grad: budget.take("scratch", sizes.torch_grad)?,
             channel_tmp: budget.take("scratch", 2 * sizes.channels.max(top_c))?,
             zero: budget.take("scratch", sizes.channels.max(sizes.dense_zero))?,
             item_sums: budget.take_f64("scratch", mul(pair, sums_len(sizes.channels.max(top_c)))?)?,
@@ -977,8 +1000,8 @@ impl VaeGanTrainer {
             } else {
                 random.f32(&e.name, &e.shape, e.init)?
             };
-            match e.packed {
-                Some((layer, first)) => {
+            match e.layout {
+                Layout::Dense(layer, first) => {
                     let dense = parts.dense(layer);
                     let (order, all, cols, rows) = (dense.order, dense.rows, dense.cols, first..first + e.shape[0]);
                     let w = &mut parts.params[e.at.clone()];
@@ -988,7 +1011,8 @@ impl VaeGanTrainer {
                         }
                     });
                 }
-                None => {
+                Layout::Conv(shape) => conv_matrix_from_torch(&shape, &values, &mut parts.params[e.at.clone()]),
+                Layout::Torch => {
                     let dst = if e.param { &mut parts.params } else { &mut parts.stats };
                     dst[e.at.clone()].copy_from_slice(&values);
                 }
@@ -1384,18 +1408,10 @@ fn grad_chunks(down: &ConvShape) -> usize {
 /// The weight gradient of the strided layer `down` over a batch ([`drivesim_kernels::conv_weight_grad`],
 /// whose chunks and sums it keeps), with the gathering shared: threads gather the chunks of a
 /// block into `scratch` (each chunk its patches, then its output gradients), then each sums every
-/// chunk of the block into its panels of the gradient. Returns the packed gradient, in the
-/// first floats of `packed`.
-fn conv_weight_grad<'p>(
-    exec: Exec<'_>,
-    down: ConvShape,
-    input: &[f32],
-    dy: &[f32],
-    scratch: &mut [f32],
-    packed: &'p mut [f32],
-) -> &'p mut [f32] {
+/// chunk of the block into its panels of the gradient, adding to what `grad` holds (in the
+/// layout of [`Table::conv`]).
+fn conv_weight_grad(exec: Exec<'_>, down: ConvShape, input: &[f32], dy: &[f32], scratch: &mut [f32], grad: &mut [f32]) {
     let (rows, cols) = (down.output.channels, conv_patch_len(&down));
-    let packed = &mut packed[..Matrix::packed_len(rows, cols)];
     let chunk = GRAD_PIXELS * (cols + rows);
     let per_block = grad_chunks(&down);
     let total = input.len() / down.input.len() * down.output.height * down.output.width;
@@ -1424,32 +1440,18 @@ fn conv_weight_grad<'p>(
             }
         });
         let region = &scratch[..count * chunk];
-        let parts = OutputParts::new(&mut *packed, rows, exec.threads());
+        let parts = OutputParts::new(&mut *grad, rows, exec.threads());
         exec.run(&|| {
             while let Some(mut part) = parts.take() {
                 for (c, region) in region.chunks_exact(chunk).enumerate() {
                     let n = pixels(c).len();
                     let (patches, dys) = region.split_at(GRAD_PIXELS * cols);
-                    let part = part.reborrow();
-                    // The first chunk of all overwrites (no pixels: zeros), the others add.
-                    match block == 0 && c == 0 {
-                        true => {
-                            dense_weight_grad_rows(exec.isa, &dys[..n * rows], &patches[..n * cols], rows, cols, part)
-                        }
-                        false => dense_weight_grad_add_rows(
-                            exec.isa,
-                            &dys[..n * rows],
-                            &patches[..n * cols],
-                            rows,
-                            cols,
-                            part,
-                        ),
-                    }
+                    let (dy, patches) = (&dys[..n * rows], &patches[..n * cols]);
+                    dense_weight_grad_add_rows(exec.isa, dy, patches, rows, cols, part.reborrow());
                 }
             }
         });
     }
-    packed
 }
 
 /// Where a backward pass through a stack starts: from the gradient of layer `i`'s output (in
@@ -1537,10 +1539,7 @@ fn stack_backward(
                 ConvKind::Down => (l.shape, x, &*gz),
                 ConvKind::Up => (l.shape.transposed(), &*gz, x),
             };
-            let packed = conv_weight_grad(exec, down, a, b, &mut work.weight_scratch, &mut work.packed_grad);
-            let torch = &mut work.torch_grad[..l.weight.len()];
-            conv_grad_to_torch(&down, packed, torch);
-            add(&mut grads[l.weight.clone()], torch);
+            conv_weight_grad(exec, down, a, b, &mut work.weight_scratch, &mut grads[l.weight.clone()]);
         }
         let target = if i > 0 {
             Some(&mut below[i - 1][..items * il])
@@ -1587,9 +1586,14 @@ impl Networks {
     /// Tensor `e` of `values` (the parameters, their gradients or the statistics) in
     /// PyTorch's layout.
     fn torch(&self, e: &Entry, values: &[f32]) -> NamedTensor {
-        let tensor = match e.packed {
-            None => values[e.at.clone()].to_vec(),
-            Some((layer, first)) => {
+        let tensor = match e.layout {
+            Layout::Torch => values[e.at.clone()].to_vec(),
+            Layout::Conv(shape) => {
+                let mut out = alloc::vec![0.0; e.shape.iter().product()];
+                conv_matrix_to_torch(&shape, &values[e.at.clone()], &mut out);
+                out
+            }
+            Layout::Dense(layer, first) => {
                 let dense = self.dense(layer);
                 let (cols, rows) = (dense.cols, first..first + e.shape[0]);
                 let (w, mut out) = (&values[e.at.clone()], alloc::vec![0.0; rows.len() * cols]);
@@ -1709,13 +1713,8 @@ impl Networks {
         let flat_len = self.logit.cols;
         let dlogits = &b.dlogits[..items];
         if weights {
-            self.logit.weight_grad(
-                exec,
-                dlogits,
-                &flat[..items * flat_len],
-                &mut b.work.packed_grad,
-                &mut self.grads,
-            );
+            self.logit
+                .weight_grad(exec, dlogits, &flat[..items * flat_len], &mut self.grads);
         }
         self.logit
             .data_grad(exec, &b.work.zero, dlogits, &mut b.dflat[..items * flat_len]);
@@ -1790,13 +1789,7 @@ impl Networks {
         gather(top, &b.top_g, items, &mut b.dflat);
         let (dflat, z) = (&b.dflat[..items * flat], self.fc.cols);
         if weights {
-            self.fc.weight_grad(
-                exec,
-                dflat,
-                &b.codes[..items * z],
-                &mut b.work.packed_grad,
-                &mut self.grads,
-            );
+            self.fc.weight_grad(exec, dflat, &b.codes[..items * z], &mut self.grads);
         } else {
             self.fc.data_grad(exec, &b.work.zero, dflat, &mut b.dcodes[..items * z]);
         }
@@ -2005,13 +1998,8 @@ impl Networks {
         }
         let flat = self.heads.cols;
         let dheads = &b.dheads[..n * 2 * z];
-        self.heads.weight_grad(
-            exec,
-            dheads,
-            &b.enc_flat[..n * flat],
-            &mut b.work.packed_grad,
-            &mut self.grads,
-        );
+        self.heads
+            .weight_grad(exec, dheads, &b.enc_flat[..n * flat], &mut self.grads);
         self.heads
             .data_grad(exec, &b.work.zero, dheads, &mut b.dflat[..n * flat]);
         scatter(self.enc[3].shape.output, &b.dflat, n, &mut b.enc_grads.g[3]);
