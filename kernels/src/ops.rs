@@ -108,6 +108,30 @@ pub fn dense_rows(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f
     }
 }
 
+/// The data gradient of [`dense`] over a batch: `dx = dy W`, that is
+/// `dx[k][c] = Σ_r W[r][c] dy[k][r]` for `K` items, `dy` `K x rows` and `dx` `K x cols`
+/// item-major, read from the packed f32 weights of the forward pass (no transposed copy).
+pub fn dense_data_grad(isa: Isa, w: &[f32], rows: usize, cols: usize, dy: &[f32], dx: &mut [f32]) {
+    dense_data_grad_cols(isa, w, rows, cols, dy, OutputPart::whole(dx, cols));
+}
+
+/// [`dense_data_grad`] for the columns of `part` only (`dx[k * cols + c]` for `c` in its
+/// units), so that threads can fill disjoint columns of one batch's gradient at once; each
+/// value is summed in the same order whatever the split or the batch.
+pub fn dense_data_grad_cols(isa: Isa, w: &[f32], rows: usize, cols: usize, dy: &[f32], part: OutputPart<'_>) {
+    assert_eq!(w.len(), Matrix::packed_len(rows, cols));
+    assert!(
+        rows > 0 && dy.len().is_multiple_of(rows),
+        "output gradient is not whole rows"
+    );
+    assert_eq!(part.buffer_len(), dy.len() / rows * cols);
+    let columns = part.units();
+    assert!(columns.end <= cols);
+    // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer holds every
+    // column of every item (checked), and its columns are this call's alone.
+    unsafe { (simd::entries(isa).dense_data_grad)(w, rows, cols, dy, part.ptr(), columns) }
+}
+
 /// The weight gradient of [`dense`] over a batch: `grad = dyᵀ x`, that is
 /// `grad[r][c] = Σ_k dy[k][r] x[k][c]` for `K` items, with `dy` `K x rows` and `x` `K x cols`
 /// item-major (the gradients of the outputs and the inputs of the forward pass). `grad` is

@@ -262,27 +262,3 @@ pub fn dense_from_fn<T: Copy + Default>(rows: usize, cols: usize, packed: &mut [
         }
     }
 }
-
-/// Packs `Wᵀ` (the `cols x rows` [`Matrix`]) from the packed `rows x cols` matrix `packed`:
-/// the data gradient of a dense layer is the forward product by it. Blocks of 16 x 16 are one
-/// contiguous run in both layouts, so each is read and written in one piece (a trainer repacks
-/// its transposes after every update).
-pub fn transpose_packed(rows: usize, cols: usize, packed: &[f32], transposed: &mut [f32]) {
-    assert_eq!(packed.len(), Matrix::packed_len(rows, cols));
-    assert_eq!(transposed.len(), Matrix::packed_len(cols, rows));
-    const B: usize = OC_ALIGN;
-    for p in 0..rows.div_ceil(B) {
-        let rs = B.min(rows - p * B);
-        for q in 0..cols.div_ceil(B) {
-            // Columns q·B.. of W's row panel p, and rows p·B.. of Wᵀ's row panel q.
-            let src = &packed[(p * cols + q * B) * B..][..B.min(cols - q * B) * B];
-            let dst = &mut transposed[(q * rows + p * B) * B..][..rs * B];
-            for (j, dst) in dst.chunks_exact_mut(B).enumerate() {
-                for (i, d) in dst.iter_mut().enumerate() {
-                    // Lanes past the last column are Wᵀ's padding rows: zero.
-                    *d = src.get(i * B + j).copied().unwrap_or(0.0);
-                }
-            }
-        }
-    }
-}

@@ -155,6 +155,34 @@ pub(crate) unsafe fn dense_weight_grad_rows(
     }
 }
 
+/// `dx[n * cols + c] = Σ_r W[r][c] dy[n * rows + r]` for the columns `columns` of the packed
+/// f32 `rows x cols` matrix `w` and every item `n` (see [`crate::dense_data_grad`]), summed in
+/// row order.
+///
+/// # Safety
+/// `dx` must be valid for those writes, and no other thread may read or write them.
+pub(crate) unsafe fn dense_data_grad_cols(
+    w: &[f32],
+    rows: usize,
+    cols: usize,
+    dy: &[f32],
+    dx: *mut f32,
+    columns: Range<usize>,
+) {
+    unsafe {
+        for (n, dy) in dy.chunks_exact(rows).enumerate() {
+            for c in columns.clone() {
+                let sum: f32 = dy
+                    .iter()
+                    .enumerate()
+                    .map(|(r, &d)| w[Matrix::packed_index(r, c, cols)] * d)
+                    .sum();
+                *dx.add(n * cols + c) = sum;
+            }
+        }
+    }
+}
+
 /// See [`crate::activation_backward`]: [`Activation::backward`] value by value.
 pub fn activation_backward(act: Activation, y: &[f32], grad: &mut [f32]) {
     for (g, &y) in grad.iter_mut().zip(y) {

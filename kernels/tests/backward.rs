@@ -1,14 +1,14 @@
-//! The backward kernels of training: the SIMD weight gradient and tanh backward against the
-//! scalar reference on awkward shapes, the scalar weight gradient against f64, and the adjoint
-//! identities that tie the gradients to the forward kernel.
+//! The backward kernels of training: the SIMD weight and data gradients and tanh backward
+//! against the scalar reference on awkward shapes, the scalar gradients against f64, and the
+//! adjoint identities that tie the gradients to the forward kernel.
 
 mod common;
 
 use common::{simd_levels, values};
-use drivesim_kernels::pack::{dense_from_fn, dense_weights};
+use drivesim_kernels::pack::dense_weights;
 use drivesim_kernels::{
-    activation_backward, dense, dense_weight_grad, dense_weight_grad_rows, scalar, Activation, Isa, Matrix, MatrixData,
-    OutputParts,
+    activation_backward, dense, dense_data_grad, dense_data_grad_cols, dense_weight_grad, dense_weight_grad_rows,
+    scalar, Activation, Isa, Matrix, MatrixData, OutputParts,
 };
 
 const ROWS: [usize; 9] = [1, 3, 7, 16, 17, 33, 47, 64, 129];
@@ -125,41 +125,27 @@ fn weight_grad_is_bit_identical_across_row_splits() {
 }
 
 /// `<dy, W x> = <dyᵀ x, W>`: the weight gradient is the adjoint of the forward product in `W`;
-/// and `<dy, W x> = <Wᵀ dy, x>`: the data gradient is the forward kernel on the transposed
-/// packing. Checked on every level, in f64 sums of the kernels' outputs.
+/// and `<dy, W x> = <dy W, x>`: so is the data gradient in `x`. Checked on every level, in f64
+/// sums of the kernels' outputs.
 #[test]
 fn gradients_are_adjoint_to_the_forward_product() {
     let mut levels = simd_levels();
     levels.push(Isa::SCALAR);
     for (rows, cols, items) in [(37, 45, 9), (16, 1, 3), (1, 17, 130), (129, 386, 16)] {
-        let row_major = values(1, rows * cols, 0.3);
-        let w = dense_weights(&row_major, rows, cols);
-        let mut wt = vec![0.0; Matrix::packed_len(cols, rows)];
-        dense_from_fn(cols, rows, &mut wt, |r, c| row_major[c * cols + r]);
+        let w = dense_weights(&values(1, rows * cols, 0.3), rows, cols);
         let x = values(2, items * cols, 1.0);
         let dy = values(3, items * rows, 1.0);
         let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>();
         for &isa in &levels {
             let mut y = vec![0.0; items * rows];
-            let matrix = |data, rows, cols| Matrix { data, rows, cols };
-            let zeros = |n| vec![0.0; n];
-            dense(
-                isa,
-                matrix(MatrixData::F32(&w), rows, cols),
-                &zeros(rows),
-                Activation::Identity,
-                &x,
-                &mut y,
-            );
+            let matrix = Matrix {
+                data: MatrixData::F32(&w),
+                rows,
+                cols,
+            };
+            dense(isa, matrix, &vec![0.0; rows], Activation::Identity, &x, &mut y);
             let mut dx = vec![0.0; items * cols];
-            dense(
-                isa,
-                matrix(MatrixData::F32(&wt), cols, rows),
-                &zeros(cols),
-                Activation::Identity,
-                &dy,
-                &mut dx,
-            );
+            dense_data_grad(isa, &w, rows, cols, &dy, &mut dx);
             let mut g = vec![0.0; w.len()];
             dense_weight_grad(isa, &dy, &x, rows, cols, &mut g);
             let forward = dot(&dy, &y);
@@ -170,6 +156,82 @@ fn gradients_are_adjoint_to_the_forward_product() {
                     "{:?} {rows}x{cols} items {items}: {name} {adjoint} vs {forward}",
                     isa.level()
                 );
+            }
+        }
+    }
+}
+
+/// `dx[k][c] = Σ_r W[r][c] dy[k][r]` in f64, with the sums of absolute terms.
+fn data_grad_f64(w: &[f32], rows: usize, cols: usize, dy: &[f32]) -> (Vec<f64>, Vec<f64>) {
+    let items = dy.len() / rows;
+    let (mut dx, mut terms) = (vec![0.0; items * cols], vec![0.0; items * cols]);
+    for (k, dy) in dy.chunks_exact(rows).enumerate() {
+        for c in 0..cols {
+            for (r, &d) in dy.iter().enumerate() {
+                let p = w[Matrix::packed_index(r, c, cols)] as f64 * d as f64;
+                dx[k * cols + c] += p;
+                terms[k * cols + c] += p.abs();
+            }
+        }
+    }
+    (dx, terms)
+}
+
+/// Every level against f64 (the scalar reference too) on awkward shapes: rows that end inside
+/// a panel, item counts around the SIMD blocks.
+#[test]
+fn data_grad_matches_f64() {
+    let mut levels = simd_levels();
+    levels.push(Isa::SCALAR);
+    let mut checked = 0;
+    for &rows in &ROWS {
+        for &cols in &COLS {
+            for items in [0, 1, 2, 5, 9, 17] {
+                let w = dense_weights(&values((rows * 3 + cols) as u64, rows * cols, 1.0), rows, cols);
+                let dy = values((rows + cols * 11 + items) as u64, items * rows, 1.0);
+                let (want, terms) = data_grad_f64(&w, rows, cols, &dy);
+                for &isa in &levels {
+                    let mut got = vec![f32::NAN; items * cols];
+                    dense_data_grad(isa, &w, rows, cols, &dy, &mut got);
+                    for ((g, w), t) in got.iter().zip(&want).zip(&terms) {
+                        assert!(
+                            (*g as f64 - w).abs() <= 1e-6 * t.max(1e-30),
+                            "{:?} {rows}x{cols} items {items}: {g} vs {w}",
+                            isa.level()
+                        );
+                    }
+                    checked += 1;
+                }
+            }
+        }
+    }
+    eprintln!("{checked} data-gradient cases checked");
+}
+
+/// Threads split the data gradient by columns, and a trainer's batch varies: neither changes
+/// a bit of any item's gradient.
+#[test]
+fn data_grad_is_bit_identical_across_column_splits_and_batches() {
+    let mut levels = simd_levels();
+    levels.push(Isa::SCALAR);
+    for (rows, cols, items) in [(256, 129, 11), (33, 1026, 9), (12800 / 16, 40, 3)] {
+        let w = dense_weights(&values(rows as u64, rows * cols, 1.0), rows, cols);
+        let dy = values(cols as u64, items * rows, 1.0);
+        for &isa in &levels {
+            let mut whole = vec![0.0; items * cols];
+            dense_data_grad(isa, &w, rows, cols, &dy, &mut whole);
+            for count in [2, 3, 7] {
+                let mut split = vec![f32::NAN; whole.len()];
+                let parts = OutputParts::new(&mut split, cols, count);
+                while let Some(part) = parts.take() {
+                    dense_data_grad_cols(isa, &w, rows, cols, &dy, part);
+                }
+                assert_eq!(split, whole, "{isa:?} {rows}x{cols}: columns in {count} parts");
+            }
+            for (k, dy) in dy.chunks_exact(rows).enumerate() {
+                let mut one = vec![f32::NAN; cols];
+                dense_data_grad(isa, &w, rows, cols, dy, &mut one);
+                assert_eq!(one, whole[k * cols..][..cols], "{isa:?} {rows}x{cols}: item {k} alone");
             }
         }
     }
@@ -212,21 +274,6 @@ fn activation_backward_is_bit_identical_to_scalar() {
                 activation_backward(isa, act, &y, &mut got);
                 assert_eq!(got, want, "{:?} {act:?} n {n}", isa.level());
             }
-        }
-    }
-}
-
-#[test]
-fn transposed_packing_is_the_transpose() {
-    for &rows in &ROWS {
-        for &cols in &COLS {
-            let w = values((rows * 31 + cols) as u64, rows * cols, 1.0);
-            let packed = dense_weights(&w, rows, cols);
-            let mut want = vec![f32::NAN; Matrix::packed_len(cols, rows)];
-            dense_from_fn(cols, rows, &mut want, |c, r| w[r * cols + c]);
-            let mut got = vec![f32::NAN; want.len()];
-            drivesim_kernels::pack::transpose_packed(rows, cols, &packed, &mut got);
-            assert!(got == want, "{rows}x{cols}");
         }
     }
 }

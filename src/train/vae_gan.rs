@@ -36,12 +36,13 @@ use drivesim_kernels::norm::{
     update_running_stats,
 };
 use drivesim_kernels::pack::{
-    conv_matrix_from_torch, conv_matrix_len, conv_matrix_to_torch, conv_weights_from_matrix, transpose_packed,
+    conv_matrix_from_torch, conv_matrix_len, conv_matrix_to_torch, conv_weights_from_matrix,
     winograd_weights_from_direct,
 };
 use drivesim_kernels::{
-    activation_backward, conv, conv_patch_len, conv_patches, dense_weight_grad_add_rows, math, winograd_conv,
-    Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane, Winograd, GRAD_PIXELS,
+    activation_backward, conv, conv_patch_len, conv_patches, dense_data_grad_cols, dense_weight_grad_add_rows, math,
+    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane, Winograd,
+    GRAD_PIXELS,
 };
 
 /// The border of every plane of the training networks: strided convolutions read 2 pixels
@@ -476,8 +477,6 @@ struct Dense {
     weight: Range<usize>,
     bias: Range<usize>,
     order: Order,
-    /// `Wᵀ`, packed: the data gradient.
-    backward: Vec<f32>,
     /// The bias in the kernels' row order.
     bias_rows: Vec<f32>,
 }
@@ -486,28 +485,23 @@ impl Dense {
     /// A layer over the tensors `weight` and `bias` already in the table.
     fn new(
         budget: &mut Budget,
-        sizes: &mut Sizes,
         (weight, bias): (Range<usize>, Range<usize>),
         rows: usize,
         cols: usize,
         order: Order,
     ) -> Result<Dense> {
-        sizes.dense_zero = sizes.dense_zero.max(cols);
         Ok(Dense {
             rows,
             cols,
             weight,
             bias,
             order,
-            backward: budget.take("packed weights", Matrix::packed_len(cols, rows))?,
             bias_rows: budget.take("packed weights", rows)?,
         })
     }
 
-    /// Packs `Wᵀ` from the packed weights, and the bias in the kernels' order.
+    /// Puts the bias in the kernels' order (the weights are used as they are kept).
     fn pack(&mut self, params: &[f32]) {
-        let (w, rows, cols) = (&params[self.weight.clone()], self.rows, self.cols);
-        transpose_packed(rows, cols, w, &mut self.backward);
         let bias = &params[self.bias.clone()];
         for (r, b) in self.bias_rows.iter_mut().enumerate() {
             *b = bias[self.order.torch_row(r)];
@@ -525,13 +519,14 @@ impl Dense {
     }
 
     /// `dx = Wᵀ dy` for a batch.
-    fn data_grad(&self, exec: Exec<'_>, zero: &[f32], dy: &[f32], dx: &mut [f32]) {
-        let wt = Matrix {
-            data: MatrixData::F32(&self.backward),
-            rows: self.cols,
-            cols: self.rows,
-        };
-        dense(exec, wt, &zero[..self.cols], Activation::Identity, dy, dx);
+    fn data_grad(&self, exec: Exec<'_>, params: &[f32], dy: &[f32], dx: &mut [f32]) {
+        let (w, rows, cols) = (&params[self.weight.clone()], self.rows, self.cols);
+        let parts = OutputParts::new(dx, cols, exec.threads());
+        exec.run(&|| {
+            while let Some(part) = parts.take() {
+                dense_data_grad_cols(exec.isa, w, rows, cols, dy, part);
+            }
+        });
     }
 
     /// Adds the weight and bias gradients of a batch (`dy` of the outputs, `x` the inputs) to
@@ -561,7 +556,6 @@ struct Sizes {
     winograd_products: usize,
     weight_scratch: usize,
     channels: usize,
-    dense_zero: usize,
 }
 
 /// The activations of a stack of convolutions for a batch, saved for the backward pass, and
@@ -700,7 +694,7 @@ struct Work {
     weight_scratch: Vec<f32>,
     /// The gradients of a BatchNorm pass's scale and shift.
     channel_tmp: Vec<f32>,
-    /// Zeros: the bias of the data-gradient convolutions and dense layers.
+    /// Zeros: the bias of the data-gradient convolutions.
     zero: Vec<f32>,
     /// BatchNorm's per-channel sums of each item of a pass, and of the pass.
     item_sums: Vec<f64>,
@@ -740,7 +734,6 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
     );
     let heads = Dense::new(
         budget,
-        &mut sizes,
         (heads_weight, mb.start..lb.end),
         2 * z,
         flat,
@@ -753,14 +746,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
         t.packed(1, &[("generator.fc.weight", flat)], z, Init::FanIn(z)),
         t.param("generator.fc.bias".into(), &[flat], Init::FanIn(z)),
     );
-    let fc = Dense::new(
-        budget,
-        &mut sizes,
-        fc_tensors,
-        flat,
-        z,
-        Order::Rows(top_c, top_h, top_w),
-    )?;
+    let fc = Dense::new(budget, fc_tensors, flat, z, Order::Rows(top_c, top_h, top_w))?;
     let top_norm = t.norm("generator.bn0", top_c);
     let top = Plane::new(top_h, top_w, top_c, HALO);
     let mut gen = Vec::new();
@@ -792,14 +778,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
         t.packed(2, &[("discriminator.out.weight", 1)], flat, Init::FanIn(flat)),
         t.param("discriminator.out.bias".into(), &[1], Init::FanIn(flat)),
     );
-    let logit = Dense::new(
-        budget,
-        &mut sizes,
-        logit_tensors,
-        1,
-        flat,
-        Order::Columns(top_c, top_h, top_w),
-    )?;
+    let logit = Dense::new(budget, logit_tensors, 1, flat, Order::Columns(top_c, top_h, top_w))?;
     let params = t.params;
     let [enc, gen, dis]: [[Conv; 4]; 3] = [enc, gen, dis].map(|v| v.try_into().ok().expect("four layers"));
 
@@ -846,7 +825,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
                 .collect::<Result<_>>()?,
             weight_scratch: budget.take("scratch", sizes.weight_scratch)?,
             channel_tmp: budget.take("scratch", 2 * sizes.channels.max(top_c))?,
-            zero: budget.take("scratch", sizes.channels.max(sizes.dense_zero))?,
+            zero: budget.take("scratch", sizes.channels)?,
             item_sums: budget.take_f64("scratch", mul(pair, sums_len(sizes.channels.max(top_c)))?)?,
             sums: budget.take_f64("scratch", sums_len(sizes.channels.max(top_c)))?,
         },
@@ -1717,7 +1696,7 @@ impl Networks {
                 .weight_grad(exec, dlogits, &flat[..items * flat_len], &mut self.grads);
         }
         self.logit
-            .data_grad(exec, &b.work.zero, dlogits, &mut b.dflat[..items * flat_len]);
+            .data_grad(exec, &self.params, dlogits, &mut b.dflat[..items * flat_len]);
         scatter(self.dis[3].shape.output, &b.dflat, items, &mut b.dis_grads.g[3]);
         let grads = weights.then_some(&mut self.grads[..]);
         let inject = inject.then_some((2, &b.dfeature[..]));
@@ -1791,7 +1770,7 @@ impl Networks {
         if weights {
             self.fc.weight_grad(exec, dflat, &b.codes[..items * z], &mut self.grads);
         } else {
-            self.fc.data_grad(exec, &b.work.zero, dflat, &mut b.dcodes[..items * z]);
+            self.fc.data_grad(exec, &self.params, dflat, &mut b.dcodes[..items * z]);
         }
     }
 
@@ -2001,7 +1980,7 @@ impl Networks {
         self.heads
             .weight_grad(exec, dheads, &b.enc_flat[..n * flat], &mut self.grads);
         self.heads
-            .data_grad(exec, &b.work.zero, dheads, &mut b.dflat[..n * flat]);
+            .data_grad(exec, &self.params, dheads, &mut b.dflat[..n * flat]);
         scatter(self.enc[3].shape.output, &b.dflat, n, &mut b.enc_grads.g[3]);
         let passes = [0..n];
         stack_backward(

@@ -1,6 +1,7 @@
-//! The weight gradient of a dense layer, `G = dYᵀ X` summed over a batch of `K` items, written
-//! straight into the packed layout of [`Matrix`] so that an optimiser updates packed weights in
-//! place.
+//! The gradients of a dense layer: its weights', `G = dYᵀ X` summed over a batch of `K` items,
+//! written straight into the packed layout of [`Matrix`] so that an optimiser updates packed
+//! weights in place; and its input's, `dX = dY W`, read from the forward pass's packing (see
+//! [`data_grad`]).
 //!
 //! The same register tile as the forward kernel ([`super::dense`]) with the roles swapped:
 //! a column of a panel is `NV` vectors of consecutive rows, so the vectors are loaded from an
@@ -145,6 +146,94 @@ impl<S: Simd, const NV: usize> Block<S> for ColumnTile<'_, '_, S, NV> {
                     let sum = if self.first { sum } else { S::load(p).add(sum) };
                     sum.store(p);
                 }
+            }
+        }
+    }
+}
+
+/// Most vectors in one column of a panel ([`OC_ALIGN`] floats): four for NEON.
+const PANEL_VECTORS: usize = 4;
+
+/// `dx[n * cols + c] = Σ_r W[r][c] dy[n * rows + r]` for the columns `columns` of the packed
+/// f32 `rows x cols` matrix `w`, every item `n`: the data gradient of a dense layer without a
+/// transposed copy of its weights (a trainer would rewrite that copy after every update).
+///
+/// A column of a panel is one cache line of `W`'s rows, multiplied lane by lane with those
+/// rows of each item's `dy`; a tile of `NC` columns by a block of `NI` items shares every load
+/// of `W` and of `dy` between them. The products are summed per lane over the panels, then
+/// across the lanes, so every output is summed in the same order whatever the batch or the
+/// columns asked for. With fewer rows than a vector has lanes, most lanes would be padding:
+/// then the scalar reference sums them.
+///
+/// # Safety
+/// As for [`crate::scalar::dense_data_grad_cols`]; the CPU must have `S`'s features.
+#[inline(always)]
+pub(super) unsafe fn data_grad<S: Simd, const NC: usize, const NI: usize>(
+    w: &[f32],
+    rows: usize,
+    cols: usize,
+    dy: &[f32],
+    dx: *mut f32,
+    columns: Range<usize>,
+) {
+    unsafe {
+        if rows < S::LANES {
+            return crate::scalar::dense_data_grad_cols(w, rows, cols, dy, dx, columns);
+        }
+        let items = dy.len() / rows;
+        // Whole tiles, then single columns and single items: register tiles of fixed size.
+        let whole = (columns.len() / NC) * NC;
+        let (blocks, rest) = (items / NI, items % NI);
+        let args = (w, rows, cols, dy, dx);
+        for col in (columns.start..columns.start + whole).step_by(NC) {
+            for block in 0..blocks {
+                data_grad_tile::<S, NC, NI>(args, col, block * NI);
+            }
+            for item in items - rest..items {
+                data_grad_tile::<S, NC, 1>(args, col, item);
+            }
+        }
+        for col in columns.start + whole..columns.end {
+            for block in 0..blocks {
+                data_grad_tile::<S, 1, NI>(args, col, block * NI);
+            }
+            for item in items - rest..items {
+                data_grad_tile::<S, 1, 1>(args, col, item);
+            }
+        }
+    }
+}
+
+/// Columns `col..col + NC` of [`data_grad`] for the items `item..item + NI`.
+#[inline(always)]
+unsafe fn data_grad_tile<S: Simd, const NC: usize, const NI: usize>(
+    (w, rows, cols, dy, dx): (&[f32], usize, usize, &[f32], *mut f32),
+    col: usize,
+    item: usize,
+) {
+    unsafe {
+        let vectors = OC_ALIGN / S::LANES;
+        debug_assert!(vectors <= PANEL_VECTORS);
+        let mut acc = [[[S::splat(0.0); PANEL_VECTORS]; NC]; NI];
+        for panel in 0..rows.div_ceil(OC_ALIGN) {
+            let first = panel * OC_ALIGN;
+            let line = w.as_ptr().add(Matrix::packed_index(first, col, cols));
+            for v in 0..vectors {
+                let wv: [S; NC] = core::array::from_fn(|j| S::load(line.add(j * OC_ALIGN + v * S::LANES)));
+                // Rows past the last: the weights' padding lanes, zero; read none of dy's.
+                let lanes = rows.saturating_sub(first + v * S::LANES);
+                for (i, acc) in acc.iter_mut().enumerate() {
+                    let d = load_n::<S>(dy.as_ptr().add((item + i) * rows + first + v * S::LANES), lanes);
+                    for (a, &w) in acc.iter_mut().zip(&wv) {
+                        a[v] = w.mul_add(d, a[v]);
+                    }
+                }
+            }
+        }
+        for (i, acc) in acc.iter().enumerate() {
+            for (j, a) in acc.iter().enumerate() {
+                let sum = a[1..vectors].iter().fold(a[0], |s, &x| s.add(x));
+                *dx.add((item + i) * cols + col + j) = sum.reduce_add();
             }
         }
     }

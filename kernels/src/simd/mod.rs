@@ -36,6 +36,8 @@ pub(crate) struct Entries {
     pub dense: unsafe fn(Matrix<'_>, &[f32], Activation, &[f32], *mut f32, usize),
     /// See [`crate::scalar::dense_weight_grad_rows`].
     pub dense_weight_grad: DenseWeightGrad,
+    /// See [`crate::scalar::dense_data_grad_cols`].
+    pub dense_data_grad: DenseDataGrad,
     /// See [`crate::scalar::activation_backward`].
     pub activation_backward: unsafe fn(Activation, &[f32], &mut [f32]),
     /// See [`crate::scalar::winograd_input`].
@@ -46,6 +48,9 @@ pub(crate) struct Entries {
 
 /// `(dy, x, cols, grad, rows, total_rows, accumulate)`.
 type DenseWeightGrad = unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, usize, bool);
+
+/// `(w, rows, cols, dy, dx, columns)`.
+type DenseDataGrad = unsafe fn(&[f32], usize, usize, &[f32], *mut f32, Range<usize>);
 
 /// `(w, layer, v, scratch, output, channels)`.
 type WinogradChannels = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mut [f32], *mut f32, Range<usize>);
@@ -136,6 +141,7 @@ static SCALAR: Entries = Entries {
     conv: scalar::conv_channels,
     dense: scalar::dense_rows,
     dense_weight_grad: scalar::dense_weight_grad_rows,
+    dense_data_grad: scalar::dense_data_grad_cols,
     activation_backward: scalar::activation_backward,
     winograd_input: scalar::winograd_input,
     winograd_channels: scalar::winograd_channels,
@@ -198,6 +204,20 @@ macro_rules! entries {
             }
 
             /// # Safety
+            /// The CPU must have the features; as for `dense_grad::data_grad`.
+            #[target_feature(enable = $features)]
+            unsafe fn dense_data_grad(
+                w: &[f32],
+                rows: usize,
+                cols: usize,
+                dy: &[f32],
+                dx: *mut f32,
+                columns: core::ops::Range<usize>,
+            ) {
+                unsafe { $crate::simd::dense_grad::data_grad::<$vector, 4, 4>(w, rows, cols, dy, dx, columns) }
+            }
+
+            /// # Safety
             /// The CPU must have the features.
             #[target_feature(enable = $features)]
             unsafe fn activation_backward(act: $crate::Activation, y: &[f32], grad: &mut [f32]) {
@@ -229,6 +249,7 @@ macro_rules! entries {
                 conv,
                 dense,
                 dense_weight_grad,
+                dense_data_grad,
                 activation_backward,
                 winograd_input: input,
                 winograd_channels: channels,
