@@ -343,7 +343,7 @@ fn first_bad(data: &[f32], ok: impl Fn(&f32) -> bool) -> Option<(usize, f32)> {
 /// Whether every value is finite, in one vectorisable pass (`v · 0` is 0 for a finite value
 /// and NaN otherwise, and NaN survives every sum): the fast path of the checks on large
 /// buffers, which then search for the index only when there is one to find.
-fn all_finite(data: &[f32]) -> bool {
+pub(crate) fn all_finite(data: &[f32]) -> bool {
     let mut lanes = [0.0f32; 16];
     let mut chunks = data.chunks_exact(16);
     for chunk in &mut chunks {

@@ -317,3 +317,52 @@ fn bad_input_is_a_typed_error() {
         }
     }
 }
+
+/// Gradients that are not finite stop the step before the update they would feed, running
+/// statistics included (the step's forward passes had moved them), with every thread count
+/// (threads check pieces of the gradients).
+#[test]
+fn non_finite_gradients_stop_the_step() {
+    let f = fixture("small_f32");
+    let networks = |tensors: Vec<(String, Vec<usize>, Vec<f32>)>| {
+        let discriminator = |t: &(String, _, _)| t.0.starts_with("discriminator.");
+        tensors.into_iter().partition::<Vec<_>, _>(discriminator)
+    };
+    for threads in [1, 2, 3] {
+        let mut trainer = f.trainer_with_threads(Isa::best(), threads);
+        // A learning rate of 1e37 moves the discriminator's weights by about that much: the
+        // encoder's and generator's losses through it overflow, and their gradients are not
+        // finite, so they are not updated.
+        let (_, before) = networks(trainer.tensors());
+        let err = trainer.step(&f.frames, &f.eps, &f.prior, 1e37).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                Error::NonFiniteOutput {
+                    buffer: "encoder and generator gradients",
+                    ..
+                }
+            ),
+            "{threads} threads: {err}"
+        );
+        assert!(
+            networks(trainer.tensors()).1 == before,
+            "{threads} threads: updated anyway"
+        );
+        // The next step's discriminator gradients are not finite either: nothing changes.
+        let before = trainer.tensors();
+        let err = trainer.step(&f.frames, &f.eps, &f.prior, f.lr).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                Error::NonFiniteOutput {
+                    buffer: "discriminator gradients",
+                    ..
+                }
+            ),
+            "{threads} threads: {err}"
+        );
+        assert!(trainer.tensors() == before, "{threads} threads: updated anyway");
+        assert_eq!(trainer.steps(), 0);
+    }
+}

@@ -22,7 +22,7 @@
 use super::adam::Adam;
 use super::NamedTensor;
 use crate::encoder::LEAKY_SLOPE;
-use crate::error::{expect_finite, expect_finite_output, expect_frames, expect_len};
+use crate::error::{all_finite, expect_finite, expect_finite_output, expect_frames, expect_len};
 use crate::layers::dense;
 use crate::pool::{Exec, Parts, Pool};
 use crate::weights::{Init, RandomSource, SafetensorsSource, TensorSource, WeightDtype, DISCRIMINATOR_PREFIX};
@@ -634,6 +634,12 @@ struct Networks {
     grads: Vec<f32>,
     moments: [Vec<f32>; 2],
     stats: Vec<f32>,
+    /// The running statistics as the last update left them: a step whose gradients are not
+    /// finite puts them back, so that its forward passes leave no trace.
+    saved_stats: Vec<f32>,
+    /// Where the discriminator's running statistics start (the encoder's and generator's come
+    /// first).
+    dis_stats: usize,
     /// Each network's span of the parameters (encoder, generator, discriminator).
     nets: [Range<usize>; 3],
     enc: [Conv; 4],
@@ -770,6 +776,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
         plane = shape.output;
     }
     let gen_end = t.params;
+    let dis_stats = t.stats;
 
     // Discriminator.
     let names = ("discriminator.convs.", "discriminator.bns.");
@@ -838,6 +845,8 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
             budget.take("Adam moments", params)?,
         ],
         stats: budget.take("running statistics", t.stats)?,
+        saved_stats: budget.take("running statistics", t.stats)?,
+        dis_stats,
         nets: [0..enc_end, enc_end..gen_end, gen_end..params],
         table: t,
         enc,
@@ -1026,7 +1035,8 @@ impl VaeGanTrainer {
     /// normal for training): the discriminator's update, then the encoder's and generator's,
     /// at learning rate `lr`. Returns the losses, computed before the updates. Gradients that
     /// are not finite are [`Error::NonFiniteOutput`] before the update they would feed (the
-    /// discriminator's, or the encoder's and generator's), which then does not happen.
+    /// discriminator's, or the encoder's and generator's), which then does not happen, nor do
+    /// the moves of that network's running statistics by the step's forward passes.
     pub fn step(&mut self, frames: &[f32], eps: &[f32], prior: &[f32], lr: f32) -> Result<VaeGanLosses> {
         let c = self.config;
         if frames.is_empty()
@@ -1539,6 +1549,44 @@ enum Job<'a> {
     Conv(&'a mut Packed, Range<usize>),
 }
 
+/// Pieces that the passes over every parameter (Adam, zeroing and checking the gradients) are
+/// cut into, threads taking them in turn: the same pieces whatever the thread count.
+const PIECES: usize = 16;
+
+/// The [`PIECES`] ranges of `len` values.
+fn pieces(len: usize) -> [Range<usize>; PIECES] {
+    let step = len.div_ceil(PIECES);
+    core::array::from_fn(|i| (i * step).min(len)..((i + 1) * step).min(len))
+}
+
+/// Sets `data` to zero, threads taking pieces.
+fn zero(exec: Exec<'_>, data: &mut [f32]) {
+    let spans = pieces(data.len());
+    let parts = Parts::spans(data, &spans);
+    exec.run(&|| {
+        while let Some((_, piece)) = parts.take() {
+            piece.fill(0.0);
+        }
+    });
+}
+
+/// [`expect_finite_output`] on gradients, threads checking pieces (the index of the first bad
+/// value is then searched alone).
+fn expect_finite_gradients(exec: Exec<'_>, buffer: &'static str, data: &[f32]) -> Result<()> {
+    let spans = pieces(data.len());
+    let mut finite = [true; PIECES];
+    let flags = Parts::chunks(&mut finite[..], 1);
+    exec.run(&|| {
+        while let Some((i, flag)) = flags.take() {
+            flag[0] = all_finite(&data[spans[i].clone()]);
+        }
+    });
+    match finite.iter().all(|&f| f) {
+        true => Ok(()),
+        false => expect_finite_output(buffer, data),
+    }
+}
+
 /// The worker threads of a plan for `threads` (none for one).
 fn start_pool(threads: usize) -> Result<Option<Pool>> {
     match threads {
@@ -1624,14 +1672,13 @@ impl Networks {
         let r = self.nets[net].clone();
         let [m, v] = &mut self.moments;
         // Adam is elementwise: threads take pieces (the same values whatever their number).
-        const PIECES: usize = 16;
         let len = r.len().div_ceil(PIECES).max(1);
         let (params, grads) = (&mut self.params[r.clone()], &self.grads[r.clone()]);
-        let mut pieces = params
+        let mut split = params
             .chunks_mut(len)
             .zip(grads.chunks(len))
             .zip(m[r.clone()].chunks_mut(len).zip(v[r].chunks_mut(len)));
-        let mut jobs: [_; PIECES] = core::array::from_fn(|_| pieces.next().unwrap_or_default());
+        let mut jobs: [_; PIECES] = core::array::from_fn(|_| split.next().unwrap_or_default());
         let jobs = Parts::chunks(&mut jobs, 1);
         exec.run(&|| {
             while let Some((_, job)) = jobs.take() {
@@ -1774,6 +1821,16 @@ impl Networks {
         }
     }
 
+    /// Checks the gradients `range` before their update; if they are not finite, the running
+    /// statistics go back to [`Networks::saved_stats`].
+    fn check_gradients(&mut self, exec: Exec<'_>, buffer: &'static str, range: Range<usize>) -> Result<()> {
+        let checked = expect_finite_gradients(exec, buffer, &self.grads[range]);
+        if checked.is_err() {
+            self.stats.copy_from_slice(&self.saved_stats);
+        }
+        checked
+    }
+
     /// One VAE-GAN step on `n` frames; see [`VaeGanTrainer::step`]. `t` is the Adam step.
     #[allow(clippy::too_many_arguments)]
     fn step(
@@ -1787,7 +1844,8 @@ impl Networks {
         lr: f32,
         t: u32,
     ) -> Result<VaeGanLosses> {
-        self.grads.fill(0.0);
+        zero(exec, &mut self.grads);
+        self.saved_stats.copy_from_slice(&self.stats);
         let z = self.fc.cols;
         let image = self.enc[0].shape.input;
         {
@@ -1875,8 +1933,10 @@ impl Networks {
         let b = &mut self.buffers;
         let fake = bce(&b.logits_fake[..2 * n], false, 1.0, &mut b.dlogits[..2 * n]);
         self.discriminator_backward(exec, true, 2 * n, true, false, false);
-        expect_finite_output("discriminator gradients", &self.grads[self.nets[2].clone()])?;
+        self.check_gradients(exec, "discriminator gradients", self.nets[2].clone())?;
         self.update(2, exec, &s.adam, t, lr);
+        let d = self.dis_stats;
+        self.saved_stats[d..].copy_from_slice(&self.stats[d..]);
 
         // The encoder's and generator's losses through the updated discriminator.
         self.discriminate(exec, false, n);
@@ -2008,7 +2068,7 @@ impl Networks {
         }
         self.generator_backward(exec, &[0..n, n..2 * n], true);
 
-        expect_finite_output("encoder and generator gradients", &self.grads[..self.nets[1].end])?;
+        self.check_gradients(exec, "encoder and generator gradients", 0..self.nets[1].end)?;
         self.update(0, exec, &s.adam, t, lr);
         self.update(1, exec, &s.adam, t, lr);
         let recon = s.feature as f64 * feature + s.pixel as f64 * pixel;
