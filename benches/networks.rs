@@ -11,8 +11,8 @@ use common::*;
 use criterion::{criterion_group, criterion_main, BenchmarkGroup, Criterion, Throughput};
 use drivesim::{Config, Model, Simulator, WeightDtype};
 use drivesim_kernels::{
-    conv, conv_patch_len, conv_weight_grad, conv_weight_grad_scratch_len, dense, f16, pack, winograd_conv, Activation,
-    ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, Winograd,
+    conv, conv_patch_len, conv_weight_grad, conv_weight_grad_scratch_len, dense, dense_data_grad, f16, pack,
+    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, Winograd,
 };
 use std::hint::black_box;
 use std::time::Duration;
@@ -134,8 +134,8 @@ fn conv_layers(c: &mut Criterion) {
 /// The backward kernels of training on the default model's layers (80x160, b = 32): each
 /// layer's data gradient (the forward kernel of its transposed shape, direct and Winograd) on
 /// one image, and its weight gradient (`conv_weight_grad`, the dense weight gradient over
-/// patches) over a batch of 8. Throughput counts the layer's forward FLOPs per image, the same
-/// work (`cargo bench --bench networks -- backward`).
+/// patches) over a batch of 8; and the dense layers' data gradients. Throughput counts the
+/// layer's forward FLOPs per image, the same work (`cargo bench --bench networks -- backward`).
 fn conv_backward(c: &mut Criterion) {
     let isa = Isa::best();
     let cfg = Config {
@@ -205,6 +205,22 @@ fn conv_backward(c: &mut Criterion) {
         g.throughput(Throughput::Elements(items as u64 * conv_flops(&shape)));
         g.bench_function(format!("{name}.weights/batch{items}"), |b| {
             b.iter(|| conv_weight_grad(isa, down, black_box(&input), &grad_out, &mut scratch, &mut grad))
+        });
+    }
+    // The dense layers' data gradients (`dense_data_grad`, read from the forward packing) over
+    // a batch of 8: the encoder's two heads and the generator's first layer.
+    let flat = cfg.flat_len();
+    for (name, rows, cols) in [
+        ("encoder.heads", 2 * cfg.z_dim, flat),
+        ("generator.fc", flat, cfg.z_dim),
+    ] {
+        let items = 8;
+        let w = pack::dense_weights(&values(7, rows * cols, 1.0 / (cols as f32).sqrt()), rows, cols);
+        let dy = values(8, items * rows, 1.0);
+        let mut dx = vec![0.0; items * cols];
+        g.throughput(Throughput::Elements(items as u64 * dense_flops(rows, cols)));
+        g.bench_function(format!("{name}.data/batch{items}"), |b| {
+            b.iter(|| dense_data_grad(isa, &w, rows, cols, black_box(&dy), &mut dx))
         });
     }
     g.finish();

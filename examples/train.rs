@@ -31,7 +31,7 @@ mod vae_gan;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use common::{bar, encode, Encoded};
-use drivesim::train::{cosine_lr, TransitionPlan, TransitionSettings, TransitionTrainer, VaeGanSettings};
+use drivesim::train::{cosine_lr, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer, VaeGanSettings};
 use drivesim::{ActionSpec, Episodes, Model, WeightDtype};
 use safetensors::{Dtype, SafeTensors};
 use std::path::{Path, PathBuf};
@@ -485,6 +485,7 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
     }
     let load = |path: &PathBuf| Episodes::load(path).map_err(|e| format!("{}: {e}", path.display()));
     let all = load(&args.episodes)?;
+    let frame_hz = all.frame_hz();
     let mut train = encode(&model, &all, threads, "episodes")?;
     let heldout = match &args.heldout {
         Some(path) => encode(&model, &load(path)?, threads, "held-out episodes")?,
@@ -586,7 +587,14 @@ fn transition(args: &TransitionArgs) -> Result<(), String> {
 
     let dtype = dtype(args.dtype);
     let bytes = trainer
-        .weight_file(&original, dtype, Some(&specs))
+        .weight_file(
+            &original,
+            dtype,
+            TrainedOn {
+                actions: Some(&specs),
+                frame_hz,
+            },
+        )
         .map_err(|e| e.to_string())?;
     Model::from_bytes(&bytes).map_err(|e| format!("the written file does not load: {e}"))?;
     std::fs::write(&args.out, &bytes).map_err(|e| format!("cannot write {}: {e}", args.out.display()))?;

@@ -4,7 +4,9 @@
 use super::{dtype, f32_tensor, read, write_f32, DtypeArg, StepArgs};
 use crate::common::{bar, write_png, Gaussian};
 use clap::Parser;
-use drivesim::train::{random_weight_file, VaeGanLosses, VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR};
+use drivesim::train::{
+    random_weight_file, TrainedOn, VaeGanLosses, VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR,
+};
 use drivesim::{frames_to_rgb, Config, Episodes, Model, PixelLayout, Simulator};
 use safetensors::{Dtype, SafeTensors};
 use std::path::{Path, PathBuf};
@@ -157,6 +159,10 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
     };
     let load = |path: &PathBuf| Episodes::load(path).map_err(|e| format!("{}: {e}", path.display()));
     let all = load(&args.episodes)?;
+    let trained_on = TrainedOn {
+        actions: None,
+        frame_hz: all.frame_hz(),
+    };
     let (train, heldout) = match &args.heldout {
         Some(path) => (
             frames(&all, &c, "episodes")?,
@@ -197,12 +203,16 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
     let mut trainer = VaeGanTrainer::new(&start_file, &plan, settings).map_err(|e| e.to_string())?;
     let dtype = dtype(args.dtype);
     let save = |trainer: &VaeGanTrainer| -> Result<Vec<u8>, String> {
-        let bytes = trainer.weight_file(&original, dtype).map_err(|e| e.to_string())?;
+        let bytes = trainer
+            .weight_file(&original, dtype, trained_on)
+            .map_err(|e| e.to_string())?;
         std::fs::write(&args.out, &bytes).map_err(|e| format!("cannot write {}: {e}", args.out.display()))?;
         Ok(bytes)
     };
     let (before, _) = psnr(
-        &trainer.weight_file(&original, None).map_err(|e| e.to_string())?,
+        &trainer
+            .weight_file(&original, None, trained_on)
+            .map_err(|e| e.to_string())?,
         &picked,
         threads,
     )?;

@@ -8,6 +8,9 @@ use alloc::string::ToString;
 use alloc::vec::Vec;
 use safetensors::{Dtype, SafeTensors};
 
+/// The metadata key of the frames' rate in an episodes file.
+const FRAME_HZ: &str = "frame_hz";
+
 /// Frames and the actions in effect at each, grouped into contiguous episodes.
 pub struct Episodes {
     height: usize,
@@ -18,6 +21,8 @@ pub struct Episodes {
     actions: Vec<f32>,
     /// First frame of each episode, increasing from 0.
     starts: Vec<usize>,
+    /// Frames per second, from the file's `frame_hz` metadata.
+    frame_hz: Option<f32>,
 }
 
 /// One episode's frames and actions, borrowed from [`Episodes`].
@@ -166,12 +171,21 @@ impl Episodes {
             .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
             .collect();
         crate::error::expect_finite("actions", &actions)?;
+        let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| Error::Malformed {
+            what: "episodes file",
+            reason: format!("{e:?}"),
+        })?;
+        let frame_hz = header.metadata().as_ref().and_then(|m| m.get(FRAME_HZ));
+        let frame_hz = frame_hz
+            .map(|text| crate::weights::parse_frame_hz(FRAME_HZ, text))
+            .transpose()?;
         Ok(Episodes {
             height,
             width,
             frames: frames.data().to_vec(),
             actions,
             starts: starts.into_iter().map(|s| s as usize).collect(),
+            frame_hz,
         })
     }
 
@@ -205,6 +219,12 @@ impl Episodes {
     /// Number of episodes.
     pub fn len(&self) -> usize {
         self.starts.len()
+    }
+
+    /// Frames per second (the file's `frame_hz` metadata; `None` if it has none): what the
+    /// trainers write as a model's `drivesim.frame_hz` ([`crate::Model::frame_hz`]).
+    pub fn frame_hz(&self) -> Option<f32> {
+        self.frame_hz
     }
 
     /// Whether there is no episode (never, for a loaded file).

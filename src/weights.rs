@@ -94,7 +94,9 @@ impl<'a> SafetensorsSource<'a> {
             actions: key(ACTIONS_KEY)
                 .map(|json| ActionSpec::parse_all(json, config.action_dim))
                 .transpose()?,
-            frame_hz: key(FRAME_HZ_KEY).map(|text| parse_frame_hz(text)).transpose()?,
+            frame_hz: key(FRAME_HZ_KEY)
+                .map(|text| parse_frame_hz(FRAME_HZ_KEY, text))
+                .transpose()?,
         };
         let file = SafeTensors::deserialize(bytes).map_err(malformed)?;
         // One supported dtype per file (`weights/README.md`): name the first tensor, in name
@@ -133,12 +135,13 @@ pub(crate) struct Described {
     pub frame_hz: Option<f32>,
 }
 
-/// A `drivesim.frame_hz` value: a finite number above zero.
-fn parse_frame_hz(text: &str) -> Result<f32> {
+/// A frame rate in metadata (`key`: a weight file's `drivesim.frame_hz`, an episodes file's
+/// `frame_hz`): a finite number above zero.
+pub(crate) fn parse_frame_hz(key: &str, text: &str) -> Result<f32> {
     match text.trim().parse::<f32>() {
         Ok(hz) if hz.is_finite() && hz > 0.0 => Ok(hz),
         _ => Err(Error::Metadata {
-            reason: format!("`{FRAME_HZ_KEY}`: expected frames per second above zero, found {text:?}"),
+            reason: format!("`{key}`: expected frames per second above zero, found {text:?}"),
         }),
     }
 }
@@ -292,23 +295,29 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
 
 /// The weight file `bytes` with the tensors of `replace` (name, shape, PyTorch-layout values)
 /// put in place of the stored ones or, where the file has no such tensor, added; every tensor
-/// written in `dtype` (or the file's own dtype), the metadata kept and `actions` written as its
-/// `drivesim.actions`: how a trainer saves what it trained. The file is validated as
+/// written in `dtype` (or the file's own dtype), the metadata kept but for what `trained_on`
+/// gives (`drivesim.actions`, `drivesim.frame_hz`): how a trainer saves what it trained. The
+/// file is validated as
 /// [`SafetensorsSource::parse`] does, and each replacement must have its tensor's shape.
 #[cfg(all(feature = "std", feature = "train"))]
 pub(crate) fn rewrite(
     bytes: &[u8],
     replace: &[(&str, &[usize], &[f32])],
     dtype: Option<WeightDtype>,
-    actions: Option<&[ActionSpec]>,
+    trained_on: crate::train::TrainedOn<'_>,
 ) -> Result<Vec<u8>> {
     let (config, _, mut src) = SafetensorsSource::parse(bytes)?;
     let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
     let mut metadata = metadata.metadata().clone().unwrap_or_default();
-    if let Some(actions) = actions {
+    if let Some(actions) = trained_on.actions {
         let json = ActionSpec::to_json(actions);
         ActionSpec::parse_all(&json, config.action_dim)?; // what is written must read back
         metadata.insert(ACTIONS_KEY.to_string(), json);
+    }
+    if let Some(hz) = trained_on.frame_hz {
+        let text = format!("{hz}");
+        parse_frame_hz(FRAME_HZ_KEY, &text)?; // what is written must read back
+        metadata.insert(FRAME_HZ_KEY.to_string(), text);
     }
     let mut names: Vec<String> = src.file.names().into_iter().map(String::from).collect();
     names.sort();

@@ -134,3 +134,21 @@ fn huge_frame_index_is_out_of_range() {
         );
     }
 }
+
+/// The frame rate in an episodes file's metadata, which the trainers write into the models
+/// they train; a value that is not a rate is a typed error.
+#[test]
+fn frame_rate_is_read_from_the_metadata() {
+    let with = |metadata: Option<&str>| {
+        let bytes = file(3, &[0], |_| {});
+        let tensors = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+        let views: Vec<_> = tensors.tensors();
+        let metadata = metadata.map(|hz| [("frame_hz".to_string(), hz.to_string())].into());
+        Episodes::from_bytes(&safetensors::serialize(views, metadata).unwrap())
+    };
+    assert_eq!(with(None).unwrap().frame_hz(), None);
+    assert_eq!(with(Some("12.5")).unwrap().frame_hz(), Some(12.5));
+    for bad in ["0", "-4", "fast", "inf"] {
+        assert!(matches!(with(Some(bad)), Err(Error::Metadata { .. })), "{bad}");
+    }
+}

@@ -7,7 +7,7 @@
 mod common;
 
 use common::{fixture_path, relative_error, Io, Rng, FIXTURES};
-use drivesim::train::{cosine_lr, TransitionPlan, TransitionSettings, TransitionTrainer};
+use drivesim::train::{cosine_lr, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer};
 use drivesim::{Config, Error, Isa, Model, WeightDtype};
 
 /// Max |found - expected| / max |expected| allowed against PyTorch (the 1e-4).
@@ -305,14 +305,29 @@ fn weight_file_holds_the_trained_tensors() {
     };
     let specs = [spec("speed", 20.0), spec("steering", 0.0)];
     for (dtype, tolerance) in [(None, 1e-6), (Some(WeightDtype::F16), 1e-3)] {
-        let file = trainer.weight_file(&original, dtype, Some(&specs)).unwrap();
+        let trained_on = TrainedOn {
+            actions: Some(&specs),
+            frame_hz: Some(12.5),
+        };
+        let file = trainer.weight_file(&original, dtype, trained_on).unwrap();
         let loaded = Model::from_bytes(&file).unwrap();
         assert_eq!(loaded.actions(), Some(&specs[..]));
+        assert_eq!(loaded.frame_hz(), Some(12.5));
         let again = TransitionTrainer::new(&loaded, &plan, settings).unwrap();
         for ((name, _, want), (_, _, got)) in trainer.tensors().iter().zip(again.tensors()) {
             let err = relative_error(&got, want);
             assert!(err <= tolerance, "{dtype:?} {name}: {err}");
         }
     }
-    assert!(trainer.weight_file(&original[..100], None, None).is_err());
+    let bad_rate = TrainedOn {
+        frame_hz: Some(f32::NAN),
+        ..TrainedOn::default()
+    };
+    assert!(matches!(
+        trainer.weight_file(&original, None, bad_rate),
+        Err(Error::Metadata { .. })
+    ));
+    assert!(trainer
+        .weight_file(&original[..100], None, TrainedOn::default())
+        .is_err());
 }

@@ -10,9 +10,11 @@
 //!
 //! Steps allocate nothing. The backward passes run on the forward kernels where the maths
 //! allows (the data gradient of a dense layer is the forward product by the transposed
-//! packing, that of a convolution the forward kernel of its transposed shape,
-//! [`drivesim_kernels::ConvShape::transposed`]) and on the kernels crate's backward operations
-//! otherwise ([`drivesim_kernels::dense_weight_grad`], [`drivesim_kernels::conv_weight_grad`],
+//! packing in the transition trainer, that of a convolution the forward kernel of its
+//! transposed shape, [`drivesim_kernels::ConvShape::transposed`]) and on the kernels crate's
+//! backward operations otherwise ([`drivesim_kernels::dense_weight_grad`],
+//! [`drivesim_kernels::dense_data_grad`] for the VAE-GAN's large dense layers,
+//! [`drivesim_kernels::conv_weight_grad`],
 //! [`drivesim_kernels::activation_backward`], [`drivesim_kernels::norm`]). Each step agrees with
 //! PyTorch's (`weights/train.py`, checked by the fixtures of `tests/train.rs` and
 //! `tests/train_vae_gan.rs`), and threads change no bit of it.
@@ -27,6 +29,17 @@ pub use transition::{TransitionPlan, TransitionSettings, TransitionTrainer};
 #[cfg(feature = "std")]
 pub use vae_gan::random_weight_file;
 pub use vae_gan::{VaeGanLosses, VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR};
+
+/// What a trainer writes about its training data into a weight file's metadata
+/// ([`TransitionTrainer::weight_file`], [`VaeGanTrainer::weight_file`]); what is `None` stays
+/// as the original file has it.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct TrainedOn<'a> {
+    /// What the actions mean and their range (`drivesim.actions`).
+    pub actions: Option<&'a [crate::ActionSpec]>,
+    /// The frames' rate (`drivesim.frame_hz`), e.g. [`crate::Episodes::frame_hz`].
+    pub frame_hz: Option<f32>,
+}
 
 /// A named tensor in PyTorch layout: name, shape, row-major values.
 pub type NamedTensor = (alloc::string::String, alloc::vec::Vec<usize>, alloc::vec::Vec<f32>);

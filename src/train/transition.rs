@@ -508,21 +508,22 @@ impl<'a> TransitionTrainer<'a> {
     /// the same config, e.g. the one the model was loaded from) with the transition's tensors
     /// replaced by [`TransitionTrainer::tensors`], every tensor stored in `dtype` (`None`: the
     /// file's own dtype; f16 files are trained on f32 master weights and rounded here), and
-    /// `actions` (what the actions trained on mean, and their range) as its `drivesim.actions`
-    /// metadata (`None`: the original's, if any). [`Model::from_bytes`] reads it.
+    /// what it was trained on in its metadata ([`super::TrainedOn`]: what the actions mean and
+    /// their range, the frame rate; the original's where not given). [`Model::from_bytes`]
+    /// reads it.
     #[cfg(feature = "std")]
     pub fn weight_file(
         &self,
         original: &[u8],
         dtype: Option<crate::WeightDtype>,
-        actions: Option<&[crate::ActionSpec]>,
+        trained_on: super::TrainedOn<'_>,
     ) -> Result<Vec<u8>> {
         let tensors = self.tensors();
         let replace: Vec<(&str, &[usize], &[f32])> = tensors
             .iter()
             .map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..]))
             .collect();
-        crate::weights::rewrite(original, &replace, dtype, actions)
+        crate::weights::rewrite(original, &replace, dtype, trained_on)
     }
 
     /// The gradients computed last, named and laid out as the tensors they belong to

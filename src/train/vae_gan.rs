@@ -946,7 +946,7 @@ impl VaeGanPlan {
 /// }
 /// assert!(trainer.step(&frames, &eps, &prior, VAE_GAN_LR)?.pixel_l1 < first.pixel_l1);
 /// // The trained networks as a weight file the simulator loads (discriminator included).
-/// let model = Model::from_bytes(&trainer.weight_file(&file, None)?)?;
+/// let model = Model::from_bytes(&trainer.weight_file(&file, None, Default::default())?)?;
 /// assert_eq!(model.config(), &config);
 /// # Ok::<(), drivesim::Error>(())
 /// ```
@@ -1099,15 +1099,22 @@ impl VaeGanTrainer {
     /// A weight file with the trained networks: `original` (a drivesim weight file of the same
     /// config, e.g. the one training started from) with the encoder's, generator's and
     /// discriminator's tensors replaced (or, for a discriminator it lacked, added), every tensor
-    /// in `dtype` (`None`: the file's own). [`crate::Model::from_bytes`] reads it.
+    /// in `dtype` (`None`: the file's own), and what it was trained on in its metadata
+    /// ([`super::TrainedOn`]; the original's where not given). [`crate::Model::from_bytes`]
+    /// reads it.
     #[cfg(feature = "std")]
-    pub fn weight_file(&self, original: &[u8], dtype: Option<WeightDtype>) -> Result<Vec<u8>> {
+    pub fn weight_file(
+        &self,
+        original: &[u8],
+        dtype: Option<WeightDtype>,
+        trained_on: super::TrainedOn<'_>,
+    ) -> Result<Vec<u8>> {
         let tensors = self.tensors();
         let replace: Vec<(&str, &[usize], &[f32])> = tensors
             .iter()
             .map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..]))
             .collect();
-        crate::weights::rewrite(original, &replace, dtype, None)
+        crate::weights::rewrite(original, &replace, dtype, trained_on)
     }
 }
 
