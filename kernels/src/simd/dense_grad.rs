@@ -220,10 +220,12 @@ unsafe fn data_grad_tile<S: Simd, const NC: usize, const NI: usize>(
             let line = w.as_ptr().add(Matrix::packed_index(first, col, cols));
             for v in 0..vectors {
                 let wv: [S; NC] = core::array::from_fn(|j| S::load(line.add(j * OC_ALIGN + v * S::LANES)));
-                // Rows past the last: the weights' padding lanes, zero; read none of dy's.
+                // Rows past the last: the weights' padding lanes, zero; read none of dy's
+                // (wrapping: their addresses may lie past `dy`, and load nothing).
                 let lanes = rows.saturating_sub(first + v * S::LANES);
                 for (i, acc) in acc.iter_mut().enumerate() {
-                    let d = load_n::<S>(dy.as_ptr().add((item + i) * rows + first + v * S::LANES), lanes);
+                    let at = dy.as_ptr().wrapping_add((item + i) * rows + first + v * S::LANES);
+                    let d = load_n::<S>(at, lanes);
                     for (a, &w) in acc.iter_mut().zip(&wv) {
                         a[v] = w.mul_add(d, a[v]);
                     }
