@@ -169,6 +169,15 @@ impl ConvShape {
         }
     }
 
+    /// The strided form of this layer: itself, or a transposed layer's [`Self::transposed`],
+    /// whose weight gradient (`out x (k·k·in)`) is the layer's.
+    pub const fn strided(&self) -> ConvShape {
+        match self.kind {
+            ConvKind::Down => *self,
+            ConvKind::Up => self.transposed(),
+        }
+    }
+
     /// Stride between the weight vectors of consecutive input channels.
     pub const fn oc_stride(&self) -> usize {
         self.output.channels.div_ceil(OC_ALIGN) * OC_ALIGN

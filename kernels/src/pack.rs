@@ -88,7 +88,7 @@ pub fn conv_weights_from_matrix(shape: &ConvShape, matrix: &[f32], packed: &mut 
 
 /// Floats in [`conv_weights_from_matrix`]'s layout for `shape`.
 pub fn conv_matrix_len(shape: &ConvShape) -> usize {
-    let down = strided(shape);
+    let down = shape.strided();
     Matrix::packed_len(down.output.channels, down.kernel * down.kernel * down.input.channels)
 }
 
@@ -97,14 +97,6 @@ pub fn conv_matrix_len(shape: &ConvShape) -> usize {
 pub fn conv_matrix_from_torch(shape: &ConvShape, torch_weight: &[f32], matrix: &mut [f32]) {
     assert_eq!(matrix.len(), conv_matrix_len(shape));
     for_each_conv_weight(shape, torch_weight.len(), |src, m, _, _| matrix[m] = torch_weight[src]);
-}
-
-/// The strided form of a layer: itself, or a transposed layer's [`ConvShape::transposed`].
-fn strided(shape: &ConvShape) -> ConvShape {
-    match shape.kind {
-        ConvKind::Down => *shape,
-        ConvKind::Up => shape.transposed(),
-    }
 }
 
 /// Calls `f(source, matrix, packed, out_channel)` for every weight of a PyTorch convolution
@@ -119,7 +111,7 @@ fn for_each_conv_weight(shape: &ConvShape, torch_len: usize, mut f: impl FnMut(u
     let (tap_stride, ic_stride) = (shape.packed_index(0, 1, 0, 0), shape.packed_index(0, 0, 1, 0));
     let lanes = if shape.is_narrow() { 1 } else { OC_ALIGN };
     // The matrix's rows are the strided form's output channels, its columns (tap, input).
-    let down_in = strided(shape).input.channels;
+    let down_in = shape.strided().input.channels;
     let row_panel = OC_ALIGN * k * k * down_in;
     for first in (0..oc).step_by(lanes) {
         for tap in 0..k * k {
@@ -170,7 +162,7 @@ pub fn winograd_weights_from_direct(w: &Winograd, direct: &[f32], packed: &mut [
 /// fills `torch`, the layer's PyTorch tensor (`[out, in, k, k]`, or `[in, out, k, k]` for a
 /// transposed layer), from `packed`. `shape` is the layer, in either form.
 pub fn conv_matrix_to_torch(shape: &ConvShape, packed: &[f32], torch: &mut [f32]) {
-    let down = strided(shape);
+    let down = shape.strided();
     let (k, ic, oc) = (down.kernel, down.input.channels, down.output.channels);
     let cols = k * k * ic;
     assert_eq!(packed.len(), Matrix::packed_len(oc, cols));

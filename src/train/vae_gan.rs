@@ -403,10 +403,7 @@ impl Conv {
             ConvKind::Down => ic * k * k,
             ConvKind::Up => oc * k * k,
         };
-        let down = match shape.kind {
-            ConvKind::Down => shape,
-            ConvKind::Up => shape.transposed(),
-        };
+        let down = shape.strided();
         let block = grad_chunks(&down) * GRAD_PIXELS * (conv_patch_len(&down) + down.output.channels);
         sizes.weight_scratch = sizes.weight_scratch.max(block);
         sizes.channels = sizes.channels.max(oc).max(ic);
