@@ -71,8 +71,7 @@ pub fn conv_weights_into(shape: &ConvShape, torch_weight: &[f32], packed: &mut [
 }
 
 /// A convolution's weights in the layout of its gradient ([`crate::conv_weight_grad`]): the
-/// packed `out x (k·k·in)` [`Matrix`] of its strided form, `shape` itself or, for a transposed
-/// layer, [`ConvShape::transposed`]. A trainer keeps its weights so, for the gradients to add
+/// packed `out x (k·k·in)` [`Matrix`] of its strided form ([`ConvShape::strided`]). A trainer keeps its weights so, for the gradients to add
 /// to them as they come; this packs them for `shape` (either form) after every update, its
 /// padding left as it was.
 pub fn conv_weights_from_matrix(shape: &ConvShape, matrix: &[f32], packed: &mut [f32]) {

@@ -275,13 +275,8 @@ fn weights_in_the_gradient_layout_pack_as_pytorch_weights_do() {
             assert!(got == want, "{dims:?} {:?}", s.kind);
         }
         // The gradient's conversion reads the same layout back.
-        let strided = if matches!(shape.kind, ConvKind::Down) {
-            shape
-        } else {
-            shape.transposed()
-        };
         let mut back = vec![0.0; torch.len()];
-        pack::conv_matrix_to_torch(&strided, &matrix, &mut back);
+        pack::conv_matrix_to_torch(&shape.strided(), &matrix, &mut back);
         assert!(back == torch, "{dims:?}");
     }
 }
