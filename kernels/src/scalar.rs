@@ -170,8 +170,10 @@ pub(crate) unsafe fn dense_data_grad_cols(
     columns: Range<usize>,
 ) {
     unsafe {
-        for (n, dy) in dy.chunks_exact(rows).enumerate() {
-            for c in columns.clone() {
+        // Columns outside, items inside: a column's weights (one cache line per panel) are read
+        // once for every item.
+        for c in columns {
+            for (n, dy) in dy.chunks_exact(rows).enumerate() {
                 let sum: f32 = dy
                     .iter()
                     .enumerate()

@@ -153,6 +153,8 @@ impl<S: Simd, const NV: usize> Block<S> for ColumnTile<'_, '_, S, NV> {
 
 /// Most vectors in one column of a panel ([`OC_ALIGN`] floats): four for NEON.
 const PANEL_VECTORS: usize = 4;
+/// Bytes ahead of the current columns of each panel to prefetch: four tiles of four columns.
+const PREFETCH: usize = 1024;
 
 /// `dx[n * cols + c] = Σ_r W[r][c] dy[n * rows + r]` for the columns `columns` of the packed
 /// f32 `rows x cols` matrix `w`, every item `n`: the data gradient of a dense layer without a
@@ -218,6 +220,11 @@ unsafe fn data_grad_tile<S: Simd, const NC: usize, const NI: usize>(
         for panel in 0..rows.div_ceil(OC_ALIGN) {
             let first = panel * OC_ALIGN;
             let line = w.as_ptr().add(Matrix::packed_index(first, col, cols));
+            // Each panel is a stream of its own, too many for the hardware prefetchers to
+            // follow from DRAM: ask for the lines a few tiles ahead.
+            for j in 0..NC {
+                S::prefetch(line.add(j * OC_ALIGN).cast::<u8>().wrapping_add(PREFETCH));
+            }
             for v in 0..vectors {
                 let wv: [S; NC] = core::array::from_fn(|j| S::load(line.add(j * OC_ALIGN + v * S::LANES)));
                 // Rows past the last: the weights' padding lanes, zero; read none of dy's
