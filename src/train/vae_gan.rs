@@ -1557,9 +1557,14 @@ enum Job<'a> {
 /// cut into, threads taking them in turn: the same pieces whatever the thread count.
 const PIECES: usize = 16;
 
+/// Values in each of the [`PIECES`] pieces of `len` values (the last may hold fewer).
+fn piece_len(len: usize) -> usize {
+    len.div_ceil(PIECES).max(1)
+}
+
 /// The [`PIECES`] ranges of `len` values.
 fn pieces(len: usize) -> [Range<usize>; PIECES] {
-    let step = len.div_ceil(PIECES);
+    let step = piece_len(len);
     core::array::from_fn(|i| (i * step).min(len)..((i + 1) * step).min(len))
 }
 
@@ -1676,7 +1681,7 @@ impl Networks {
         let r = self.nets[net].clone();
         let [m, v] = &mut self.moments;
         // Adam is elementwise: threads take pieces (the same values whatever their number).
-        let len = r.len().div_ceil(PIECES).max(1);
+        let len = piece_len(r.len());
         let (params, grads) = (&mut self.params[r.clone()], &self.grads[r.clone()]);
         let mut split = params
             .chunks_mut(len)
