@@ -12,7 +12,7 @@ use criterion::{criterion_group, criterion_main, BenchmarkGroup, Criterion, Thro
 use drivesim::{Config, Model, Simulator, WeightDtype};
 use drivesim_kernels::{
     conv, conv_patch_len, conv_weight_grad, conv_weight_grad_scratch_len, dense, dense_data_grad, f16, pack,
-    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, Winograd,
+    winograd_conv, winograd_weights, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, Winograd,
 };
 use std::hint::black_box;
 use std::time::Duration;
@@ -179,7 +179,11 @@ fn conv_backward(c: &mut Criterion) {
         });
         if let Some(wino) = Winograd::new(back) {
             let mut u = vec![0.0; wino.packed_len()];
-            pack::winograd_weights_from_direct(&wino, &direct, &mut u);
+            winograd_weights(isa, &wino, &direct, &mut u);
+            // A trainer transforms every layer's weights after each update, in both forms.
+            g.bench_function(format!("{name}.data.winograd_weights"), |b| {
+                b.iter(|| winograd_weights(isa, &wino, black_box(&direct), &mut u))
+            });
             let (mut v, mut scratch) = (vec![0.0; wino.input_len()], vec![0.0; wino.scratch_len()]);
             let layer = ConvParams { weights: &u, ..layer };
             g.bench_function(format!("{name}.data.winograd"), |b| {

@@ -41,6 +41,19 @@ pub fn winograd_input(isa: Isa, w: &Winograd, phase: usize, input: &[f32], v: &m
     unsafe { (simd::entries(isa).winograd_input)(w, phase, input, v) }
 }
 
+/// Transforms weights packed for the direct convolution of `w.shape` (by
+/// [`crate::pack::conv_weights`] or [`crate::pack::conv_weights_into`]) into `packed`,
+/// [`Winograd::packed_len`] floats, for [`winograd_channels`], without allocating: `G g G^T` of
+/// each phase's taps, in f32 (fused multiply-adds where the instruction set has them). A
+/// trainer runs it after every update.
+pub fn winograd_weights(isa: Isa, w: &Winograd, direct: &[f32], packed: &mut [f32]) {
+    assert_eq!(direct.len(), w.shape.packed_len());
+    assert_eq!(packed.len(), w.packed_len());
+    // SAFETY: `isa` proves the CPU has the kernel's features; the lengths are checked above
+    // (whole panels in both layouts).
+    unsafe { (simd::entries(isa).winograd_weights)(w, direct, packed) }
+}
+
 /// Steps 2 and 3 of a Winograd convolution (see [`crate::winograd`]) for the output channels
 /// of `part`: `output = act(conv(input) + bias)` from the transformed input `v` (all four
 /// phases) and weights packed by [`crate::pack::winograd_weights`] for the same `w`, using

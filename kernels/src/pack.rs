@@ -1,6 +1,6 @@
 //! Weight preparation done once at load: PyTorch layouts in, kernel layouts out.
 
-use crate::winograd::{with_phase, WeightTransform, Winograd};
+use crate::winograd::Winograd;
 use crate::{math, ConvKind, ConvShape, Matrix, OC_ALIGN};
 use alloc::vec::Vec;
 
@@ -130,8 +130,9 @@ fn for_each_conv_weight(shape: &ConvShape, torch_len: usize, mut f: impl FnMut(u
 }
 
 /// Packs PyTorch convolution weights for [`crate::winograd_channels`] (see [`Winograd`]),
-/// folding an optional BatchNorm as [`conv_weights`] does. The transform `G g G^T` of each
-/// phase's taps is computed in f64 and rounded once. Returns `(packed weights, bias)`.
+/// folding an optional BatchNorm as [`conv_weights`] does, with the scalar
+/// [`crate::winograd_weights`] (so that the packing is the same on every CPU). Returns
+/// `(packed weights, bias)`.
 pub fn winograd_weights(
     w: &Winograd,
     torch_weight: &[f32],
@@ -140,20 +141,8 @@ pub fn winograd_weights(
 ) -> (Vec<f32>, Vec<f32>) {
     let (direct, bias) = conv_weights(&w.shape, torch_weight, bias, bn);
     let mut packed = alloc::vec![0.0f32; w.packed_len()];
-    winograd_weights_from_direct(w, &direct, &mut packed);
+    crate::winograd_weights(crate::Isa::SCALAR, w, &direct, &mut packed);
     (packed, bias)
-}
-
-/// Transforms weights packed for the direct convolution of `w.shape` (by [`conv_weights`] or
-/// [`conv_weights_into`]) into `packed`, [`Winograd::packed_len`] floats, without allocating.
-pub fn winograd_weights_from_direct(w: &Winograd, direct: &[f32], packed: &mut [f32]) {
-    assert_eq!(direct.len(), w.shape.packed_len());
-    assert_eq!(packed.len(), w.packed_len());
-    let mut transform = WeightTransform { w, direct, packed };
-    for phase in 0..4 {
-        // SAFETY: the weight transform is plain scalar code.
-        unsafe { with_phase(w, phase, &mut transform) };
-    }
 }
 
 /// The inverse of [`conv_matrix_from_torch`], also for a gradient (the layout is that of

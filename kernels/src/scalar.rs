@@ -69,6 +69,14 @@ pub fn winograd_input(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) 
     unsafe { winograd::with_phase(w, phase, &mut winograd::InputTransform::<f32>::new(w, input, v)) }
 }
 
+/// See [`crate::winograd_weights`]: the transform one float at a time.
+pub fn winograd_weights(w: &Winograd, direct: &[f32], packed: &mut [f32]) {
+    for phase in 0..4 {
+        // SAFETY: plain scalar code; `crate::winograd_weights` checked the buffer lengths.
+        unsafe { winograd::with_phase(w, phase, &mut winograd::WeightTransform::<f32>::new(w, direct, packed)) }
+    }
+}
+
 /// See [`crate::winograd_channels`]: the products straight from their definition, the output
 /// transform one float at a time.
 ///

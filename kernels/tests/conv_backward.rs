@@ -8,8 +8,8 @@ mod common;
 
 use common::{levels, Rng};
 use drivesim_kernels::{
-    conv, conv_weight_grad, conv_weight_grad_rows, conv_weight_grad_scratch_len, pack, winograd_conv, Activation,
-    ConvKind, ConvParams, ConvShape, Isa, Matrix, OutputParts, Plane, Winograd,
+    conv, conv_weight_grad, conv_weight_grad_rows, conv_weight_grad_scratch_len, pack, winograd_conv, winograd_weights,
+    Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, OutputParts, Plane, Winograd,
 };
 
 /// `(kind, height, width, in channels, out channels)`: narrow and odd channel counts, planes of
@@ -75,7 +75,7 @@ fn forward(isa: Isa, shape: ConvShape, torch: &[f32], winograd: bool, input: &[f
         None => conv(isa, layer, input, &mut out),
         Some(w) => {
             let mut packed = vec![0.0; w.packed_len()];
-            pack::winograd_weights_from_direct(&w, &direct, &mut packed);
+            winograd_weights(isa, &w, &direct, &mut packed);
             layer.weights = &packed;
             let (mut v, mut scratch) = (vec![0.0; w.input_len()], vec![0.0; w.scratch_len()]);
             winograd_conv(isa, &w, layer, input, &mut v, &mut scratch, &mut out);

@@ -1,13 +1,14 @@
 //! Winograd convolutions, scalar and SIMD, against the direct scalar convolution (the oracle)
 //! on awkward shapes: odd channel counts, odd grid sizes (tiles hanging over the edge), 1x1
-//! grids, every activation, both kinds.
+//! grids, every activation, both kinds; each level with the weights its own weight transform
+//! packed.
 
 mod common;
 
 use common::{levels, values, ACTS};
 use drivesim_kernels::{
-    pack, scalar, winograd_channels, winograd_conv, Activation, ConvKind, ConvParams, ConvShape, OutputParts, Plane,
-    Winograd,
+    pack, scalar, winograd_channels, winograd_conv, winograd_weights, Activation, ConvKind, ConvParams, ConvShape,
+    OutputParts, Plane, Winograd,
 };
 
 /// The largest error of `got` against `want` with tiles of `tile` outputs per axis, relative
@@ -44,21 +45,35 @@ fn check(
     // The error scale: |input| and |w| are at most 1, so each output sums at most
     // 25 * ic products of size 1.
     let scale = (k * k * ic) as f32 + 1.0;
-    let (packed, bias) = pack::winograd_weights(&wino, &torch, &bias, None);
-    let layer = ConvParams {
-        shape,
-        weights: &packed,
-        bias: &bias,
-        act,
-    };
+    // The packing of a loaded model (the scalar transform) and each level's own (a trainer's).
+    let (scalar_packed, bias) = pack::winograd_weights(&wino, &torch, &bias, None);
+    assert_eq!(bias, folded);
     let mut worst_all = 0.0f32;
     for isa in levels() {
+        let mut packed = vec![f32::NAN; wino.packed_len()];
+        winograd_weights(isa, &wino, &direct, &mut packed);
+        // Fused multiply-adds round once where the scalar transform rounds twice: the
+        // transformed weights (at most 1 + 1 + 1 times the largest weight) differ by a few ulp.
+        let name = isa.level().name();
+        let apart = packed
+            .iter()
+            .zip(&scalar_packed)
+            .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(
+            apart <= 1e-6,
+            "{name} {kind:?} {ic}->{oc}, tile {tile}: transforms {apart} apart"
+        );
+        let layer = ConvParams {
+            shape,
+            weights: &packed,
+            bias: &bias,
+            act,
+        };
         let mut v = vec![f32::NAN; wino.input_len()];
         let mut scratch = vec![f32::NAN; wino.scratch_len()];
         let mut got = vec![0.0; shape.output.len()];
         winograd_conv(isa, &wino, layer, &input, &mut v, &mut scratch, &mut got);
         let worst = got.iter().zip(&want).fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
-        let name = isa.level().name();
         assert!(
             worst / scale <= tolerance,
             "{name} {kind:?} {h}x{w} {ic}->{oc} {act:?}, tile {tile}: error {worst} of {scale}"

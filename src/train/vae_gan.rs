@@ -35,14 +35,11 @@ use drivesim_kernels::norm::{
     gradient_moments, moments, normalize, normalize_gradient, parameter_gradients, statistics, sums_len,
     update_running_stats,
 };
-use drivesim_kernels::pack::{
-    conv_matrix_from_torch, conv_matrix_len, conv_matrix_to_torch, conv_weights_from_matrix,
-    winograd_weights_from_direct,
-};
+use drivesim_kernels::pack::{conv_matrix_from_torch, conv_matrix_len, conv_matrix_to_torch, conv_weights_from_matrix};
 use drivesim_kernels::{
     activation_backward, conv, conv_patch_len, conv_patches, dense_data_grad_cols, dense_weight_grad_add_rows, math,
-    winograd_conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts, Plane, Winograd,
-    GRAD_PIXELS,
+    winograd_conv, winograd_weights, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts,
+    Plane, Winograd, GRAD_PIXELS,
 };
 
 /// The border of every plane of the training networks: strided convolutions read 2 pixels
@@ -325,10 +322,10 @@ impl Packed {
 
     /// Packs the layer's weights, kept as [`Table::conv`] keeps them (for its transposed shape
     /// too).
-    fn pack(&mut self, matrix: &[f32]) {
+    fn pack(&mut self, isa: Isa, matrix: &[f32]) {
         conv_weights_from_matrix(&self.shape, matrix, &mut self.direct);
         if let Some(w) = &self.winograd {
-            winograd_weights_from_direct(w, &self.direct, &mut self.transformed);
+            winograd_weights(isa, w, &self.direct, &mut self.transformed);
         }
     }
 
@@ -1670,7 +1667,7 @@ impl Networks {
             while let Some((_, job)) = jobs.take() {
                 match &mut job[0] {
                     Job::Dense(layer) => layer.pack(p),
-                    Job::Conv(packed, weight) => packed.pack(&p[weight.clone()]),
+                    Job::Conv(packed, weight) => packed.pack(exec.isa, &p[weight.clone()]),
                 }
             }
         });

@@ -44,6 +44,8 @@ pub(crate) struct Entries {
     pub winograd_input: unsafe fn(&Winograd, usize, &[f32], &mut [f32]),
     /// See [`crate::scalar::winograd_channels`].
     pub winograd_channels: WinogradChannels,
+    /// See [`crate::scalar::winograd_weights`].
+    pub winograd_weights: unsafe fn(&Winograd, &[f32], &mut [f32]),
 }
 
 /// `(dy, x, cols, grad, rows, total_rows, accumulate)`.
@@ -145,6 +147,7 @@ static SCALAR: Entries = Entries {
     activation_backward: scalar::activation_backward,
     winograd_input: scalar::winograd_input,
     winograd_channels: scalar::winograd_channels,
+    winograd_weights: scalar::winograd_weights,
 };
 
 /// The kernels of `isa`. Calling them is sound on this CPU: an [`Isa`] proves its features.
@@ -245,6 +248,13 @@ macro_rules! entries {
                 unsafe { $crate::simd::winograd::channels_body::<$vector>(w, layer, v, scratch, output, channels) }
             }
 
+            /// # Safety
+            /// The CPU must have the features; as for `winograd::weights_body`.
+            #[target_feature(enable = $features)]
+            unsafe fn weights(w: &$crate::winograd::Winograd, direct: &[f32], packed: &mut [f32]) {
+                unsafe { $crate::simd::winograd::weights_body::<$vector>(w, direct, packed) }
+            }
+
             $crate::simd::Entries {
                 conv,
                 dense,
@@ -253,6 +263,7 @@ macro_rules! entries {
                 activation_backward,
                 winograd_input: input,
                 winograd_channels: channels,
+                winograd_weights: weights,
             }
         };
     };

@@ -4,7 +4,7 @@
 
 use super::conv::{run_row, Block, Row, Seg};
 use super::vector::Simd;
-use crate::winograd::{self, InputTransform, Product, Products, Winograd};
+use crate::winograd::{self, InputTransform, Product, Products, WeightTransform, Winograd};
 use crate::{Activation, ConvParams, OC_ALIGN};
 use core::ops::Range;
 
@@ -73,6 +73,14 @@ impl<V: Simd> Product for Microkernel<V> {
 #[inline(always)]
 pub(super) unsafe fn input_body<V: Simd>(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) {
     unsafe { winograd::with_phase(w, phase, &mut InputTransform::<V>::new(w, input, v)) }
+}
+
+/// The weight transform, for one instruction set.
+#[inline(always)]
+pub(super) unsafe fn weights_body<V: Simd>(w: &Winograd, direct: &[f32], packed: &mut [f32]) {
+    for phase in 0..4 {
+        unsafe { winograd::with_phase(w, phase, &mut WeightTransform::<V>::new(w, direct, packed)) }
+    }
 }
 
 /// The products and output transform of some channels, for one instruction set.

@@ -24,8 +24,10 @@
 //!    [`Winograd::packed_index`]) into a scratch of [`Winograd::scratch_len`] floats, then transforms the
 //!    products back, adds the bias, applies the activation and stores the output pixels.
 //!
-//! The input and output transforms are written out (their coefficients are small integers), so
-//! the scalar and SIMD paths share them; the weight transform runs once, in f64.
+//! The input and output transforms are written out (their coefficients are small integers), and
+//! the weight transform is the two products `G g G^T` with constant coefficients, so the scalar
+//! and SIMD paths share all three. A loaded model's weights are transformed by the scalar path
+//! (the same packing on every CPU); a trainer transforms after every update on its own level.
 //!
 //! The scalar path runs the same three steps one float at a time; it is tested against the
 //! direct scalar convolution, the oracle of both.

@@ -244,14 +244,30 @@ impl<L: Lane> PhaseFn for OutputTransform<'_, L> {
     }
 }
 
-/// Packs weights already in the direct layout (see [`crate::pack::winograd_weights`]).
-pub(crate) struct WeightTransform<'a> {
-    pub w: &'a Winograd,
-    pub direct: &'a [f32],
-    pub packed: &'a mut [f32],
+/// The weight transform `G g G^T` of each phase's taps (see [`crate::winograd_weights`]),
+/// `L::LANES` output channels at a time: both layouts keep a panel's 16 channels adjacent, so
+/// the lanes load and store whole (padding lanes get the transform of the direct weights'
+/// padding).
+pub(crate) struct WeightTransform<'a, L> {
+    w: &'a Winograd,
+    direct: &'a [f32],
+    packed: &'a mut [f32],
+    lanes: core::marker::PhantomData<L>,
 }
 
-impl PhaseFn for WeightTransform<'_> {
+impl<'a, L> WeightTransform<'a, L> {
+    pub fn new(w: &'a Winograd, direct: &'a [f32], packed: &'a mut [f32]) -> Self {
+        WeightTransform {
+            w,
+            direct,
+            packed,
+            lanes: core::marker::PhantomData,
+        }
+    }
+}
+
+impl<L: Lane> PhaseFn for WeightTransform<'_, L> {
+    #[inline(always)]
     unsafe fn call<const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
         &mut self,
         phase: usize,
@@ -259,56 +275,50 @@ impl PhaseFn for WeightTransform<'_> {
         FY: Filter<M, PY, KY>,
         FX: Filter<M, PX, KX>,
     {
-        let (w, shape) = (self.w, &self.w.shape);
-        let (py, px, first) = (phase / 2, phase % 2, w.phase_points(phase).0);
-        // Trainers repack after every update, so this runs on a panel of output channels at
-        // once (adjacent in both layouts, so the lanes vectorise): G g G^T is two products (G g,
-        // then by G^T), in f64, rounded once.
-        let taps: [[(usize, usize); KX]; KY] =
-            core::array::from_fn(|my| core::array::from_fn(|mx| (w.tap(py, my), w.tap(px, mx))));
-        let channels = shape.output.channels;
-        let oc_step = shape.packed_index(0, 0, 0, 1) - shape.packed_index(0, 0, 0, 0);
-        for oc0 in (0..channels).step_by(OC_ALIGN) {
-            let lanes = OC_ALIGN.min(channels - oc0);
-            for ic in 0..shape.input.channels {
-                let mut g = [[[0.0f64; OC_ALIGN]; KX]; KY];
-                for (g, taps) in g.iter_mut().zip(&taps) {
-                    for (g, &(ty, tx)) in g.iter_mut().zip(taps) {
-                        let at = shape.packed_index(ty, tx, ic, oc0);
-                        if oc_step == 1 {
-                            for (g, &d) in g.iter_mut().zip(&self.direct[at..at + lanes]) {
-                                *g = d as f64;
-                            }
-                        } else {
-                            for (lane, g) in g[..lanes].iter_mut().enumerate() {
-                                *g = self.direct[at + lane * oc_step] as f64;
-                            }
-                        }
-                    }
+        unsafe {
+            let (w, shape) = (self.w, &self.w.shape);
+            let (py, px, first) = (phase / 2, phase % 2, w.phase_points(phase).0);
+            // Where each of the phase's taps sits in a direct panel (input channel 0).
+            let mut taps = [[0; KX]; KY];
+            for (my, row) in taps.iter_mut().enumerate() {
+                for (mx, at) in row.iter_mut().enumerate() {
+                    *at = shape.packed_index(w.tap(py, my), w.tap(px, mx), 0, 0);
                 }
-                // The coefficients are constants: the zeros among them are skipped at compile
-                // time (their products could only change the sign of a zero).
-                let mut gg = [[[0.0f64; OC_ALIGN]; KX]; PY];
-                for (row, gy) in gg.iter_mut().zip(FY::G.iter()) {
-                    for (g, &cy) in g.iter().zip(gy).filter(|&(_, &cy)| cy != 0.0) {
-                        for (r, g) in row.iter_mut().zip(g) {
-                            for (r, &g) in r.iter_mut().zip(g) {
-                                *r += cy * g;
+            }
+            let point_stride = w.packed_index(1, 0, 0);
+            let (direct, packed) = (self.direct.as_ptr(), self.packed.as_mut_ptr());
+            for oc in (0..shape.output.channels).step_by(OC_ALIGN) {
+                for ic in 0..shape.input.channels {
+                    let (from, to) = (shape.packed_index(0, 0, ic, oc), w.packed_index(first, ic, oc));
+                    for lane in (0..OC_ALIGN).step_by(L::LANES) {
+                        let mut g = [[L::zero(); KX]; KY];
+                        for (g, taps) in g.iter_mut().zip(&taps) {
+                            for (g, &at) in g.iter_mut().zip(taps) {
+                                *g = L::load_n(direct.add(from + at + lane), L::LANES);
                             }
                         }
-                    }
-                }
-                for (r, row) in gg.iter().enumerate() {
-                    for (s, gx) in FX::G.iter().enumerate() {
-                        let mut sum = [0.0f64; OC_ALIGN];
-                        for (v, &cx) in row.iter().zip(gx).filter(|&(_, &cx)| cx != 0.0) {
-                            for (sum, &v) in sum.iter_mut().zip(v) {
-                                *sum += v * cx;
+                        // The coefficients are constants: the zeros among them are skipped at
+                        // compile time (their products could only change the sign of a zero).
+                        let mut gg = [[L::zero(); KX]; PY];
+                        for (row, gy) in gg.iter_mut().zip(FY::G.iter()) {
+                            for (c, value) in row.iter_mut().enumerate() {
+                                for (g, &cy) in g.iter().zip(gy) {
+                                    if cy != 0.0 {
+                                        *value = g[c].mul_add(cy as f32, *value);
+                                    }
+                                }
                             }
                         }
-                        let at = w.packed_index(first + r * PX + s, ic, oc0);
-                        for (p, &sum) in self.packed[at..at + lanes].iter_mut().zip(&sum) {
-                            *p = sum as f32;
+                        for (r, row) in gg.iter().enumerate() {
+                            for (s, gx) in FX::G.iter().enumerate() {
+                                let mut sum = L::zero();
+                                for (&v, &cx) in row.iter().zip(gx) {
+                                    if cx != 0.0 {
+                                        sum = v.mul_add(cx as f32, sum);
+                                    }
+                                }
+                                sum.store_n(packed.add(to + (r * PX + s) * point_stride + lane), L::LANES);
+                            }
                         }
                     }
                 }
