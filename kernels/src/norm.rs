@@ -3,13 +3,14 @@
 //! of planes (items of [`Plane::len`] floats one after another; only interiors are read or
 //! written, borders stay zero).
 //!
-//! These read each value twice per call and do a few operations on it: memory-bound, so
-//! written once as plain loops over blocks of [`BLOCK`] channels, with per-channel sums in f64
-//! on the stack. The f64 sums make the statistics of a hundred thousand values exact to f32
-//! rounding.
+//! The per-channel sums are in f64: they make the statistics of a hundred thousand values exact
+//! to f32 rounding. The passes that sum ([`moments`], [`gradient_moments`]) and the gradient's
+//! normalisation ([`normalize_gradient`], in f64 too) run on the caller's instruction set, in
+//! f64 vectors, with the same results as the scalar references ([`crate::scalar::moments`] and
+//! the others) bit for bit; the rest are plain loops over blocks of [`BLOCK`] channels.
 
 use crate::pack::BN_EPS;
-use crate::{Activation, Isa, Plane};
+use crate::{simd, Activation, Isa, Plane};
 use core::ops::Range;
 
 /// PyTorch's default BatchNorm momentum: the weight of a batch in the running statistics.
@@ -17,10 +18,10 @@ pub const MOMENTUM: f64 = 0.1;
 
 /// Channels summed together in one pass over the pixels: up to this many f64 sums live on
 /// the stack, and one pass reads a pixel's block of channels as one contiguous run.
-const BLOCK: usize = 64;
+pub(crate) const BLOCK: usize = 64;
 
 /// The blocks of channels of a plane.
-fn blocks(channels: usize) -> impl Iterator<Item = Range<usize>> {
+pub(crate) fn blocks(channels: usize) -> impl Iterator<Item = Range<usize>> {
     (0..channels).step_by(BLOCK).map(move |c| c..(c + BLOCK).min(channels))
 }
 
@@ -32,7 +33,7 @@ fn items(plane: Plane, batch: &[f32]) -> usize {
 
 /// The offset of channel 0 of every interior pixel of every item of a batch of `items`
 /// planes, row by row.
-fn pixels(plane: Plane, items: usize) -> impl Iterator<Item = usize> {
+pub(crate) fn pixels(plane: Plane, items: usize) -> impl Iterator<Item = usize> {
     let row = plane.width * plane.channels;
     (0..items).flat_map(move |n| {
         (0..plane.height).flat_map(move |y| {
@@ -47,27 +48,6 @@ fn inv_std(var: f32) -> f64 {
     1.0 / crate::math::sqrt(var as f64 + BN_EPS)
 }
 
-/// Adds `Σ f(i, c).0` and `Σ f(i, c).1` over one plane's interior values (`i` a value's index,
-/// `c` its channel) to `sums[c]` and `sums[channels + c]`.
-fn add_sums(plane: Plane, sums: &mut [f64], f: impl Fn(usize, usize) -> (f64, f64)) {
-    let c = plane.channels;
-    assert_eq!(sums.len(), 2 * c);
-    for block in blocks(c) {
-        let (mut a, mut b) = ([0.0f64; BLOCK], [0.0f64; BLOCK]);
-        for p in pixels(plane, 1) {
-            for (j, ch) in block.clone().enumerate() {
-                let (u, v) = f(p + ch, ch);
-                a[j] += u;
-                b[j] += v;
-            }
-        }
-        for (j, ch) in block.enumerate() {
-            sums[ch] += a[j];
-            sums[c + ch] += b[j];
-        }
-    }
-}
-
 /// f64 sums a batch's statistics take: two per channel.
 pub const fn sums_len(channels: usize) -> usize {
     2 * channels
@@ -76,9 +56,11 @@ pub const fn sums_len(channels: usize) -> usize {
 /// Step 1 of BatchNorm in training mode, for one plane `x` of a batch: adds its per-channel sums
 /// of values and of squares to `sums` (`[Σ x | Σ x²]`, [`sums_len`] f64). Threads may take the
 /// planes of a batch, each into sums of its own, added up after in the planes' order.
-pub fn moments(plane: Plane, x: &[f32], sums: &mut [f64]) {
+pub fn moments(isa: Isa, plane: Plane, x: &[f32], sums: &mut [f64]) {
     assert_eq!(x.len(), plane.len());
-    add_sums(plane, sums, |i, _| (x[i] as f64, x[i] as f64 * x[i] as f64));
+    assert_eq!(sums.len(), sums_len(plane.channels));
+    // SAFETY: `isa` proves the CPU has the kernel's features; the lengths are checked above.
+    unsafe { (simd::entries(isa).moments)(plane, x, sums) }
 }
 
 /// Step 2: a batch's mean and biased variance from its sums over `count` values per channel
@@ -155,6 +137,7 @@ fn affine(
 /// to `mean` and `var`), then `y = act(gamma · x̂ + beta)` into the interior of `y`.
 #[allow(clippy::too_many_arguments)] // a layer's input, parameters, output, statistics, scratch
 pub fn batch_norm_train(
+    isa: Isa,
     plane: Plane,
     x: &[f32],
     gamma: &[f32],
@@ -169,7 +152,7 @@ pub fn batch_norm_train(
     let n = items(plane, x);
     sums.fill(0.0);
     for x in x.chunks_exact(plane.len()) {
-        moments(plane, x, sums);
+        moments(isa, plane, x, sums);
     }
     statistics(sums, n * plane.height * plane.width, mean, var);
     for (x, y) in x.chunks_exact(plane.len()).zip(y.chunks_exact_mut(plane.len())) {
@@ -180,11 +163,11 @@ pub fn batch_norm_train(
 /// Backward step 1, for one plane: adds `Σ g` and `Σ (x - mean) · g` per channel to `sums`
 /// ([`sums_len`] f64), `g` the gradient before the activation (see
 /// [`crate::activation_backward`]), `x` the layer's input.
-pub fn gradient_moments(plane: Plane, x: &[f32], g: &[f32], mean: &[f32], sums: &mut [f64]) {
+pub fn gradient_moments(isa: Isa, plane: Plane, x: &[f32], g: &[f32], mean: &[f32], sums: &mut [f64]) {
     assert!(x.len() == plane.len() && g.len() == plane.len() && mean.len() == plane.channels);
-    add_sums(plane, sums, |i, c| {
-        (g[i] as f64, (x[i] as f64 - mean[c] as f64) * g[i] as f64)
-    });
+    assert_eq!(sums.len(), sums_len(plane.channels));
+    // SAFETY: as in `moments`.
+    unsafe { (simd::entries(isa).gradient_moments)(plane, x, g, mean, sums) }
 }
 
 /// Backward step 2: the gradients of `gamma` and `beta` from a batch's sums.
@@ -202,6 +185,7 @@ pub fn parameter_gradients(sums: &[f64], var: &[f32], dgamma: &mut [f32], dbeta:
 /// sums over `count` values per channel. Only the interior is read and written.
 #[allow(clippy::too_many_arguments)] // a plane in and out, the batch's statistics and sums
 pub fn normalize_gradient(
+    isa: Isa,
     plane: Plane,
     x: &[f32],
     g: &mut [f32],
@@ -215,26 +199,34 @@ pub fn normalize_gradient(
     assert!(x.len() == plane.len() && g.len() == plane.len());
     assert!(mean.len() == c && var.len() == c && gamma.len() == c && sums.len() == sums_len(c));
     let n = count as f64;
+    let kernel = simd::entries(isa).normalize_gradient_block;
     for block in blocks(c) {
-        // dx = (g - sum / n - (x - mean) · dot · s² / n) · s · gamma
-        let mut coef = [(0.0f64, 0.0f64, 0.0f64, 0.0f64); BLOCK];
+        let mut coef = GradientCoefficients {
+            mean_g: [0.0; BLOCK],
+            proj: [0.0; BLOCK],
+            scale: [0.0; BLOCK],
+            mean: [0.0; BLOCK],
+        };
         for (j, ch) in block.clone().enumerate() {
             let s = inv_std(var[ch]);
-            coef[j] = (
-                sums[ch] / n,
-                sums[c + ch] * s * s / n,
-                s * gamma[ch] as f64,
-                mean[ch] as f64,
-            );
+            coef.mean_g[j] = sums[ch] / n;
+            coef.proj[j] = sums[c + ch] * s * s / n;
+            coef.scale[j] = s * gamma[ch] as f64;
+            coef.mean[j] = mean[ch] as f64;
         }
-        for p in pixels(plane, 1) {
-            let span = p + block.start..p + block.end;
-            for (j, (gv, &xv)) in g[span.clone()].iter_mut().zip(&x[span]).enumerate() {
-                let (mean_g, proj, scale, m) = coef[j];
-                *gv = ((*gv as f64 - mean_g - (xv as f64 - m) * proj) * scale) as f32;
-            }
-        }
+        // SAFETY: as in `moments`; the block is inside the plane's channels.
+        unsafe { kernel(plane, x, g, block, &coef) }
     }
+}
+
+/// The per-channel constants of [`normalize_gradient`] for a block of at most [`BLOCK`]
+/// channels (zero past its end): `dx = (g - mean_g - (x - mean) · proj) · scale`, where
+/// `mean_g = Σ g / n`, `proj = Σ (x - mean) g · s² / n`, `scale = s · gamma`, `s = 1 / σ`.
+pub(crate) struct GradientCoefficients {
+    pub mean_g: [f64; BLOCK],
+    pub proj: [f64; BLOCK],
+    pub scale: [f64; BLOCK],
+    pub mean: [f64; BLOCK],
 }
 
 /// The backward pass of [`batch_norm_train`] on one thread (its `x`, `y`, `mean`, `var`,
@@ -264,13 +256,13 @@ pub fn batch_norm_backward(
     crate::activation_backward(isa, act, y, dy);
     sums.fill(0.0);
     for (x, g) in x.chunks_exact(plane.len()).zip(dy.chunks_exact(plane.len())) {
-        gradient_moments(plane, x, g, mean, sums);
+        gradient_moments(isa, plane, x, g, mean, sums);
     }
     parameter_gradients(sums, var, dgamma, dbeta);
     let count = n * plane.height * plane.width;
     dx.copy_from_slice(dy);
     for (x, dx) in x.chunks_exact(plane.len()).zip(dx.chunks_exact_mut(plane.len())) {
-        normalize_gradient(plane, x, dx, mean, var, gamma, sums, count);
+        normalize_gradient(isa, plane, x, dx, mean, var, gamma, sums, count);
     }
 }
 

@@ -3,7 +3,7 @@
 //! are the test oracle; the others are the scalar entries of every operation's dispatch.
 
 use crate::winograd::{self, Winograd};
-use crate::{Activation, ConvParams, ConvShape, Matrix, MatrixData};
+use crate::{norm, Activation, ConvParams, ConvShape, Matrix, MatrixData, Plane};
 use core::ops::Range;
 
 /// See [`crate::conv`].
@@ -197,5 +197,56 @@ pub(crate) unsafe fn dense_data_grad_cols(
 pub fn activation_backward(act: Activation, y: &[f32], grad: &mut [f32]) {
     for (g, &y) in grad.iter_mut().zip(y) {
         *g = act.backward(y, *g);
+    }
+}
+
+/// Adds `Σ f(i, c).0` and `Σ f(i, c).1` over one plane's interior values (`i` a value's index,
+/// `c` its channel) to `sums[c]` and `sums[channels + c]`: per channel, a sum from zero in
+/// pixel order, then added to `sums`.
+fn add_sums(plane: Plane, sums: &mut [f64], f: impl Fn(usize, usize) -> (f64, f64)) {
+    let c = plane.channels;
+    for block in norm::blocks(c) {
+        let (mut a, mut b) = ([0.0f64; norm::BLOCK], [0.0f64; norm::BLOCK]);
+        for p in norm::pixels(plane, 1) {
+            for (j, ch) in block.clone().enumerate() {
+                let (u, v) = f(p + ch, ch);
+                a[j] += u;
+                b[j] += v;
+            }
+        }
+        for (j, ch) in block.enumerate() {
+            sums[ch] += a[j];
+            sums[c + ch] += b[j];
+        }
+    }
+}
+
+/// See [`crate::norm::moments`]: per channel, `Σ x` and `Σ x²` in f64.
+pub fn moments(plane: Plane, x: &[f32], sums: &mut [f64]) {
+    add_sums(plane, sums, |i, _| (x[i] as f64, x[i] as f64 * x[i] as f64));
+}
+
+/// See [`crate::norm::gradient_moments`]: per channel, `Σ g` and `Σ (x - mean) · g` in f64.
+pub fn gradient_moments(plane: Plane, x: &[f32], g: &[f32], mean: &[f32], sums: &mut [f64]) {
+    add_sums(plane, sums, |i, c| {
+        (g[i] as f64, (x[i] as f64 - mean[c] as f64) * g[i] as f64)
+    });
+}
+
+/// See [`crate::norm::normalize_gradient`]: `g = (g - mean_g - (x - mean) · proj) · scale` in
+/// f64 for the channels of `block`.
+pub(crate) fn normalize_gradient_block(
+    plane: Plane,
+    x: &[f32],
+    g: &mut [f32],
+    block: Range<usize>,
+    coef: &norm::GradientCoefficients,
+) {
+    for p in norm::pixels(plane, 1) {
+        let span = p + block.start..p + block.end;
+        for (j, (gv, &xv)) in g[span.clone()].iter_mut().zip(&x[span]).enumerate() {
+            let centred = (xv as f64 - coef.mean[j]) * coef.proj[j];
+            *gv = ((*gv as f64 - coef.mean_g[j] - centred) * coef.scale[j]) as f32;
+        }
     }
 }

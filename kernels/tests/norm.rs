@@ -4,8 +4,11 @@
 
 mod common;
 
-use common::{Rng, ACTS};
-use drivesim_kernels::norm::{batch_norm_backward, batch_norm_train, moments, sums_len, update_running_stats};
+use common::{levels, Rng, ACTS};
+use drivesim_kernels::norm::{
+    batch_norm_backward, batch_norm_train, gradient_moments, moments, normalize_gradient, sums_len,
+    update_running_stats,
+};
 use drivesim_kernels::{Activation, Isa, Plane};
 
 /// Odd channel counts around the block of 16, small planes with and without a border.
@@ -56,12 +59,76 @@ fn loss_f64(plane: Plane, x: &[f64], gamma: &[f64], beta: &[f64], act: Activatio
 }
 
 /// `batch_norm_train`'s output and statistics.
-fn forward(plane: Plane, x: &[f32], gamma: &[f32], beta: &[f32], act: Activation) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+fn forward(
+    isa: Isa,
+    plane: Plane,
+    x: &[f32],
+    gamma: &[f32],
+    beta: &[f32],
+    act: Activation,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
     let c = plane.channels;
     let (mut y, mut mean, mut var) = (vec![0.0; x.len()], vec![0.0; c], vec![0.0; c]);
     let mut sums = vec![0.0; sums_len(c)];
-    batch_norm_train(plane, x, gamma, beta, act, &mut y, &mut mean, &mut var, &mut sums);
+    batch_norm_train(isa, plane, x, gamma, beta, act, &mut y, &mut mean, &mut var, &mut sums);
     (y, mean, var)
+}
+
+/// The passes that run on an instruction set give the scalar reference's results bit for bit,
+/// on channel counts around every vector width and past a block of 64, adding to sums that
+/// already hold values, and leave the border alone.
+#[test]
+fn every_level_sums_and_normalises_as_the_scalar_reference() {
+    let mut rng = Rng::new(23);
+    for (h, w, c, halo) in [
+        (2, 3, 1, 0),
+        (3, 2, 5, 1),
+        (2, 2, 17, 2),
+        (1, 3, 33, 1),
+        (2, 1, 70, 1),
+        (1, 2, 131, 0),
+    ] {
+        let plane = Plane::new(h, w, c, halo);
+        let x = batch(&mut rng, plane, 1, 2.0);
+        let g = rng.fill(plane.len(), 1.0);
+        let mean = rng.fill(c, 1.0);
+        let var: Vec<f32> = rng.fill(c, 1.0).iter().map(|v| v.abs() + 0.1).collect();
+        let gamma = rng.fill(c, 1.5);
+        let start: Vec<f64> = rng.fill(sums_len(c), 3.0).iter().map(|&v| v as f64).collect();
+        let run = |isa: Isa, g: &mut [f32]| {
+            let (mut a, mut b) = (start.clone(), start.clone());
+            moments(isa, plane, &x, &mut a);
+            gradient_moments(isa, plane, &x, g, &mean, &mut b);
+            normalize_gradient(isa, plane, &x, g, &mean, &var, &gamma, &b, 7);
+            (a, b)
+        };
+        let want_g = {
+            let mut g = g.clone();
+            let sums = run(Isa::SCALAR, &mut g);
+            (sums, g)
+        };
+        for isa in levels() {
+            let mut got_g = g.clone();
+            let sums = run(isa, &mut got_g);
+            let bits = |v: &[f64]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            let name = isa.level().name();
+            assert_eq!(bits(&sums.0), bits(&want_g.0 .0), "{name} {plane:?}: moments");
+            assert_eq!(bits(&sums.1), bits(&want_g.0 .1), "{name} {plane:?}: gradient moments");
+            let bits32 = |v: &[f32]| v.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            assert_eq!(
+                bits32(&got_g),
+                bits32(&want_g.1),
+                "{name} {plane:?}: normalised gradient"
+            );
+            // The border kept its values (random, not zero).
+            let mut border = vec![true; plane.len()];
+            interior(plane, 1).iter().for_each(|&(i, _)| border[i] = false);
+            assert!(
+                (0..plane.len()).all(|i| !border[i] || got_g[i] == g[i]),
+                "{name} {plane:?}: border written"
+            );
+        }
+    }
 }
 
 #[test]
@@ -69,10 +136,10 @@ fn forward_matches_its_definition() {
     let mut rng = Rng::new(21);
     for (h, w, c, halo) in PLANES {
         let plane = Plane::new(h, w, c, halo);
-        for act in ACTS {
+        for (act, isa) in ACTS.into_iter().zip(levels().into_iter().cycle()) {
             let x = batch(&mut rng, plane, ITEMS, 2.0);
             let (gamma, beta) = (rng.fill(c, 1.5), rng.fill(c, 1.0));
-            let (y, mean, var) = forward(plane, &x, &gamma, &beta, act);
+            let (y, mean, var) = forward(isa, plane, &x, &gamma, &beta, act);
             let at = interior(plane, ITEMS);
             let count = (at.len() / c) as f64;
             for ch in 0..c {
@@ -108,7 +175,7 @@ fn backward_matches_central_differences() {
             let (gamma, beta) = (rng.fill(c, 1.5), rng.fill(c, 1.0));
             // The loss Σ w·y: its gradient with respect to y is w.
             let weights = rng.fill(x.len(), 1.0);
-            let (y, mean, var) = forward(plane, &x, &gamma, &beta, act);
+            let (y, mean, var) = forward(Isa::best(), plane, &x, &gamma, &beta, act);
             let mut dy = weights.clone();
             let mut dx = vec![0.0; x.len()];
             let (mut dgamma, mut dbeta) = (vec![0.0; c], vec![0.0; c]);
@@ -164,7 +231,7 @@ fn backward_matches_central_differences() {
             // bias sums: dbeta is its channel sum.
             let mut sums = vec![0.0; sums_len(c)];
             for g in dy.chunks_exact(plane.len()) {
-                moments(plane, g, &mut sums);
+                moments(Isa::best(), plane, g, &mut sums);
             }
             for ch in 0..c {
                 assert!((sums[ch] as f32 - dbeta[ch]).abs() <= 1e-5 * (1.0 + dbeta[ch].abs()));

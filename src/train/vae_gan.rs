@@ -1235,7 +1235,7 @@ fn norm_forward(
     let count = items * plane.height * plane.width;
     let slots = (&mut work.item_sums[..], &mut work.sums[..]);
     let sums = batch_sums(exec, plane, items, slots, &|n, slot| {
-        moments(plane, &z[n * pl..][..pl], slot)
+        moments(exec.isa, plane, &z[n * pl..][..pl], slot)
     });
     statistics(sums, count, mean, var);
     let (mean, var) = (&*mean, &*var);
@@ -1309,7 +1309,14 @@ fn norm_backward(
     let gradient = &*g;
     let slots = (&mut work.item_sums[..], &mut work.sums[..]);
     let sums = batch_sums(exec, plane, items, slots, &|n, slot| {
-        gradient_moments(plane, &z[n * pl..][..pl], &gradient[n * pl..][..pl], mean, slot)
+        gradient_moments(
+            exec.isa,
+            plane,
+            &z[n * pl..][..pl],
+            &gradient[n * pl..][..pl],
+            mean,
+            slot,
+        )
     });
     if let Some(grads) = grads {
         let (dgamma, dbeta) = work.channel_tmp[..2 * c].split_at_mut(c);
@@ -1321,7 +1328,7 @@ fn norm_backward(
     let outputs = Parts::chunks(g, pl);
     exec.run(&|| {
         while let Some((n, g)) = outputs.take() {
-            normalize_gradient(plane, &z[n * pl..][..pl], g, mean, var, gamma, sums, count);
+            normalize_gradient(exec.isa, plane, &z[n * pl..][..pl], g, mean, var, gamma, sums, count);
         }
     });
 }
@@ -1518,7 +1525,7 @@ fn stack_backward(
             let g = &*gz;
             let slots = (&mut work.item_sums[..], &mut work.sums[..]);
             let sums = batch_sums(exec, plane, items, slots, &|n, slot| {
-                moments(plane, &g[n * ol..][..ol], slot)
+                moments(exec.isa, plane, &g[n * ol..][..ol], slot)
             });
             for (g, &s) in grads[l.bias.clone()].iter_mut().zip(&sums[..oc]) {
                 *g += s as f32;

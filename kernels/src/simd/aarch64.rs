@@ -2,7 +2,7 @@
 //! part of every aarch64 target this module is compiled for (`target_feature = "neon"`), so the
 //! entries need no run-time check.
 
-use super::vector::{Simd, Widen};
+use super::vector::{Double, Simd, Widen};
 use super::Entries;
 use crate::{f16, IsaLevel};
 use core::arch::aarch64::*;
@@ -117,6 +117,42 @@ impl Widen for float32x4_t {
             asm!("fcvtl {0:v}.4s, {1:v}.4h", lateout(vreg) widened, in(vreg) halves, options(pure, nomem, nostack, preserves_flags));
             widened
         }
+    }
+}
+
+impl Double for float32x4_t {
+    type F64 = float64x2_t;
+    #[inline(always)]
+    unsafe fn zero_f64() -> float64x2_t {
+        unsafe { vdupq_n_f64(0.0) }
+    }
+    #[inline(always)]
+    unsafe fn load_f64(p: *const f64) -> float64x2_t {
+        unsafe { vld1q_f64(p) }
+    }
+    #[inline(always)]
+    unsafe fn store_f64(v: float64x2_t, p: *mut f64) {
+        unsafe { vst1q_f64(p, v) }
+    }
+    #[inline(always)]
+    unsafe fn add_f64(a: float64x2_t, b: float64x2_t) -> float64x2_t {
+        unsafe { vaddq_f64(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn sub_f64(a: float64x2_t, b: float64x2_t) -> float64x2_t {
+        unsafe { vsubq_f64(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn mul_f64(a: float64x2_t, b: float64x2_t) -> float64x2_t {
+        unsafe { vmulq_f64(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn widen(self) -> [float64x2_t; 2] {
+        unsafe { [vcvt_f64_f32(vget_low_f32(self)), vcvt_high_f64_f32(self)] }
+    }
+    #[inline(always)]
+    unsafe fn narrow([lo, hi]: [float64x2_t; 2]) -> float32x4_t {
+        unsafe { vcvt_high_f32_f64(vcvt_f32_f64(lo), hi) }
     }
 }
 

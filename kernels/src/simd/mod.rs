@@ -13,8 +13,9 @@
     allow(dead_code, unused_macros)
 )]
 
+use crate::norm::GradientCoefficients;
 use crate::winograd::Winograd;
-use crate::{scalar, Activation, ConvParams, Isa, Matrix};
+use crate::{scalar, Activation, ConvParams, Isa, Matrix, Plane};
 use core::ops::Range;
 
 pub(crate) mod act;
@@ -22,6 +23,7 @@ mod conv;
 mod conv_narrow;
 mod dense;
 mod dense_grad;
+mod norm;
 pub(crate) mod vector;
 pub(crate) mod winograd;
 
@@ -46,6 +48,12 @@ pub(crate) struct Entries {
     pub winograd_channels: WinogradChannels,
     /// See [`crate::scalar::winograd_weights`].
     pub winograd_weights: unsafe fn(&Winograd, &[f32], &mut [f32]),
+    /// See [`crate::scalar::moments`].
+    pub moments: unsafe fn(Plane, &[f32], &mut [f64]),
+    /// See [`crate::scalar::gradient_moments`].
+    pub gradient_moments: unsafe fn(Plane, &[f32], &[f32], &[f32], &mut [f64]),
+    /// See [`crate::scalar::normalize_gradient_block`].
+    pub normalize_gradient_block: unsafe fn(Plane, &[f32], &mut [f32], Range<usize>, &GradientCoefficients),
 }
 
 /// `(dy, x, cols, grad, rows, total_rows, accumulate)`.
@@ -148,6 +156,9 @@ static SCALAR: Entries = Entries {
     winograd_input: scalar::winograd_input,
     winograd_channels: scalar::winograd_channels,
     winograd_weights: scalar::winograd_weights,
+    moments: scalar::moments,
+    gradient_moments: scalar::gradient_moments,
+    normalize_gradient_block: scalar::normalize_gradient_block,
 };
 
 /// The kernels of `isa`. Calling them is sound on this CPU: an [`Isa`] proves its features.
@@ -255,6 +266,33 @@ macro_rules! entries {
                 unsafe { $crate::simd::winograd::weights_body::<$vector>(w, direct, packed) }
             }
 
+            /// # Safety
+            /// The CPU must have the features; as for `norm::moments`.
+            #[target_feature(enable = $features)]
+            unsafe fn moments(plane: $crate::Plane, x: &[f32], sums: &mut [f64]) {
+                unsafe { $crate::simd::norm::moments::<$vector>(plane, x, sums) }
+            }
+
+            /// # Safety
+            /// The CPU must have the features; as for `norm::gradient_moments`.
+            #[target_feature(enable = $features)]
+            unsafe fn gradient_moments(plane: $crate::Plane, x: &[f32], g: &[f32], mean: &[f32], sums: &mut [f64]) {
+                unsafe { $crate::simd::norm::gradient_moments::<$vector>(plane, x, g, mean, sums) }
+            }
+
+            /// # Safety
+            /// The CPU must have the features; as for `norm::normalize_gradient_block`.
+            #[target_feature(enable = $features)]
+            unsafe fn normalize_gradient_block(
+                plane: $crate::Plane,
+                x: &[f32],
+                g: &mut [f32],
+                block: core::ops::Range<usize>,
+                coef: &$crate::norm::GradientCoefficients,
+            ) {
+                unsafe { $crate::simd::norm::normalize_gradient_block::<$vector>(plane, x, g, block, coef) }
+            }
+
             $crate::simd::Entries {
                 conv,
                 dense,
@@ -264,6 +302,9 @@ macro_rules! entries {
                 winograd_input: input,
                 winograd_channels: channels,
                 winograd_weights: weights,
+                moments,
+                gradient_moments,
+                normalize_gradient_block,
             }
         };
     };

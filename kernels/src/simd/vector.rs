@@ -2,7 +2,8 @@
 //!
 //! - [`Simd`]: a vector of f32 lanes, implemented by each architecture's module: `__m256`
 //!   (AVX2 + FMA) and `__m512` (AVX-512F) on x86-64, `float32x4_t` (NEON) on aarch64; [`Widen`]
-//!   adds loading halves widened (the dense kernel's f16 weights); [`load_n`] / [`store_n`]
+//!   adds loading halves widened (the dense kernel's f16 weights), [`Double`] f64 vectors
+//!   (BatchNorm's sums); [`load_n`] / [`store_n`]
 //!   touch only the first `n` lanes (masked tails).
 //! - [`Lane`]: what Winograd's transforms run on: one f32 on the scalar path, a [`Simd`] vector
 //!   on the others, so that both paths share one transform.
@@ -56,6 +57,25 @@ pub(crate) trait Simd: Copy {
 pub(super) trait Widen: Simd {
     /// Loads `LANES` halves and widens them.
     unsafe fn load_f16(p: *const f16) -> Self;
+}
+
+/// What BatchNorm's kernels need on top of [`Simd`]: f64 vectors of half the lanes, for sums
+/// that stay exact to f32 rounding (and equal the scalar reference's bit for bit: the same
+/// operations in the same order, none fused).
+/// Methods are `inline(always)`, to compile inside the caller's `#[target_feature]` function.
+pub(super) trait Double: Simd {
+    type F64: Copy;
+    unsafe fn zero_f64() -> Self::F64;
+    /// Loads `LANES / 2` f64 from `p` (no alignment needed).
+    unsafe fn load_f64(p: *const f64) -> Self::F64;
+    unsafe fn store_f64(v: Self::F64, p: *mut f64);
+    unsafe fn add_f64(a: Self::F64, b: Self::F64) -> Self::F64;
+    unsafe fn sub_f64(a: Self::F64, b: Self::F64) -> Self::F64;
+    unsafe fn mul_f64(a: Self::F64, b: Self::F64) -> Self::F64;
+    /// The lanes as f64 (exactly): the low half, then the high half.
+    unsafe fn widen(self) -> [Self::F64; 2];
+    /// Halves back to f32, rounded to nearest (as `as f32`).
+    unsafe fn narrow(halves: [Self::F64; 2]) -> Self;
 }
 
 #[inline(always)]

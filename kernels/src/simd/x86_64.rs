@@ -1,7 +1,7 @@
 //! x86-64: the vector types of AVX2 + FMA + F16C (`__m256`) and AVX-512F (`__m512`), and the
 //! kernels' `#[target_feature]` entry points for each.
 
-use super::vector::{Simd, Widen};
+use super::vector::{Double, Simd, Widen};
 use super::Entries;
 use crate::{f16, IsaLevel};
 use core::arch::x86_64::*;
@@ -206,6 +206,90 @@ impl Widen for __m512 {
     #[inline(always)]
     unsafe fn load_f16(p: *const f16) -> __m512 {
         unsafe { _mm512_cvtph_ps(_mm256_loadu_si256(p.cast())) }
+    }
+}
+
+impl Double for __m256 {
+    type F64 = __m256d;
+    #[inline(always)]
+    unsafe fn zero_f64() -> __m256d {
+        unsafe { _mm256_setzero_pd() }
+    }
+    #[inline(always)]
+    unsafe fn load_f64(p: *const f64) -> __m256d {
+        unsafe { _mm256_loadu_pd(p) }
+    }
+    #[inline(always)]
+    unsafe fn store_f64(v: __m256d, p: *mut f64) {
+        unsafe { _mm256_storeu_pd(p, v) }
+    }
+    #[inline(always)]
+    unsafe fn add_f64(a: __m256d, b: __m256d) -> __m256d {
+        unsafe { _mm256_add_pd(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn sub_f64(a: __m256d, b: __m256d) -> __m256d {
+        unsafe { _mm256_sub_pd(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn mul_f64(a: __m256d, b: __m256d) -> __m256d {
+        unsafe { _mm256_mul_pd(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn widen(self) -> [__m256d; 2] {
+        unsafe {
+            [
+                _mm256_cvtps_pd(_mm256_castps256_ps128(self)),
+                _mm256_cvtps_pd(_mm256_extractf128_ps(self, 1)),
+            ]
+        }
+    }
+    #[inline(always)]
+    unsafe fn narrow([lo, hi]: [__m256d; 2]) -> __m256 {
+        unsafe { _mm256_set_m128(_mm256_cvtpd_ps(hi), _mm256_cvtpd_ps(lo)) }
+    }
+}
+
+impl Double for __m512 {
+    type F64 = __m512d;
+    #[inline(always)]
+    unsafe fn zero_f64() -> __m512d {
+        unsafe { _mm512_setzero_pd() }
+    }
+    #[inline(always)]
+    unsafe fn load_f64(p: *const f64) -> __m512d {
+        unsafe { _mm512_loadu_pd(p) }
+    }
+    #[inline(always)]
+    unsafe fn store_f64(v: __m512d, p: *mut f64) {
+        unsafe { _mm512_storeu_pd(p, v) }
+    }
+    #[inline(always)]
+    unsafe fn add_f64(a: __m512d, b: __m512d) -> __m512d {
+        unsafe { _mm512_add_pd(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn sub_f64(a: __m512d, b: __m512d) -> __m512d {
+        unsafe { _mm512_sub_pd(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn mul_f64(a: __m512d, b: __m512d) -> __m512d {
+        unsafe { _mm512_mul_pd(a, b) }
+    }
+    #[inline(always)]
+    unsafe fn widen(self) -> [__m512d; 2] {
+        unsafe {
+            // The upper eight floats through the f64 view (extracting f32 x 8 needs AVX-512DQ).
+            let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(self), 1));
+            [_mm512_cvtps_pd(_mm512_castps512_ps256(self)), _mm512_cvtps_pd(hi)]
+        }
+    }
+    #[inline(always)]
+    unsafe fn narrow([lo, hi]: [__m512d; 2]) -> __m512 {
+        unsafe {
+            let lo = _mm512_castpd256_pd512(_mm256_castps_pd(_mm512_cvtpd_ps(lo)));
+            _mm512_castpd_ps(_mm512_insertf64x4(lo, _mm256_castps_pd(_mm512_cvtpd_ps(hi)), 1))
+        }
     }
 }
 
