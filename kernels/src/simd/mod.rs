@@ -51,7 +51,7 @@ pub(crate) struct Entries {
     /// See [`crate::scalar::moments`].
     pub moments: unsafe fn(Plane, &[f32], &mut [f64]),
     /// See [`crate::scalar::gradient_moments`].
-    pub gradient_moments: unsafe fn(Plane, &[f32], &[f32], &[f32], &mut [f64]),
+    pub gradient_moments: GradientMoments,
     /// See [`crate::scalar::normalize_gradient_block`].
     pub normalize_gradient_block: unsafe fn(Plane, &[f32], &mut [f32], Range<usize>, &GradientCoefficients),
 }
@@ -61,6 +61,9 @@ type DenseWeightGrad = unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, 
 
 /// `(w, rows, cols, dy, dx, columns)`.
 type DenseDataGrad = unsafe fn(&[f32], usize, usize, &[f32], *mut f32, Range<usize>);
+
+/// `(plane, x, g, mean, sums)`.
+type GradientMoments = unsafe fn(Plane, &[f32], &[f32], &[f32], &mut [f64]);
 
 /// `(w, layer, v, scratch, output, channels)`.
 type WinogradChannels = unsafe fn(&Winograd, ConvParams<'_>, &[f32], &mut [f32], *mut f32, Range<usize>);
