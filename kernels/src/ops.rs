@@ -223,9 +223,9 @@ pub fn conv_weight_grad(isa: Isa, shape: ConvShape, input: &[f32], dy: &[f32], s
 }
 
 /// [`conv_weight_grad`] for the output channels of `part` only, so that threads can fill
-/// disjoint panels of one gradient at once, each with its own `scratch` (each then gathers
-/// every patch; a caller that shares the gathering calls [`conv_patches`] and
-/// [`dense_weight_grad_add_rows`] itself).
+/// disjoint panels of one gradient at once, each with its own `scratch`: each then gathers
+/// every patch itself, and no thread reads what another wrote (on a VM whose two vCPUs sit on
+/// different dies, reading another core's writes costs hundreds of nanoseconds a line).
 pub fn conv_weight_grad_rows(
     isa: Isa,
     shape: ConvShape,
@@ -233,6 +233,31 @@ pub fn conv_weight_grad_rows(
     dy: &[f32],
     scratch: &mut [f32],
     part: OutputPart<'_>,
+) {
+    conv_grad_rows(isa, shape, input, dy, scratch, part, false)
+}
+
+/// [`conv_weight_grad_rows`] adding the gradient to what `part` holds (a trainer's gradient
+/// summed over several passes).
+pub fn conv_weight_grad_add_rows(
+    isa: Isa,
+    shape: ConvShape,
+    input: &[f32],
+    dy: &[f32],
+    scratch: &mut [f32],
+    part: OutputPart<'_>,
+) {
+    conv_grad_rows(isa, shape, input, dy, scratch, part, true)
+}
+
+fn conv_grad_rows(
+    isa: Isa,
+    shape: ConvShape,
+    input: &[f32],
+    dy: &[f32],
+    scratch: &mut [f32],
+    part: OutputPart<'_>,
+    add: bool,
 ) {
     let (rows, cols) = (shape.output.channels, conv_patch_len(&shape));
     assert!(scratch.len() >= conv_weight_grad_scratch_len(&shape));
@@ -256,7 +281,7 @@ pub fn conv_weight_grad_rows(
         let (d, x) = (&dys[..n * rows], &patches[..n * cols]);
         // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer is the
         // whole packed matrix (checked) and the panels of its rows are this call's alone.
-        unsafe { kernel(d, x, cols, part.ptr(), units.clone(), rows, start > 0) };
+        unsafe { kernel(d, x, cols, part.ptr(), units.clone(), rows, add || start > 0) };
     }
 }
 

@@ -8,8 +8,9 @@ mod common;
 
 use common::{levels, Rng};
 use drivesim_kernels::{
-    conv, conv_weight_grad, conv_weight_grad_rows, conv_weight_grad_scratch_len, pack, winograd_conv, winograd_weights,
-    Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, OutputParts, Plane, Winograd,
+    conv, conv_weight_grad, conv_weight_grad_add_rows, conv_weight_grad_rows, conv_weight_grad_scratch_len, pack,
+    winograd_conv, winograd_weights, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, OutputParts, Plane,
+    Winograd,
 };
 
 /// `(kind, height, width, in channels, out channels)`: narrow and odd channel counts, planes of
@@ -195,6 +196,21 @@ fn weight_grad(isa: Isa, shape: ConvShape, x: &[f32], dy: &[f32], items: usize) 
             conv_weight_grad_rows(isa, down, &input, &grad_of_output, &mut scratch, part);
         }
         assert!(split == packed, "{:?} {shape:?}: split rows differ", isa.level());
+    }
+    // Adding to a gradient that holds the same values doubles it (to the rounding of sums of
+    // terms up to the largest weight's size).
+    let scale = packed.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let mut twice = packed.clone();
+    let parts = OutputParts::new(&mut twice, rows, 2);
+    while let Some(part) = parts.take() {
+        conv_weight_grad_add_rows(isa, down, &input, &grad_of_output, &mut scratch, part);
+    }
+    for (t, p) in twice.iter().zip(&packed) {
+        assert!(
+            (t - 2.0 * p).abs() <= 1e-5 * scale,
+            "{:?} {shape:?}: added {t}, once {p}",
+            isa.level()
+        );
     }
     let mut torch = vec![0.0; rows * cols];
     pack::conv_matrix_to_torch(&down, &packed, &mut torch);

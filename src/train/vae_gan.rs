@@ -37,9 +37,9 @@ use drivesim_kernels::norm::{
 };
 use drivesim_kernels::pack::{conv_matrix_from_torch, conv_matrix_len, conv_matrix_to_torch, conv_weights_from_matrix};
 use drivesim_kernels::{
-    activation_backward, conv, conv_patch_len, conv_patches, dense_data_grad_cols, dense_weight_grad_add_rows, math,
-    winograd_conv, winograd_weights, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, MatrixData, OutputParts,
-    Plane, Winograd, GRAD_PIXELS,
+    activation_backward, conv, conv_weight_grad_add_rows, conv_weight_grad_scratch_len, dense_data_grad_cols,
+    dense_weight_grad_add_rows, math, winograd_conv, winograd_weights, Activation, ConvKind, ConvParams, ConvShape,
+    Isa, Matrix, MatrixData, OutputParts, Plane, Winograd,
 };
 
 /// The border of every plane of the training networks: strided convolutions read 2 pixels
@@ -400,9 +400,7 @@ impl Conv {
             ConvKind::Down => ic * k * k,
             ConvKind::Up => oc * k * k,
         };
-        let down = shape.strided();
-        let block = grad_chunks(&down) * GRAD_PIXELS * (conv_patch_len(&down) + down.output.channels);
-        sizes.weight_scratch = sizes.weight_scratch.max(block);
+        sizes.weight_scratch = sizes.weight_scratch.max(conv_weight_grad_scratch_len(&shape.strided()));
         sizes.channels = sizes.channels.max(oc).max(ic);
         Ok(Conv {
             shape,
@@ -548,6 +546,7 @@ impl Dense {
 struct Sizes {
     winograd_v: usize,
     winograd_products: usize,
+    /// Per thread.
     weight_scratch: usize,
     channels: usize,
 }
@@ -824,7 +823,7 @@ fn build(config: &Config, batch: usize, threads: usize, budget: &mut Budget) -> 
                     })
                 })
                 .collect::<Result<_>>()?,
-            weight_scratch: budget.take("scratch", sizes.weight_scratch)?,
+            weight_scratch: budget.take("scratch", mul(threads, sizes.weight_scratch)?)?,
             channel_tmp: budget.take("scratch", 2 * sizes.channels.max(top_c))?,
             zero: budget.take("scratch", sizes.channels)?,
             item_sums: budget.take_f64("scratch", mul(pair, sums_len(sizes.channels.max(top_c)))?)?,
@@ -1395,60 +1394,22 @@ fn stack_forward(
     }
 }
 
-/// Chunks of [`GRAD_PIXELS`] output pixels gathered at once for a weight gradient: as many
-/// as fit about 512 KiB of patches, at least one, at most 8.
-fn grad_chunks(down: &ConvShape) -> usize {
-    let per_chunk = GRAD_PIXELS * (conv_patch_len(down) + down.output.channels);
-    ((1 << 17) / per_chunk).clamp(1, 8)
-}
-
-/// The weight gradient of the strided layer `down` over a batch ([`drivesim_kernels::conv_weight_grad`],
-/// whose chunks and sums it keeps), with the gathering shared: threads gather the chunks of a
-/// block into `scratch` (each chunk its patches, then its output gradients), then each sums every
-/// chunk of the block into its panels of the gradient, adding to what `grad` holds (in the
-/// layout of [`Table::conv`]).
+/// The weight gradient of the strided layer `down` over a batch, added to what `grad` holds
+/// (in the layout of [`Table::conv`]): in one run, each thread takes a share of the gradient's
+/// panels and gathers every patch into its own `scratch`
+/// ([`drivesim_kernels::conv_weight_grad_add_rows`]). Gathering twice costs less than sharing:
+/// a shared gathering needs a barrier per block of patches, and half of what each thread reads
+/// would be the other's writes.
 fn conv_weight_grad(exec: Exec<'_>, down: ConvShape, input: &[f32], dy: &[f32], scratch: &mut [f32], grad: &mut [f32]) {
-    let (rows, cols) = (down.output.channels, conv_patch_len(&down));
-    let chunk = GRAD_PIXELS * (cols + rows);
-    let per_block = grad_chunks(&down);
-    let total = input.len() / down.input.len() * down.output.height * down.output.width;
-    let blocks = total.div_ceil(GRAD_PIXELS * per_block).max(1);
-    for block in 0..blocks {
-        let first = block * per_block * GRAD_PIXELS;
-        let pixels = |c: usize| {
-            let start = (first + c * GRAD_PIXELS).min(total);
-            start..(start + GRAD_PIXELS).min(total)
-        };
-        let count = per_block.min((total - first).div_ceil(GRAD_PIXELS)).max(1);
-        let region = &mut scratch[..count * chunk];
-        let chunks = Parts::chunks(region, chunk);
-        exec.run(&|| {
-            while let Some((c, region)) = chunks.take() {
-                let p = pixels(c);
-                let (patches, dys) = region.split_at_mut(GRAD_PIXELS * cols);
-                conv_patches(
-                    down,
-                    input,
-                    dy,
-                    p.clone(),
-                    &mut patches[..p.len() * cols],
-                    &mut dys[..p.len() * rows],
-                );
-            }
-        });
-        let region = &scratch[..count * chunk];
-        let parts = OutputParts::new(&mut *grad, rows, exec.threads());
-        exec.run(&|| {
-            while let Some(mut part) = parts.take() {
-                for (c, region) in region.chunks_exact(chunk).enumerate() {
-                    let n = pixels(c).len();
-                    let (patches, dys) = region.split_at(GRAD_PIXELS * cols);
-                    let (dy, patches) = (&dys[..n * rows], &patches[..n * cols]);
-                    dense_weight_grad_add_rows(exec.isa, dy, patches, rows, cols, part.reborrow());
-                }
-            }
-        });
-    }
+    let each = conv_weight_grad_scratch_len(&down);
+    let scratch = Parts::chunks(&mut scratch[..exec.threads() * each], each);
+    let parts = OutputParts::new(grad, down.output.channels, exec.threads());
+    exec.run(&|| {
+        let (_, scratch) = scratch.take().expect("a scratch for every thread");
+        while let Some(part) = parts.take() {
+            conv_weight_grad_add_rows(exec.isa, down, input, dy, scratch, part);
+        }
+    });
 }
 
 /// Where a backward pass through a stack starts: from the gradient of layer `i`'s output (in
