@@ -77,12 +77,48 @@ pub fn conv_weights_into(shape: &ConvShape, torch_weight: &[f32], packed: &mut [
 pub fn conv_weights_from_matrix(shape: &ConvShape, matrix: &[f32], packed: &mut [f32]) {
     assert_eq!(packed.len(), shape.packed_len());
     assert_eq!(matrix.len(), conv_matrix_len(shape));
-    // A strided layer with panels of outputs is packed as its matrix is.
-    if matches!(shape.kind, ConvKind::Down) && !shape.is_narrow() {
-        return packed.copy_from_slice(matrix);
-    }
     let (k, ic, oc) = (shape.kernel, shape.input.channels, shape.output.channels);
-    for_each_conv_weight(shape, oc * ic * k * k, |_, m, at, _| packed[at] = matrix[m]);
+    match (shape.kind, shape.is_narrow()) {
+        // A strided layer with panels of outputs is packed as its matrix is.
+        (ConvKind::Down, false) => packed.copy_from_slice(matrix),
+        // A transposed layer with panels: for each tap, 16 x 16 blocks (its input channels,
+        // the matrix's rows, by its output channels) are transposed, each 1 KiB block to 1 KiB.
+        (ConvKind::Up, false) => {
+            let row_panel = OC_ALIGN * k * k * oc;
+            for tap in 0..k * k {
+                for i0 in (0..ic).step_by(OC_ALIGN) {
+                    for o0 in (0..oc).step_by(OC_ALIGN) {
+                        let (rows, cols) = (OC_ALIGN.min(ic - i0), OC_ALIGN.min(oc - o0));
+                        let from = &matrix[i0 / OC_ALIGN * row_panel + (tap * oc + o0) * OC_ALIGN..][..cols * OC_ALIGN];
+                        let to = &mut packed[o0 / OC_ALIGN * shape.panel_len() + (tap * ic + i0) * OC_ALIGN..];
+                        transpose_block(from, to, rows, cols);
+                    }
+                }
+            }
+        }
+        _ => for_each_conv_weight(shape, oc * ic * k * k, |_, m, at, _| packed[at] = matrix[m]),
+    }
+}
+
+/// `to[r][c] = from[c][r]` for the first `rows x cols` of two row-major blocks of 16 columns
+/// (`from` holds `cols` rows; a whole 16 x 16 block is unrolled, so that it vectorises; the
+/// rest of `to` is left as it was).
+fn transpose_block(from: &[f32], to: &mut [f32], rows: usize, cols: usize) {
+    if rows == OC_ALIGN && cols == OC_ALIGN {
+        let from: &[f32; OC_ALIGN * OC_ALIGN] = from.try_into().expect("a whole block");
+        let to: &mut [f32; OC_ALIGN * OC_ALIGN] = (&mut to[..OC_ALIGN * OC_ALIGN]).try_into().expect("a whole block");
+        for r in 0..OC_ALIGN {
+            for c in 0..OC_ALIGN {
+                to[r * OC_ALIGN + c] = from[c * OC_ALIGN + r];
+            }
+        }
+    } else {
+        for r in 0..rows {
+            for c in 0..cols {
+                to[r * OC_ALIGN + c] = from[c * OC_ALIGN + r];
+            }
+        }
+    }
 }
 
 /// Floats in [`conv_weights_from_matrix`]'s layout for `shape`.
