@@ -338,3 +338,32 @@ pub fn conv_patches(
         }
     }
 }
+
+/// The constants of one Adam step for [`adam`] (the optimiser of `drivesim::train`, with
+/// PyTorch's arithmetic).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdamStep {
+    /// Decay of the first moment.
+    pub beta1: f32,
+    /// Decay of the second moment.
+    pub beta2: f32,
+    /// Added to the denominator.
+    pub eps: f32,
+    /// Multiplies every gradient first (gradient clipping; 1: none).
+    pub scale: f32,
+    /// `lr / (1 - β1ᵗ)` at step `t`.
+    pub step_size: f32,
+    /// `√(1 - β2ᵗ)` at step `t`.
+    pub correction2_sqrt: f32,
+}
+
+/// One Adam step on `params` from `grads`, with the moments `m` and `v` (all the same length),
+/// element by element: `g = scale · grad`, `m += (g - m)(1 - β1)`, `v = β2 v + (1 - β2) g g`,
+/// `p -= step_size · m / (√v / correction2_sqrt + eps)`. Each operation is rounded as written
+/// (IEEE, none fused), so every instruction set gives the same bits.
+pub fn adam(isa: Isa, step: AdamStep, params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
+    let n = params.len();
+    assert!(grads.len() == n && m.len() == n && v.len() == n);
+    // SAFETY: `isa` proves the CPU has the kernel's features; the lengths are checked above.
+    unsafe { (simd::entries(isa).adam)(step, params, grads, m, v) }
+}

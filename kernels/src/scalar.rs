@@ -250,3 +250,23 @@ pub(crate) fn normalize_gradient_block(
         }
     }
 }
+
+/// See [`crate::adam`]: element by element, each operation rounded as written.
+pub fn adam(s: crate::AdamStep, params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
+    for (((p, &g), m), v) in params.iter_mut().zip(grads).zip(m.iter_mut()).zip(v.iter_mut()) {
+        let g = g * s.scale;
+        *m += (g - *m) * (1.0 - s.beta1);
+        *v = *v * s.beta2 + (1.0 - s.beta2) * g * g;
+        *p -= s.step_size * *m / (sqrt(*v) / s.correction2_sqrt + s.eps);
+    }
+}
+
+/// The correctly rounded square root: the CPU's instruction with std, else from f64 (Newton's
+/// method, correct to the last bit but for values within an f64 ulp of a halfway point).
+#[inline]
+fn sqrt(x: f32) -> f32 {
+    #[cfg(feature = "std")]
+    return x.sqrt();
+    #[cfg(not(feature = "std"))]
+    return crate::math::sqrt(x as f64) as f32;
+}

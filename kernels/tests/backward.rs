@@ -4,11 +4,11 @@
 
 mod common;
 
-use common::{simd_levels, values};
+use common::{levels, simd_levels, values};
 use drivesim_kernels::pack::dense_weights;
 use drivesim_kernels::{
-    activation_backward, dense, dense_data_grad, dense_data_grad_cols, dense_weight_grad, dense_weight_grad_rows,
-    scalar, Activation, Isa, Matrix, MatrixData, OutputParts,
+    activation_backward, adam, dense, dense_data_grad, dense_data_grad_cols, dense_weight_grad, dense_weight_grad_rows,
+    scalar, Activation, AdamStep, Isa, Matrix, MatrixData, OutputParts,
 };
 
 const ROWS: [usize; 9] = [1, 3, 7, 16, 17, 33, 47, 64, 129];
@@ -274,6 +274,54 @@ fn activation_backward_is_bit_identical_to_scalar() {
                 activation_backward(isa, act, &y, &mut got);
                 assert_eq!(got, want, "{:?} {act:?} n {n}", isa.level());
             }
+        }
+    }
+}
+
+/// Adam gives the same bits on every level, on lengths around every vector width, and follows
+/// its definition (computed in f64) to f32 rounding.
+#[test]
+fn adam_is_the_same_on_every_level_and_follows_its_definition() {
+    let step = AdamStep {
+        beta1: 0.9,
+        beta2: 0.999,
+        eps: 1e-8,
+        scale: 0.7,
+        step_size: 1e-3 / (1.0 - 0.9f32.powi(3)),
+        correction2_sqrt: (1.0 - 0.999f32.powi(3)).sqrt(),
+    };
+    for n in [0, 1, 3, 4, 7, 8, 15, 16, 17, 33, 100, 1001] {
+        let (params, grads, m) = (values(1, n, 1.0), values(2, n, 1.0), values(3, n, 0.1));
+        let v: Vec<f32> = values(4, n, 0.01).iter().map(|v| v.abs()).collect();
+        let run = |isa: Isa| {
+            let (mut p, mut m, mut v) = (params.clone(), m.clone(), v.clone());
+            adam(isa, step, &mut p, &grads, &mut m, &mut v);
+            (p, m, v)
+        };
+        let want = run(Isa::SCALAR);
+        for isa in levels() {
+            let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            let got = run(isa);
+            let name = isa.level().name();
+            assert_eq!(bits(&got.0), bits(&want.0), "{name} {n}: parameters");
+            assert_eq!(bits(&got.1), bits(&want.1), "{name} {n}: first moments");
+            assert_eq!(bits(&got.2), bits(&want.2), "{name} {n}: second moments");
+        }
+        for i in 0..n {
+            let g = grads[i] as f64 * step.scale as f64;
+            let m1 = m[i] as f64 + (g - m[i] as f64) * (1.0 - step.beta1 as f64);
+            let v1 = v[i] as f64 * step.beta2 as f64 + (1.0 - step.beta2 as f64) * g * g;
+            let delta = step.step_size as f64 * m1 / (v1.sqrt() / step.correction2_sqrt as f64 + step.eps as f64);
+            let p1 = params[i] as f64 - delta;
+            assert!(
+                (want.1[i] as f64 - m1).abs() <= 1e-6 * (m1.abs() + g.abs()),
+                "{n} m {i}"
+            );
+            assert!((want.2[i] as f64 - v1).abs() <= 1e-6 * v1, "{n} v {i}");
+            assert!(
+                (want.0[i] as f64 - p1).abs() <= 1e-6 * (p1.abs() + delta.abs()),
+                "{n} p {i}"
+            );
         }
     }
 }

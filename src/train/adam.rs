@@ -3,7 +3,7 @@
 //! `θ -= (lr / (1 - β1ᵗ)) m / (√v / √(1 - β2ᵗ) + eps)`.
 
 use crate::{Error, Result};
-use drivesim_kernels::math;
+use drivesim_kernels::{math, AdamStep, Isa};
 
 /// Adam's constants; PyTorch's defaults.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -50,28 +50,20 @@ impl Adam {
     /// Adam step `step` (from 1) on `params`, with the gradients multiplied by `scale` first
     /// (gradient clipping, as PyTorch scales them in place; 1.0: none); `m` and `v` are the
     /// moments, zeros before the first step. Also for a caller's own parameters, e.g. actions
-    /// recovered through [`super::TransitionTrainer::action_gradients`].
+    /// recovered through [`super::TransitionTrainer::action_gradients`]. Runs on the best
+    /// instruction set ([`drivesim_kernels::adam`]): the same bits on every one.
     #[allow(clippy::too_many_arguments)]
     pub fn update(&self, step: u32, lr: f32, scale: f32, params: &mut [f32], grads: &[f32], [m, v]: [&mut [f32]; 2]) {
-        let (b1, b2) = (self.beta1, self.beta2);
         // PyTorch computes the corrections in Python floats (f64).
-        let correction1 = 1.0 - math::powi(b1 as f64, step);
-        let correction2_sqrt = math::sqrt(1.0 - math::powi(b2 as f64, step)) as f32;
-        let step_size = (lr as f64 / correction1) as f32;
-        for (((p, &g), m), v) in params.iter_mut().zip(grads).zip(m.iter_mut()).zip(v.iter_mut()) {
-            let g = g * scale;
-            *m += (g - *m) * (1.0 - b1);
-            *v = *v * b2 + (1.0 - b2) * g * g;
-            *p -= step_size * *m / (sqrt(*v) / correction2_sqrt + self.eps);
-        }
+        let correction1 = 1.0 - math::powi(self.beta1 as f64, step);
+        let adam = AdamStep {
+            beta1: self.beta1,
+            beta2: self.beta2,
+            eps: self.eps,
+            scale,
+            step_size: (lr as f64 / correction1) as f32,
+            correction2_sqrt: math::sqrt(1.0 - math::powi(self.beta2 as f64, step)) as f32,
+        };
+        drivesim_kernels::adam(Isa::best(), adam, params, grads, m, v);
     }
-}
-
-/// The correctly rounded square root: the CPU's instruction with std, else from f64.
-#[inline]
-fn sqrt(x: f32) -> f32 {
-    #[cfg(feature = "std")]
-    return x.sqrt();
-    #[cfg(not(feature = "std"))]
-    return math::sqrt(x as f64) as f32;
 }

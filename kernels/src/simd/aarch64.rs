@@ -56,6 +56,10 @@ impl Simd for float32x4_t {
         unsafe { vdivq_f32(self, b) }
     }
     #[inline(always)]
+    unsafe fn sqrt(self) -> Self {
+        unsafe { vsqrtq_f32(self) }
+    }
+    #[inline(always)]
     unsafe fn max(self, b: Self) -> Self {
         unsafe { vmaxq_f32(self, b) }
     }

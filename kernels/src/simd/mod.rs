@@ -15,10 +15,11 @@
 
 use crate::norm::GradientCoefficients;
 use crate::winograd::Winograd;
-use crate::{scalar, Activation, ConvParams, Isa, Matrix, Plane};
+use crate::{scalar, Activation, AdamStep, ConvParams, Isa, Matrix, Plane};
 use core::ops::Range;
 
 pub(crate) mod act;
+mod adam;
 mod conv;
 mod conv_narrow;
 mod dense;
@@ -54,6 +55,8 @@ pub(crate) struct Entries {
     pub gradient_moments: GradientMoments,
     /// See [`crate::scalar::normalize_gradient_block`].
     pub normalize_gradient_block: unsafe fn(Plane, &[f32], &mut [f32], Range<usize>, &GradientCoefficients),
+    /// See [`crate::scalar::adam`].
+    pub adam: unsafe fn(AdamStep, &mut [f32], &[f32], &mut [f32], &mut [f32]),
 }
 
 /// `(dy, x, cols, grad, rows, total_rows, accumulate)`.
@@ -162,6 +165,7 @@ static SCALAR: Entries = Entries {
     moments: scalar::moments,
     gradient_moments: scalar::gradient_moments,
     normalize_gradient_block: scalar::normalize_gradient_block,
+    adam: scalar::adam,
 };
 
 /// The kernels of `isa`. Calling them is sound on this CPU: an [`Isa`] proves its features.
@@ -296,6 +300,13 @@ macro_rules! entries {
                 unsafe { $crate::simd::norm::normalize_gradient_block::<$vector>(plane, x, g, block, coef) }
             }
 
+            /// # Safety
+            /// The CPU must have the features; as for `adam::adam`.
+            #[target_feature(enable = $features)]
+            unsafe fn adam(step: $crate::AdamStep, params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
+                unsafe { $crate::simd::adam::adam::<$vector>(step, params, grads, m, v) }
+            }
+
             $crate::simd::Entries {
                 conv,
                 dense,
@@ -308,6 +319,7 @@ macro_rules! entries {
                 moments,
                 gradient_moments,
                 normalize_gradient_block,
+                adam,
             }
         };
     };

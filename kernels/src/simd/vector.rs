@@ -33,6 +33,8 @@ pub(crate) trait Simd: Copy {
     unsafe fn sub(self, b: Self) -> Self;
     unsafe fn mul(self, b: Self) -> Self;
     unsafe fn div(self, b: Self) -> Self;
+    /// The correctly rounded square root.
+    unsafe fn sqrt(self) -> Self;
     unsafe fn max(self, b: Self) -> Self;
     unsafe fn min(self, b: Self) -> Self;
     /// `self * b + c` with one rounding.

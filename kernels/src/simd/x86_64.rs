@@ -51,6 +51,10 @@ impl Simd for __m256 {
         unsafe { _mm256_div_ps(self, b) }
     }
     #[inline(always)]
+    unsafe fn sqrt(self) -> Self {
+        unsafe { _mm256_sqrt_ps(self) }
+    }
+    #[inline(always)]
     unsafe fn max(self, b: Self) -> Self {
         unsafe { _mm256_max_ps(self, b) }
     }
@@ -145,6 +149,10 @@ impl Simd for __m512 {
     #[inline(always)]
     unsafe fn div(self, b: Self) -> Self {
         unsafe { _mm512_div_ps(self, b) }
+    }
+    #[inline(always)]
+    unsafe fn sqrt(self) -> Self {
+        unsafe { _mm512_sqrt_ps(self) }
     }
     #[inline(always)]
     unsafe fn max(self, b: Self) -> Self {
