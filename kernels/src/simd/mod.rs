@@ -56,7 +56,7 @@ pub(crate) struct Entries {
     /// See [`crate::scalar::normalize_gradient_block`].
     pub normalize_gradient_block: unsafe fn(Plane, &[f32], &mut [f32], Range<usize>, &GradientCoefficients),
     /// See [`crate::scalar::adam`].
-    pub adam: unsafe fn(AdamStep, &mut [f32], &[f32], &mut [f32], &mut [f32]),
+    pub adam: Adam,
 }
 
 /// `(dy, x, cols, grad, rows, total_rows, accumulate)`.
@@ -64,6 +64,9 @@ type DenseWeightGrad = unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, 
 
 /// `(w, rows, cols, dy, dx, columns)`.
 type DenseDataGrad = unsafe fn(&[f32], usize, usize, &[f32], *mut f32, Range<usize>);
+
+/// `(step, params, grads, m, v)`.
+type Adam = unsafe fn(AdamStep, &mut [f32], &[f32], &mut [f32], &mut [f32]);
 
 /// `(plane, x, g, mean, sums)`.
 type GradientMoments = unsafe fn(Plane, &[f32], &[f32], &[f32], &mut [f64]);
