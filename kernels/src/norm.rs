@@ -31,16 +31,46 @@ fn items(plane: Plane, batch: &[f32]) -> usize {
     batch.len() / plane.len()
 }
 
-/// The offset of channel 0 of every interior pixel of every item of a batch of `items`
-/// planes, row by row.
-pub(crate) fn pixels(plane: Plane, items: usize) -> impl Iterator<Item = usize> {
-    let row = plane.width * plane.channels;
-    (0..items).flat_map(move |n| {
-        (0..plane.height).flat_map(move |y| {
-            let start = n * plane.len() + plane.index(y, 0);
-            (start..start + row).step_by(plane.channels.max(1))
-        })
-    })
+/// The offset of channel 0 of every interior pixel of a plane, row by row: an iterator
+/// without closures, so that it inlines into the SIMD bodies (a closure does not inherit their
+/// target features, and their accumulators would live in memory across its calls).
+pub(crate) struct Pixels {
+    plane: Plane,
+    /// The next pixel's offset, and the end of its row.
+    at: usize,
+    row_end: usize,
+    /// The next row.
+    y: usize,
+}
+
+impl Pixels {
+    pub fn new(plane: Plane) -> Pixels {
+        Pixels {
+            plane,
+            at: 0,
+            row_end: 0,
+            y: 0,
+        }
+    }
+}
+
+impl Iterator for Pixels {
+    type Item = usize;
+
+    #[inline(always)]
+    fn next(&mut self) -> Option<usize> {
+        if self.at == self.row_end {
+            if self.y == self.plane.height || self.plane.width == 0 {
+                return None;
+            }
+            self.at = self.plane.index(self.y, 0);
+            self.row_end = self.at + self.plane.width * self.plane.channels;
+            self.y += 1;
+        }
+        let p = self.at;
+        self.at += self.plane.channels;
+        Some(p)
+    }
 }
 
 /// `1 / sqrt(var + eps)` as PyTorch computes it for a biased batch variance.
@@ -124,7 +154,7 @@ fn affine(
     shift: &[f32],
     f: impl Fn(f32) -> f32,
 ) {
-    for p in pixels(plane, 1) {
+    for p in Pixels::new(plane) {
         let span = p + block.start..p + block.end;
         for (((o, &v), &a), &b) in y[span.clone()].iter_mut().zip(&x[span]).zip(scale).zip(shift) {
             *o = f(v * a + b);

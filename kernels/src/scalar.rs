@@ -207,7 +207,7 @@ fn add_sums(plane: Plane, sums: &mut [f64], f: impl Fn(usize, usize) -> (f64, f6
     let c = plane.channels;
     for block in norm::blocks(c) {
         let (mut a, mut b) = ([0.0f64; norm::BLOCK], [0.0f64; norm::BLOCK]);
-        for p in norm::pixels(plane, 1) {
+        for p in norm::Pixels::new(plane) {
             for (j, ch) in block.clone().enumerate() {
                 let (u, v) = f(p + ch, ch);
                 a[j] += u;
@@ -242,7 +242,7 @@ pub(crate) fn normalize_gradient_block(
     block: Range<usize>,
     coef: &norm::GradientCoefficients,
 ) {
-    for p in norm::pixels(plane, 1) {
+    for p in norm::Pixels::new(plane) {
         let span = p + block.start..p + block.end;
         for (j, (gv, &xv)) in g[span.clone()].iter_mut().zip(&x[span]).enumerate() {
             let centred = (xv as f64 - coef.mean[j]) * coef.proj[j];
