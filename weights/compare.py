@@ -174,7 +174,7 @@ class Drivesim:
         cmd = run + model_args + ["--threads", ",".join(map(str, threads)), "--seconds", str(seconds), "--serve"]
         print("$", " ".join(cmd), file=sys.stderr)
         self.proc = subprocess.Popen(cmd, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        self.isa, self.peaks, self.gflop = "?", {}, {}
+        self.isa, self.peaks, self.gflop, self.handoff = "?", {}, {}, {}
         for line in self.proc.stdout:
             fields = dict(re.findall(r"(\w+)=(\S+)", line))
             if line.startswith("isa "):
@@ -194,6 +194,8 @@ class Drivesim:
             raise RuntimeError(f"bench_report answered {line!r} (exit status {self.proc.poll()})")
         fields = dict(re.findall(r"(\w+)=(\S+)", line))
         self.gflop[(net, batch)] = float(fields["gflop"])
+        if "handoff_ns" in fields:  # with threads: the vCPUs' placement just after the timing
+            self.handoff.setdefault((net, batch, threads), []).append(float(fields["handoff_ns"]))
         return float(fields["median_ms"])
 
     def close(self):

@@ -22,7 +22,10 @@ for the VAE-GAN, every convolution and dense product of its forward and backward
 direct-equivalent (Winograd does fewer multiplications). "of peak" is
 GFLOP/s over the FMA peak bench_report measures with as many threads at once. Peak resident
 memory is measured separately, one process per runtime and configuration (1 thread), with
-/usr/bin/time.
+/usr/bin/time. "hand-off ns" is a cache line's round trip between two threads just after each
+round's drivesim timing: about 50 when a 2-vCPU VM's vCPUs share a die, about 400 when the host
+placed them on different dies (which slows every multi-threaded step; compare rows of one
+placement).
 """
 
 from __future__ import annotations
@@ -122,6 +125,7 @@ def main() -> int:
     torch_step = TorchStep(a.stage)
     samples: dict = {}
     gflop: dict = {}
+    handoff: dict = {}
     for name in names:
         base, z, hidden = CONFIGS[name]
         drivesim = Drivesim(["--z", str(z), "--hidden", str(hidden), "--base", str(base)], threads, a.seconds, binary)
@@ -138,6 +142,7 @@ def main() -> int:
                             samples.setdefault((name, runtime, b, t), []).append(ms)
                 print(f"{name}: round {r + 1} of {a.rounds} done", file=sys.stderr)
             gflop.update({(name, b): drivesim.gflop[(net, b)] for b in batches})
+            handoff.update({(name, b, t): v for (_, b, t), v in drivesim.handoff.items()})
             peaks = drivesim.peaks
         finally:
             drivesim.close()
@@ -155,8 +160,9 @@ def main() -> int:
     model, flags = cpu_info()
     print(f"CPU: {model} ({', '.join(flags)}); torch {torch.__version__}; {a.rounds} rounds of {a.seconds} s")
     print()
-    print("| config | batch | threads | drivesim ms | GFLOP/s | of peak | PyTorch ms | GFLOP/s | PyTorch/drivesim (range) |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| config | batch | threads | drivesim ms | GFLOP/s | of peak | PyTorch ms | GFLOP/s | PyTorch/drivesim (range) "
+          "| hand-off ns |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for name in names:
         for t in threads:
             peak = max(v for (w, n), v in peaks.items() if n == t)
@@ -167,7 +173,7 @@ def main() -> int:
                 mo, mt = statistics.median(ours), statistics.median(theirs)
                 print(f"| {name} | {b} | {t} | {spread(ours)} | {g / mo * 1e3:.1f} | {g / mo * 1e3 / peak:.0%} | "
                       f"{spread(theirs)} | {g / mt * 1e3:.1f} | {statistics.median(ratios):.2f}x "
-                      f"({min(ratios):.2f}-{max(ratios):.2f}) |")
+                      f"({min(ratios):.2f}-{max(ratios):.2f}) | {'/'.join(f'{v:.0f}' for v in handoff.get((name, b, t), [])) or '-'} |")
     if memory:
         print()
         print("| config | batch | drivesim peak RSS MiB | PyTorch peak RSS MiB |")
