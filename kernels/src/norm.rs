@@ -31,46 +31,14 @@ fn items(plane: Plane, batch: &[f32]) -> usize {
     batch.len() / plane.len()
 }
 
-/// The offset of channel 0 of every interior pixel of a plane, row by row: an iterator
-/// without closures, so that it inlines into the SIMD bodies (a closure does not inherit their
-/// target features, and their accumulators would live in memory across its calls).
-pub(crate) struct Pixels {
-    plane: Plane,
-    /// The next pixel's offset, and the end of its row.
-    at: usize,
-    row_end: usize,
-    /// The next row.
-    y: usize,
-}
-
-impl Pixels {
-    pub fn new(plane: Plane) -> Pixels {
-        Pixels {
-            plane,
-            at: 0,
-            row_end: 0,
-            y: 0,
-        }
-    }
-}
-
-impl Iterator for Pixels {
-    type Item = usize;
-
-    #[inline(always)]
-    fn next(&mut self) -> Option<usize> {
-        if self.at == self.row_end {
-            if self.y == self.plane.height || self.plane.width == 0 {
-                return None;
-            }
-            self.at = self.plane.index(self.y, 0);
-            self.row_end = self.at + self.plane.width * self.plane.channels;
-            self.y += 1;
-        }
-        let p = self.at;
-        self.at += self.plane.channels;
-        Some(p)
-    }
+/// The interior of each row of a plane, row by row: `for p in row.step_by(channels)` then
+/// visits the offset of channel 0 of each pixel. (A flattened iterator over the pixels did not
+/// inline into the SIMD bodies, whose accumulators then lived in memory.)
+pub(crate) fn rows(plane: Plane) -> impl Iterator<Item = Range<usize>> {
+    (0..plane.height).map(move |y| {
+        let start = plane.index(y, 0);
+        start..start + plane.width * plane.channels
+    })
 }
 
 /// `1 / sqrt(var + eps)` as PyTorch computes it for a biased batch variance.
@@ -111,6 +79,7 @@ pub fn statistics(sums: &[f64], count: usize, mean: &mut [f32], var: &mut [f32])
 /// interior of `y`, computed as PyTorch's CPU kernel folds it, `x · scale + shift`.
 #[allow(clippy::too_many_arguments)] // a plane in and out, the statistics and the parameters
 pub fn normalize(
+    isa: Isa,
     plane: Plane,
     x: &[f32],
     mean: &[f32],
@@ -123,42 +92,16 @@ pub fn normalize(
     let c = plane.channels;
     assert!(x.len() == plane.len() && y.len() == plane.len());
     assert!(mean.len() == c && var.len() == c && gamma.len() == c && beta.len() == c);
+    let kernel = simd::entries(isa).normalize_block;
     for block in blocks(c) {
         let (mut scale, mut shift) = ([0.0f32; BLOCK], [0.0f32; BLOCK]);
         for (j, ch) in block.clone().enumerate() {
             scale[j] = (gamma[ch] as f64 * inv_std(var[ch])) as f32;
             shift[j] = beta[ch] - mean[ch] * scale[j];
         }
-        let (scale, shift) = (&scale[..block.len()], &shift[..block.len()]);
-        // One loop per activation, each with its activation known (a match per value stops
-        // the loop vectorising).
-        match act {
-            Activation::Identity => affine(plane, x, y, &block, scale, shift, |v| v),
-            Activation::Relu => affine(plane, x, y, &block, scale, shift, |v| Activation::Relu.apply(v)),
-            Activation::LeakyRelu(s) => {
-                affine(plane, x, y, &block, scale, shift, |v| Activation::LeakyRelu(s).apply(v))
-            }
-            Activation::Tanh => affine(plane, x, y, &block, scale, shift, |v| Activation::Tanh.apply(v)),
-        }
-    }
-}
-
-/// `y = f(x · scale + shift)` for the channels of `block` of one plane's interior.
-#[inline(always)]
-fn affine(
-    plane: Plane,
-    x: &[f32],
-    y: &mut [f32],
-    block: &Range<usize>,
-    scale: &[f32],
-    shift: &[f32],
-    f: impl Fn(f32) -> f32,
-) {
-    for p in Pixels::new(plane) {
-        let span = p + block.start..p + block.end;
-        for (((o, &v), &a), &b) in y[span.clone()].iter_mut().zip(&x[span]).zip(scale).zip(shift) {
-            *o = f(v * a + b);
-        }
+        // SAFETY: `isa` proves the CPU has the kernel's features; the lengths are checked
+        // above and the block is inside the plane's channels.
+        unsafe { kernel(plane, x, y, block, (&scale, &shift), act) }
     }
 }
 
@@ -186,7 +129,7 @@ pub fn batch_norm_train(
     }
     statistics(sums, n * plane.height * plane.width, mean, var);
     for (x, y) in x.chunks_exact(plane.len()).zip(y.chunks_exact_mut(plane.len())) {
-        normalize(plane, x, mean, var, gamma, beta, act, y);
+        normalize(isa, plane, x, mean, var, gamma, beta, act, y);
     }
 }
 

@@ -207,11 +207,13 @@ fn add_sums(plane: Plane, sums: &mut [f64], f: impl Fn(usize, usize) -> (f64, f6
     let c = plane.channels;
     for block in norm::blocks(c) {
         let (mut a, mut b) = ([0.0f64; norm::BLOCK], [0.0f64; norm::BLOCK]);
-        for p in norm::Pixels::new(plane) {
-            for (j, ch) in block.clone().enumerate() {
-                let (u, v) = f(p + ch, ch);
-                a[j] += u;
-                b[j] += v;
+        for row in norm::rows(plane) {
+            for p in row.step_by(plane.channels.max(1)) {
+                for (j, ch) in block.clone().enumerate() {
+                    let (u, v) = f(p + ch, ch);
+                    a[j] += u;
+                    b[j] += v;
+                }
             }
         }
         for (j, ch) in block.enumerate() {
@@ -242,11 +244,13 @@ pub(crate) fn normalize_gradient_block(
     block: Range<usize>,
     coef: &norm::GradientCoefficients,
 ) {
-    for p in norm::Pixels::new(plane) {
-        let span = p + block.start..p + block.end;
-        for (j, (gv, &xv)) in g[span.clone()].iter_mut().zip(&x[span]).enumerate() {
-            let centred = (xv as f64 - coef.mean[j]) * coef.proj[j];
-            *gv = ((*gv as f64 - coef.mean_g[j] - centred) * coef.scale[j]) as f32;
+    for row in norm::rows(plane) {
+        for p in row.step_by(plane.channels.max(1)) {
+            let span = p + block.start..p + block.end;
+            for (j, (gv, &xv)) in g[span.clone()].iter_mut().zip(&x[span]).enumerate() {
+                let centred = (xv as f64 - coef.mean[j]) * coef.proj[j];
+                *gv = ((*gv as f64 - coef.mean_g[j] - centred) * coef.scale[j]) as f32;
+            }
         }
     }
 }
@@ -269,4 +273,46 @@ fn sqrt(x: f32) -> f32 {
     return x.sqrt();
     #[cfg(not(feature = "std"))]
     return crate::math::sqrt(x as f64) as f32;
+}
+
+/// See [`crate::norm::normalize`]: `y = act(x · scale + shift)` for the channels of `block`
+/// (`scale` and `shift` indexed from the block's first channel).
+pub(crate) fn normalize_block(
+    plane: Plane,
+    x: &[f32],
+    y: &mut [f32],
+    block: Range<usize>,
+    (scale, shift): (&[f32; norm::BLOCK], &[f32; norm::BLOCK]),
+    act: Activation,
+) {
+    let (scale, shift) = (&scale[..block.len()], &shift[..block.len()]);
+    // One loop per activation, each with its activation known (a match per value stops the
+    // loop vectorising).
+    match act {
+        Activation::Identity => affine(plane, x, y, &block, scale, shift, |v| v),
+        Activation::Relu => affine(plane, x, y, &block, scale, shift, |v| Activation::Relu.apply(v)),
+        Activation::LeakyRelu(s) => affine(plane, x, y, &block, scale, shift, |v| Activation::LeakyRelu(s).apply(v)),
+        Activation::Tanh => affine(plane, x, y, &block, scale, shift, |v| Activation::Tanh.apply(v)),
+    }
+}
+
+/// `y = f(x · scale + shift)` for the channels of `block` of one plane's interior.
+#[inline(always)]
+fn affine(
+    plane: Plane,
+    x: &[f32],
+    y: &mut [f32],
+    block: &Range<usize>,
+    scale: &[f32],
+    shift: &[f32],
+    f: impl Fn(f32) -> f32,
+) {
+    for row in norm::rows(plane) {
+        for p in row.step_by(plane.channels.max(1)) {
+            let span = p + block.start..p + block.end;
+            for (((o, &v), &a), &b) in y[span.clone()].iter_mut().zip(&x[span]).zip(scale).zip(shift) {
+                *o = f(v * a + b);
+            }
+        }
+    }
 }

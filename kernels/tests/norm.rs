@@ -6,7 +6,7 @@ mod common;
 
 use common::{levels, Rng, ACTS};
 use drivesim_kernels::norm::{
-    batch_norm_backward, batch_norm_train, gradient_moments, moments, normalize_gradient, sums_len,
+    batch_norm_backward, batch_norm_train, gradient_moments, moments, normalize, normalize_gradient, sums_len,
     update_running_stats,
 };
 use drivesim_kernels::{Activation, Isa, Plane};
@@ -93,7 +93,7 @@ fn every_level_sums_and_normalises_as_the_scalar_reference() {
         let g = rng.fill(plane.len(), 1.0);
         let mean = rng.fill(c, 1.0);
         let var: Vec<f32> = rng.fill(c, 1.0).iter().map(|v| v.abs() + 0.1).collect();
-        let gamma = rng.fill(c, 1.5);
+        let (gamma, beta) = (rng.fill(c, 1.5), rng.fill(c, 1.0));
         let start: Vec<f64> = rng.fill(sums_len(c), 3.0).iter().map(|&v| v as f64).collect();
         let run = |isa: Isa, g: &mut [f32]| {
             let (mut a, mut b) = (start.clone(), start.clone());
@@ -127,6 +127,18 @@ fn every_level_sums_and_normalises_as_the_scalar_reference() {
                 (0..plane.len()).all(|i| !border[i] || got_g[i] == g[i]),
                 "{name} {plane:?}: border written"
             );
+            // The forward normalisation, every activation (the SIMD ones follow the scalar
+            // ones bit for bit), into an output whose border holds values it must keep.
+            for act in ACTS {
+                let (mut want_y, mut got_y) = (g.clone(), g.clone());
+                normalize(Isa::SCALAR, plane, &x, &mean, &var, &gamma, &beta, act, &mut want_y);
+                normalize(isa, plane, &x, &mean, &var, &gamma, &beta, act, &mut got_y);
+                assert_eq!(bits32(&got_y), bits32(&want_y), "{name} {plane:?} {act:?}: normalised");
+                assert!(
+                    (0..plane.len()).all(|i| !border[i] || got_y[i] == g[i]),
+                    "{name} {plane:?}: border"
+                );
+            }
         }
     }
 }

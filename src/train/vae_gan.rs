@@ -1242,7 +1242,7 @@ fn norm_forward(
     let outputs = Parts::chunks(&mut y[..items * pl], pl);
     exec.run(&|| {
         while let Some((n, y)) = outputs.take() {
-            normalize(plane, &z[n * pl..][..pl], mean, var, gamma, beta, act, y);
+            normalize(exec.isa, plane, &z[n * pl..][..pl], mean, var, gamma, beta, act, y);
         }
     });
     if update {

@@ -13,7 +13,7 @@
     allow(dead_code, unused_macros)
 )]
 
-use crate::norm::GradientCoefficients;
+use crate::norm::{GradientCoefficients, BLOCK};
 use crate::winograd::Winograd;
 use crate::{scalar, Activation, AdamStep, ConvParams, Isa, Matrix, Plane};
 use core::ops::Range;
@@ -55,6 +55,8 @@ pub(crate) struct Entries {
     pub gradient_moments: GradientMoments,
     /// See [`crate::scalar::normalize_gradient_block`].
     pub normalize_gradient_block: unsafe fn(Plane, &[f32], &mut [f32], Range<usize>, &GradientCoefficients),
+    /// See [`crate::scalar::normalize_block`].
+    pub normalize_block: NormalizeBlock,
     /// See [`crate::scalar::adam`].
     pub adam: Adam,
 }
@@ -64,6 +66,9 @@ type DenseWeightGrad = unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, 
 
 /// `(w, rows, cols, dy, dx, columns)`.
 type DenseDataGrad = unsafe fn(&[f32], usize, usize, &[f32], *mut f32, Range<usize>);
+
+/// `(plane, x, y, channels, (scale, shift), act)`.
+type NormalizeBlock = unsafe fn(Plane, &[f32], &mut [f32], Range<usize>, (&[f32; BLOCK], &[f32; BLOCK]), Activation);
 
 /// `(step, params, grads, m, v)`.
 type Adam = unsafe fn(AdamStep, &mut [f32], &[f32], &mut [f32], &mut [f32]);
@@ -168,6 +173,7 @@ static SCALAR: Entries = Entries {
     moments: scalar::moments,
     gradient_moments: scalar::gradient_moments,
     normalize_gradient_block: scalar::normalize_gradient_block,
+    normalize_block: scalar::normalize_block,
     adam: scalar::adam,
 };
 
@@ -304,6 +310,20 @@ macro_rules! entries {
             }
 
             /// # Safety
+            /// The CPU must have the features; as for `norm::normalize_block`.
+            #[target_feature(enable = $features)]
+            unsafe fn normalize_block(
+                plane: $crate::Plane,
+                x: &[f32],
+                y: &mut [f32],
+                block: core::ops::Range<usize>,
+                coef: (&[f32; $crate::norm::BLOCK], &[f32; $crate::norm::BLOCK]),
+                act: $crate::Activation,
+            ) {
+                unsafe { $crate::simd::norm::normalize_block::<$vector>(plane, x, y, block, coef, act) }
+            }
+
+            /// # Safety
             /// The CPU must have the features; as for `adam::adam`.
             #[target_feature(enable = $features)]
             unsafe fn adam(step: $crate::AdamStep, params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
@@ -322,6 +342,7 @@ macro_rules! entries {
                 moments,
                 gradient_moments,
                 normalize_gradient_block,
+                normalize_block,
                 adam,
             }
         };

@@ -2,9 +2,10 @@
 //! vectors of channels at a time, the sums in f64 vectors, every operation the scalar
 //! reference's in the same order (none fused), so that the results are the same bit for bit.
 
-use super::vector::{load_n, store_n, Double};
-use crate::norm::{GradientCoefficients, Pixels};
-use crate::Plane;
+use super::act;
+use super::vector::{load_n, store_n, Double, Simd};
+use crate::norm::{rows, GradientCoefficients, BLOCK};
+use crate::{Activation, Plane};
 use core::ops::Range;
 
 /// f32 vectors of channels summed in one pass over the pixels: each has two f64 halves per
@@ -46,14 +47,16 @@ pub(super) unsafe fn moments<V: Double>(plane: Plane, x: &[f32], sums: &mut [f64
         for c0 in (0..c).step_by(VECTORS * V::LANES) {
             let n = (c - c0).min(VECTORS * V::LANES);
             let mut acc = [[V::zero_f64(); 2 * VECTORS]; 2];
-            for p in Pixels::new(plane) {
-                for v in 0..n.div_ceil(V::LANES) {
-                    let at = c0 + v * V::LANES;
-                    let halves = load_n::<V>(x.as_ptr().add(p + at), c - at).widen();
-                    for (h, value) in halves.into_iter().enumerate() {
-                        let k = 2 * v + h;
-                        acc[0][k] = V::add_f64(acc[0][k], value);
-                        acc[1][k] = V::add_f64(acc[1][k], V::mul_f64(value, value));
+            for row in rows(plane) {
+                for p in row.step_by(plane.channels.max(1)) {
+                    for v in 0..n.div_ceil(V::LANES) {
+                        let at = c0 + v * V::LANES;
+                        let halves = load_n::<V>(x.as_ptr().add(p + at), c - at).widen();
+                        for (h, value) in halves.into_iter().enumerate() {
+                            let k = 2 * v + h;
+                            acc[0][k] = V::add_f64(acc[0][k], value);
+                            acc[1][k] = V::add_f64(acc[1][k], V::mul_f64(value, value));
+                        }
                     }
                 }
             }
@@ -76,16 +79,18 @@ pub(super) unsafe fn gradient_moments<V: Double>(plane: Plane, x: &[f32], g: &[f
                 (means[2 * v], means[2 * v + 1]) = (lo, hi);
             }
             let mut acc = [[V::zero_f64(); 2 * VECTORS]; 2];
-            for p in Pixels::new(plane) {
-                for v in 0..n.div_ceil(V::LANES) {
-                    let at = c0 + v * V::LANES;
-                    let gs = load_n::<V>(g.as_ptr().add(p + at), c - at).widen();
-                    let xs = load_n::<V>(x.as_ptr().add(p + at), c - at).widen();
-                    for h in 0..2 {
-                        let k = 2 * v + h;
-                        acc[0][k] = V::add_f64(acc[0][k], gs[h]);
-                        let centred = V::sub_f64(xs[h], means[k]);
-                        acc[1][k] = V::add_f64(acc[1][k], V::mul_f64(centred, gs[h]));
+            for row in rows(plane) {
+                for p in row.step_by(plane.channels.max(1)) {
+                    for v in 0..n.div_ceil(V::LANES) {
+                        let at = c0 + v * V::LANES;
+                        let gs = load_n::<V>(g.as_ptr().add(p + at), c - at).widen();
+                        let xs = load_n::<V>(x.as_ptr().add(p + at), c - at).widen();
+                        for h in 0..2 {
+                            let k = 2 * v + h;
+                            acc[0][k] = V::add_f64(acc[0][k], gs[h]);
+                            let centred = V::sub_f64(xs[h], means[k]);
+                            acc[1][k] = V::add_f64(acc[1][k], V::mul_f64(centred, gs[h]));
+                        }
                     }
                 }
             }
@@ -117,19 +122,48 @@ pub(super) unsafe fn normalize_gradient_block<V: Double>(
     coef: &GradientCoefficients,
 ) {
     unsafe {
-        for p in Pixels::new(plane) {
-            for j in (0..block.len()).step_by(V::LANES) {
-                let (at, n) = (p + block.start + j, block.len() - j);
-                let gs = load_n::<V>(g.as_ptr().add(at), n).widen();
-                let xs = load_n::<V>(x.as_ptr().add(at), n).widen();
-                let (mean_g, proj) = (load_pair::<V>(&coef.mean_g, j), load_pair::<V>(&coef.proj, j));
-                let (scale, mean) = (load_pair::<V>(&coef.scale, j), load_pair::<V>(&coef.mean, j));
-                let mut out = [V::zero_f64(); 2];
-                for h in 0..2 {
-                    let centred = V::mul_f64(V::sub_f64(xs[h], mean[h]), proj[h]);
-                    out[h] = V::mul_f64(V::sub_f64(V::sub_f64(gs[h], mean_g[h]), centred), scale[h]);
+        for row in rows(plane) {
+            for p in row.step_by(plane.channels.max(1)) {
+                for j in (0..block.len()).step_by(V::LANES) {
+                    let (at, n) = (p + block.start + j, block.len() - j);
+                    let gs = load_n::<V>(g.as_ptr().add(at), n).widen();
+                    let xs = load_n::<V>(x.as_ptr().add(at), n).widen();
+                    let (mean_g, proj) = (load_pair::<V>(&coef.mean_g, j), load_pair::<V>(&coef.proj, j));
+                    let (scale, mean) = (load_pair::<V>(&coef.scale, j), load_pair::<V>(&coef.mean, j));
+                    let mut out = [V::zero_f64(); 2];
+                    for h in 0..2 {
+                        let centred = V::mul_f64(V::sub_f64(xs[h], mean[h]), proj[h]);
+                        out[h] = V::mul_f64(V::sub_f64(V::sub_f64(gs[h], mean_g[h]), centred), scale[h]);
+                    }
+                    store_n(V::narrow(out), g.as_mut_ptr().add(at), n);
                 }
-                store_n(V::narrow(out), g.as_mut_ptr().add(at), n);
+            }
+        }
+    }
+}
+
+/// See [`crate::scalar::normalize_block`].
+#[inline(always)]
+pub(super) unsafe fn normalize_block<V: Simd>(
+    plane: Plane,
+    x: &[f32],
+    y: &mut [f32],
+    block: Range<usize>,
+    (scale, shift): (&[f32; BLOCK], &[f32; BLOCK]),
+    act: Activation,
+) {
+    unsafe {
+        for row in rows(plane) {
+            for p in row.step_by(plane.channels.max(1)) {
+                for j in (0..block.len()).step_by(V::LANES) {
+                    let (at, n) = (p + block.start + j, block.len() - j);
+                    let v = load_n::<V>(x.as_ptr().add(at), n);
+                    // Multiplied, then added: rounded as the scalar reference rounds.
+                    let v = v
+                        .mul(V::load(scale.as_ptr().add(j)))
+                        .add(V::load(shift.as_ptr().add(j)));
+                    store_n(act::apply(act, v), y.as_mut_ptr().add(at), n);
+                }
             }
         }
     }
