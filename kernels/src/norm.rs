@@ -4,10 +4,11 @@
 //! written, borders stay zero).
 //!
 //! The per-channel sums are in f64: they make the statistics of a hundred thousand values exact
-//! to f32 rounding. The passes that sum ([`moments`], [`gradient_moments`]) and the gradient's
-//! normalisation ([`normalize_gradient`], in f64 too) run on the caller's instruction set, in
-//! f64 vectors, with the same results as the scalar references ([`crate::scalar::moments`] and
-//! the others) bit for bit; the rest are plain loops over blocks of [`BLOCK`] channels.
+//! to f32 rounding. Every pass over the pixels ([`moments`], [`normalize`],
+//! [`gradient_moments`], [`normalize_gradient`]) runs on the caller's instruction set (the sums
+//! and the gradient in f64 vectors) with the same results as the scalar references
+//! ([`crate::scalar::moments`] and the others) bit for bit, a block of [`BLOCK`] channels at a
+//! time; the per-channel steps between them are plain loops.
 
 use crate::pack::BN_EPS;
 use crate::{simd, Activation, Isa, Plane};
