@@ -44,8 +44,9 @@ pub fn winograd_input(isa: Isa, w: &Winograd, phase: usize, input: &[f32], v: &m
 /// Transforms weights packed for the direct convolution of `w.shape` (by
 /// [`crate::pack::conv_weights`] or [`crate::pack::conv_weights_into`]) into `packed`,
 /// [`Winograd::packed_len`] floats, for [`winograd_channels`], without allocating: `G g G^T` of
-/// each phase's taps, in f32 (fused multiply-adds where the instruction set has them). A
-/// trainer runs it after every update.
+/// each phase's taps. The scalar level computes it in f64 and rounds once (a loaded model is
+/// packed so, on every CPU); the vector levels in f32 with fused multiply-adds, within a few
+/// ulp of it and four times as fast: a trainer runs it after every update.
 pub fn winograd_weights(isa: Isa, w: &Winograd, direct: &[f32], packed: &mut [f32]) {
     assert_eq!(direct.len(), w.shape.packed_len());
     assert_eq!(packed.len(), w.packed_len());

@@ -167,7 +167,7 @@ fn for_each_conv_weight(shape: &ConvShape, torch_len: usize, mut f: impl FnMut(u
 
 /// Packs PyTorch convolution weights for [`crate::winograd_channels`] (see [`Winograd`]),
 /// folding an optional BatchNorm as [`conv_weights`] does, with the scalar
-/// [`crate::winograd_weights`] (so that the packing is the same on every CPU). Returns
+/// [`crate::winograd_weights`] (exact to f32 rounding, and the same on every CPU). Returns
 /// `(packed weights, bias)`.
 pub fn winograd_weights(
     w: &Winograd,

@@ -69,11 +69,12 @@ pub fn winograd_input(w: &Winograd, phase: usize, input: &[f32], v: &mut [f32]) 
     unsafe { winograd::with_phase(w, phase, &mut winograd::InputTransform::<f32>::new(w, input, v)) }
 }
 
-/// See [`crate::winograd_weights`]: the transform one float at a time.
+/// See [`crate::winograd_weights`]: the transform one weight at a time, in f64, rounded once.
 pub fn winograd_weights(w: &Winograd, direct: &[f32], packed: &mut [f32]) {
+    let mut transform = winograd::ExactWeightTransform { w, direct, packed };
     for phase in 0..4 {
-        // SAFETY: plain scalar code; `crate::winograd_weights` checked the buffer lengths.
-        unsafe { winograd::with_phase(w, phase, &mut winograd::WeightTransform::<f32>::new(w, direct, packed)) }
+        // SAFETY: plain scalar code (bounds-checked).
+        unsafe { winograd::with_phase(w, phase, &mut transform) }
     }
 }
 

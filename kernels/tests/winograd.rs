@@ -52,7 +52,7 @@ fn check(
     for isa in levels() {
         let mut packed = vec![f32::NAN; wino.packed_len()];
         winograd_weights(isa, &wino, &direct, &mut packed);
-        // Fused multiply-adds round once where the scalar transform rounds twice: the
+        // The vector levels transform in f32, the scalar level in f64 rounded once: the
         // transformed weights (at most 1 + 1 + 1 times the largest weight) differ by a few ulp.
         let name = isa.level().name();
         let apart = packed

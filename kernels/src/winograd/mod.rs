@@ -24,10 +24,11 @@
 //!    [`Winograd::packed_index`]) into a scratch of [`Winograd::scratch_len`] floats, then transforms the
 //!    products back, adds the bias, applies the activation and stores the output pixels.
 //!
-//! The input and output transforms are written out (their coefficients are small integers), and
-//! the weight transform is the two products `G g G^T` with constant coefficients, so the scalar
-//! and SIMD paths share all three. A loaded model's weights are transformed by the scalar path
-//! (the same packing on every CPU); a trainer transforms after every update on its own level.
+//! The input and output transforms are written out (their coefficients are small integers), so
+//! the scalar and SIMD paths share them. The weight transform is the two products `G g G^T`
+//! with constant coefficients: in f64, rounded once, on the scalar path, which packs a loaded
+//! model's weights (the same on every CPU); in f32 on the vector paths, which a trainer runs
+//! after every update.
 //!
 //! The scalar path runs the same three steps one float at a time; it is tested against the
 //! direct scalar convolution, the oracle of both.
@@ -42,7 +43,7 @@ mod transform;
 
 pub(crate) use filters::with_phase;
 pub(crate) use products::{channels, Product, Products, ScalarProduct};
-pub(crate) use transform::{InputTransform, WeightTransform};
+pub(crate) use transform::{ExactWeightTransform, InputTransform, WeightTransform};
 
 use crate::{ConvKind, ConvShape, OC_ALIGN};
 use core::ops::Range;

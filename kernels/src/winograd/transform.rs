@@ -244,7 +244,8 @@ impl<L: Lane> PhaseFn for OutputTransform<'_, L> {
     }
 }
 
-/// The weight transform `G g G^T` of each phase's taps (see [`crate::winograd_weights`]),
+/// The weight transform `G g G^T` of each phase's taps on the vector levels (see
+/// [`crate::winograd_weights`]; the scalar reference is [`ExactWeightTransform`]), in f32,
 /// `L::LANES` output channels at a time: both layouts keep a panel's 16 channels adjacent, so
 /// the lanes load and store whole (padding lanes get the transform of the direct weights'
 /// padding).
@@ -320,6 +321,45 @@ impl<L: Lane> PhaseFn for WeightTransform<'_, L> {
                                 sum.store_n(packed.add(to + (r * PX + s) * point_stride + lane), L::LANES);
                             }
                         }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The scalar reference of [`WeightTransform`]: `G g G^T` one pair of channels at a time, in
+/// f64 (`G g`, then by `G^T`), rounded once. A loaded model's weights are packed so: the
+/// transformed weights are as exact as f32 holds them.
+pub(crate) struct ExactWeightTransform<'a> {
+    pub w: &'a Winograd,
+    pub direct: &'a [f32],
+    pub packed: &'a mut [f32],
+}
+
+impl PhaseFn for ExactWeightTransform<'_> {
+    unsafe fn call<const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
+        &mut self,
+        phase: usize,
+    ) where
+        FY: Filter<M, PY, KY>,
+        FX: Filter<M, PX, KX>,
+    {
+        let (w, shape) = (self.w, &self.w.shape);
+        let (py, px, first) = (phase / 2, phase % 2, w.phase_points(phase).0);
+        for oc in 0..shape.output.channels {
+            for ic in 0..shape.input.channels {
+                let g = |my: usize, mx: usize| self.direct[shape.packed_index(w.tap(py, my), w.tap(px, mx), ic, oc)];
+                let mut gg = [[0.0f64; KX]; PY];
+                for (row, gy) in gg.iter_mut().zip(FY::G.iter()) {
+                    for (mx, value) in row.iter_mut().enumerate() {
+                        *value = (0..KY).map(|my| gy[my] * g(my, mx) as f64).sum();
+                    }
+                }
+                for (r, row) in gg.iter().enumerate() {
+                    for (s, gx) in FX::G.iter().enumerate() {
+                        let sum: f64 = row.iter().zip(gx).map(|(v, c)| v * c).sum();
+                        self.packed[w.packed_index(first + r * PX + s, ic, oc)] = sum as f32;
                     }
                 }
             }
