@@ -12,6 +12,7 @@
 
 use crate::pack::BN_EPS;
 use crate::{simd, Activation, Isa, Plane};
+use core::iter::StepBy;
 use core::ops::Range;
 
 /// PyTorch's default BatchNorm momentum: the weight of a batch in the running statistics.
@@ -32,13 +33,13 @@ fn items(plane: Plane, batch: &[f32]) -> usize {
     batch.len() / plane.len()
 }
 
-/// The interior of each row of a plane, row by row: `for p in row.step_by(channels)` then
-/// visits the offset of channel 0 of each pixel. (A flattened iterator over the pixels did not
-/// inline into the SIMD bodies, whose accumulators then lived in memory.)
-pub(crate) fn rows(plane: Plane) -> impl Iterator<Item = Range<usize>> {
+/// The interior pixels of a plane, row by row: each row the offsets of channel 0 of its pixels.
+/// (Nested loops, `for row in rows(plane) { for p in row { .. } }`: a flattened iterator over
+/// the pixels did not inline into the SIMD bodies, whose accumulators then lived in memory.)
+pub(crate) fn rows(plane: Plane) -> impl Iterator<Item = StepBy<Range<usize>>> {
     (0..plane.height).map(move |y| {
         let start = plane.index(y, 0);
-        start..start + plane.width * plane.channels
+        (start..start + plane.width * plane.channels).step_by(plane.channels.max(1))
     })
 }
 

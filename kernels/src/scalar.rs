@@ -209,7 +209,7 @@ fn add_sums(plane: Plane, sums: &mut [f64], f: impl Fn(usize, usize) -> (f64, f6
     for block in norm::blocks(c) {
         let (mut a, mut b) = ([0.0f64; norm::BLOCK], [0.0f64; norm::BLOCK]);
         for row in norm::rows(plane) {
-            for p in row.step_by(plane.channels.max(1)) {
+            for p in row {
                 for (j, ch) in block.clone().enumerate() {
                     let (u, v) = f(p + ch, ch);
                     a[j] += u;
@@ -246,7 +246,7 @@ pub(crate) fn normalize_gradient_block(
     coef: &norm::GradientCoefficients,
 ) {
     for row in norm::rows(plane) {
-        for p in row.step_by(plane.channels.max(1)) {
+        for p in row {
             let span = p + block.start..p + block.end;
             for (j, (gv, &xv)) in g[span.clone()].iter_mut().zip(&x[span]).enumerate() {
                 let centred = (xv as f64 - coef.mean[j]) * coef.proj[j];
@@ -309,7 +309,7 @@ fn affine(
     f: impl Fn(f32) -> f32,
 ) {
     for row in norm::rows(plane) {
-        for p in row.step_by(plane.channels.max(1)) {
+        for p in row {
             let span = p + block.start..p + block.end;
             for (((o, &v), &a), &b) in y[span.clone()].iter_mut().zip(&x[span]).zip(scale).zip(shift) {
                 *o = f(v * a + b);

@@ -1,6 +1,7 @@
-//! BatchNorm's per-channel sums and its gradient's normalisation (see [`crate::norm`]): whole
-//! vectors of channels at a time, the sums in f64 vectors, every operation the scalar
-//! reference's in the same order (none fused), so that the results are the same bit for bit.
+//! BatchNorm's passes over the pixels (see [`crate::norm`]): the per-channel sums, the
+//! forward normalisation and the gradient's, whole vectors of channels at a time, the sums and
+//! the gradient in f64 vectors; every operation the scalar reference's in the same order (none
+//! fused), so that the results are the same bit for bit.
 
 use super::act;
 use super::vector::{load_n, store_n, Double, Simd};
@@ -48,7 +49,7 @@ pub(super) unsafe fn moments<V: Double>(plane: Plane, x: &[f32], sums: &mut [f64
             let n = (c - c0).min(VECTORS * V::LANES);
             let mut acc = [[V::zero_f64(); 2 * VECTORS]; 2];
             for row in rows(plane) {
-                for p in row.step_by(plane.channels.max(1)) {
+                for p in row {
                     for v in 0..n.div_ceil(V::LANES) {
                         let at = c0 + v * V::LANES;
                         let halves = load_n::<V>(x.as_ptr().add(p + at), c - at).widen();
@@ -80,7 +81,7 @@ pub(super) unsafe fn gradient_moments<V: Double>(plane: Plane, x: &[f32], g: &[f
             }
             let mut acc = [[V::zero_f64(); 2 * VECTORS]; 2];
             for row in rows(plane) {
-                for p in row.step_by(plane.channels.max(1)) {
+                for p in row {
                     for v in 0..n.div_ceil(V::LANES) {
                         let at = c0 + v * V::LANES;
                         let gs = load_n::<V>(g.as_ptr().add(p + at), c - at).widen();
@@ -123,7 +124,7 @@ pub(super) unsafe fn normalize_gradient_block<V: Double>(
 ) {
     unsafe {
         for row in rows(plane) {
-            for p in row.step_by(plane.channels.max(1)) {
+            for p in row {
                 for j in (0..block.len()).step_by(V::LANES) {
                     let (at, n) = (p + block.start + j, block.len() - j);
                     let gs = load_n::<V>(g.as_ptr().add(at), n).widen();
@@ -154,7 +155,7 @@ pub(super) unsafe fn normalize_block<V: Simd>(
 ) {
     unsafe {
         for row in rows(plane) {
-            for p in row.step_by(plane.channels.max(1)) {
+            for p in row {
                 for j in (0..block.len()).step_by(V::LANES) {
                     let (at, n) = (p + block.start + j, block.len() - j);
                     let v = load_n::<V>(x.as_ptr().add(at), n);
