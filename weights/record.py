@@ -10,9 +10,16 @@ A scripted driver follows the track centre line with pure pursuit; `--driver` pi
   one and a half half-roads to one side (off the road sometimes) and then recovers to the
   centre, as the recovery laps of behavioural-cloning data; target speeds from crawling to
   fast.
+- `varied-noise` (data that teaches steering, with unsteady hands): `varied`, and every
+  manoeuvre also draws how much coloured noise the steering gets, from a third to two and a
+  half times `steady`'s, so the steering is often not what the road ahead calls for.
 - `hard` (a second style, held out for evaluation): 1.4 times the steering gain, 1.5 times the
   steering noise and slower (steering sd about 0.4 against `steady`'s 0.23), as a nervous
   human driver.
+- `jerky` (a third style, held out for evaluation): looks at the road only every 0.12 to 0.3 s
+  and holds its steering in between (half the steering gain), with a random error redrawn at
+  each look and no coloured noise; target speeds 20 to 50, as a late, jerky driver (steering
+  sd about 0.35).
 
 `--colours random` redraws the road and grass colours for every episode (gymnasium's
 `domain_randomize`); `mixed` does so for every other seed.
@@ -78,7 +85,7 @@ class OU:
         return self.x
 
 
-DRIVERS = ("steady", "varied", "hard")
+DRIVERS = ("steady", "varied", "varied-noise", "hard", "jerky")
 COLOURS = ("default", "random", "mixed")
 
 
@@ -94,13 +101,16 @@ class Driver:
         self.heading = np.unwrap(np.arctan2(tangent[:, 1], tangent[:, 0]))
         self.rng, self.style = rng, style
         self.offset = OU(rng, theta=0.02, sigma=0.08)
-        self.steer_noise = OU(rng, theta=0.15, sigma=0.09 if style == "hard" else 0.06)
-        self.gain = 1.4 * GAIN if style == "hard" else GAIN
-        self.speeds = {"steady": (25, 60), "varied": (10, 70), "hard": (15, 40)}[style]
+        self.steer_noise = OU(rng, theta=0.15, sigma={"hard": 0.09, "jerky": 0.0}.get(style, 0.06))
+        self.gain = {"hard": 1.4 * GAIN, "jerky": 0.5 * GAIN}.get(style, GAIN)
+        self.speeds = {"steady": (25, 60), "varied": (10, 70), "varied-noise": (10, 70), "hard": (15, 40),
+                       "jerky": (20, 50)}[style]
         self.target_speed = rng.uniform(*self.speeds)
         # `varied`: the current manoeuvre's lateral aim (half-roads; None follows the drift)
         # and the seconds it has left.
         self.aim, self.manoeuvre_left = None, 0.0
+        # `jerky`: the steering held until the next look at the road, and the seconds until then.
+        self.held_steer, self.look_left = 0.0, 0.0
         self.i = None
 
     def nearest(self, pos):
@@ -123,12 +133,14 @@ class Driver:
     def lateral(self, frame_seconds):
         """Where across the road to aim, in half-roads (positive: left of the centre line)."""
         drift = float(np.clip(self.offset(), -0.6, 0.6))
-        if self.style != "varied":
+        if not self.style.startswith("varied"):
             return drift
         self.manoeuvre_left -= frame_seconds
         if self.manoeuvre_left <= 0:
             kind = self.rng.choice(["follow", "swerve", "recover"], p=[0.5, 0.3, 0.2])
             self.gain = GAIN * self.rng.uniform(0.6, 2.5)  # soft or hard turns
+            if self.style == "varied-noise":  # steady or unsteady hands
+                self.steer_noise.sigma = 0.06 * self.rng.uniform(1 / 3, 2.5)
             self.aim = {"follow": None, "swerve": self.rng.choice([-1, 1]) * self.rng.uniform(0.7, 1.5),
                         "recover": 0.0}[kind]
             self.manoeuvre_left = self.rng.uniform(1.0, 4.0)
@@ -155,6 +167,12 @@ class Driver:
         to = target - pos
         alpha = math.atan2(float(to @ left), float(to @ forward))
         steer = float(np.clip(-self.gain * alpha + self.steer_noise(), -1.0, 1.0))  # env: -1 steers left
+        if self.style == "jerky":
+            self.look_left -= frame_seconds
+            if self.look_left <= 0:
+                self.look_left = self.rng.uniform(0.12, 0.3)
+                self.held_steer = float(np.clip(steer + self.rng.uniform(-0.1, 0.1), -1.0, 1.0))
+            steer = self.held_steer
 
         gas = float(np.clip(0.05 * (target_speed - speed), 0.0, 0.5))
         brake = float(np.clip(0.05 * (speed - target_speed - 5.0), 0.0, 0.8))

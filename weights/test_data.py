@@ -203,7 +203,7 @@ def test_record_short_episode():
     assert record.parse_seeds("0-2,7") == [0, 1, 2, 7]
 
 
-@pytest.mark.parametrize("style", ["varied", "hard"])
+@pytest.mark.parametrize("style", ["varied", "varied-noise", "hard", "jerky"])
 def test_record_driver_styles(style):
     record = pytest.importorskip("record")
     frames, actions, _ = record.record_episode(seed=4, frames=40, frame_skip=2, style=style, random_colours=True)
