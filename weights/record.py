@@ -19,7 +19,7 @@ A scripted driver follows the track centre line with pure pursuit; `--driver` pi
 - `jerky` (a third style, held out for evaluation): looks at the road only every 0.12 to 0.3 s
   and holds its steering in between (half the steering gain), with a random error redrawn at
   each look and no coloured noise; target speeds 20 to 50, as a late, jerky driver (steering
-  sd about 0.35).
+  sd about 0.3).
 
 `--colours random` redraws the road and grass colours for every episode (gymnasium's
 `domain_randomize`); `mixed` does so for every other seed.

@@ -213,6 +213,32 @@ def test_record_driver_styles(style):
     assert np.abs(frames[0].astype(int) - steady[0]).mean() > 10
 
 
+def test_jerky_driver_holds_its_steering_between_looks():
+    record = pytest.importorskip("record")
+    _, actions, _ = record.record_episode(seed=5, frames=60, frame_skip=2, style="jerky")
+    steering = actions[:, 1]
+    held = steering[1:] == steering[:-1]
+    # Looks every 0.12-0.3 s, frames 0.04 s apart: each steering value lasts 3 to 8 frames.
+    assert 0.6 < held.mean() < 0.9
+    changes = np.flatnonzero(~held)
+    assert np.all(np.diff(changes) >= 3) and np.all(np.diff(changes) <= 8)
+
+
+def test_varied_noise_driver_redraws_its_noise_level():
+    record = pytest.importorskip("record")
+    from gymnasium.envs.box2d import car_racing
+
+    env = car_racing.CarRacing()
+    env.reset(seed=6)
+    driver = record.Driver(env.track, np.random.default_rng(6), "varied-noise")
+    env.close()
+    levels = set()
+    for _ in range(200):  # 200 frames of 0.08 s: manoeuvres last 1-4 s
+        driver.lateral(0.08)
+        levels.add(driver.steer_noise.sigma)
+    assert len(levels) >= 4 and all(0.02 <= s <= 0.15 for s in levels)
+
+
 def test_road_offset_finds_a_grey_band():
     pytest.importorskip("torch")
     import train
