@@ -259,7 +259,7 @@ def test_road_offset_finds_a_grey_band():
 
 def test_fit_and_eval_tiny(tmp_path):
     """A few steps of both training phases and the evaluation, on a tiny model and data set."""
-    pytest.importorskip("torch")
+    torch = pytest.importorskip("torch")
     import train
     from model import load_drivesim
 
@@ -288,7 +288,26 @@ def test_fit_and_eval_tiny(tmp_path):
         assert (tmp_path / "fig" / name).is_file()
     fidelity = json.loads((tmp_path / "fig" / "eval.json").read_text())["fidelity"]
     assert fidelity["psnr_p10_db"] <= fidelity["psnr_db"]
-    assert fidelity["latent"]["windows"] > 0 and fidelity["latent"]["ratio_30"] > 0
+    latent = fidelity["latent"]
+    assert latent["windows"] > 0 and latent["ratio_30"] > 0
+    # Step by step, apart from train.predict: the error after k fed-back steps, and over the first k.
+    codes = train.encode(model, torch.from_numpy(data.frames), 256)
+    acts = torch.from_numpy(data.actions)
+    per_step = []
+    with torch.no_grad():
+        for s in train.windows(data, train.TEACHER + 30)[::5]:
+            h, errs = torch.zeros(1, cfg.hidden_dim), []
+            for t in range(train.TEACHER + 29):
+                if t < train.TEACHER:
+                    z = codes[s + t][None]
+                z, h = model.transition(z, h, acts[s + t][None])
+                if t >= train.TEACHER - 1:
+                    errs.append(float((z[0] - codes[s + t + 1]).square().mean()))
+            per_step.append(errs)
+    per_step = np.mean(per_step, axis=0)  # [30]: the error after 1..30 fed-back steps
+    for k in (10, 30):
+        assert latent[f"mse_{k}"] == pytest.approx(per_step[k - 1], rel=1e-4)
+        assert latent[f"mse_1_to_{k}"] == pytest.approx(per_step[:k].mean(), rel=1e-4)
     assert set(fidelity["road_moves_right_way"]) == {"0.3", "0.6"}
     assert episodes.read(tmp_path / "clip.safetensors").frames.shape == (8, 32, 64, 3)
 

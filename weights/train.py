@@ -471,6 +471,11 @@ def fidelity(model, data, codes, recon, frames, actions, decode):
             err = float((pred[:, t - 1] - z[:, t]).square().mean())
             base = float((mean_code - z[:, t]).square().mean())
             latent[f"mse_{k}"], latent[f"mean_code_mse_{k}"], latent[f"ratio_{k}"] = err, base, err / base
+            # The other reading of "after k steps": the error over all of the first k.
+            err = float((pred[:, TEACHER - 1:t] - z[:, TEACHER:t + 1]).square().mean())
+            base = float((mean_code - z[:, TEACHER:t + 1]).square().mean())
+            latent[f"mse_1_to_{k}"], latent[f"mean_code_mse_1_to_{k}"] = err, base
+            latent[f"ratio_1_to_{k}"] = err / base
         out["latent"] = latent
         fed = pred[:, TEACHER - 1:]
         out["code_norm"] = dict(rollout=float(fed.norm(dim=2).mean()), encoded=float(codes.norm(dim=1).mean()))
