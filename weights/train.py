@@ -469,14 +469,12 @@ def fidelity(model, data, codes, recon, frames, actions, decode):
         latent = dict(windows=len(starts))
         for k in FED_BACK:
             t = TEACHER - 1 + k  # the k-th fed-back prediction
-            err = float((pred[:, t - 1] - z[:, t]).square().mean())
-            base = float((mean_code - z[:, t]).square().mean())
-            latent[f"mse_{k}"], latent[f"mean_code_mse_{k}"], latent[f"ratio_{k}"] = err, base, err / base
-            # The other reading of "after k steps": the error over all of the first k.
-            err = float((pred[:, TEACHER - 1:t] - z[:, TEACHER:t + 1]).square().mean())
-            base = float((mean_code - z[:, TEACHER:t + 1]).square().mean())
-            latent[f"mse_1_to_{k}"], latent[f"mean_code_mse_1_to_{k}"] = err, base
-            latent[f"ratio_1_to_{k}"] = err / base
+            # After the k-th fed-back step, and (the other reading of "after k steps") over all
+            # of the first k.
+            readings = ((k, pred[:, t - 1], z[:, t]), (f"1_to_{k}", pred[:, TEACHER - 1:t], z[:, TEACHER:t + 1]))
+            for name, p, true in readings:
+                err, base = float((p - true).square().mean()), float((mean_code - true).square().mean())
+                latent[f"mse_{name}"], latent[f"mean_code_mse_{name}"], latent[f"ratio_{name}"] = err, base, err / base
         out["latent"] = latent
         fed = pred[:, TEACHER - 1:]
         out["code_norm"] = dict(rollout=float(fed.norm(dim=2).mean()), encoded=float(codes.norm(dim=1).mean()))

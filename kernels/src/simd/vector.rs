@@ -3,8 +3,7 @@
 //! - [`Simd`]: a vector of f32 lanes, implemented by each architecture's module: `__m256`
 //!   (AVX2 + FMA) and `__m512` (AVX-512F) on x86-64, `float32x4_t` (NEON) on aarch64; [`Widen`]
 //!   adds loading halves widened (the dense kernel's f16 weights), [`Double`] f64 vectors
-//!   (BatchNorm's sums); [`load_n`] / [`store_n`]
-//!   touch only the first `n` lanes (masked tails).
+//!   (BatchNorm's sums); [`load_n`] / [`store_n`] touch only the first `n` lanes (masked tails).
 //! - [`Lane`]: what Winograd's transforms run on: one f32 on the scalar path, a [`Simd`] vector
 //!   on the others, so that both paths share one transform.
 //!
