@@ -84,3 +84,8 @@ pub use weights::WeightDtype;
 #[cfg(doctest)]
 #[doc = include_str!("../README.md")]
 pub struct ReadmeDoctests;
+
+/// The API guide's Rust snippets (`docs/guide.md`), compiled and run as doctests too.
+#[cfg(doctest)]
+#[doc = include_str!("../docs/guide.md")]
+pub struct GuideDoctests;
