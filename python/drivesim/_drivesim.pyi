@@ -1,0 +1,107 @@
+"""Type stubs of the extension module (the crate's Model, Simulator and Environment)."""
+
+import os
+from typing import Any, Optional, Union, overload, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+Frames = Union[npt.NDArray[np.uint8], npt.NDArray[np.float32]]
+F32 = npt.NDArray[np.float32]
+DType = Any  # np.uint8 / np.float32 or their names
+
+__version__: str
+
+class Model:
+    """Loaded weights: encoder, transition and generator, checked on load."""
+
+    @staticmethod
+    def load(path: Optional[Union[str, os.PathLike[str]]] = None) -> Model:
+        """A weight file (safetensors), or the built-in default model when ``path`` is None.
+        Raises OSError for a file that cannot be read, ValueError for a bad weight file."""
+    @staticmethod
+    def from_bytes(data: bytes) -> Model:
+        """A model from a weight file's bytes."""
+    @property
+    def config(self) -> dict[str, int]:
+        """``height``, ``width``, ``channels``, ``base_channels``, ``layers``, ``kernel``,
+        ``z_dim``, ``hidden_dim``, ``action_dim``."""
+    @property
+    def frame_shape(self) -> tuple[int, int, int]:
+        """``(height, width, channels)``."""
+    @property
+    def z_dim(self) -> int: ...
+    @property
+    def hidden_dim(self) -> int: ...
+    @property
+    def action_dim(self) -> int: ...
+    @property
+    def frame_hz(self) -> Optional[float]:
+        """Frames per second the model was trained at, or None."""
+    @property
+    def actions(self) -> Optional[list[dict[str, Any]]]:
+        """Each action's ``name``, ``unit``, ``mean``, ``std``, ``min``, ``max``, or None."""
+
+class Simulator:
+    """Encodes frames, steps the transition, generates frames, rolls out dreams.
+
+    Frames: ``(N, H, W, 3)`` or ``(H, W, 3)``, uint8 (0-255) or float32 (in [-1, 1]); codes,
+    hidden states and actions: float32, one row per item. Raises ValueError for a wrong dtype,
+    shape or value, MemoryError when the plan cannot be allocated."""
+
+    def __init__(self, model: Model, batch: int = 1, threads: int = 1) -> None: ...
+    @property
+    def batch(self) -> int:
+        """The most frames or codes one call takes."""
+    @property
+    def threads(self) -> int: ...
+    @property
+    def isa(self) -> str:
+        """``"avx512"``, ``"avx2"``, ``"neon"`` or ``"scalar"``."""
+    @property
+    def buffer_bytes(self) -> int: ...
+    def encode(self, frames: Frames) -> F32:
+        """Frames to codes: ``(N, z_dim)``, or ``(z_dim,)`` for one frame."""
+    def generate(self, z: F32, dtype: DType = ...) -> Frames:
+        """Codes to frames, uint8 by default (``dtype=np.float32``: in [-1, 1])."""
+    def transition(self, z: F32, h: F32, action: F32) -> tuple[F32, F32]:
+        """One step from given codes: ``(z_next, h_next)``."""
+    def transition_fed_back(self, h: F32, action: F32) -> tuple[F32, F32]:
+        """One step from the code ``h`` predicts: ``(z_next, h_next)``."""
+    def rollout(self, seed_frames: Frames, actions: F32, frames: bool = False, dtype: DType = ...) -> Any:
+        """``(S, H, W, 3)`` seeds and ``(S - 1 + T, 2)`` actions: codes ``(T, z_dim)``, or
+        ``(codes, frames)`` with ``frames=True``."""
+    def rollout_candidates(
+        self, h: F32, actions: F32, z: Optional[F32] = None, frames: bool = False, dtype: DType = ...
+    ) -> Any:
+        """``actions`` ``(T, N, 2)`` from one state (``h`` ``(hidden_dim,)`` or
+        ``(N, hidden_dim)``): codes ``(T, N, z_dim)``, or ``(codes, frames)``."""
+
+class Environment:
+    """``drives`` dreamed drives stepping together in one batch."""
+
+    def __init__(self, model: Model, drives: int = 1, candidates: int = 64, threads: int = 1) -> None: ...
+    @property
+    def drives(self) -> int: ...
+    def reset(self, frames: Frames, actions: F32) -> None:
+        """``frames`` ``(S, drives, H, W, 3)``, ``actions`` ``(S - 1, drives, 2)``."""
+    def reset_from_codes(self, codes: F32, actions: F32) -> None:
+        """``codes`` ``(S, drives, z_dim)``, ``actions`` ``(S - 1, drives, 2)``."""
+    def step(self, actions: F32) -> None:
+        """``actions`` ``(drives, 2)``: (speed, steering) each."""
+    @property
+    def codes(self) -> F32:
+        """``(drives, z_dim)``, a copy."""
+    @property
+    def hidden(self) -> F32:
+        """``(drives, hidden_dim)``, a copy."""
+    def frames(self, dtype: DType = ...) -> Frames:
+        """``(drives, H, W, 3)``, uint8 by default."""
+    def rollout_candidates(self, drive: int, actions: F32, frames: bool = False, dtype: DType = ...) -> Any:
+        """``actions`` ``(T, N, 2)`` from drive ``drive``'s state: codes ``(T, N, z_dim)``."""
+
+def load_episodes(
+    path: Optional[Union[str, os.PathLike[str]]] = None,
+) -> list[tuple[npt.NDArray[np.uint8], F32]]:
+    """``(frames (T, H, W, 3) uint8, actions (T, 2) float32)`` per episode of an episodes file,
+    or of the built-in seed clip when ``path`` is None."""

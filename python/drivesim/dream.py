@@ -1,0 +1,257 @@
+"""The dream as gymnasium environments: ``DreamEnv`` (one drive) and ``DreamVectorEnv`` (N
+drives stepped in one batch by the crate's ``Environment``), registered as
+``drivesim/Dream-v0``.
+
+A drive starts from real seed frames (the built-in seed clip, an episodes file, or frames
+given to ``reset``), then every step the transition predicts the next code under the action and
+the generator draws it: the observation is that 8-bit frame, ``(80, 160, 3)``. The action is
+``(speed, steering)`` within the ranges the model was trained on (``action_bounds``); actions
+outside are clipped. The reward is the distance driven on the road this step (speed / frame
+rate, times the share of the car's width over road), less a penalty for being off the road's
+centre (the near offset over half the frame's width), both read from the code by a
+``RoadCost``. Episodes never terminate (the dream has no crash); they are truncated after
+``max_steps`` steps.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Optional, Sequence, Union
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+from gymnasium.vector.utils import batch_space
+
+from ._drivesim import Environment, Model, load_episodes
+from .road import RoadCost
+
+ModelLike = Union[Model, str, os.PathLike, None]
+
+
+def action_bounds(model: Model) -> tuple[np.ndarray, np.ndarray]:
+    """``(low, high)`` of ``(speed, steering)``: the ranges in the model's ``drivesim.actions``
+    metadata (what it was trained on), or speed 0-100 and steering -1 to 1 without it."""
+    specs = model.actions
+    if not specs:
+        return np.array([0.0, -1.0], np.float32), np.array([100.0, 1.0], np.float32)
+    return (np.array([s["min"] for s in specs], np.float32), np.array([s["max"] for s in specs], np.float32))
+
+
+class _Dream:
+    """What both environments share: the model, the seed episodes, the spaces, the reward."""
+
+    def _setup(self, model: ModelLike, episodes, seeds: int, max_steps: int, cost: Optional[RoadCost]):
+        default = model is None
+        self.model = model if isinstance(model, Model) else Model.load(model)
+        if seeds < 1 or max_steps < 1:
+            raise ValueError(f"seeds and max_steps must be at least 1, got {seeds} and {max_steps}")
+        self.seeds, self.max_steps = seeds, max_steps
+        if episodes is None or isinstance(episodes, (str, os.PathLike)):
+            episodes = load_episodes(episodes)
+        self.episodes = [(f, a) for f, a in episodes if len(f) >= seeds]
+        if not self.episodes:
+            raise ValueError(f"no episode has the {seeds} frames a reset needs")
+        h, w, c = self.model.frame_shape
+        if self.episodes[0][0].shape[1:] != (h, w, c):
+            raise ValueError(f"episodes: frames {self.episodes[0][0].shape[1:]}, the model takes {(h, w, c)}")
+        self.cost = cost if cost is not None else (RoadCost.default() if default else None)
+        if self.cost is None:
+            raise ValueError("a model other than the default needs its RoadCost (cost=RoadCost.fit(...))")
+        self.hz = self.model.frame_hz or 12.5
+        self.low, self.high = action_bounds(self.model)
+        self.frame_space = spaces.Box(0, 255, (h, w, c), np.uint8)
+        self.move_space = spaces.Box(self.low, self.high, (2,), np.float32)
+
+    def _seed_clip(self, rng: np.random.Generator, options: Optional[dict]):
+        """Seed frames ``(S, H, W, 3)`` and the actions between them ``(S - 1, 2)``: from
+        ``options`` (``frames`` and ``actions``, or ``episode`` and ``start``), else a random
+        episode and start drawn from ``rng``."""
+        options = options or {}
+        if "frames" in options:
+            frames = np.asarray(options["frames"])
+            actions = np.asarray(options.get("actions", np.zeros((len(frames) - 1, 2))), np.float32)
+            return frames, actions
+        e = options.get("episode")
+        e = int(rng.integers(len(self.episodes))) if e is None else int(e)
+        if not 0 <= e < len(self.episodes):
+            raise ValueError(f"episode {e}: there are {len(self.episodes)}")
+        frames, actions = self.episodes[e]
+        start = options.get("start")
+        start = int(rng.integers(len(frames) - self.seeds + 1)) if start is None else int(start)
+        if not 0 <= start <= len(frames) - self.seeds:
+            raise ValueError(f"start {start}: episode {e} has {len(frames)} frames, {self.seeds} seeds")
+        return frames[start : start + self.seeds], actions[start : start + self.seeds - 1]
+
+    def _clip(self, actions: np.ndarray, shape: tuple) -> np.ndarray:
+        a = np.asarray(actions, np.float32)
+        if a.shape != shape:
+            raise ValueError(f"action: expected shape {shape}, got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"action: not finite: {a}")
+        return np.ascontiguousarray(np.clip(a, self.low, self.high))
+
+    def _reward(self, codes: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        road = self.cost.predict(codes)
+        on_road = np.clip(road[:, 3], 0.0, 1.0)
+        half_width = self.frame_space.shape[1] / 2
+        reward = actions[:, 0] / self.hz * on_road - np.abs(road[:, 0]) / half_width
+        return reward.astype(np.float64), road
+
+
+class DreamEnv(_Dream, gymnasium.Env):
+    """One drive in the dream, as a gymnasium environment (``drivesim/Dream-v0``).
+
+    ``model``: a ``Model``, a weight file, or None for the default; ``episodes``: where resets
+    take their seed frames (a list of ``(frames, actions)``, an episodes file, or None for the
+    built-in seed clip); ``seeds``: real frames before the dream starts; ``max_steps``: steps
+    before truncation; ``cost``: the ``RoadCost`` the reward reads (the default model's when
+    None). ``reset(seed=, options=)`` takes ``{"frames": (S, H, W, 3), "actions": (S - 1, 2)}``
+    or ``{"episode": i, "start": t}``; without options a seeded random episode and start.
+
+    >>> import gymnasium, drivesim
+    >>> env = gymnasium.make("drivesim/Dream-v0")
+    >>> obs, info = env.reset(seed=0)
+    >>> obs.shape, obs.dtype
+    ((80, 160, 3), dtype('uint8'))
+    >>> obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 12.5}
+
+    def __init__(
+        self,
+        model: ModelLike = None,
+        episodes: Any = None,
+        seeds: int = 5,
+        max_steps: int = 200,
+        render_mode: Optional[str] = None,
+        threads: int = 1,
+        cost: Optional[RoadCost] = None,
+    ):
+        self._setup(model, episodes, seeds, max_steps, cost)
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode {render_mode!r}: only 'rgb_array'")
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": self.hz}
+        self.observation_space = self.frame_space
+        self.action_space = self.move_space
+        self._env = Environment(self.model, drives=1, candidates=1, threads=threads)
+        self._frame: Optional[np.ndarray] = None
+        self._t = 0
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        super().reset(seed=seed)
+        frames, actions = self._seed_clip(self.np_random, options)
+        self._env.reset(np.ascontiguousarray(frames[:, None]), np.ascontiguousarray(actions[:, None], np.float32))
+        self._frame = self._env.frames()[0]
+        self._t = 0
+        return self._frame, {"code": self._env.codes[0]}
+
+    def step(self, action):
+        if self._frame is None:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        a = self._clip(action, (2,))[None]
+        self._env.step(a)
+        self._t += 1
+        codes = self._env.codes
+        reward, road = self._reward(codes, a)
+        self._frame = self._env.frames()[0]
+        info = {"code": codes[0], "road": road[0]}
+        return self._frame, float(reward[0]), False, self._t >= self.max_steps, info
+
+    def render(self):
+        """The current dreamed frame, ``(80, 160, 3)`` uint8 (``render_mode="rgb_array"``)."""
+        if self.render_mode != "rgb_array":
+            return None
+        return None if self._frame is None else self._frame.copy()
+
+
+class DreamVectorEnv(_Dream, gymnasium.vector.VectorEnv):
+    """``num_envs`` drives in the dream stepped in one batch (one pass over the weights for
+    all). The arguments are ``DreamEnv``'s. Every drive is truncated at the same step (the dream
+    has no crash), so the autoreset mode is ``NEXT_STEP`` and all drives reset together: the
+    step after the one that returned ``truncated`` starts every drive from new seed frames and
+    returns zero rewards. ``reset(options=)`` takes per-drive ``frames`` ``(S, N, H, W, 3)`` and
+    ``actions`` ``(S - 1, N, 2)``.
+
+    >>> import numpy as np, drivesim
+    >>> envs = drivesim.DreamVectorEnv(4)
+    >>> obs, info = envs.reset(seed=0)
+    >>> obs.shape
+    (4, 80, 160, 3)
+    >>> obs, rewards, terminated, truncated, info = envs.step(envs.action_space.sample())
+    """
+
+    metadata = {
+        "render_modes": ["rgb_array"],
+        "render_fps": 12.5,
+        "autoreset_mode": gymnasium.vector.AutoresetMode.NEXT_STEP,
+    }
+
+    def __init__(
+        self,
+        num_envs: int,
+        model: ModelLike = None,
+        episodes: Any = None,
+        seeds: int = 5,
+        max_steps: int = 200,
+        render_mode: Optional[str] = None,
+        threads: int = 1,
+        cost: Optional[RoadCost] = None,
+    ):
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+        self._setup(model, episodes, seeds, max_steps, cost)
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode {render_mode!r}: only 'rgb_array'")
+        self.num_envs = num_envs
+        self.render_mode = render_mode
+        self.metadata = {**self.metadata, "render_fps": self.hz}
+        self.single_observation_space = self.frame_space
+        self.single_action_space = self.move_space
+        self.observation_space = batch_space(self.frame_space, num_envs)
+        self.action_space = batch_space(self.move_space, num_envs)
+        self._env = Environment(self.model, drives=num_envs, candidates=1, threads=threads)
+        self._frames: Optional[np.ndarray] = None
+        self._t = 0
+        self._needs_reset = False
+
+    def reset(self, *, seed: Optional[Union[int, Sequence[int]]] = None, options: Optional[dict] = None):
+        if seed is not None:
+            seed = seed if isinstance(seed, int) else int(seed[0])
+            self._np_random, self._np_random_seed = gymnasium.utils.seeding.np_random(seed)
+        options = options or {}
+        if "frames" in options:
+            frames = np.asarray(options["frames"])
+            actions = np.asarray(options["actions"], np.float32)
+        else:
+            clips = [self._seed_clip(self.np_random, None) for _ in range(self.num_envs)]
+            frames = np.stack([f for f, _ in clips], axis=1)
+            actions = np.stack([a for _, a in clips], axis=1)
+        self._env.reset(np.ascontiguousarray(frames), np.ascontiguousarray(actions, np.float32))
+        self._frames = self._env.frames()
+        self._t, self._needs_reset = 0, False
+        return self._frames, {}
+
+    def step(self, actions):
+        if self._frames is None:
+            raise gymnasium.error.ResetNeeded("call reset() before step()")
+        n = self.num_envs
+        if self._needs_reset:
+            obs, _ = self.reset()
+            return obs, np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), {}
+        a = self._clip(actions, (n, 2))
+        self._env.step(a)
+        self._t += 1
+        reward, road = self._reward(self._env.codes, a)
+        self._frames = self._env.frames()
+        self._needs_reset = self._t >= self.max_steps
+        truncated = np.full(n, self._needs_reset)
+        return self._frames, reward, np.zeros(n, bool), truncated, {"road": road}
+
+    def render(self):
+        """The drives' current frames, ``(num_envs, 80, 160, 3)`` uint8."""
+        if self.render_mode != "rgb_array" or self._frames is None:
+            return None
+        return self._frames.copy()

@@ -1,0 +1,205 @@
+//! `Environment`: N dreamed drives that a controller steps, on numpy arrays.
+
+use crate::arrays::{f32_items, frames_out, new_array, value_error, Frames};
+use crate::model::PyModel;
+use crate::simulator::{frame_type, slice};
+use crate::to_py;
+use drivesim::{Environment, Model};
+use numpy::{PyArrayDyn, PyArrayMethods};
+use pyo3::exceptions::PyRuntimeError;
+use pyo3::prelude::*;
+use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
+
+struct State {
+    env: Environment<Arc<Model>>,
+    scratch: Vec<f32>,
+}
+
+/// `drives` dreamed drives stepping together in one batch: reset from real frames (or codes),
+/// then each `step` applies one action per drive and moves every drive to its next predicted
+/// code. `candidates` is the most action sequences one `rollout_candidates` call takes.
+///
+/// >>> import numpy as np, drivesim
+/// >>> env = drivesim.Environment(drivesim.Model.load(), drives=2)
+/// >>> frames, actions = drivesim.load_episodes()[0]  # the built-in seed clip
+/// >>> seeds = np.stack([frames[:5], frames[:5]], axis=1)  # (S, drives, 80, 160, 3)
+/// >>> env.reset(seeds, np.stack([actions[:4], actions[:4]], axis=1))
+/// >>> env.step(np.array([[30.0, -0.2], [30.0, 0.2]], np.float32))
+/// >>> env.frames().shape
+/// (2, 80, 160, 3)
+#[pyclass(module = "drivesim", name = "Environment")]
+pub struct PyEnvironment {
+    state: Mutex<State>,
+    drives: usize,
+}
+
+fn lock(state: &Mutex<State>) -> PyResult<MutexGuard<'_, State>> {
+    state.try_lock().map_err(|e| match e {
+        TryLockError::WouldBlock => {
+            PyRuntimeError::new_err("this environment is in use by another thread: give each thread its own")
+        }
+        TryLockError::Poisoned(_) => PyRuntimeError::new_err("this environment failed in another thread"),
+    })
+}
+
+#[pymethods]
+impl PyEnvironment {
+    #[new]
+    #[pyo3(signature = (model, drives=1, candidates=64, threads=1))]
+    fn new(py: Python<'_>, model: &PyModel, drives: usize, candidates: usize, threads: usize) -> PyResult<Self> {
+        let model = Arc::clone(&model.inner);
+        let env = py
+            .detach(|| Environment::new(model, drives, candidates)?.with_threads(threads))
+            .map_err(to_py)?;
+        Ok(PyEnvironment {
+            state: Mutex::new(State {
+                env,
+                scratch: Vec::new(),
+            }),
+            drives,
+        })
+    }
+
+    /// How many drives step together.
+    #[getter]
+    fn drives(&self) -> usize {
+        self.drives
+    }
+
+    /// Starts every drive from real frames: `frames` `(S, drives, height, width, 3)`, uint8 or
+    /// float32, seed by seed, and `actions` `(S - 1, drives, 2)` the actions between them.
+    fn reset(&self, py: Python<'_>, frames: &Bound<'_, PyAny>, actions: &Bound<'_, PyAny>) -> PyResult<()> {
+        let mut guard = lock(&self.state)?;
+        let State { env, scratch } = &mut *guard;
+        let c = *env.simulator().config();
+        let (frames, lead) = Frames::new(frames, "frames", &c, &[2])?;
+        self.check_drives("frames", lead[1])?;
+        let actions = self.actions_between(&c, actions, lead[0])?;
+        let floats = frames.floats(&c, scratch)?;
+        py.detach(|| env.reset_from_frames(floats, &actions)).map_err(to_py)
+    }
+
+    /// Starts every drive from codes: `codes` `(S, drives, z_dim)` and `actions`
+    /// `(S - 1, drives, 2)`.
+    fn reset_from_codes(&self, py: Python<'_>, codes: &Bound<'_, PyAny>, actions: &Bound<'_, PyAny>) -> PyResult<()> {
+        let mut guard = lock(&self.state)?;
+        let env = &mut guard.env;
+        let c = *env.simulator().config();
+        let (codes, lead) = f32_items(codes, "codes", &[2], &[c.z_dim])?;
+        self.check_drives("codes", lead[1])?;
+        let actions = self.actions_between(&c, actions, lead[0])?;
+        let codes = slice(&codes);
+        py.detach(|| env.reset_from_codes(codes, &actions)).map_err(to_py)
+    }
+
+    /// One step of every drive: `actions` `(drives, 2)`, (speed, steering) each.
+    fn step(&self, py: Python<'_>, actions: &Bound<'_, PyAny>) -> PyResult<()> {
+        let mut guard = lock(&self.state)?;
+        let env = &mut guard.env;
+        let c = *env.simulator().config();
+        let (actions, lead) = f32_items(actions, "actions", &[1], &[c.action_dim])?;
+        self.check_drives("actions", lead[0])?;
+        let actions = slice(&actions);
+        py.detach(|| env.step(actions)).map_err(to_py)
+    }
+
+    /// Each drive's current code, `(drives, z_dim)` (a copy).
+    #[getter]
+    fn codes<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let guard = lock(&self.state)?;
+        let codes = guard.env.codes();
+        let out = new_array::<f32>(py, &[self.drives, codes.len() / self.drives]);
+        // SAFETY: the array was just created here and no other reference to it exists.
+        unsafe { out.as_slice_mut() }.expect("new").copy_from_slice(codes);
+        Ok(out)
+    }
+
+    /// Each drive's hidden state, `(drives, hidden_dim)` (a copy).
+    #[getter]
+    fn hidden<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let guard = lock(&self.state)?;
+        let hidden = guard.env.hidden();
+        let out = new_array::<f32>(py, &[self.drives, hidden.len() / self.drives]);
+        // SAFETY: as above.
+        unsafe { out.as_slice_mut() }.expect("new").copy_from_slice(hidden);
+        Ok(out)
+    }
+
+    /// Each drive's current frame, generated: `(drives, height, width, 3)`, uint8 (the
+    /// default) or float32 (`dtype=np.float32`).
+    #[pyo3(signature = (dtype=None))]
+    fn frames<'py>(&self, py: Python<'py>, dtype: Option<&Bound<'py, PyAny>>) -> PyResult<Bound<'py, PyAny>> {
+        let kind = frame_type(py, dtype)?;
+        let mut guard = lock(&self.state)?;
+        let State { env, scratch } = &mut *guard;
+        let c = *env.simulator().config();
+        let shape = [self.drives, c.height, c.width, c.channels];
+        frames_out(py, kind, &c, &shape, scratch, |f| env.frames(f))
+    }
+
+    /// Rolls out `N` candidate action sequences from drive `drive`'s state: `actions`
+    /// `(T, N, 2)`; returns the codes `(T, N, z_dim)`, or with `frames=True` `(codes, frames)`.
+    #[pyo3(signature = (drive, actions, frames=false, dtype=None))]
+    fn rollout_candidates<'py>(
+        &self,
+        py: Python<'py>,
+        drive: usize,
+        actions: &Bound<'py, PyAny>,
+        frames: bool,
+        dtype: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let kind = frame_type(py, dtype)?;
+        let mut guard = lock(&self.state)?;
+        let State { env, scratch } = &mut *guard;
+        let c = *env.simulator().config();
+        let (actions, lead) = f32_items(actions, "actions", &[2], &[c.action_dim])?;
+        let (steps, n) = (lead[0], lead[1]);
+        let actions = slice(&actions);
+        let codes = new_array::<f32>(py, &[steps, n, c.z_dim]);
+        // SAFETY: the array was just created here and no other reference to it exists.
+        let codes_out = unsafe { codes.as_slice_mut() }.expect("new");
+        if !frames {
+            py.detach(|| env.rollout_candidates(drive, n, actions, codes_out, None))
+                .map_err(to_py)?;
+            return Ok(codes.into_any());
+        }
+        let shape = [steps, n, c.height, c.width, c.channels];
+        let frames = frames_out(py, kind, &c, &shape, scratch, |f| {
+            env.rollout_candidates(drive, n, actions, codes_out, Some(f))
+        })?;
+        Ok((codes, frames).into_pyobject(py)?.into_any())
+    }
+}
+
+impl PyEnvironment {
+    fn check_drives(&self, what: &str, found: usize) -> PyResult<()> {
+        match found == self.drives {
+            true => Ok(()),
+            false => Err(value_error(format!(
+                "{what}: expected {} drives, got {found}",
+                self.drives
+            ))),
+        }
+    }
+
+    /// The actions between `seeds` seeds, `(seeds - 1, drives, action_dim)`, as a flat slice
+    /// (a copy: they are few).
+    fn actions_between(&self, c: &drivesim::Config, actions: &Bound<'_, PyAny>, seeds: usize) -> PyResult<Vec<f32>> {
+        let a = if seeds == 1 {
+            // One seed: no action between; accept an empty array of any leading shape.
+            return Ok(Vec::new());
+        } else {
+            f32_items(actions, "actions", &[2], &[c.action_dim])?
+        };
+        if a.1 != [seeds - 1, self.drives] {
+            return Err(value_error(format!(
+                "actions: expected shape ({}, {}, {}) for {seeds} seeds, got {:?}",
+                seeds - 1,
+                self.drives,
+                c.action_dim,
+                a.1
+            )));
+        }
+        Ok(slice(&a.0).to_vec())
+    }
+}

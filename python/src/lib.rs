@@ -1,0 +1,49 @@
+//! The `drivesim._drivesim` extension module: the crate's `Model`, `Simulator` and
+//! `Environment` on numpy arrays. The Python package (`python/drivesim/`) re-exports them and
+//! adds the gymnasium environments and the agents.
+//!
+//! Every call checks its arrays (dtype, shape, C order) before it touches the crate, computes
+//! with the interpreter released (`Python::detach`), and turns the crate's `Error` into
+//! `ValueError`, `OSError` or `MemoryError` with the crate's message: nothing panics through.
+
+mod arrays;
+mod environment;
+mod model;
+mod simulator;
+
+use pyo3::exceptions::{
+    PyFileNotFoundError, PyMemoryError, PyOSError, PyPermissionError, PyRuntimeError, PyValueError,
+};
+use pyo3::prelude::*;
+
+/// The crate's error as the Python exception a caller expects: files are `OSError` (its
+/// subclasses where the cause says which), a plan too large `MemoryError`, threads the system
+/// would not start `RuntimeError`, and everything about the values given `ValueError`.
+pub(crate) fn to_py(e: drivesim::Error) -> PyErr {
+    let mut message = e.to_string();
+    let mut source = std::error::Error::source(&e);
+    while let Some(s) = source {
+        message = format!("{message}: {s}");
+        source = s.source();
+    }
+    match &e {
+        drivesim::Error::Io { source, .. } => match source.kind() {
+            std::io::ErrorKind::NotFound => PyFileNotFoundError::new_err(message),
+            std::io::ErrorKind::PermissionDenied => PyPermissionError::new_err(message),
+            _ => PyOSError::new_err(message),
+        },
+        drivesim::Error::OutOfMemory { .. } => PyMemoryError::new_err(message),
+        drivesim::Error::Threads { .. } => PyRuntimeError::new_err(message),
+        _ => PyValueError::new_err(message),
+    }
+}
+
+#[pymodule]
+fn _drivesim(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<model::PyModel>()?;
+    m.add_class::<simulator::PySimulator>()?;
+    m.add_class::<environment::PyEnvironment>()?;
+    m.add_function(wrap_pyfunction!(model::load_episodes, m)?)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

@@ -1,0 +1,159 @@
+//! `Model`: loaded weights (the default model is built into the module), and recorded episodes.
+
+use crate::to_py;
+use drivesim::{Episodes, Model};
+use numpy::{PyArray1, PyArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// The default model's weights, built in so that `Model.load()` needs no file.
+static DEFAULT_WEIGHTS: &[u8] = include_bytes!("../../weights/default.safetensors");
+/// The seed clip that `hallucinate` and the dream environments start from by default.
+static SEED_CLIP: &[u8] = include_bytes!("../../weights/seed_clip.safetensors");
+
+/// A loaded model: encoder, transition and generator weights, checked on load.
+///
+/// `Model.load()` gives the default model (trained on CarRacing, 80x160 frames); `Model.load(path)`
+/// reads a weight file written by the crate's trainers or `weights/tool export`. One model can
+/// serve many simulators: they share its weights.
+#[pyclass(module = "drivesim", name = "Model", frozen)]
+pub struct PyModel {
+    pub(crate) inner: Arc<Model>,
+}
+
+#[pymethods]
+impl PyModel {
+    /// Loads a weight file (safetensors), or the built-in default model when `path` is None.
+    ///
+    /// Raises OSError when the file cannot be read and ValueError when it is not a valid weight
+    /// file (the message says which tensor or field is wrong).
+    #[staticmethod]
+    #[pyo3(signature = (path=None))]
+    fn load(py: Python<'_>, path: Option<PathBuf>) -> PyResult<PyModel> {
+        let model = py.detach(|| match path {
+            Some(path) => Model::load(path),
+            None => Model::from_bytes(DEFAULT_WEIGHTS),
+        });
+        Ok(PyModel {
+            inner: Arc::new(model.map_err(to_py)?),
+        })
+    }
+
+    /// Reads a model from the bytes of a weight file.
+    #[staticmethod]
+    fn from_bytes(py: Python<'_>, data: &[u8]) -> PyResult<PyModel> {
+        let model = py.detach(|| Model::from_bytes(data)).map_err(to_py)?;
+        Ok(PyModel { inner: Arc::new(model) })
+    }
+
+    /// The architecture: a dict of `height`, `width`, `channels`, `base_channels`, `layers`,
+    /// `kernel`, `z_dim`, `hidden_dim`, `action_dim`.
+    #[getter]
+    fn config<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let c = self.inner.config();
+        let d = PyDict::new(py);
+        for (k, v) in [
+            ("height", c.height),
+            ("width", c.width),
+            ("channels", c.channels),
+            ("base_channels", c.base_channels),
+            ("layers", c.layers),
+            ("kernel", c.kernel),
+            ("z_dim", c.z_dim),
+            ("hidden_dim", c.hidden_dim),
+            ("action_dim", c.action_dim),
+        ] {
+            d.set_item(k, v)?;
+        }
+        Ok(d)
+    }
+
+    /// `(height, width, channels)` of a frame.
+    #[getter]
+    fn frame_shape(&self) -> (usize, usize, usize) {
+        let c = self.inner.config();
+        (c.height, c.width, c.channels)
+    }
+
+    /// Values in a latent code.
+    #[getter]
+    fn z_dim(&self) -> usize {
+        self.inner.config().z_dim
+    }
+
+    /// Values in the transition's hidden state.
+    #[getter]
+    fn hidden_dim(&self) -> usize {
+        self.inner.config().hidden_dim
+    }
+
+    /// Values in an action: 2, (speed, steering).
+    #[getter]
+    fn action_dim(&self) -> usize {
+        self.inner.config().action_dim
+    }
+
+    /// Frames per second the model was trained at (one transition step is `1 / frame_hz`
+    /// seconds), or None when the file does not say.
+    #[getter]
+    fn frame_hz(&self) -> Option<f32> {
+        self.inner.frame_hz()
+    }
+
+    /// What each action means and the range it was trained on (the file's `drivesim.actions`):
+    /// a list of dicts with `name`, `unit`, `mean`, `std`, `min`, `max`, or None.
+    #[getter]
+    fn actions<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyList>>> {
+        let Some(specs) = self.inner.actions() else {
+            return Ok(None);
+        };
+        let list = PyList::empty(py);
+        for s in specs {
+            let d = PyDict::new(py);
+            d.set_item("name", &s.name)?;
+            d.set_item("unit", &s.unit)?;
+            for (k, v) in [("mean", s.mean), ("std", s.std), ("min", s.min), ("max", s.max)] {
+                d.set_item(k, v)?;
+            }
+            list.append(d)?;
+        }
+        Ok(Some(list))
+    }
+
+    fn __repr__(&self) -> String {
+        let c = self.inner.config();
+        format!(
+            "Model(frame={}x{}x{}, base_channels={}, z_dim={}, hidden_dim={}, action_dim={})",
+            c.height, c.width, c.channels, c.base_channels, c.z_dim, c.hidden_dim, c.action_dim
+        )
+    }
+}
+
+/// Recorded driving: a list of `(frames, actions)` per episode, frames `uint8` of shape
+/// `(T, height, width, 3)` and actions `float32` of shape `(T, 2)` (speed, steering in effect at
+/// each frame). Reads an episodes file (`.safetensors`, or gzipped `.safetensors.gz` as
+/// `weights/tool record` writes them), or the built-in seed clip when `path` is None.
+#[pyfunction]
+#[pyo3(signature = (path=None))]
+pub fn load_episodes<'py>(
+    py: Python<'py>,
+    path: Option<PathBuf>,
+) -> PyResult<Vec<(Bound<'py, PyAny>, Bound<'py, PyAny>)>> {
+    let episodes = py
+        .detach(|| match path {
+            Some(path) => Episodes::load(path),
+            None => Episodes::from_bytes(SEED_CLIP),
+        })
+        .map_err(to_py)?;
+    let (height, width) = episodes.frame_size();
+    let mut out = Vec::with_capacity(episodes.len());
+    for i in 0..episodes.len() {
+        let e = episodes.episode(i).map_err(to_py)?;
+        let frames = PyArray1::from_slice(py, e.frames).reshape([e.len(), height, width, Episodes::CHANNELS])?;
+        let actions = PyArray1::from_slice(py, e.actions).reshape([e.len(), Episodes::ACTION_DIM])?;
+        out.push((frames.into_any(), actions.into_any()));
+    }
+    Ok(out)
+}

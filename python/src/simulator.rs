@@ -1,0 +1,314 @@
+//! `Simulator`: encode, generate, transition steps and rollouts on numpy arrays.
+
+use crate::arrays::{f32_items, frames_out, new_array, value_error, FrameType, Frames};
+use crate::model::PyModel;
+use crate::to_py;
+use drivesim::{Model, Simulator};
+use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn};
+use pyo3::exceptions::PyRuntimeError;
+use pyo3::prelude::*;
+use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
+
+/// A simulator and the scratch its 8-bit frames convert through.
+pub struct State {
+    pub sim: Simulator<Arc<Model>>,
+    pub scratch: Vec<f32>,
+}
+
+/// Locks a simulator for one call. A second thread's call on the same object is an error
+/// (each thread should have its own simulator) rather than a wait: waiting for the lock while
+/// holding the interpreter could deadlock against the call that holds it.
+pub fn lock(state: &Mutex<State>) -> PyResult<MutexGuard<'_, State>> {
+    state.try_lock().map_err(|e| match e {
+        TryLockError::WouldBlock => {
+            PyRuntimeError::new_err("this simulator is in use by another thread: give each thread its own")
+        }
+        TryLockError::Poisoned(_) => PyRuntimeError::new_err("this simulator failed in another thread"),
+    })
+}
+
+/// Runs the model: encodes frames, steps the transition, generates frames, rolls out dreams.
+///
+/// `Simulator(model, batch=1, threads=1)` plans and allocates every buffer once, for up to
+/// `batch` frames or codes per call; `threads` share each network's layers. Frames are numpy
+/// arrays of shape `(N, height, width, 3)` (or one frame, `(height, width, 3)`), `uint8`
+/// (0-255) or `float32` (in [-1, 1]); codes, hidden states and actions are `float32`, one row
+/// per item. Results are new arrays; the interpreter is released while the crate computes.
+/// Results are bit-identical whatever the thread count or batch.
+///
+/// >>> import numpy as np, drivesim
+/// >>> model = drivesim.Model.load()
+/// >>> sim = drivesim.Simulator(model)
+/// >>> z = sim.encode(np.zeros((80, 160, 3), np.uint8))
+/// >>> z_next, h = sim.transition(z, np.zeros(model.hidden_dim, np.float32), np.array([30.0, 0.0], np.float32))
+/// >>> sim.generate(z_next).shape
+/// (80, 160, 3)
+#[pyclass(module = "drivesim", name = "Simulator")]
+pub struct PySimulator {
+    state: Mutex<State>,
+}
+
+impl PySimulator {
+    fn config(&self) -> PyResult<drivesim::Config> {
+        Ok(*lock(&self.state)?.sim.config())
+    }
+}
+
+/// Drops the leading dimension of a single item's result: `(1, …)` becomes `(…)`.
+fn shape_of(lead: &[usize], tail: &[usize]) -> Vec<usize> {
+    lead.iter().chain(tail).copied().collect()
+}
+
+#[pymethods]
+impl PySimulator {
+    #[new]
+    #[pyo3(signature = (model, batch=1, threads=1))]
+    fn new(py: Python<'_>, model: &PyModel, batch: usize, threads: usize) -> PyResult<Self> {
+        let model = Arc::clone(&model.inner);
+        let sim = py
+            .detach(|| Simulator::with_batch(model, batch)?.with_threads(threads))
+            .map_err(to_py)?;
+        Ok(PySimulator {
+            state: Mutex::new(State {
+                sim,
+                scratch: Vec::new(),
+            }),
+        })
+    }
+
+    /// The most frames or codes one call takes.
+    #[getter]
+    fn batch(&self) -> PyResult<usize> {
+        Ok(lock(&self.state)?.sim.max_batch())
+    }
+
+    /// Threads that share each call, the caller's included.
+    #[getter]
+    fn threads(&self) -> PyResult<usize> {
+        Ok(lock(&self.state)?.sim.threads())
+    }
+
+    /// The instruction set the kernels run on (`"avx512"`, `"avx2"`, `"neon"` or `"scalar"`).
+    #[getter]
+    fn isa(&self) -> PyResult<String> {
+        Ok(lock(&self.state)?.sim.isa().level().name().to_string())
+    }
+
+    /// Bytes of the buffers planned and allocated at construction (weights not included).
+    #[getter]
+    fn buffer_bytes(&self) -> PyResult<usize> {
+        Ok(lock(&self.state)?.sim.buffer_bytes())
+    }
+
+    /// Encodes frames to latent codes (the VAE mean): `(N, height, width, 3)` uint8 or float32
+    /// frames give `(N, z_dim)` float32 codes; one frame `(height, width, 3)` gives `(z_dim,)`.
+    fn encode<'py>(&self, py: Python<'py>, frames: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let mut guard = lock(&self.state)?;
+        let State { sim, scratch } = &mut *guard;
+        let c = *sim.config();
+        let (frames, lead) = Frames::new(frames, "frames", &c, &[0, 1])?;
+        let floats = frames.floats(&c, scratch)?;
+        let out = new_array::<f32>(py, &shape_of(&lead, &[c.z_dim]));
+        // SAFETY: the array was just created here and no other reference to it exists.
+        let z = unsafe { out.as_slice_mut() }.expect("a new array is contiguous");
+        py.detach(|| sim.encode(floats, z)).map_err(to_py)?;
+        Ok(out)
+    }
+
+    /// Generates frames from codes: `(N, z_dim)` codes give `(N, height, width, 3)` frames,
+    /// `(z_dim,)` one frame; `dtype` uint8 (the default, 0-255) or float32 (in [-1, 1]).
+    #[pyo3(signature = (z, dtype=None))]
+    fn generate<'py>(
+        &self,
+        py: Python<'py>,
+        z: &Bound<'py, PyAny>,
+        dtype: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let kind = frame_type(py, dtype)?;
+        let mut guard = lock(&self.state)?;
+        let State { sim, scratch } = &mut *guard;
+        let c = *sim.config();
+        let (z, lead) = f32_items(z, "z", &[0, 1], &[c.z_dim])?;
+        let z = slice(&z);
+        let shape = shape_of(&lead, &[c.height, c.width, c.channels]);
+        frames_out(py, kind, &c, &shape, scratch, |frames| sim.generate(z, frames))
+    }
+
+    /// One transition step from given codes: `z` `(N, z_dim)`, the hidden states `h`
+    /// `(N, hidden_dim)` and actions `(N, 2)` (speed, steering), or one of each without the
+    /// leading N. Returns `(z_next, h_next)`, new arrays; `h` is not changed.
+    fn transition<'py>(
+        &self,
+        py: Python<'py>,
+        z: &Bound<'py, PyAny>,
+        h: &Bound<'py, PyAny>,
+        action: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>)> {
+        let c = self.config()?;
+        let (z, lead) = f32_items(z, "z", &[0, 1], &[c.z_dim])?;
+        let z = slice(&z);
+        self.step(py, Some(z), &lead, h, action)
+    }
+
+    /// One transition step from the code `h` itself predicts (as after a rollout's or another
+    /// step's prediction): the step a dream takes from its own last frame. Returns
+    /// `(z_next, h_next)`; `h` is not changed.
+    fn transition_fed_back<'py>(
+        &self,
+        py: Python<'py>,
+        h: &Bound<'py, PyAny>,
+        action: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>)> {
+        let c = self.config()?;
+        let lead = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?.1;
+        self.step(py, None, &lead, h, action)
+    }
+
+    /// A dream from seed frames: `seed_frames` `(S, height, width, 3)` and `actions`
+    /// `(S - 1 + T, 2)` (the actions between the seeds, then one per predicted step) give the
+    /// `T` predicted codes `(T, z_dim)`; with `frames=True`, also the generated frames
+    /// `(T, height, width, 3)` as `(codes, frames)`.
+    #[pyo3(signature = (seed_frames, actions, frames=false, dtype=None))]
+    fn rollout<'py>(
+        &self,
+        py: Python<'py>,
+        seed_frames: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        frames: bool,
+        dtype: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let kind = frame_type(py, dtype)?;
+        let mut guard = lock(&self.state)?;
+        let State { sim, scratch } = &mut *guard;
+        let c = *sim.config();
+        let (seeds, lead) = Frames::new(seed_frames, "seed_frames", &c, &[1])?;
+        let (actions, steps) = f32_items(actions, "actions", &[1], &[c.action_dim])?;
+        let steps = steps[0].checked_sub(lead[0] - 1).filter(|&t| t > 0).ok_or_else(|| {
+            value_error(format!(
+                "actions: {} seed frames need {} actions between them and at least one more to predict, got {}",
+                lead[0],
+                lead[0] - 1,
+                steps[0]
+            ))
+        })?;
+        let mut seed_scratch = Vec::new();
+        let seeds = seeds.floats(&c, &mut seed_scratch)?;
+        let actions = slice(&actions);
+        let codes = new_array::<f32>(py, &[steps, c.z_dim]);
+        // SAFETY: the array was just created here and no other reference to it exists.
+        let codes_out = unsafe { codes.as_slice_mut() }.expect("a new array is contiguous");
+        if !frames {
+            py.detach(|| sim.rollout(seeds, actions, codes_out, None))
+                .map_err(to_py)?;
+            return Ok(codes.into_any());
+        }
+        let shape = [steps, c.height, c.width, c.channels];
+        let frames = frames_out(py, kind, &c, &shape, scratch, |f| {
+            sim.rollout(seeds, actions, codes_out, Some(f))
+        })?;
+        Ok((codes, frames).into_pyobject(py)?.into_any())
+    }
+
+    /// Rolls out `N` candidate action sequences at once from one state: the planner's building
+    /// block. `h` is the hidden state `(hidden_dim,)` shared by every candidate, or `(N,
+    /// hidden_dim)`; `actions` `(T, N, 2)` step-major; `z`, the current code `(z_dim,)` or
+    /// `(N, z_dim)`, or None to start from the code `h` predicts. Returns the codes
+    /// `(T, N, z_dim)`, or with `frames=True` `(codes, frames)` with frames `(T, N, height,
+    /// width, 3)`. Each candidate gets the bits a rollout of its own would.
+    #[pyo3(signature = (h, actions, z=None, frames=false, dtype=None))]
+    fn rollout_candidates<'py>(
+        &self,
+        py: Python<'py>,
+        h: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        z: Option<&Bound<'py, PyAny>>,
+        frames: bool,
+        dtype: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let kind = frame_type(py, dtype)?;
+        let mut guard = lock(&self.state)?;
+        let State { sim, scratch } = &mut *guard;
+        let c = *sim.config();
+        let (actions, lead) = f32_items(actions, "actions", &[2], &[c.action_dim])?;
+        let (steps, n) = (lead[0], lead[1]);
+        let h = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?.0;
+        let z = z
+            .map(|z| f32_items(z, "z", &[0, 1], &[c.z_dim]))
+            .transpose()?
+            .map(|z| z.0);
+        let (h, z, actions) = (slice(&h), z.as_ref().map(slice), slice(&actions));
+        let codes = new_array::<f32>(py, &[steps, n, c.z_dim]);
+        // SAFETY: the array was just created here and no other reference to it exists.
+        let codes_out = unsafe { codes.as_slice_mut() }.expect("a new array is contiguous");
+        if !frames {
+            py.detach(|| sim.rollout_candidates(h, z, n, actions, codes_out, None))
+                .map_err(to_py)?;
+            return Ok(codes.into_any());
+        }
+        let shape = [steps, n, c.height, c.width, c.channels];
+        let frames = frames_out(py, kind, &c, &shape, scratch, |f| {
+            sim.rollout_candidates(h, z, n, actions, codes_out, Some(f))
+        })?;
+        Ok((codes, frames).into_pyobject(py)?.into_any())
+    }
+
+    fn __repr__(&self) -> PyResult<String> {
+        let guard = lock(&self.state)?;
+        let c = guard.sim.config();
+        Ok(format!(
+            "Simulator(frame={}x{}, z_dim={}, batch={}, threads={}, isa={})",
+            c.height,
+            c.width,
+            c.z_dim,
+            guard.sim.max_batch(),
+            guard.sim.threads(),
+            guard.sim.isa().level().name()
+        ))
+    }
+}
+
+impl PySimulator {
+    /// A transition step from `z` (or from `h`'s own prediction when None).
+    fn step<'py>(
+        &self,
+        py: Python<'py>,
+        z: Option<&[f32]>,
+        lead: &[usize],
+        h: &Bound<'py, PyAny>,
+        action: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>)> {
+        let mut guard = lock(&self.state)?;
+        let sim = &mut guard.sim;
+        let c = *sim.config();
+        let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
+        let (action, a_lead) = f32_items(action, "action", &[0, 1], &[c.action_dim])?;
+        if h_lead != lead || a_lead != lead {
+            return Err(value_error(format!(
+                "z, h and action must have the same leading dimensions: {lead:?}, {h_lead:?} and {a_lead:?}"
+            )));
+        }
+        let h_next = new_array::<f32>(py, &shape_of(lead, &[c.hidden_dim]));
+        let z_next = new_array::<f32>(py, &shape_of(lead, &[c.z_dim]));
+        // SAFETY: both arrays were just created here and no other reference to them exists.
+        let (h_out, z_out) = unsafe { (h_next.as_slice_mut(), z_next.as_slice_mut()) };
+        let (h_out, z_out) = (h_out.expect("new"), z_out.expect("new"));
+        h_out.copy_from_slice(slice(&h));
+        let action = slice(&action);
+        py.detach(|| match z {
+            Some(z) => sim.transition(z, h_out, action, z_out),
+            None => sim.transition_fed_back(h_out, action, z_out),
+        })
+        .map_err(to_py)?;
+        Ok((z_next, h_next))
+    }
+}
+
+/// A checked array's values.
+pub fn slice<'a>(a: &'a PyReadonlyArrayDyn<'_, f32>) -> &'a [f32] {
+    a.as_slice().expect("checked C-ordered")
+}
+
+/// The frame type a `dtype` argument asks for (uint8 when None).
+pub fn frame_type(py: Python<'_>, dtype: Option<&Bound<'_, PyAny>>) -> PyResult<FrameType> {
+    dtype.map_or(Ok(FrameType::U8), |d| FrameType::parse(py, d))
+}
