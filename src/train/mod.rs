@@ -21,6 +21,7 @@
 
 mod adam;
 mod arena;
+mod shared;
 mod transition;
 mod vae_gan;
 

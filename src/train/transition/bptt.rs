@@ -1,0 +1,203 @@
+//! The transition's forward pass over windows of codes (every activation saved) and
+//! back-propagation through time, with the products of the backward pass.
+
+use super::trainer::TransitionTrainer;
+use crate::layers::dense;
+use crate::pool::Exec;
+use crate::train::arena::{cut, cut_ref};
+use crate::{Error, Result};
+use drivesim_kernels::pack::dense_from_fn;
+use drivesim_kernels::{Activation, Matrix, MatrixData, OutputParts};
+
+impl TransitionTrainer<'_> {
+    /// Runs the windows forward, saving every input, hidden state and prediction (time-major:
+    /// item `t * batch + n`), and returns the loss.
+    pub(super) fn forward(&mut self, codes: &[f32], actions: &[f32], batch: usize) -> Result<f32> {
+        let (d, teacher) = (self.plan.dims, self.settings.teacher);
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
+        let [params, _, _, _, _, _, xs, hs, outs, .., norm] = cut(self.memory.floats(), &self.plan.lens);
+        let [wx, bx, wa, ba] = cut_ref(params, &d.params());
+        let (h, z, a, cols) = (d.hidden, d.z, d.actions, d.cols());
+        let (mean, std) = norm.split_at(a);
+        let input = Matrix {
+            data: MatrixData::F32(wx),
+            rows: h,
+            cols,
+        };
+        let output = Matrix {
+            data: MatrixData::F32(wa),
+            rows: z,
+            cols: h,
+        };
+        let mut sum = 0.0f64;
+        for t in 0..d.steps() {
+            let (x, hs_t) = (&mut xs[t * batch * cols..][..batch * cols], t * batch * h);
+            for (n, row) in x.chunks_exact_mut(cols).enumerate() {
+                let (h_prev, rest) = row.split_at_mut(h);
+                let (z_in, c) = rest.split_at_mut(z);
+                match t {
+                    0 => h_prev.fill(0.0),
+                    _ => h_prev.copy_from_slice(&hs[hs_t - batch * h + n * h..][..h]),
+                }
+                match t < teacher {
+                    true => z_in.copy_from_slice(&codes[(n * d.window + t) * z..][..z]),
+                    false => z_in.copy_from_slice(&outs[((t - 1) * batch + n) * z..][..z]),
+                }
+                let raw = &actions[(n * d.steps() + t) * a..][..a];
+                for (((c, raw), m), s) in c.iter_mut().zip(raw).zip(mean).zip(std.iter()) {
+                    *c = (raw - m) / s;
+                }
+            }
+            let h_t = &mut hs[hs_t..][..batch * h];
+            dense(exec, input, bx, Activation::Tanh, x, h_t);
+            let out = &mut outs[t * batch * z..][..batch * z];
+            dense(exec, output, ba, Activation::Identity, h_t, out);
+            for (n, out) in out.chunks_exact(z).enumerate() {
+                let target = &codes[(n * d.window + t + 1) * z..][..z];
+                sum += out
+                    .iter()
+                    .zip(target)
+                    .map(|(o, y)| ((o - y) as f64) * ((o - y) as f64))
+                    .sum::<f64>();
+            }
+        }
+        let loss = (sum / (batch * d.steps() * z) as f64) as f32;
+        if !loss.is_finite() {
+            return Err(Error::NonFiniteOutput {
+                buffer: "loss",
+                index: 0,
+            });
+        }
+        Ok(loss)
+    }
+
+    /// Back-propagation through time from the loss of the last [`forward`], newest step first:
+    /// the gradients of every weight, or (`Backward::Inputs`) of every input instead.
+    ///
+    /// [`forward`]: TransitionTrainer::forward
+    pub(super) fn backward(&mut self, codes: &[f32], batch: usize, what: Backward) -> Result<()> {
+        let (d, teacher, full) = (self.plan.dims, self.settings.teacher, self.settings.full_bptt);
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
+        let [params, grads, _, _, bt, vut, xs, hs, outs, dpre, dout, dzc, gathered, zero, _] =
+            cut(self.memory.floats(), &self.plan.lens);
+        let (h, z, a, cols, steps) = (d.hidden, d.z, d.actions, d.cols(), d.steps());
+        if !self.transposed {
+            let [wx, _, wa, _] = cut_ref(params, &d.params());
+            let wx_at = |r: usize, c: usize| wx[Matrix::packed_index(r, c, cols)];
+            // [Aᵀ | Wᵀ]: the hidden state's gradient from the prediction's and the next step's.
+            dense_from_fn(h, z + h, bt, |r, c| match c < z {
+                true => wa[Matrix::packed_index(c, r, h)],
+                false => wx_at(c - z, r),
+            });
+            // [Vᵀ ; Uᵀ]: the gradient of the code and action inputs.
+            dense_from_fn(z + a, h, vut, |r, c| wx_at(c, h + r));
+            self.transposed = true;
+        }
+        let matrix = |w, rows, cols| Matrix {
+            data: MatrixData::F32(w),
+            rows,
+            cols,
+        };
+        let (bt, vut) = (matrix(bt, h, z + h), matrix(vut, z + a, h));
+        // d loss / d prediction: 2 (prediction - code) / (values in the loss).
+        let scale = 2.0 / (batch * steps * z) as f32;
+        for t in 0..steps {
+            let (out, g) = (
+                &outs[t * batch * z..][..batch * z],
+                &mut dout[t * batch * z..][..batch * z],
+            );
+            for (n, (out, g)) in out.chunks_exact(z).zip(g.chunks_exact_mut(z)).enumerate() {
+                let target = &codes[(n * d.window + t + 1) * z..][..z];
+                for ((g, o), y) in g.iter_mut().zip(out).zip(target) {
+                    *g = scale * (o - y);
+                }
+            }
+        }
+        let inputs = what == Backward::Inputs || full;
+        for t in (0..steps).rev() {
+            let later = t + 1 < steps;
+            let dout_t = &mut dout[t * batch * z..][..batch * z];
+            if full && later && t + 1 >= teacher {
+                // The next step's input was this prediction: its gradient joins the loss's.
+                let dz_next = &dzc[(t + 1) * batch * (z + a)..][..batch * (z + a)];
+                for (g, dz) in dout_t.chunks_exact_mut(z).zip(dz_next.chunks_exact(z + a)) {
+                    g.iter_mut().zip(dz).for_each(|(g, dz)| *g += dz);
+                }
+            }
+            let g = &mut gathered[..batch * (z + h)];
+            for (n, row) in g.chunks_exact_mut(z + h).enumerate() {
+                row[..z].copy_from_slice(&dout_t[n * z..][..z]);
+                match later {
+                    true => row[z..].copy_from_slice(&dpre[((t + 1) * batch + n) * h..][..h]),
+                    false => row[z..].fill(0.0),
+                }
+            }
+            step_backward(
+                exec,
+                bt,
+                &zero[..h],
+                g,
+                &hs[t * batch * h..][..batch * h],
+                &mut dpre[t * batch * h..][..batch * h],
+            );
+            if inputs {
+                let dpre_t = &dpre[t * batch * h..][..batch * h];
+                dense(
+                    exec,
+                    vut,
+                    &zero[..z + a],
+                    Activation::Identity,
+                    dpre_t,
+                    &mut dzc[t * batch * (z + a)..][..batch * (z + a)],
+                );
+            }
+        }
+        if what == Backward::Weights {
+            let [gwx, gbx, gwa, gba] = cut(grads, &d.params());
+            let items = steps * batch;
+            weight_grad(exec, &dpre[..items * h], &xs[..items * cols], h, cols, gwx);
+            column_sums(&dpre[..items * h], gbx);
+            weight_grad(exec, &dout[..items * z], &hs[..items * h], z, h, gwa);
+            column_sums(&dout[..items * z], gba);
+        }
+        Ok(())
+    }
+}
+
+/// What [`TransitionTrainer::backward`] computes.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(super) enum Backward {
+    Weights,
+    Inputs,
+}
+
+/// One step of the RNN backward: `dh = [Aᵀ | Wᵀ] [dz' | dpre_next]` (the hidden state feeds
+/// the prediction and the next step), then through the tanh: `dpre = dh (1 - h²)`.
+fn step_backward(exec: Exec<'_>, bt: Matrix<'_>, zero: &[f32], gathered: &[f32], h: &[f32], dpre: &mut [f32]) {
+    dense(exec, bt, zero, Activation::Identity, gathered, dpre);
+    drivesim_kernels::activation_backward(exec.isa, Activation::Tanh, h, dpre);
+}
+
+/// `grad = dyᵀ x` packed, shared among the threads by panels of rows.
+fn weight_grad(exec: Exec<'_>, dy: &[f32], x: &[f32], rows: usize, cols: usize, grad: &mut [f32]) {
+    let parts = OutputParts::new(grad, rows, exec.threads());
+    exec.run(&|| {
+        while let Some(part) = parts.take() {
+            drivesim_kernels::dense_weight_grad_rows(exec.isa, dy, x, rows, cols, part);
+        }
+    });
+}
+
+/// `sums[r] = Σ_k dy[k][r]`: the gradient of a bias.
+fn column_sums(dy: &[f32], sums: &mut [f32]) {
+    sums.fill(0.0);
+    for row in dy.chunks_exact(sums.len()) {
+        sums.iter_mut().zip(row).for_each(|(s, v)| *s += v);
+    }
+}
