@@ -257,18 +257,14 @@ fn conv_grad_rows(
     input: &[f32],
     dy: &[f32],
     scratch: &mut [f32],
-    part: OutputPart<'_>,
+    mut part: OutputPart<'_>,
     add: bool,
 ) {
     let (rows, cols) = (shape.output.channels, conv_patch_len(&shape));
     assert!(scratch.len() >= conv_weight_grad_scratch_len(&shape));
     let total = conv_pixels(&shape, input, dy);
     let (patches, dys) = scratch.split_at_mut(GRAD_PIXELS * cols);
-    let units = part.units();
-    assert_eq!(part.buffer_len(), Matrix::packed_len(rows, cols));
-    assert!(units.start.is_multiple_of(crate::OC_ALIGN) && units.end <= rows);
-    let kernel = simd::entries(isa).dense_weight_grad;
-    // At least one call: no pixels make a zero gradient.
+    // At least one chunk, which checks `part`: no pixels make a zero gradient.
     for start in (0..total.max(1)).step_by(GRAD_PIXELS) {
         let n = GRAD_PIXELS.min(total - start.min(total));
         conv_patches(
@@ -280,9 +276,7 @@ fn conv_grad_rows(
             &mut dys[..n * rows],
         );
         let (d, x) = (&dys[..n * rows], &patches[..n * cols]);
-        // SAFETY: `isa` proves the CPU has the kernel's features; the part's buffer is the
-        // whole packed matrix (checked) and the panels of its rows are this call's alone.
-        unsafe { kernel(d, x, cols, part.ptr(), units.clone(), rows, add || start > 0) };
+        weight_grad_rows(isa, d, x, rows, cols, part.reborrow(), add || start > 0);
     }
 }
 

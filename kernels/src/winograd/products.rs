@@ -80,74 +80,55 @@ pub(crate) unsafe fn channels<L: Lane, P: Product>(
         // (points x input channels x 16) serve every group in turn; otherwise each group's
         // transformed input serves every block.
         let groups = tiles.div_ceil(w.group_tiles());
-        let group = |g: usize| tiles * g / groups..tiles * (g + 1) / groups;
-        let blocks = channels.clone().step_by(L::BLOCK);
-        if w.packed_len() > w.input_len() {
-            for first in blocks {
-                for g in 0..groups {
-                    group_block::<L, P>(product, w, layer, v, scratch, output, group(g), first..channels.end);
-                }
-            }
-        } else {
-            for g in 0..groups {
-                for first in blocks.clone() {
-                    group_block::<L, P>(product, w, layer, v, scratch, output, group(g), first..channels.end);
-                }
-            }
-        }
-    }
-}
-
-/// Steps 2 and 3 for the tiles `tiles` and the block of output channels from `channels.start`.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-unsafe fn group_block<L: Lane, P: Product>(
-    product: &P,
-    w: &Winograd,
-    layer: ConvParams<'_>,
-    v: &[f32],
-    scratch: &mut [f32],
-    output: *mut f32,
-    tiles: Range<usize>,
-    channels: Range<usize>,
-) {
-    unsafe {
-        let (first, valid) = (channels.start, channels.len().min(L::BLOCK));
+        let blocks = channels.len().div_ceil(L::BLOCK);
+        let weights_outer = w.packed_len() > w.input_len();
         let c = w.shape.input.channels;
         let m = scratch.as_mut_ptr();
-        for point in 0..w.points() {
-            let v = v.as_ptr().add((point * w.tiles() + tiles.start) * c);
-            let m = m.add(point * w.group_tiles() * L::BLOCK);
-            let products = Products {
-                w,
-                u: layer.weights,
-                point,
-                v,
-                count: tiles.len(),
-                m,
-                first,
-                valid,
+        // Each pair of a group and a block, in the order above: its products (step 2) into
+        // `scratch`, then their output transform (step 3).
+        for i in 0..groups * blocks {
+            let (g, b) = if weights_outer {
+                (i % groups, i / groups)
+            } else {
+                (i / blocks, i % blocks)
             };
-            product.run(&products);
-        }
-        let mut out = OutputTransform::<L> {
-            w,
-            m,
-            bias: layer.bias.as_ptr().add(first),
-            act: layer.act,
-            output: output.add(first),
-            sum: [[L::zero(); 4]; 4],
-            tile: 0,
-            channel: 0,
-            n: 0,
-            m_at: 0,
-        };
-        for tile in tiles.clone() {
-            for channel in (0..valid).step_by(L::LANES) {
-                out.tile = tile;
-                out.channel = channel;
-                out.n = valid - channel;
-                out.finish_tile(tiles.start);
+            let group = tiles * g / groups..tiles * (g + 1) / groups;
+            let first = channels.start + b * L::BLOCK;
+            let valid = (channels.end - first).min(L::BLOCK);
+            for point in 0..w.points() {
+                let v = v.as_ptr().add((point * tiles + group.start) * c);
+                let m = m.add(point * w.group_tiles() * L::BLOCK);
+                let products = Products {
+                    w,
+                    u: layer.weights,
+                    point,
+                    v,
+                    count: group.len(),
+                    m,
+                    first,
+                    valid,
+                };
+                product.run(&products);
+            }
+            let mut out = OutputTransform::<L> {
+                w,
+                m,
+                bias: layer.bias.as_ptr().add(first),
+                act: layer.act,
+                output: output.add(first),
+                sum: [[L::zero(); 4]; 4],
+                tile: 0,
+                channel: 0,
+                n: 0,
+                m_at: 0,
+            };
+            for tile in group.clone() {
+                for channel in (0..valid).step_by(L::LANES) {
+                    out.tile = tile;
+                    out.channel = channel;
+                    out.n = valid - channel;
+                    out.finish_tile(group.start);
+                }
             }
         }
     }

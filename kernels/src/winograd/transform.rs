@@ -5,6 +5,7 @@ use super::filters::{with_phase, Filter, PhaseFn};
 use super::Winograd;
 use crate::simd::vector::Lane;
 use crate::{Activation, ConvKind, OC_ALIGN};
+use core::marker::PhantomData;
 
 /// The tile's columns, each a `PY`-array.
 #[inline(always)]
@@ -20,54 +21,52 @@ unsafe fn columns<L: Lane, const PY: usize, const PX: usize>(x: &[[L; PX]; PY]) 
     }
 }
 
-/// `B_y^T d B_x` for a `PY x PX` input tile `d`.
-#[inline(always)]
-unsafe fn input_tile<L, const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
-    d: &[[L; PX]; PY],
-) -> [[L; PX]; PY]
-where
-    L: Lane,
-    FY: Filter<M, PY, KY>,
-    FX: Filter<M, PX, KX>,
-{
-    unsafe {
-        let mut out = *d;
-        for c in 0..PX {
-            let mut column = [L::zero(); PY];
-            for (value, row) in column.iter_mut().zip(&out) {
-                *value = row[c];
-            }
-            for (row, value) in out.iter_mut().zip(FY::input(column)) {
-                row[c] = value;
-            }
-        }
-        for row in out.iter_mut() {
-            *row = FX::input(*row);
-        }
-        out
+/// One axis of a tile transform, `P` values to `Q`: a filter's `B^T` ([`In`]) or `A^T` ([`Out`]).
+trait Pass<const P: usize, const Q: usize> {
+    unsafe fn apply<L: Lane>(x: [L; P]) -> [L; Q];
+}
+
+/// [`Filter::input`] of `F`, an F(`M`, `K`).
+struct In<F, const M: usize, const K: usize>(PhantomData<F>);
+
+impl<F: Filter<M, P, K>, const M: usize, const P: usize, const K: usize> Pass<P, P> for In<F, M, K> {
+    #[inline(always)]
+    unsafe fn apply<L: Lane>(d: [L; P]) -> [L; P] {
+        unsafe { F::input(d) }
     }
 }
 
-/// `A_y^T m A_x` for a `PY x PX` tile of products `m`: a tile of `M x M` outputs.
+/// [`Filter::output`] of `F`, an F(`M`, `K`).
+struct Out<F, const K: usize>(PhantomData<F>);
+
+impl<F: Filter<M, P, K>, const M: usize, const P: usize, const K: usize> Pass<P, M> for Out<F, K> {
+    #[inline(always)]
+    unsafe fn apply<L: Lane>(m: [L; P]) -> [L; M] {
+        unsafe { F::output(m) }
+    }
+}
+
+/// A `PY x PX` tile transformed by `TY` along its columns, then by `TX` along its rows:
+/// `B_y^T d B_x` of an input tile `d` with [`In`], `A_y^T m A_x` of a tile of products `m` (a
+/// tile of `M x M` outputs) with [`Out`].
 #[inline(always)]
-unsafe fn output_tile<L, const M: usize, const PY: usize, const KY: usize, const PX: usize, const KX: usize, FY, FX>(
-    m: &[[L; PX]; PY],
-) -> [[L; M]; M]
+unsafe fn tile_transform<L: Lane, const PY: usize, const PX: usize, const QY: usize, const QX: usize, TY, TX>(
+    x: &[[L; PX]; PY],
+) -> [[L; QX]; QY]
 where
-    L: Lane,
-    FY: Filter<M, PY, KY>,
-    FX: Filter<M, PX, KX>,
+    TY: Pass<PY, QY>,
+    TX: Pass<PX, QX>,
 {
     unsafe {
-        let mut down = [[L::zero(); M]; PX];
-        for (t, column) in down.iter_mut().zip(columns(m)) {
-            *t = FY::output(column);
+        let mut down = [[L::zero(); QY]; PX];
+        for (t, column) in down.iter_mut().zip(columns(x)) {
+            *t = TY::apply(column);
         }
         // Loops, not closures: a closure would not inherit the caller's target features, and
         // every vector operation in it would become a call.
-        let mut y = [[L::zero(); M]; M];
+        let mut y = [[L::zero(); QX]; QY];
         for (y, row) in y.iter_mut().zip(columns(&down)) {
-            *y = FX::output(row);
+            *y = TX::apply(row);
         }
         y
     }
@@ -79,7 +78,7 @@ pub(crate) struct InputTransform<'a, L> {
     w: &'a Winograd,
     input: &'a [f32],
     v: &'a mut [f32],
-    lanes: core::marker::PhantomData<L>,
+    lanes: PhantomData<L>,
 }
 
 impl<'a, L> InputTransform<'a, L> {
@@ -88,7 +87,7 @@ impl<'a, L> InputTransform<'a, L> {
             w,
             input,
             v,
-            lanes: core::marker::PhantomData,
+            lanes: PhantomData,
         }
     }
 }
@@ -133,7 +132,7 @@ impl<L: Lane> PhaseFn for InputTransform<'_, L> {
                             }
                         }
                     }
-                    let t = input_tile::<L, M, PY, KY, PX, KX, FY, FX>(&d);
+                    let t = tile_transform::<L, PY, PX, PY, PX, In<FY, M, KY>, In<FX, M, KX>>(&d);
                     for (r, row) in t.iter().enumerate() {
                         for (s, value) in row.iter().enumerate() {
                             value.store_n(v.add(((r * PX + s) * tiles + tile) * c + c0), n);
@@ -229,7 +228,7 @@ impl<L: Lane> PhaseFn for OutputTransform<'_, L> {
                     *m = L::load_n(self.m.add(point * group_tiles * L::BLOCK + self.m_at), self.n);
                 }
             }
-            let y = output_tile::<L, M, PY, KY, PX, KX, FY, FX>(&m);
+            let y = tile_transform::<L, PY, PX, M, M, Out<FY, KY>, Out<FX, KX>>(&m);
             match self.w.shape.kind {
                 ConvKind::Down => {
                     for (sum, y) in self.sum.iter_mut().zip(&y) {
@@ -253,7 +252,7 @@ pub(crate) struct WeightTransform<'a, L> {
     w: &'a Winograd,
     direct: &'a [f32],
     packed: &'a mut [f32],
-    lanes: core::marker::PhantomData<L>,
+    lanes: PhantomData<L>,
 }
 
 impl<'a, L> WeightTransform<'a, L> {
@@ -262,7 +261,7 @@ impl<'a, L> WeightTransform<'a, L> {
             w,
             direct,
             packed,
-            lanes: core::marker::PhantomData,
+            lanes: PhantomData,
         }
     }
 }
