@@ -119,6 +119,8 @@ impl ConvKind {
 /// `[out_channel / 16][ky][kx][in_channel][out_channel % 16]`, the last panel zero-padded, or
 /// for at most [`NARROW_OC`] output channels as `[out_channel][ky][kx][in_channel]` (see
 /// [`ConvShape::packed_index`]); `bias` has `output.channels` values.
+///
+/// [`pack::conv_weights`]: crate::pack::conv_weights
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ConvShape {
     /// Strided or transposed.
@@ -308,6 +310,8 @@ impl Tensor {
 /// [`OC_ALIGN`] rows stored column by column: `[row / 16][col][row % 16]`, the last panel
 /// zero-padded (see [`Matrix::packed_index`]). One column of a panel is then one or two whole
 /// vectors of weights, one per output row, and each panel streams through contiguous memory.
+///
+/// [`pack::dense_weights`]: crate::pack::dense_weights
 #[derive(Clone, Copy, Debug)]
 pub struct Matrix<'a> {
     /// The packed values.

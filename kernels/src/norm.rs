@@ -7,8 +7,8 @@
 //! to f32 rounding. Every pass over the pixels ([`moments`], [`normalize`],
 //! [`gradient_moments`], [`normalize_gradient`]) runs on the caller's instruction set (the sums
 //! and the gradient in f64 vectors) with the same results as the scalar references
-//! ([`crate::scalar::moments`] and the others) bit for bit, a block of [`BLOCK`] channels at a
-//! time; the per-channel steps between them are plain loops.
+//! ([`crate::scalar::moments`] and the others) bit for bit, a block of at most 64 channels (the
+//! crate's private `BLOCK`) at a time; the per-channel steps between them are plain loops.
 
 use crate::pack::BN_EPS;
 use crate::{simd, Activation, Isa, Plane};

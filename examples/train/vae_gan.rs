@@ -1,35 +1,30 @@
-//! `train vae-gan` (fine-tune or train the encoder and generator on episodes, as a VAE-GAN) and
-//! `train step --stage vae-gan` (one verifiable step on a batch file).
+//! `train vae-gan`: fine-tune or train the encoder and generator on episodes' frames, as a
+//! VAE-GAN, measuring the held-out reconstruction PSNR as it goes.
 
-use super::{dtype, f32_tensor, read, write_f32, DtypeArg, StepArgs};
+use crate::args::{data_help, dtype, Data, DtypeArg};
 use crate::common::{bar, write_png, Gaussian};
+use crate::files::read;
 use clap::Parser;
 use drivesim::train::{
     random_weight_file, TrainedOn, VaeGanLosses, VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR,
 };
 use drivesim::{frames_to_rgb, Config, Episodes, Model, PixelLayout, Simulator};
-use safetensors::{Dtype, SafeTensors};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 #[derive(Parser)]
+#[command(mut_args = data_help(&[
+    ("weights", concat!(
+        "Weight file to start from: its encoder, generator and discriminator (`discriminator.*`, ",
+        "seeded random ones if it has none); resume an interrupted run from its --out",
+    )),
+    ("episodes", "Episodes to train on (weights/tool record writes them)"),
+    ("heldout", "Episodes to measure reconstruction on; without it, the last --holdout episodes of --episodes"),
+    ("out", "Where to write the trained weights (every --every steps, and at the end)"),
+]))]
 pub struct VaeGanArgs {
-    /// Weight file to start from: its encoder, generator and discriminator (`discriminator.*`,
-    /// seeded random ones if it has none); resume an interrupted run from its --out
-    #[arg(long)]
-    pub weights: PathBuf,
-    /// Episodes to train on (weights/tool record writes them)
-    #[arg(long)]
-    pub episodes: PathBuf,
-    /// Episodes to measure reconstruction on; without it, the last --holdout episodes of
-    /// --episodes
-    #[arg(long)]
-    pub heldout: Option<PathBuf>,
-    #[arg(long, default_value_t = 1)]
-    pub holdout: usize,
-    /// Where to write the trained weights (every --every steps, and at the end)
-    #[arg(long)]
-    pub out: PathBuf,
+    #[command(flatten)]
+    pub data: Data,
     #[arg(long, default_value_t = 1000)]
     pub steps: usize,
     /// Frames per step
@@ -149,8 +144,8 @@ fn sheet(path: &Path, c: &Config, frames: &[f32], recon: &[f32]) -> Result<(), S
 }
 
 pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
-    let original = read(&args.weights)?;
-    let model = Model::from_bytes(&original).map_err(|e| format!("{}: {e}", args.weights.display()))?;
+    let original = read(&args.data.weights)?;
+    let model = Model::from_bytes(&original).map_err(|e| format!("{}: {e}", args.data.weights.display()))?;
     let c = *model.config();
     drop(model);
     let start_file = match args.from_scratch {
@@ -158,25 +153,25 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
         false => original.clone(),
     };
     let load = |path: &PathBuf| Episodes::load(path).map_err(|e| format!("{}: {e}", path.display()));
-    let all = load(&args.episodes)?;
+    let all = load(&args.data.episodes)?;
     let trained_on = TrainedOn {
         actions: None,
         frame_hz: all.frame_hz(),
     };
-    let (train, heldout) = match &args.heldout {
+    let (train, heldout) = match &args.data.heldout {
         Some(path) => (
             frames(&all, &c, "episodes")?,
             frames(&load(path)?, &c, "held-out episodes")?,
         ),
-        None if args.holdout < all.len() => {
-            let split: usize = (0..all.len() - args.holdout)
+        None if args.data.holdout < all.len() => {
+            let split: usize = (0..all.len() - args.data.holdout)
                 .map(|i| all.episode(i).map_or(0, |e| e.len()))
                 .sum();
             let mut train = frames(&all, &c, "episodes")?;
             let heldout = train.split_off(split * c.frame_len());
             (train, heldout)
         }
-        None => return Err(format!("--holdout {} leaves no training episode", args.holdout)),
+        None => return Err(format!("--holdout {} leaves no training episode", args.data.holdout)),
     };
     let (count, held) = (train.len() / c.frame_len(), heldout.len() / c.frame_len());
     if count == 0 || held == 0 {
@@ -206,7 +201,7 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
         let bytes = trainer
             .weight_file(&original, dtype, trained_on)
             .map_err(|e| e.to_string())?;
-        std::fs::write(&args.out, &bytes).map_err(|e| format!("cannot write {}: {e}", args.out.display()))?;
+        std::fs::write(&args.data.out, &bytes).map_err(|e| format!("cannot write {}: {e}", args.data.out.display()))?;
         Ok(bytes)
     };
     let (before, _) = psnr(
@@ -272,7 +267,7 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
         sheet(path, &c, &picked, &recon)?;
         println!("wrote {}", path.display());
     }
-    println!("wrote {}", args.out.display());
+    println!("wrote {}", args.data.out.display());
     Ok(())
 }
 
@@ -288,71 +283,4 @@ fn smooth(a: VaeGanLosses, b: VaeGanLosses) -> VaeGanLosses {
         pixel_l1: s(a.pixel_l1, b.pixel_l1),
         kl: s(a.kl, b.kl),
     }
-}
-
-/// `train step --stage vae-gan`: one step on `frames` (uint8, or f32 in [-1, 1]), `eps` and
-/// `prior` from the batch file; writes the losses, every gradient and the updated tensors.
-pub fn step(args: &StepArgs) -> Result<(), String> {
-    let weights = read(&args.weights)?;
-    let model = Model::from_bytes(&weights).map_err(|e| format!("{}: {e}", args.weights.display()))?;
-    let c = *model.config();
-    let bytes = read(&args.batch)?;
-    let file = SafeTensors::deserialize(&bytes).map_err(|e| format!("{}: {e:?}", args.batch.display()))?;
-    let view = file
-        .tensor("frames")
-        .map_err(|_| format!("{}: no tensor `frames`", args.batch.display()))?;
-    let want = [c.height, c.width, c.channels];
-    if view.shape().len() != 4 || view.shape()[1..] != want || view.shape()[0] == 0 {
-        return Err(format!(
-            "`frames` has shape {:?}: expected [B >= 1, {}, {}, {}]",
-            view.shape(),
-            want[0],
-            want[1],
-            want[2]
-        ));
-    }
-    let b = view.shape()[0];
-    let frames: Vec<f32> = match view.dtype() {
-        Dtype::U8 => view.data().iter().map(|&v| v as f32 / 127.5 - 1.0).collect(),
-        Dtype::F32 => f32_tensor(&file, "frames", &args.batch)?.1,
-        other => return Err(format!("`frames` is {other:?}: expected U8, or F32 in [-1, 1]")),
-    };
-    let mut draws = Vec::new();
-    for name in ["eps", "prior"] {
-        let (shape, values) = f32_tensor(&file, name, &args.batch)?;
-        if shape != [b, c.z_dim] {
-            return Err(format!("`{name}` has shape {shape:?}: expected [{b}, {}]", c.z_dim));
-        }
-        draws.push(values);
-    }
-    let plan = VaeGanPlan::new(&c, b, 1).map_err(|e| e.to_string())?;
-    let mut trainer = VaeGanTrainer::new(&weights, &plan, VaeGanSettings::default()).map_err(|e| e.to_string())?;
-    let lr = args.lr.unwrap_or(VAE_GAN_LR);
-    let l = trainer
-        .step(&frames, &draws[0], &draws[1], lr)
-        .map_err(|e| e.to_string())?;
-    let losses = [
-        ("d", l.discriminator),
-        ("e", l.encoder),
-        ("g", l.generator),
-        ("gan", l.gan),
-        ("feature", l.feature),
-        ("pixel_l1", l.pixel_l1),
-        ("kl", l.kl),
-    ];
-    let mut out: Vec<(String, Vec<usize>, Vec<f32>)> = losses
-        .iter()
-        .map(|(name, v)| (format!("loss.{name}"), vec![1], vec![*v]))
-        .collect();
-    out.extend(
-        trainer
-            .gradients()
-            .into_iter()
-            .map(|(name, shape, v)| (format!("grad.{name}"), shape, v)),
-    );
-    out.extend(trainer.tensors());
-    write_f32(&args.out, &out)?;
-    let listed: Vec<String> = losses.iter().map(|(name, v)| format!("{name} {v:.6e}")).collect();
-    println!("{}: wrote {}", listed.join(", "), args.out.display());
-    Ok(())
 }
