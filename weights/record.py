@@ -38,16 +38,25 @@ os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame renders off-screen
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
 import numpy as np
-import pygame
 from gymnasium.envs.box2d import car_racing
-from PIL import Image
 
 import episodes
 
-HEIGHT, WIDTH = 80, 160
-# The env draws on a 1000x800 surface (car near (500, 600), dashboard below row 700).
-# This 2:1 crop keeps the car and 450 px of road ahead; it shrinks exactly 6.25x to 160x80.
-CROP = (0, 150, 1000, 650)
+
+def _load_view():
+    """The models' view of CarRacing, shared with the Python package's agents
+    (python/drivesim/carracing/view.py), loaded by path: the package need not be installed."""
+    import importlib.util
+
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python", "drivesim", "carracing", "view.py")
+    spec = importlib.util.spec_from_file_location("drivesim_carracing_view", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+view = _load_view()
+HEIGHT, WIDTH = view.HEIGHT, view.WIDTH
 WARMUP_STEPS = 60  # the env zooms in during its first second; skip it
 GAIN = 1.5  # steering per radian between heading and aim point
 HALF_ROAD = car_racing.TRACK_WIDTH  # centre line to edge, world units
@@ -65,13 +74,6 @@ def parse_seeds(text):
     if not seeds:
         raise argparse.ArgumentTypeError("no seeds")
     return seeds
-
-
-def grab_frame(env):
-    """The env's full-resolution surface from its last step, cropped and shrunk to 80x160."""
-    rgb = pygame.surfarray.array3d(env.surf).transpose(1, 0, 2)  # surfarray is (x, y)
-    img = Image.fromarray(rgb).crop(CROP).resize((WIDTH, HEIGHT), Image.BOX)
-    return np.asarray(img, dtype=np.uint8)
 
 
 class OU:
@@ -193,7 +195,7 @@ def record_episode(seed, frames, frame_skip, style="steady", random_colours=Fals
     out_frames, out_actions, on_road = [], [], 0
     while len(out_frames) < frames and not off_playfield(env.car):
         action, speed, off_centre = driver.act(env.car, frame_skip / car_racing.FPS)
-        out_frames.append(grab_frame(env))
+        out_frames.append(view.observe(env))
         out_actions.append((speed, action[0]))
         on_road += off_centre < HALF_ROAD
         for _ in range(frame_skip):

@@ -105,5 +105,62 @@ class RoadCost:
             np.savez(f, weight=self.weight, bias=self.bias)
 
     def predict(self, codes: np.ndarray) -> np.ndarray:
-        """The road figures of codes ``(..., z_dim)``: ``(..., 4)`` float32."""
-        return np.asarray(codes, np.float32) @ self.weight + self.bias
+        """The road figures of codes ``(..., z_dim)``: ``(..., 4)`` float32. Each code's figures
+        are summed in one order whatever the batch (no BLAS), so that a drive gets the same
+        bits in a vector environment as alone."""
+        codes = np.asarray(codes, np.float32)
+        return (codes[..., :, None] * self.weight).sum(axis=-2) + self.bias
+
+
+def samples(sim, episodes, dream_steps: int = 8, every: int = 4, seeds: int = 5, rng=None):
+    """Codes and measured road figures to fit a ``RoadCost`` on: every frame of ``episodes``
+    (encoded), and the frames the model dreams ``dream_steps`` steps on from every ``every``-th
+    frame under the recorded actions with their steering perturbed (generated, measured, and
+    their predicted codes), so that the cost is fitted where a planner reads it: on dreamed
+    codes. Returns ``(codes (N, z_dim), figures (N, 4))``."""
+    rng = rng or np.random.default_rng(0)
+    codes, figures = [], []
+    for frames, actions in episodes:
+        for i in range(0, len(frames), sim.batch):
+            codes.append(sim.encode(frames[i : i + sim.batch]))
+        figures.append(measure(frames))
+        for t in range(seeds, len(frames) - dream_steps - seeds, every):
+            plan = actions[t - seeds : t - 1 + dream_steps].copy()
+            plan[seeds - 1 :, 1] = np.clip(plan[seeds - 1 :, 1] + rng.normal(0, 0.5), -1, 1)
+            z, dreamed = sim.rollout(frames[t - seeds : t], plan, frames=True)
+            codes.append(z)
+            figures.append(measure(dreamed))
+    return np.concatenate(codes), np.concatenate(figures)
+
+
+def main(argv=None):
+    import argparse
+
+    from ._drivesim import Model, Simulator, load_episodes
+
+    p = argparse.ArgumentParser(prog="python -m drivesim.road", description="Fit a RoadCost for a model on recorded episodes.")
+    p.add_argument("--episodes", required=True, help="episodes file to fit on (weights/tool record writes them)")
+    p.add_argument("--heldout", help="episodes file to report the fit's R^2 on")
+    p.add_argument("--weights", help="weight file (default: the built-in model)")
+    p.add_argument("--out", required=True, help="where to write the cost (.npz)")
+    p.add_argument("--dream-steps", type=int, default=8, help="dreamed steps measured after each start")
+    args = p.parse_args(argv)
+    sim = Simulator(Model.load(args.weights), batch=16)
+    codes, figures = samples(sim, load_episodes(args.episodes), args.dream_steps)
+    cost = RoadCost.fit(codes, figures)
+    print(f"fitted on {len(codes)} codes: R^2 {np.round(r_squared(cost, codes, figures), 3)} ({', '.join(FIGURES)})")
+    if args.heldout:
+        codes, figures = samples(sim, load_episodes(args.heldout), args.dream_steps)
+        print(f"held out, {len(codes)} codes: R^2 {np.round(r_squared(cost, codes, figures), 3)}")
+    cost.save(args.out)
+    print(f"wrote {args.out}")
+
+
+def r_squared(cost: RoadCost, codes: np.ndarray, figures: np.ndarray) -> np.ndarray:
+    """The share of each figure's variance that ``cost`` explains on ``codes``."""
+    residual = ((cost.predict(codes) - figures) ** 2).mean(axis=0)
+    return 1 - residual / np.maximum(figures.var(axis=0), 1e-12)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,140 @@
+"""Scores an agent on gymnasium's CarRacing-v3 with the env's own reward.
+
+  python -m drivesim.carracing --agent mpc --seeds 0-19 --out runs/mpc
+
+Per track: the env's reward over its 1000 frames (less if the lap ends), the frames driven,
+the share of the track's tiles visited, the share of decisions with a wheel on the road, and
+the milliseconds the agent took per decision; then the mean and standard deviation. With
+``--out``, each track's figures go to ``DIR/track_SEED.json`` (a run that stops resumes: tracks
+already there are read, not driven again) and an animation ``DIR/track_SEED.gif`` of the real
+frames beside what the agent imagined at each decision (its chosen plan, dreamed 2 and
+``horizon`` steps ahead).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame draws off-screen
+os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+
+import numpy as np
+
+from .._files import atomic_write
+from .agents import AGENTS, make_agent
+from .view import observe, speed
+
+
+def parse_seeds(text: str) -> list[int]:
+    """'0-3,7' -> [0, 1, 2, 3, 7]"""
+    seeds = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        try:
+            seeds += list(range(int(lo), int(hi or lo) + 1))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"bad seed list {text!r}; use e.g. 0-19 or 1,5,9") from None
+    if not seeds:
+        raise argparse.ArgumentTypeError("no seeds")
+    return seeds
+
+
+def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple[dict, list]:
+    """One track: the figures, and (with ``pictures``) a row of frames per decision."""
+    import gymnasium
+
+    env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
+    env.reset(seed=seed)
+    agent.reset()
+    car = env.unwrapped
+    total, steps, decisions, on_road, seconds, rows = 0.0, 0, 0, 0, 0.0, []
+    action, done = np.zeros(3, np.float32), False
+    while not done:
+        view, now = observe(env), speed(env)
+        start = time.perf_counter()
+        action = agent.act(view, now)
+        seconds += time.perf_counter() - start
+        decisions += 1
+        on_road += any(len(w.tiles) > 0 for w in car.car.wheels)
+        if pictures:
+            rows.append(picture_row(agent, view))
+        for _ in range(agent.frame_skip):
+            _, reward, terminated, truncated, _ = env.step(action)
+            total += float(reward)
+            steps += 1
+            if terminated or truncated:
+                done = True
+                break
+    figures = {
+        "seed": seed,
+        "reward": round(total, 2),
+        "frames": steps,
+        "tiles": round(car.tile_visited_count / len(car.track), 4),
+        "on_road": round(on_road / decisions, 4),
+        "ms_per_decision": round(1000 * seconds / decisions, 3),
+    }
+    env.close()
+    return figures, rows
+
+
+def picture_row(agent, view: np.ndarray) -> np.ndarray:
+    """The real frame beside the chosen plan dreamed 2 and ``horizon`` steps ahead."""
+    dream = agent.imagine() if hasattr(agent, "imagine") else None
+    blank = np.zeros_like(view)
+    if dream is None:
+        return np.concatenate([view, blank, blank], axis=1)
+    return np.concatenate([view, dream[min(1, len(dream) - 1)], dream[-1]], axis=1)
+
+
+def write_gif(path: str, rows: list, fps: float) -> None:
+    from PIL import Image
+
+    images = [Image.fromarray(r).resize((r.shape[1] * 2, r.shape[0] * 2), Image.NEAREST) for r in rows]
+    with atomic_write(path) as f:
+        images[0].save(f, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m drivesim.carracing", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--agent", choices=sorted(AGENTS), default="mpc")
+    p.add_argument("--seeds", type=parse_seeds, required=True, help="track seeds, e.g. 0-19")
+    p.add_argument("--weights", help="weight file (default: the built-in model)")
+    p.add_argument("--threads", type=int, default=1, help="threads per agent")
+    p.add_argument("--frames", type=int, default=1000, help="env frames per track (CarRacing-v3: 1000)")
+    p.add_argument("--out", help="folder for per-track figures and animations (resumable)")
+    args = p.parse_args(argv)
+    if args.threads < 1 or args.frames < 1:
+        p.error("--threads and --frames must be positive")
+    if args.out:
+        os.makedirs(args.out, exist_ok=True)
+    agent = make_agent(args.agent, weights=args.weights, threads=args.threads)
+    results = []
+    print(f"{'track':>6} {'reward':>8} {'frames':>6} {'tiles':>6} {'on road':>7} {'ms/decision':>11}", flush=True)
+    for seed in args.seeds:
+        path = os.path.join(args.out, f"track_{seed}.json") if args.out else None
+        if path and os.path.exists(path):
+            with open(path) as f:
+                r = json.load(f)
+        else:
+            r, rows = drive(agent, seed, args.frames, pictures=bool(args.out))
+            if args.out:
+                write_gif(os.path.join(args.out, f"track_{seed}.gif"), rows, 12.5)
+                with atomic_write(path) as f:
+                    f.write(json.dumps(r).encode())
+        results.append(r)
+        print(f"{r['seed']:>6} {r['reward']:>8.1f} {r['frames']:>6} {r['tiles']:>6.1%} {r['on_road']:>7.1%} "
+              f"{r['ms_per_decision']:>11.2f}", flush=True)
+    rewards = np.array([r["reward"] for r in results])
+    ms = np.array([r["ms_per_decision"] for r in results])
+    print(f"{args.agent}: {rewards.mean():.1f} ± {rewards.std():.1f} over {len(rewards)} tracks "
+          f"(min {rewards.min():.1f}, max {rewards.max():.1f}); {ms.mean():.2f} ms per decision")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,37 @@
+"""What the models see of gymnasium's CarRacing: one implementation for the recorder
+(``weights/record.py`` loads this file by path) and the agents.
+
+This module needs only numpy, pygame and Pillow (no drivesim): the recorder runs it without
+the package installed.
+"""
+
+import math
+
+import numpy as np
+
+HEIGHT, WIDTH = 80, 160
+# The env draws on a 1000x800 surface (car near (500, 600), dashboard below row 700).
+# This 2:1 crop keeps the car and 450 px of road ahead; it shrinks exactly 6.25x to 160x80.
+CROP = (0, 150, 1000, 650)
+
+
+def observe(env) -> np.ndarray:
+    """The frame the models see: the env's full-resolution surface from its last step, cropped
+    and shrunk to ``(80, 160, 3)`` uint8 (exactly as the training data was recorded). ``env``
+    is a CarRacing environment (wrapped or not) that has stepped at least once."""
+    import pygame
+    from PIL import Image
+
+    surf = getattr(env.unwrapped, "surf", None)
+    if surf is None:
+        raise ValueError("observe: the env has not drawn a frame yet: call reset() and step() first")
+    rgb = pygame.surfarray.array3d(surf).transpose(1, 0, 2)  # surfarray is (x, y)
+    img = Image.fromarray(rgb).crop(CROP).resize((WIDTH, HEIGHT), Image.BOX)
+    return np.asarray(img, dtype=np.uint8)
+
+
+def speed(env) -> float:
+    """The speedometer: the car's speed in Box2D units per second (what the models' ``speed``
+    action means)."""
+    v = env.unwrapped.car.hull.linearVelocity
+    return float(math.hypot(v[0], v[1]))

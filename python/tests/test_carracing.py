@@ -1,0 +1,63 @@
+"""The bridge to the real CarRacing: the models' view, and the agents."""
+
+import os
+
+import numpy as np
+import pytest
+
+import drivesim
+from drivesim import carracing
+
+
+def test_mpc_agent_is_deterministic(clip):
+    frames, actions = clip
+    runs = []
+    for _ in range(2):
+        agent = carracing.make_agent("mpc")
+        agent.warmup = 0
+        runs.append([agent.act(f, float(a[0])) for f, a in zip(frames, actions)])
+    np.testing.assert_array_equal(np.array(runs[0]), np.array(runs[1]))
+    action = runs[0][-1]
+    assert action.dtype == np.float32 and action.shape == (3,)
+    assert -1 <= action[0] <= 1 and action[1] >= 0 and action[2] >= 0
+    assert agent.imagine().shape == (agent.horizon, 80, 160, 3)
+
+
+def test_unknown_agent():
+    with pytest.raises(ValueError, match="mpc"):
+        carracing.make_agent("nope")
+
+
+def test_speed_control():
+    assert carracing.speed_control(10.0, 40.0)[0] > 0
+    assert carracing.speed_control(60.0, 20.0)[1] > 0
+
+
+def test_observe_is_the_recorded_view():
+    pytest.importorskip("Box2D")
+    import gymnasium
+
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+    env = gymnasium.make("CarRacing-v3")
+    env.reset(seed=1)
+    for _ in range(60):
+        env.step(np.float32([0.0, 0.3, 0.0]))
+    frame = carracing.observe(env)
+    assert frame.shape == (80, 160, 3) and frame.dtype == np.uint8
+    # The car sits at the bottom centre of the view, on grey road.
+    road = drivesim.road.measure(frame[None])[0]
+    assert road[3] > 0.3 and abs(road[0]) < 20
+    assert carracing.speed(env) > 5
+    env.close()
+
+
+def test_evaluation_command(tmp_path, capsys):
+    pytest.importorskip("Box2D")
+    from drivesim.carracing.__main__ import main
+
+    main(["--agent", "mpc", "--seeds", "7", "--frames", "80", "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert "mpc:" in out and (tmp_path / "track_7.json").exists() and (tmp_path / "track_7.gif").exists()
+    # Resumable: a second run reads the track's figures instead of driving it again.
+    main(["--agent", "mpc", "--seeds", "7", "--frames", "80", "--out", str(tmp_path)])
+    assert capsys.readouterr().out.splitlines()[-2] == out.splitlines()[-2]

@@ -1,0 +1,183 @@
+"""The extension module on numpy arrays: shapes, dtypes, agreement with PyTorch's reference
+outputs (the crate's parity fixtures), errors, and the interpreter released while it computes."""
+
+import threading
+
+import numpy as np
+import pytest
+from conftest import fixture, relative_error
+
+import drivesim
+
+
+def test_model_metadata(model):
+    assert model.frame_shape == (80, 160, 3)
+    assert (model.z_dim, model.hidden_dim, model.action_dim) == (128, 256, 2)
+    assert model.frame_hz == 12.5
+    names = [a["name"] for a in model.actions]
+    assert names == ["speed", "steering"]
+    assert model.actions[1]["min"] == -1.0 and model.actions[1]["max"] == 1.0
+    assert model.config["z_dim"] == 128
+    assert "z_dim=128" in repr(model)
+
+
+def test_shapes_and_dtypes(model, clip):
+    frames, actions = clip
+    sim = drivesim.Simulator(model, batch=4)
+    assert sim.batch == 4 and sim.threads == 1 and sim.isa in ("avx512", "avx2", "neon", "scalar")
+    z = sim.encode(frames[:4])
+    assert z.shape == (4, 128) and z.dtype == np.float32
+    one = sim.encode(frames[0])
+    assert one.shape == (128,)
+    np.testing.assert_array_equal(one, z[0])  # bit-identical whatever the batch
+    g = sim.generate(z)
+    assert g.shape == (4, 80, 160, 3) and g.dtype == np.uint8
+    gf = sim.generate(z, dtype=np.float32)
+    assert gf.dtype == np.float32 and gf.min() >= -1 and gf.max() <= 1
+    np.testing.assert_array_equal(np.round((np.clip(gf, -1, 1) + 1) * 127.5 + 1e-4).astype(np.uint8) // 2, g // 2)
+    h0 = np.zeros((4, 256), np.float32)
+    a = np.tile(np.float32([30.0, 0.1]), (4, 1))
+    z1, h1 = sim.transition(z, h0, a)
+    assert z1.shape == (4, 128) and h1.shape == (4, 256)
+    assert not h0.any()  # the input is not changed
+    z2, h2 = sim.transition_fed_back(h1, a)
+    assert z2.shape == (4, 128) and not np.array_equal(h2, h1)
+
+
+def test_uint8_frames_are_float_frames(model, clip):
+    frames, _ = clip
+    sim = drivesim.Simulator(model, batch=2)
+    floats = (frames[:2].astype(np.float32) / 127.5 - 1.0).astype(np.float32)
+    np.testing.assert_array_equal(sim.encode(frames[:2]), sim.encode(floats))
+
+
+def test_rollouts_agree_with_steps(model, clip):
+    frames, actions = clip
+    sim = drivesim.Simulator(model, batch=4)
+    codes, dreamed = sim.rollout(frames[:3], actions[:2 + 4], frames=True)
+    assert codes.shape == (4, 128) and dreamed.shape == (4, 80, 160, 3)
+    # The same by hand: teacher-forced through the seeds, then fed back.
+    z = sim.encode(frames[:3])
+    h = np.zeros(256, np.float32)
+    for t in range(2):
+        _, h = sim.transition(z[t], h, actions[t])
+    step, h = sim.transition(z[2], h, actions[2])
+    np.testing.assert_array_equal(step, codes[0])
+    for t in range(1, 4):
+        step, h = sim.transition_fed_back(h, actions[2 + t])
+        np.testing.assert_array_equal(step, codes[t])
+    np.testing.assert_array_equal(sim.generate(codes), dreamed)
+
+
+def test_rollout_candidates(model, clip):
+    frames, actions = clip
+    sim = drivesim.Simulator(model, batch=3)
+    z = sim.encode(frames[0])
+    h = np.zeros(256, np.float32)
+    plan = np.zeros((5, 3, 2), np.float32)
+    plan[..., 0] = 30.0
+    plan[..., 1] = [-0.5, 0.0, 0.5]
+    codes = sim.rollout_candidates(h, plan, z=z)
+    assert codes.shape == (5, 3, 128)
+    # Each candidate gets the bits a rollout of its own would.
+    step, hh = sim.transition(z, h, plan[0, 2])
+    np.testing.assert_array_equal(step, codes[0, 2])
+    step, _ = sim.transition_fed_back(hh, plan[1, 2])
+    np.testing.assert_array_equal(step, codes[1, 2])
+    codes2, pictures = sim.rollout_candidates(h, plan, z=z, frames=True, dtype="float32")
+    np.testing.assert_array_equal(codes, codes2)
+    assert pictures.shape == (5, 3, 80, 160, 3) and pictures.dtype == np.float32
+
+
+@pytest.mark.parametrize("name", ["small_f32", "tall_f32", "wide_f32"])
+def test_agrees_with_pytorch(name):
+    """The crate's parity fixtures: PyTorch's outputs for the same weights and inputs."""
+    safetensors = pytest.importorskip("safetensors.numpy")
+    io = safetensors.load_file(fixture(f"{name}.io.safetensors"))
+    model = drivesim.Model.load(fixture(f"{name}.safetensors"))
+    sim = drivesim.Simulator(model, batch=8)
+    assert relative_error(sim.encode(io["encode.frames"]), io["encode.mean"]) < 1e-4
+    assert relative_error(sim.generate(io["generate.z"], dtype=np.float32), io["generate.frames"]) < 1e-4
+    codes, frames = sim.rollout(io["rollout.seed_frames"], io["rollout.actions"], frames=True, dtype=np.float32)
+    assert relative_error(codes, io["rollout.codes"]) < 1e-4
+    assert relative_error(frames, io["rollout.frames"]) < 1e-4
+
+
+def test_threads_give_the_same_bits(model, clip):
+    frames, actions = clip
+    one = drivesim.Simulator(model, batch=2, threads=1)
+    two = drivesim.Simulator(model, batch=2, threads=2)
+    np.testing.assert_array_equal(one.encode(frames[:2]), two.encode(frames[:2]))
+    np.testing.assert_array_equal(one.rollout(frames[:3], actions[:8]), two.rollout(frames[:3], actions[:8]))
+
+
+def test_bad_input_raises_typed_errors(model, clip, tmp_path):
+    frames, _ = clip
+    sim = drivesim.Simulator(model, batch=2)
+    z = sim.encode(frames[:2])
+    cases = [
+        (ValueError, "float64", lambda: sim.encode(frames.astype(np.float64))),
+        (ValueError, "shape", lambda: sim.encode(np.zeros((2, 3), np.uint8))),
+        (ValueError, "at most 2", lambda: sim.encode(frames[:3])),
+        (ValueError, "contiguous", lambda: sim.encode(frames[:2, :, ::-1])),
+        (ValueError, "lie in [-1, 1]", lambda: sim.encode(np.full((80, 160, 3), 2.0, np.float32))),
+        (ValueError, "NaN", lambda: sim.encode(np.full((80, 160, 3), np.nan, np.float32))),
+        (ValueError, "list", lambda: sim.encode([1, 2, 3])),
+        (ValueError, "int64", lambda: sim.generate(z, dtype=np.int64)),
+        (ValueError, "leading", lambda: sim.transition(z, np.zeros((1, 256), np.float32), np.zeros((2, 2), np.float32))),
+        (ValueError, "float32", lambda: sim.transition(z, np.zeros((2, 256)), np.zeros((2, 2), np.float32))),
+        (ValueError, "actions", lambda: sim.rollout(frames[:3], np.zeros((2, 2), np.float32))),
+        (ValueError, "safetensors", lambda: drivesim.Model.from_bytes(b"not a weight file")),
+        (FileNotFoundError, "missing.safetensors", lambda: drivesim.Model.load(tmp_path / "missing.safetensors")),
+        (MemoryError, "cannot allocate", lambda: drivesim.Simulator(model, batch=1 << 40)),
+        (ValueError, "episodes", lambda: drivesim.load_episodes(__file__)),
+    ]
+    for kind, words, call in cases:
+        with pytest.raises(kind) as raised:
+            call()
+        assert words in str(raised.value), (words, str(raised.value))
+    with pytest.raises(OSError):
+        drivesim.Model.load(tmp_path)  # a directory
+
+
+def test_the_interpreter_runs_while_the_crate_computes(model, clip):
+    """A long rollout in one thread; the main thread counts while it runs. Were the
+    interpreter held, the count could not move during the call."""
+    frames, actions = clip
+    sim = drivesim.Simulator(model)
+    plan = np.tile(actions[:1], (400, 1))
+    started = threading.Event()
+
+    def dream():
+        started.set()
+        sim.rollout(frames[:1], plan, frames=True)
+
+    worker = threading.Thread(target=dream)
+    worker.start()
+    started.wait()
+    count = 0
+    while worker.is_alive():
+        count += 1
+    worker.join()
+    assert count > 10_000
+
+
+def test_one_simulator_is_not_shared_between_threads(model, clip):
+    frames, actions = clip
+    sim = drivesim.Simulator(model)
+    plan = np.tile(actions[:1], (300, 1))
+    errors = []
+
+    def dream():
+        try:
+            sim.rollout(frames[:1], plan, frames=True)
+        except RuntimeError as e:
+            errors.append(e)
+
+    threads = [threading.Thread(target=dream) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    # Either the calls did not overlap, or the second was told to use its own simulator.
+    assert all("another thread" in str(e) for e in errors)
