@@ -9,6 +9,9 @@ use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
 
+/// A transition step's result: the next codes and the next hidden states.
+type Step<'py> = (Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>);
+
 /// A simulator and the scratch its 8-bit frames convert through.
 pub struct State {
     pub sim: Simulator<Arc<Model>>,
@@ -143,7 +146,7 @@ impl PySimulator {
         z: &Bound<'py, PyAny>,
         h: &Bound<'py, PyAny>,
         action: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>)> {
+    ) -> PyResult<Step<'py>> {
         let c = self.config()?;
         let (z, lead) = f32_items(z, "z", &[0, 1], &[c.z_dim])?;
         let z = slice(&z);
@@ -158,7 +161,7 @@ impl PySimulator {
         py: Python<'py>,
         h: &Bound<'py, PyAny>,
         action: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>)> {
+    ) -> PyResult<Step<'py>> {
         let c = self.config()?;
         let lead = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?.1;
         self.step(py, None, &lead, h, action)
@@ -276,7 +279,7 @@ impl PySimulator {
         lead: &[usize],
         h: &Bound<'py, PyAny>,
         action: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>)> {
+    ) -> PyResult<Step<'py>> {
         let mut guard = lock(&self.state)?;
         let sim = &mut guard.sim;
         let c = *sim.config();
