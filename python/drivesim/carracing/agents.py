@@ -2,12 +2,16 @@
 
 ``MPCAgent`` ("mpc") plans in the simulator: it encodes each real frame, rebuilds the
 transition's hidden state from the last few real codes and actions (as a dream is seeded),
-rolls candidate steering sequences out in the dream (``Simulator.rollout_candidates``, codes
-only), scores each dreamed future with the ``RoadCost`` (how far the road's centre is from the
-car in three bands ahead, and whether road is under it), refines them by the cross-entropy
-method, and applies the best plan's first steering. The speed follows a target that falls as
-the road ahead bends (read from the real frame's code by the same cost), through a
-proportional speed controller (target speed to gas and brake).
+rolls candidate steering ramps out in the dream (``Simulator.rollout_candidates``, codes only)
+on a grid centred on a proportional steering toward the road seen now, scores each dreamed
+future with the ``RoadCost`` (the road's centre in the near and middle bands, road under the
+car), corrected by what the cost gets wrong on the real frame now (offset-free MPC), refines
+the grid once around the best, and applies the best plan's first steering. The speed follows a
+target that falls as the road ahead bends, through a proportional speed controller (target
+speed to gas and brake).
+
+``ReactiveAgent`` ("reactive") is the baseline without the models: the proportional steering
+and the speed controller alone.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from typing import Optional
 import numpy as np
 
 from .._drivesim import Model, Simulator
-from ..road import RoadCost
+from ..road import RoadCost, measure
 
 
 def speed_control(speed: float, target: float) -> tuple[float, float]:
@@ -28,13 +32,50 @@ def speed_control(speed: float, target: float) -> tuple[float, float]:
     return gas, brake
 
 
+def proportional_steering(road: np.ndarray) -> float:
+    """Steering toward the road's centre as measured in the near and middle bands (pixels;
+    positive: road to the right, so steer right)."""
+    return float(np.clip(0.02 * road[0] + 0.03 * road[1], -1.0, 1.0))
+
+
+def target_speed(road: np.ndarray, max_speed: float, half_width: float) -> float:
+    """Slower as the road ahead bends: the far band's offset from the near band's."""
+    bend = abs(float(road[2] - road[0])) / half_width
+    return float(np.clip(max_speed / (1.0 + 4.0 * bend), 20.0, max_speed))
+
+
+class ReactiveAgent:
+    """A baseline without the models: proportional steering on the road measured in the real
+    frame (``road.measure``) and the same speed target and controller as ``MPCAgent``. What the
+    dream adds to driving is ``MPCAgent``'s score less this one's."""
+
+    frame_skip = 4
+    warmup = 12
+
+    def __init__(self, max_speed: float = 45.0):
+        self.max_speed = max_speed
+        self.reset()
+
+    def reset(self) -> None:
+        self.decisions = 0
+
+    def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
+        self.decisions += 1
+        if self.decisions <= self.warmup:
+            gas, brake = speed_control(speed, 25.0)
+            return np.array([0.0, gas, brake], np.float32)
+        road = measure(frame[None])[0]
+        gas, brake = speed_control(speed, target_speed(road, self.max_speed, frame.shape[1] / 2))
+        return np.array([proportional_steering(road), gas, brake], np.float32)
+
+
 class MPCAgent:
     """Model-predictive control in the dream. ``act(frame, speed)`` takes the models' view
     (``observe(env)``, ``(80, 160, 3)`` uint8) and the speedometer, and returns CarRacing's
     action ``[steer, gas, brake]`` (float32) to hold for ``frame_skip`` env frames.
 
-    Deterministic for a given ``seed``: the candidates are drawn from a generator reset by
-    ``reset()``, and the simulator is bit-identical whatever the thread count.
+    Deterministic: the candidates are a fixed grid around the proportional steering, and the
+    simulator is bit-identical whatever the thread count.
     """
 
     #: Env frames per decision: the models step at 12.5 Hz, CarRacing at 50.
@@ -50,24 +91,36 @@ class MPCAgent:
         threads: int = 1,
         candidates: int = 64,
         horizon: int = 8,
-        iterations: int = 3,
+        iterations: int = 2,
         context: int = 5,
-        max_speed: float = 58.0,
-        seed: int = 0,
+        max_speed: float = 45.0,
+        road_scale: float = 20.0,
+        w_middle: float = 1.0,
+        w_off: float = 2.0,
+        w_smooth: float = 0.0,
+        correct: float = 1.0,
+        w_effort: float = 0.0,
+        w_prior: float = 4.0,
+        search: float = 0.3,
     ):
         self.model = model if model is not None else Model.load()
         self.cost = cost if cost is not None else RoadCost.default()
         self.sim = Simulator(self.model, batch=candidates, threads=threads)
         self.candidates, self.horizon, self.iterations = candidates, horizon, iterations
-        self.context, self.max_speed, self.seed = context, max_speed, seed
+        self.context, self.max_speed = context, max_speed
+        # The cost: offsets in units of `road_scale` pixels (about a half-road), weights of the
+        # middle band, of road missing under the car and of steering changes.
+        self.road_scale, self.w_middle, self.w_off, self.w_smooth = road_scale, w_middle, w_off, w_smooth
+        self.correct, self.w_effort, self.w_prior, self.search = correct, w_effort, w_prior, search
+        self.prior = 0.0
         self.half_width = self.model.frame_shape[1] / 2
         self.reset()
 
     def reset(self) -> None:
         """Forgets the drive: call at every new episode."""
-        self.rng = np.random.default_rng(self.seed)
         self.past: deque = deque(maxlen=self.context)  # (code, action) of recent decisions
         self.mean = np.zeros(self.horizon, np.float32)
+        self.previous = 0.0  # the last steering applied
         self.decisions = 0
         self.last_plan: Optional[np.ndarray] = None  # (horizon, 2) actions of the chosen plan
         self.last_state: Optional[tuple] = None  # (h, z) the plan started from
@@ -80,31 +133,35 @@ class MPCAgent:
             _, h = self.sim.transition(code, h, action)
         return h
 
-    def target_speed(self, road: np.ndarray) -> float:
-        """Slower as the road ahead bends: the far band's offset from the near band's."""
-        bend = abs(float(road[2] - road[0])) / self.half_width
-        return float(np.clip(self.max_speed / (1.0 + 4.0 * bend), 20.0, self.max_speed))
-
-    def plan(self, h: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
-        """The cross-entropy method over steering sequences: the chosen ``(horizon,)``."""
+    def plan(self, h: np.ndarray, z: np.ndarray, speed: float, correction: np.ndarray) -> np.ndarray:
+        """The chosen steering sequence ``(horizon,)``: ramps from a first steering ``a`` to a
+        last ``a + b``, searched on a grid of ``candidates`` (``a`` by ``b``) in ``iterations``
+        rounds, each finer and centred on the last round's best. Few degrees of freedom keep
+        the plans smooth, so the planner cannot exploit the dream's step-to-step errors."""
         n, t = self.candidates, self.horizon
-        mean = np.concatenate([self.mean[1:], self.mean[-1:]])
-        std = np.full(t, 0.4, np.float32)
+        rows = max(2, n // 4)
         actions = np.empty((t, n, 2), np.float32)
         actions[..., 0] = np.float32(np.clip(speed, *self._speed_range()))
-        weights = np.linspace(1.0, 0.5, t, dtype=np.float32)[:, None]
+        ramp = np.linspace(0.0, 1.0, t, dtype=np.float32)
+        weights = np.linspace(0.5, 1.0, t, dtype=np.float32)[:, None]
+        centre = np.float32([self.prior if self.w_prior > 0 else self.previous, 0.0])
+        width = np.float32([self.search, 1.0])
         for _ in range(self.iterations):
-            steer = np.clip(mean + std * self.rng.standard_normal((n, t)), -1.0, 1.0).astype(np.float32)
-            steer[0] = mean
+            a = np.clip(centre[0] + width[0] * np.linspace(-1, 1, rows), -1, 1)
+            b = centre[1] + width[1] * np.linspace(-1, 1, n // rows)
+            a, b = (g.ravel().astype(np.float32) for g in np.meshgrid(a, b))
+            steer = np.clip(a[:, None] + b[:, None] * ramp, -1.0, 1.0)  # (n, t)
             actions[..., 1] = steer.T
-            road = self.cost.predict(self.sim.rollout_candidates(h, actions, z=z))  # (t, n, 4)
-            near, middle = road[..., 0] / self.half_width, road[..., 1] / self.half_width
+            road = self.cost.predict(self.sim.rollout_candidates(h, actions, z=z)) + correction  # (t, n, 4)
+            near, middle = road[..., 0] / self.road_scale, road[..., 1] / self.road_scale
             off = np.clip(1.0 - road[..., 3] / 0.6, 0.0, 1.0)
-            cost = (weights * (4.0 * near**2 + middle**2 + 4.0 * off**2)).sum(axis=0)
-            cost += 0.2 * (np.diff(steer, axis=1) ** 2).sum(axis=1)
-            elite = steer[np.argsort(cost)[: max(2, n // 8)]]
-            mean, std = elite.mean(axis=0), elite.std(axis=0) + 0.05
-        self.mean = mean.astype(np.float32)
+            cost = (weights * (near**2 + self.w_middle * middle**2 + self.w_off * off**2)).sum(axis=0)
+            cost += self.w_smooth * (a - self.previous) ** 2 + self.w_effort * (steer**2).mean(axis=1)
+            cost += self.w_prior * (a - self.prior) ** 2
+            best = int(np.argmin(cost))
+            centre, width = np.float32([a[best], b[best]]), width / 4
+            chosen = steer[best]
+        self.mean = chosen.astype(np.float32)
         return self.mean
 
     def _speed_range(self) -> tuple[float, float]:
@@ -119,10 +176,18 @@ class MPCAgent:
             return np.array([0.0, gas, brake], np.float32)
         z = self.sim.encode(frame)
         h = self._hidden(z)
-        steer_plan = self.plan(h, z, speed)
+        # Offset-free MPC: the dream's road is corrected by what it gets wrong now (the road
+        # measured on the real frame less the road read from its code), a disturbance held
+        # constant over the horizon. Off the road the encoder still draws road under the car;
+        # the measured frame does not.
+        road_now = measure(frame[None])[0]
+        correction = (road_now - self.cost.predict(z)) * self.correct
+        # A proportional steering on the road seen now: where the search is centred.
+        self.prior = proportional_steering(road_now)
+        steer_plan = self.plan(h, z, speed, correction.astype(np.float32))
         steer = float(steer_plan[0])
-        road_now = self.cost.predict(z)
-        gas, brake = speed_control(speed, self.target_speed(road_now))
+        self.previous = steer
+        gas, brake = speed_control(speed, target_speed(road_now, self.max_speed, self.half_width))
         self.past.append((z, np.array([speed, steer], np.float32)))
         self.last_state = (h, z)
         self.last_plan = np.stack([np.full(self.horizon, speed, np.float32), steer_plan], axis=1)
@@ -138,13 +203,16 @@ class MPCAgent:
         return frames[:, 0]
 
 
-AGENTS = {"mpc": MPCAgent}
+AGENTS = {"mpc": MPCAgent, "reactive": ReactiveAgent}
 
 
 def make_agent(name: str, weights: Optional[str] = None, threads: int = 1, **options):
-    """An agent by name: ``"mpc"`` (planning in the simulator). ``weights``: a weight file (the
-    built-in default model when None; another model also needs ``cost=RoadCost...``)."""
+    """An agent by name: ``"mpc"`` (planning in the simulator) or ``"reactive"`` (the baseline
+    without the models). ``weights``: a weight file (the built-in default model when None;
+    another model also needs ``cost=RoadCost...``)."""
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}: one of {', '.join(sorted(AGENTS))}")
+    if name == "reactive":
+        return ReactiveAgent(**options)
     model = Model.load(weights)
     return AGENTS[name](model=model, threads=threads, **options)
