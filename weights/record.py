@@ -62,18 +62,7 @@ GAIN = 1.5  # steering per radian between heading and aim point
 HALF_ROAD = car_racing.TRACK_WIDTH  # centre line to edge, world units
 
 
-def parse_seeds(text):
-    """'0-3,7' -> [0, 1, 2, 3, 7]"""
-    seeds = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        try:
-            seeds += list(range(int(lo), int(hi or lo) + 1))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"bad seed list {text!r}; use e.g. 0-39 or 1,5,9")
-    if not seeds:
-        raise argparse.ArgumentTypeError("no seeds")
-    return seeds
+parse_seeds = view.parse_seeds
 
 
 class OU:

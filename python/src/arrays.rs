@@ -202,3 +202,39 @@ where
         }
     }
 }
+
+/// The codes `run` writes into a new array of `codes_shape`, and when `frames_shape` is given
+/// the frames it writes too (as `frames_out` returns them): the codes alone, or
+/// `(codes, frames)`. `run` runs with the interpreter released.
+pub fn codes_and_frames<'py, F>(
+    py: Python<'py>,
+    kind: FrameType,
+    config: &Config,
+    codes_shape: &[usize],
+    frames_shape: Option<&[usize]>,
+    scratch: &mut Vec<f32>,
+    run: F,
+) -> PyResult<Bound<'py, PyAny>>
+where
+    F: FnOnce(&mut [f32], Option<&mut [f32]>) -> drivesim::Result<()> + Send,
+{
+    let codes = new_array::<f32>(py, codes_shape);
+    // SAFETY: the array was just created here and no other reference to it exists.
+    let codes_out = unsafe { codes.as_slice_mut() }.expect("a new array is contiguous");
+    let Some(shape) = frames_shape else {
+        py.detach(|| run(codes_out, None)).map_err(to_py)?;
+        return Ok(codes.into_any());
+    };
+    let frames = frames_out(py, kind, config, shape, scratch, |f| run(codes_out, Some(f)))?;
+    Ok((codes, frames).into_pyobject(py)?.into_any())
+}
+
+/// A copy of `data`, `rows` rows of equal length, as a new `(rows, len / rows)` array.
+pub fn rows_copy<'py>(py: Python<'py>, data: &[f32], rows: usize) -> Bound<'py, PyArrayDyn<f32>> {
+    let out = new_array::<f32>(py, &[rows, data.len() / rows]);
+    // SAFETY: the array was just created here and no other reference to it exists.
+    unsafe { out.as_slice_mut() }
+        .expect("a new array is contiguous")
+        .copy_from_slice(data);
+    out
+}

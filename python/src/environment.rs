@@ -1,11 +1,11 @@
 //! `Environment`: N dreamed drives that a controller steps, on numpy arrays.
 
-use crate::arrays::{f32_items, frames_out, new_array, value_error, Frames};
+use crate::arrays::{codes_and_frames, f32_items, frames_out, rows_copy, value_error, Frames};
 use crate::model::PyModel;
 use crate::simulator::{frame_type, slice};
 use crate::to_py;
 use drivesim::{Environment, Model};
-use numpy::{PyArrayDyn, PyArrayMethods};
+use numpy::PyArrayDyn;
 use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
@@ -106,23 +106,13 @@ impl PyEnvironment {
     /// Each drive's current code, `(drives, z_dim)` (a copy).
     #[getter]
     fn codes<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        let guard = lock(&self.state)?;
-        let codes = guard.env.codes();
-        let out = new_array::<f32>(py, &[self.drives, codes.len() / self.drives]);
-        // SAFETY: the array was just created here and no other reference to it exists.
-        unsafe { out.as_slice_mut() }.expect("new").copy_from_slice(codes);
-        Ok(out)
+        Ok(rows_copy(py, lock(&self.state)?.env.codes(), self.drives))
     }
 
     /// Each drive's hidden state, `(drives, hidden_dim)` (a copy).
     #[getter]
     fn hidden<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        let guard = lock(&self.state)?;
-        let hidden = guard.env.hidden();
-        let out = new_array::<f32>(py, &[self.drives, hidden.len() / self.drives]);
-        // SAFETY: as above.
-        unsafe { out.as_slice_mut() }.expect("new").copy_from_slice(hidden);
-        Ok(out)
+        Ok(rows_copy(py, lock(&self.state)?.env.hidden(), self.drives))
     }
 
     /// Each drive's current frame, generated: `(drives, height, width, 3)`, uint8 (the
@@ -155,19 +145,16 @@ impl PyEnvironment {
         let (actions, lead) = f32_items(actions, "actions", &[2], &[c.action_dim])?;
         let (steps, n) = (lead[0], lead[1]);
         let actions = slice(&actions);
-        let codes = new_array::<f32>(py, &[steps, n, c.z_dim]);
-        // SAFETY: the array was just created here and no other reference to it exists.
-        let codes_out = unsafe { codes.as_slice_mut() }.expect("new");
-        if !frames {
-            py.detach(|| env.rollout_candidates(drive, n, actions, codes_out, None))
-                .map_err(to_py)?;
-            return Ok(codes.into_any());
-        }
         let shape = [steps, n, c.height, c.width, c.channels];
-        let frames = frames_out(py, kind, &c, &shape, scratch, |f| {
-            env.rollout_candidates(drive, n, actions, codes_out, Some(f))
-        })?;
-        Ok((codes, frames).into_pyobject(py)?.into_any())
+        codes_and_frames(
+            py,
+            kind,
+            &c,
+            &[steps, n, c.z_dim],
+            frames.then_some(&shape[..]),
+            scratch,
+            |codes, f| env.rollout_candidates(drive, n, actions, codes, f),
+        )
     }
 }
 

@@ -1,6 +1,6 @@
 //! `Simulator`: encode, generate, transition steps and rollouts on numpy arrays.
 
-use crate::arrays::{f32_items, frames_out, new_array, value_error, FrameType, Frames};
+use crate::arrays::{codes_and_frames, f32_items, frames_out, new_array, value_error, FrameType, Frames};
 use crate::model::PyModel;
 use crate::to_py;
 use drivesim::{Model, Simulator};
@@ -197,19 +197,16 @@ impl PySimulator {
         let mut seed_scratch = Vec::new();
         let seeds = seeds.floats(&c, &mut seed_scratch)?;
         let actions = slice(&actions);
-        let codes = new_array::<f32>(py, &[steps, c.z_dim]);
-        // SAFETY: the array was just created here and no other reference to it exists.
-        let codes_out = unsafe { codes.as_slice_mut() }.expect("a new array is contiguous");
-        if !frames {
-            py.detach(|| sim.rollout(seeds, actions, codes_out, None))
-                .map_err(to_py)?;
-            return Ok(codes.into_any());
-        }
         let shape = [steps, c.height, c.width, c.channels];
-        let frames = frames_out(py, kind, &c, &shape, scratch, |f| {
-            sim.rollout(seeds, actions, codes_out, Some(f))
-        })?;
-        Ok((codes, frames).into_pyobject(py)?.into_any())
+        codes_and_frames(
+            py,
+            kind,
+            &c,
+            &[steps, c.z_dim],
+            frames.then_some(&shape[..]),
+            scratch,
+            |codes, f| sim.rollout(seeds, actions, codes, f),
+        )
     }
 
     /// Rolls out `N` candidate action sequences at once from one state: the planner's building
@@ -240,19 +237,16 @@ impl PySimulator {
             .transpose()?
             .map(|z| z.0);
         let (h, z, actions) = (slice(&h), z.as_ref().map(slice), slice(&actions));
-        let codes = new_array::<f32>(py, &[steps, n, c.z_dim]);
-        // SAFETY: the array was just created here and no other reference to it exists.
-        let codes_out = unsafe { codes.as_slice_mut() }.expect("a new array is contiguous");
-        if !frames {
-            py.detach(|| sim.rollout_candidates(h, z, n, actions, codes_out, None))
-                .map_err(to_py)?;
-            return Ok(codes.into_any());
-        }
         let shape = [steps, n, c.height, c.width, c.channels];
-        let frames = frames_out(py, kind, &c, &shape, scratch, |f| {
-            sim.rollout_candidates(h, z, n, actions, codes_out, Some(f))
-        })?;
-        Ok((codes, frames).into_pyobject(py)?.into_any())
+        codes_and_frames(
+            py,
+            kind,
+            &c,
+            &[steps, n, c.z_dim],
+            frames.then_some(&shape[..]),
+            scratch,
+            |codes, f| sim.rollout_candidates(h, z, n, actions, codes, f),
+        )
     }
 
     fn __repr__(&self) -> PyResult<String> {

@@ -26,21 +26,7 @@ import numpy as np
 
 from .._files import atomic_write
 from .agents import AGENTS, make_agent
-from .view import observe, speed
-
-
-def parse_seeds(text: str) -> list[int]:
-    """'0-3,7' -> [0, 1, 2, 3, 7]"""
-    seeds = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        try:
-            seeds += list(range(int(lo), int(hi or lo) + 1))
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"bad seed list {text!r}; use e.g. 0-19 or 1,5,9") from None
-    if not seeds:
-        raise argparse.ArgumentTypeError("no seeds")
-    return seeds
+from .view import observe, parse_seeds, speed
 
 
 def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple[dict, list]:

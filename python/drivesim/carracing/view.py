@@ -1,10 +1,11 @@
-"""What the models see of gymnasium's CarRacing: one implementation for the recorder
-(``weights/record.py`` loads this file by path) and the agents.
+"""What the models see of gymnasium's CarRacing, and how tracks are named: one implementation
+for the recorder (``weights/record.py`` loads this file by path) and the agents.
 
 This module needs only numpy, pygame and Pillow (no drivesim): the recorder runs it without
 the package installed.
 """
 
+import argparse
 import math
 
 import numpy as np
@@ -35,3 +36,17 @@ def speed(env) -> float:
     action means)."""
     v = env.unwrapped.car.hull.linearVelocity
     return float(math.hypot(v[0], v[1]))
+
+
+def parse_seeds(text: str) -> list:
+    """Track seeds as the command lines take them: '0-3,7' -> [0, 1, 2, 3, 7]."""
+    seeds = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        try:
+            seeds += list(range(int(lo), int(hi or lo) + 1))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"bad seed list {text!r}; use e.g. 0-39 or 1,5,9") from None
+    if not seeds:
+        raise argparse.ArgumentTypeError("no seeds")
+    return seeds
