@@ -28,7 +28,7 @@
 mod common;
 
 use common::*;
-use drivesim::{Config, Isa, IsaLevel, Model, Simulator, WeightDtype};
+use drivesim::{frames_from_rgb, Config, Isa, IsaLevel, Model, PixelLayout, Simulator, WeightDtype};
 use std::collections::HashMap;
 use std::hint::black_box;
 use std::io::Write;
@@ -37,8 +37,11 @@ use std::time::{Duration, Instant};
 /// `transition_fed_back` is a step fed the previous step's prediction, as in a rollout after
 /// its seeds ([`Simulator::transition_fed_back`]: the folded step for f32 weights). Both steps count
 /// the model's FLOPs.
-const NETWORKS: [&str; 6] = [
+/// `encode_rgb` encodes 8-bit frames (`frames_from_rgb`, then `encode`): what the Python
+/// package's `Simulator.encode` does with a `uint8` array.
+const NETWORKS: [&str; 7] = [
     "encode",
+    "encode_rgb",
     "generate",
     "transition",
     "transition_fed_back",
@@ -239,6 +242,15 @@ fn measure(sim: &mut Simulator<&Model>, network: &str, batch: usize, budget: Dur
             encode_flops(&cfg),
             median_ms(budget, || sim.encode(black_box(&frames), &mut out_codes).unwrap()),
         ),
+        "encode_rgb" => {
+            let rgb: Vec<u8> = frames.iter().map(|v| ((v + 1.0) * 127.5) as u8).collect();
+            let mut floats = vec![0.0; frames.len()];
+            let ms = median_ms(budget, || {
+                frames_from_rgb(black_box(&rgb), PixelLayout::Hwc, &cfg, &mut floats).unwrap();
+                sim.encode(&floats, &mut out_codes).unwrap()
+            });
+            (encode_flops(&cfg), ms)
+        }
         "generate" => (
             generate_flops(&cfg),
             median_ms(budget, || sim.generate(black_box(&codes), &mut out_frames).unwrap()),

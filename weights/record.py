@@ -194,6 +194,31 @@ def record_episode(seed, frames, frame_skip, style="steady", random_colours=Fals
     return np.stack(out_frames), np.array(out_actions, dtype=np.float32), on_road / n
 
 
+def score_episode(seed, style="steady", frame_skip=4, limit=1000):
+    """The env's own reward for the driver on one track, as the agents are scored
+    (`python -m drivesim.carracing`): driving from the first frame, `limit` frames at most, the
+    episode ending early when the env says so (a lap done, or off the playfield)."""
+    env = car_racing.CarRacing()
+    env.reset(seed=seed)
+    driver = Driver(env.track, np.random.default_rng(seed), style)
+    total, frames = 0.0, 0
+    while frames < limit:
+        action, _, _ = driver.act(env.car, frame_skip / car_racing.FPS)
+        for _ in range(frame_skip):
+            _, reward, terminated, truncated, _ = env.step(action)
+            total, frames = total + float(reward), frames + 1
+            if terminated or truncated or frames >= limit:
+                env.close()
+                return total
+    env.close()
+    return total
+
+
+def _score(job):
+    seed, style = job
+    return seed, score_episode(seed, style)
+
+
 def _record(job):
     seed, frames, frame_skip, style, random_colours = job
     f, a, on_road = record_episode(seed, frames, frame_skip, style, random_colours)
@@ -213,8 +238,20 @@ def main(argv=None):
     p.add_argument("--driver", choices=DRIVERS, default="steady", help="driving style (see above)")
     p.add_argument("--colours", choices=COLOURS, default="default",
                    help="road and grass colours: the env's, random per episode, or random for every other seed")
-    p.add_argument("--out", required=True, help="episodes file (.safetensors or .safetensors.gz)")
+    p.add_argument("--out", help="episodes file (.safetensors or .safetensors.gz)")
+    p.add_argument("--score", action="store_true",
+                   help="record nothing: print the env's reward for the driver on each track (1000 frames)")
     args = p.parse_args(argv)
+    if args.score:
+        with Pool(min(args.workers, len(args.seeds))) as pool:
+            scores = pool.map(_score, [(s, args.driver) for s in args.seeds], chunksize=1)
+        for seed, score in scores:
+            print(f"seed {seed}: {score:.1f}")
+        r = np.array([score for _, score in scores])
+        print(f"{args.driver}: {r.mean():.1f} ± {r.std():.1f} over {len(r)} tracks (min {r.min():.1f}, max {r.max():.1f})")
+        return 0
+    if args.out is None:
+        p.error("--out is required (or --score)")
     if args.frames < 1 or args.frame_skip < 1 or args.workers < 1:
         p.error("--frames, --frame-skip and --workers must be positive")
 

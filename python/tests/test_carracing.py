@@ -61,3 +61,13 @@ def test_evaluation_command(tmp_path, capsys):
     # Resumable: a second run reads the track's figures instead of driving it again.
     main(["--agent", "mpc", "--seeds", "7", "--frames", "80", "--out", str(tmp_path)])
     assert capsys.readouterr().out.splitlines()[-2] == out.splitlines()[-2]
+
+
+def test_baselines_act_in_range(clip):
+    frames, actions = clip
+    for name in ("reactive", "random"):
+        a, b = carracing.make_agent(name), carracing.make_agent(name)
+        for f, act in zip(frames, actions):
+            x, y = a.act(f, float(act[0])), b.act(f, float(act[0]))
+            np.testing.assert_array_equal(x, y)  # deterministic
+            assert x.dtype == np.float32 and -1 <= x[0] <= 1 and 0 <= x[1] <= 1 and 0 <= x[2] <= 1

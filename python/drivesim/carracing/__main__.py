@@ -14,7 +14,9 @@ frames beside what the agent imagined at each decision (its chosen plan, dreamed
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import multiprocessing
 import os
 import sys
 import time
@@ -84,6 +86,27 @@ def write_gif(path: str, rows: list, fps: float) -> None:
         images[0].save(f, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
 
 
+_agent = None  # the agent of this process, made at its first track
+
+
+def track(job) -> dict:
+    """One track's figures: read from ``--out`` when a previous run drove it, else driven."""
+    global _agent
+    args, seed = job
+    path = os.path.join(args.out, f"track_{seed}.json") if args.out else None
+    if path and os.path.exists(path):
+        with open(path) as f:
+            return json.load(f)
+    if _agent is None:
+        _agent = make_agent(args.agent, weights=args.weights, threads=args.threads)
+    r, rows = drive(_agent, seed, args.frames, pictures=bool(args.out))
+    if args.out:
+        write_gif(os.path.join(args.out, f"track_{seed}.gif"), rows, 12.5)
+        with atomic_write(path) as f:
+            f.write(json.dumps(r).encode())
+    return r
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m drivesim.carracing", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -93,28 +116,24 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=1, help="threads per agent")
     p.add_argument("--frames", type=int, default=1000, help="env frames per track (CarRacing-v3: 1000)")
     p.add_argument("--out", help="folder for per-track figures and animations (resumable)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="tracks driven at once, each by its own agent in its own process (the ms per decision "
+                        "then include the workers' contention: measure it with 1)")
     args = p.parse_args(argv)
-    if args.threads < 1 or args.frames < 1:
-        p.error("--threads and --frames must be positive")
+    global _agent
+    _agent = None  # a run's agent is its own, even when main is called again in one process
+    if args.threads < 1 or args.frames < 1 or args.workers < 1:
+        p.error("--threads, --frames and --workers must be positive")
     if args.out:
         os.makedirs(args.out, exist_ok=True)
-    agent = make_agent(args.agent, weights=args.weights, threads=args.threads)
-    results = []
+    jobs = [(args, seed) for seed in args.seeds]
     print(f"{'track':>6} {'reward':>8} {'frames':>6} {'tiles':>6} {'on road':>7} {'ms/decision':>11}", flush=True)
-    for seed in args.seeds:
-        path = os.path.join(args.out, f"track_{seed}.json") if args.out else None
-        if path and os.path.exists(path):
-            with open(path) as f:
-                r = json.load(f)
-        else:
-            r, rows = drive(agent, seed, args.frames, pictures=bool(args.out))
-            if args.out:
-                write_gif(os.path.join(args.out, f"track_{seed}.gif"), rows, 12.5)
-                with atomic_write(path) as f:
-                    f.write(json.dumps(r).encode())
-        results.append(r)
-        print(f"{r['seed']:>6} {r['reward']:>8.1f} {r['frames']:>6} {r['tiles']:>6.1%} {r['on_road']:>7.1%} "
-              f"{r['ms_per_decision']:>11.2f}", flush=True)
+    results = []
+    with multiprocessing.Pool(min(args.workers, len(jobs))) if args.workers > 1 else contextlib.nullcontext() as pool:
+        for r in (pool.imap(track, jobs) if pool else map(track, jobs)):
+            results.append(r)
+            print(f"{r['seed']:>6} {r['reward']:>8.1f} {r['frames']:>6} {r['tiles']:>6.1%} {r['on_road']:>7.1%} "
+                  f"{r['ms_per_decision']:>11.2f}", flush=True)
     rewards = np.array([r["reward"] for r in results])
     ms = np.array([r["ms_per_decision"] for r in results])
     print(f"{args.agent}: {rewards.mean():.1f} ± {rewards.std():.1f} over {len(rewards)} tracks "

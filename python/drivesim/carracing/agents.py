@@ -44,6 +44,23 @@ def target_speed(road: np.ndarray, max_speed: float, half_width: float) -> float
     return float(np.clip(max_speed / (1.0 + 4.0 * bend), 20.0, max_speed))
 
 
+class RandomAgent:
+    """Random actions, as ``env.action_space.sample()`` draws them (steer in [-1, 1], gas and
+    brake in [0, 1]), from a generator seeded at every ``reset()``: the floor of the table."""
+
+    frame_skip = 4
+
+    def __init__(self, seed: int = 0):
+        self.seed = seed
+        self.reset()
+
+    def reset(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+
+    def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
+        return np.array([self.rng.uniform(-1, 1), self.rng.uniform(0, 1), self.rng.uniform(0, 1)], np.float32)
+
+
 class ReactiveAgent:
     """A baseline without the models: proportional steering on the road measured in the real
     frame (``road.measure``) and the same speed target and controller as ``MPCAgent``. What the
@@ -52,7 +69,7 @@ class ReactiveAgent:
     frame_skip = 4
     warmup = 12
 
-    def __init__(self, max_speed: float = 45.0):
+    def __init__(self, max_speed: float = 52.0):
         self.max_speed = max_speed
         self.reset()
 
@@ -93,7 +110,7 @@ class MPCAgent:
         horizon: int = 8,
         iterations: int = 2,
         context: int = 5,
-        max_speed: float = 45.0,
+        max_speed: float = 52.0,
         road_scale: float = 20.0,
         w_middle: float = 1.0,
         w_off: float = 2.0,
@@ -102,6 +119,7 @@ class MPCAgent:
         w_effort: float = 0.0,
         w_prior: float = 4.0,
         search: float = 0.3,
+        skip: int = 3,
     ):
         self.model = model if model is not None else Model.load()
         self.cost = cost if cost is not None else RoadCost.default()
@@ -113,6 +131,7 @@ class MPCAgent:
         self.road_scale, self.w_middle, self.w_off, self.w_smooth = road_scale, w_middle, w_off, w_smooth
         self.correct, self.w_effort, self.w_prior, self.search = correct, w_effort, w_prior, search
         self.prior = 0.0
+        self.skip = skip
         self.half_width = self.model.frame_shape[1] / 2
         self.reset()
 
@@ -144,6 +163,9 @@ class MPCAgent:
         actions[..., 0] = np.float32(np.clip(speed, *self._speed_range()))
         ramp = np.linspace(0.0, 1.0, t, dtype=np.float32)
         weights = np.linspace(0.5, 1.0, t, dtype=np.float32)[:, None]
+        # The first steps are left out: there the dream repeats its data's correlation (drivers
+        # steer toward where the road already is) more than the steering's effect.
+        weights[: self.skip] = 0.0
         centre = np.float32([self.prior if self.w_prior > 0 else self.previous, 0.0])
         width = np.float32([self.search, 1.0])
         for _ in range(self.iterations):
@@ -203,16 +225,16 @@ class MPCAgent:
         return frames[:, 0]
 
 
-AGENTS = {"mpc": MPCAgent, "reactive": ReactiveAgent}
+AGENTS = {"mpc": MPCAgent, "reactive": ReactiveAgent, "random": RandomAgent}
 
 
 def make_agent(name: str, weights: Optional[str] = None, threads: int = 1, **options):
-    """An agent by name: ``"mpc"`` (planning in the simulator) or ``"reactive"`` (the baseline
-    without the models). ``weights``: a weight file (the built-in default model when None;
-    another model also needs ``cost=RoadCost...``)."""
+    """An agent by name: ``"mpc"`` (planning in the simulator), or the baselines without the
+    models, ``"reactive"`` and ``"random"``. ``weights``: a weight file (the built-in default
+    model when None; another model also needs ``cost=RoadCost...``)."""
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}: one of {', '.join(sorted(AGENTS))}")
-    if name == "reactive":
-        return ReactiveAgent(**options)
+    if name != "mpc":
+        return AGENTS[name](**options)
     model = Model.load(weights)
     return AGENTS[name](model=model, threads=threads, **options)
