@@ -57,7 +57,7 @@ impl PySimulator {
     }
 }
 
-/// Drops the leading dimension of a single item's result: `(1, …)` becomes `(…)`.
+/// A result's shape: the input's leading dimensions (none for a single item), then the item's.
 fn shape_of(lead: &[usize], tail: &[usize]) -> Vec<usize> {
     lead.iter().chain(tail).copied().collect()
 }
