@@ -224,7 +224,8 @@ class DreamVectorEnv(_Dream, gymnasium.vector.VectorEnv):
         options = options or {}
         if "frames" in options:
             frames = np.asarray(options["frames"])
-            actions = np.asarray(options["actions"], np.float32)
+            between = (max(len(frames) - 1, 0), self.num_envs, 2)
+            actions = np.asarray(options.get("actions", np.zeros(between)), np.float32)
         else:
             clips = [self._seed_clip(self.np_random, None) for _ in range(self.num_envs)]
             frames = np.stack([f for f, _ in clips], axis=1)

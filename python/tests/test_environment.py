@@ -92,6 +92,9 @@ def test_dream_vector_env(clip):
     single.reset(options={"frames": frames[:5], "actions": actions[:4]})
     a = np.float32([[30.0, 0.1]] * 3)
     vobs, vrew, *_ = envs.step(a)
+    # Seed frames without the actions between them: zero actions.
+    still, _ = envs.reset(options={"frames": np.stack([frames[:1]] * 3, 1)})
+    assert still.shape == (3, 80, 160, 3)
     sobs, srew, *_ = single.step(a[0])
     np.testing.assert_array_equal(vobs[1], sobs)
     assert vrew[1] == srew
