@@ -6,9 +6,8 @@ use crate::simulator::{frame_type, slice};
 use crate::to_py;
 use drivesim::{Environment, Model};
 use numpy::PyArrayDyn;
-use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
-use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 struct State {
     env: Environment<Arc<Model>>,
@@ -34,12 +33,7 @@ pub struct PyEnvironment {
 }
 
 fn lock(state: &Mutex<State>) -> PyResult<MutexGuard<'_, State>> {
-    state.try_lock().map_err(|e| match e {
-        TryLockError::WouldBlock => {
-            PyRuntimeError::new_err("this environment is in use by another thread: give each thread its own")
-        }
-        TryLockError::Poisoned(_) => PyRuntimeError::new_err("this environment failed in another thread"),
-    })
+    crate::lock(state, "environment")
 }
 
 #[pymethods]

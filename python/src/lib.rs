@@ -38,6 +38,20 @@ pub(crate) fn to_py(e: drivesim::Error) -> PyErr {
     }
 }
 
+/// Locks a simulator or an environment (`what`) for one call. A second thread's call on the
+/// same object is an error (each thread should have its own) rather than a wait: waiting for
+/// the lock while holding the interpreter could deadlock against the call that holds it.
+pub(crate) fn lock<'a, T>(state: &'a std::sync::Mutex<T>, what: &str) -> PyResult<std::sync::MutexGuard<'a, T>> {
+    state.try_lock().map_err(|e| match e {
+        std::sync::TryLockError::WouldBlock => PyRuntimeError::new_err(format!(
+            "this {what} is in use by another thread: give each thread its own"
+        )),
+        std::sync::TryLockError::Poisoned(_) => {
+            PyRuntimeError::new_err(format!("this {what} failed in another thread"))
+        }
+    })
+}
+
 #[pymodule]
 fn _drivesim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<model::PyModel>()?;

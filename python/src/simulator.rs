@@ -5,9 +5,8 @@ use crate::model::PyModel;
 use crate::to_py;
 use drivesim::{Model, Simulator};
 use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn};
-use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
-use std::sync::{Arc, Mutex, MutexGuard, TryLockError};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 /// A transition step's result: the next codes and the next hidden states.
 type Step<'py> = (Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>);
@@ -18,16 +17,8 @@ pub struct State {
     pub scratch: Vec<f32>,
 }
 
-/// Locks a simulator for one call. A second thread's call on the same object is an error
-/// (each thread should have its own simulator) rather than a wait: waiting for the lock while
-/// holding the interpreter could deadlock against the call that holds it.
-pub fn lock(state: &Mutex<State>) -> PyResult<MutexGuard<'_, State>> {
-    state.try_lock().map_err(|e| match e {
-        TryLockError::WouldBlock => {
-            PyRuntimeError::new_err("this simulator is in use by another thread: give each thread its own")
-        }
-        TryLockError::Poisoned(_) => PyRuntimeError::new_err("this simulator failed in another thread"),
-    })
+fn lock(state: &Mutex<State>) -> PyResult<MutexGuard<'_, State>> {
+    crate::lock(state, "simulator")
 }
 
 /// Runs the model: encodes frames, steps the transition, generates frames, rolls out dreams.
