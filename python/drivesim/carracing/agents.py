@@ -138,7 +138,7 @@ class MPCAgent:
     def reset(self) -> None:
         """Forgets the drive: call at every new episode."""
         self.past: deque = deque(maxlen=self.context)  # (code, action) of recent decisions
-        self.mean = np.zeros(self.horizon, np.float32)
+        self.chosen = np.zeros(self.horizon, np.float32)  # the last chosen steering plan
         self.previous = 0.0  # the last steering applied
         self.decisions = 0
         self.last_plan: Optional[np.ndarray] = None  # (horizon, 2) actions of the chosen plan
@@ -183,8 +183,8 @@ class MPCAgent:
             best = int(np.argmin(cost))
             centre, width = np.float32([a[best], b[best]]), width / 4
             chosen = steer[best]
-        self.mean = chosen.astype(np.float32)
-        return self.mean
+        self.chosen = chosen.astype(np.float32)
+        return self.chosen
 
     def _speed_range(self) -> tuple[float, float]:
         specs = self.model.actions
