@@ -18,6 +18,19 @@ pub struct Encoded {
 
 /// Encodes every frame of every episode in `episodes` (batches of 32, `threads` threads).
 pub fn encode(model: &Model, episodes: &Episodes, threads: usize, what: &str) -> Result<Vec<Encoded>, String> {
+    encode_view(model, episodes, threads, what, false)
+}
+
+/// [`encode`], of the episodes as they are or (`mirrored`) seen in a mirror: every frame
+/// flipped left to right and the steering (the second action) negated, as a drive on the
+/// mirror image of the track would be.
+pub fn encode_view(
+    model: &Model,
+    episodes: &Episodes,
+    threads: usize,
+    what: &str,
+    mirrored: bool,
+) -> Result<Vec<Encoded>, String> {
     let c = model.config();
     let (height, width) = episodes.frame_size();
     if (height, width) != (c.height, c.width) || c.action_dim != Episodes::ACTION_DIM {
@@ -46,18 +59,38 @@ pub fn encode(model: &Model, episodes: &Episodes, threads: usize, what: &str) ->
             let n = BATCH.min(episode.len() - start);
             for (j, frame) in frames.chunks_exact_mut(c.frame_len()).take(n).enumerate() {
                 episode.frame_f32(start + j, frame).map_err(|e| e.to_string())?;
+                if mirrored {
+                    for row in frame.chunks_exact_mut(c.width * c.channels) {
+                        mirror_row(row, c.channels);
+                    }
+                }
             }
             let z = &mut codes[start * c.z_dim..][..n * c.z_dim];
             sim.encode(&frames[..n * c.frame_len()], z).map_err(|e| e.to_string())?;
             progress.inc(n as u64);
         }
-        out.push(Encoded {
-            codes,
-            actions: episode.actions.to_vec(),
-        });
+        let mut actions = episode.actions.to_vec();
+        if mirrored {
+            actions
+                .iter_mut()
+                .skip(1)
+                .step_by(2)
+                .for_each(|steering| *steering = -*steering);
+        }
+        out.push(Encoded { codes, actions });
     }
     progress.finish_and_clear();
     Ok(out)
+}
+
+/// A row of pixels of `channels` values each, flipped left to right in place.
+fn mirror_row(row: &mut [f32], channels: usize) {
+    let pixels = row.len() / channels;
+    for i in 0..pixels / 2 {
+        for k in 0..channels {
+            row.swap(i * channels + k, (pixels - 1 - i) * channels + k);
+        }
+    }
 }
 
 /// A progress bar drawn with `template` (indicatif's syntax).

@@ -160,6 +160,9 @@ pub enum Error {
     /// An [`crate::Environment`] stepped before any reset gave its drives a state (or after a
     /// reset failed).
     NotSeeded,
+    /// [`crate::Simulator::act`] on a model whose weight file has no policy (`policy.*`
+    /// tensors; `train policy` adds them).
+    NoPolicy,
     /// A trainer asked to apply gradients it has not computed (each set is applied once).
     NoGradients,
     /// A caller-supplied arena is smaller than its plan.
@@ -283,6 +286,10 @@ impl fmt::Display for Error {
                 f,
                 "the environment has no state: reset it from seed frames or codes first"
             ),
+            Error::NoPolicy => write!(
+                f,
+                "the model has no policy (no `policy.*` tensors in its weight file): train one with `train policy`"
+            ),
             Error::NoGradients => write!(
                 f,
                 "no gradients to apply: compute them first (each set is applied once)"
@@ -320,6 +327,18 @@ impl core::error::Error for Error {
             _ => None,
         }
     }
+}
+
+/// How many items of `item_len` values `data` holds: a whole, non-zero number.
+pub(crate) fn whole_items(buffer: &'static str, data: &[f32], item_len: usize) -> Result<usize> {
+    if data.is_empty() || !data.len().is_multiple_of(item_len) {
+        return Err(Error::NotWholeItems {
+            buffer,
+            item_len,
+            found: data.len(),
+        });
+    }
+    Ok(data.len() / item_len)
 }
 
 /// Checks a caller buffer's length.

@@ -61,6 +61,7 @@ mod generator;
 mod layers;
 mod model;
 mod plan;
+mod policy;
 mod pool;
 mod simulator;
 #[cfg(feature = "train")]

@@ -3,6 +3,7 @@
 use crate::actions::ActionSpec;
 use crate::encoder::Encoder;
 use crate::generator::Generator;
+use crate::policy::Policy;
 use crate::transition::Transition;
 use crate::weights::{Described, RandomSource, SafetensorsSource, TensorSource, WeightDtype};
 use crate::{Config, Result};
@@ -11,7 +12,7 @@ use alloc::vec::Vec;
 /// The encoder, transition and generator of "Learning a Driving Simulator", ready to run.
 ///
 /// Loading validates every tensor against the config (shape, one dtype for the file, no
-/// tensor the config does not use, every value finite, BatchNorm variances non-negative), folds BatchNorm (PyTorch eval semantics:
+/// tensor the config does not use (but the optional policy's, `policy.*`), every value finite, BatchNorm variances non-negative), folds BatchNorm (PyTorch eval semantics:
 /// running statistics, eps 1e-5) into the neighbouring layers and repacks weights into the
 /// kernels' layouts, once. A `Model` is immutable; run it through a [`crate::Simulator`].
 pub struct Model {
@@ -21,6 +22,8 @@ pub struct Model {
     pub(crate) encoder: Encoder,
     pub(crate) generator: Generator,
     pub(crate) transition: Transition,
+    /// The cloned driver, where the file has one (`policy.*` tensors).
+    pub(crate) policy: Option<Policy>,
 }
 
 impl Model {
@@ -63,6 +66,7 @@ impl Model {
             encoder: Encoder::load(&config, src)?,
             generator: Generator::load(&config, src)?,
             transition: Transition::load(&config, src)?,
+            policy: Policy::load(&config, src)?,
             config,
         };
         src.finish()?;
@@ -106,6 +110,18 @@ impl Model {
         }
     }
 
+    /// Units of the hidden layer of the model's policy (the cloned driver that
+    /// [`crate::Simulator::act`] runs), or `None` where the file has no `policy.*` tensors.
+    ///
+    /// ```
+    /// let model = drivesim::Model::load("weights/default.safetensors")?;
+    /// assert_eq!(model.policy_width(), Some(64));
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
+    pub fn policy_width(&self) -> Option<usize> {
+        self.policy.as_ref().map(Policy::width)
+    }
+
     /// The architecture the weights were built for.
     pub fn config(&self) -> &Config {
         &self.config
@@ -118,6 +134,7 @@ impl core::fmt::Debug for Model {
             .field("config", &self.config)
             .field("actions", &self.actions)
             .field("folds_fed_back_steps", &self.transition.folds())
+            .field("policy_width", &self.policy_width())
             .finish_non_exhaustive()
     }
 }

@@ -34,6 +34,12 @@ impl TransitionBuffers {
             code: zeros(plan.transition_code, plan.bytes())?,
         })
     }
+
+    /// The gathered-input buffer, `hidden_dim + z_dim + action_dim` floats per item: also the
+    /// policy's input `[z | h]`, which is shorter.
+    pub fn concat(&mut self) -> &mut [f32] {
+        &mut self.concat
+    }
 }
 
 impl Transition {

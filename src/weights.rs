@@ -33,6 +33,18 @@ pub(crate) trait TensorSource {
         Ok(self.tensor(name, shape, init)?.into_f32())
     }
 
+    /// Whether the source has a tensor whose name starts with `prefix` (for the optional
+    /// networks: a random source has none).
+    fn contains(&self, _prefix: &str) -> bool {
+        false
+    }
+
+    /// The stored shape of tensor `name`, where the source has it (for the optional networks,
+    /// whose sizes the config does not give).
+    fn shape(&self, _name: &str) -> Option<Vec<usize>> {
+        None
+    }
+
     /// Called once every tensor was read: a file must hold no others.
     fn finish(&self) -> Result<()> {
         Ok(())
@@ -146,15 +158,15 @@ pub(crate) fn parse_frame_hz(key: &str, text: &str) -> Result<f32> {
     }
 }
 
-#[cfg(feature = "train")]
-impl SafetensorsSource<'_> {
-    /// Whether the file has a tensor whose name starts with `prefix`.
-    pub(crate) fn contains(&self, prefix: &str) -> bool {
+impl TensorSource for SafetensorsSource<'_> {
+    fn contains(&self, prefix: &str) -> bool {
         self.file.names().iter().any(|n| n.starts_with(prefix))
     }
-}
 
-impl TensorSource for SafetensorsSource<'_> {
+    fn shape(&self, name: &str) -> Option<Vec<usize>> {
+        self.file.tensor(name).ok().map(|view| view.shape().to_vec())
+    }
+
     fn tensor(&mut self, name: &str, shape: &[usize], _init: Init) -> Result<Tensor> {
         let view = self
             .file

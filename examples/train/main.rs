@@ -10,6 +10,8 @@
 //!     [--every 200] [--sheet sheet.png] [--from-scratch] [--w-pixel 1 --w-feature 0.1 --w-kl 0.001 --w-gan 0.01]
 //! cargo run --release --features train --example train -- fit --weights W --episodes DATA \
 //!     --out model.safetensors [--from-scratch] [--vae-steps 1000] [--transition-steps 2000] [--threads 2]
+//! cargo run --release --features train --example train -- policy --weights W --episodes DATA \
+//!     --out model.safetensors [--steps 4000] [--batch 256] [--lr 1e-3] [--width 64] [--lead 4] [--no-mirror]
 //! cargo run --release --features train --example train -- step --stage transition|vae-gan \
 //!     --weights W.safetensors --batch B.safetensors --out O.safetensors [--lr ...] [--teacher 5] [--clip 1.0]
 //! ```
@@ -24,8 +26,10 @@
 //! updated tensors (the file formats are in `weights/README.md`), as `weights/tool train step`
 //! does in PyTorch.
 //!
+//! `policy` clones the recorded driver (see `policy.rs`): the policy that `Simulator::act` runs.
+//!
 //! This file parses the command line and dispatches; each command is a module of its own
-//! (`transition.rs`, `vae_gan.rs`, `fit.rs`, `step.rs`), the flags they share are in `args.rs`
+//! (`transition.rs`, `vae_gan.rs`, `fit.rs`, `policy.rs`, `step.rs`), the flags they share are in `args.rs`
 //! and the file helpers in `files.rs`.
 
 mod args;
@@ -33,6 +37,7 @@ mod args;
 mod common;
 mod files;
 mod fit;
+mod policy;
 mod step;
 mod transition;
 mod vae_gan;
@@ -55,6 +60,8 @@ enum Command {
     VaeGan(vae_gan::VaeGanArgs),
     /// Both stages, as `weights/tool train fit`: the VAE-GAN, then the transition on its codes
     Fit(fit::FitArgs),
+    /// Behavioural cloning: train the policy (the cloned driver) on a driver's episodes
+    Policy(policy::PolicyArgs),
     /// One step on a batch file; write the loss, gradients and updated tensors
     Step(step::StepArgs),
 }
@@ -64,6 +71,7 @@ fn main() -> ExitCode {
         Command::Transition(args) => transition::transition(&args),
         Command::VaeGan(args) => vae_gan::vae_gan(&args),
         Command::Fit(args) => fit::fit(&args),
+        Command::Policy(args) => policy::policy(&args),
         Command::Step(args) => step::step(&args),
     })
 }

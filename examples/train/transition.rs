@@ -310,7 +310,7 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
         )
         .map_err(|e| e.to_string())?;
     Model::from_bytes(&bytes).map_err(|e| format!("the written file does not load: {e}"))?;
-    std::fs::write(&args.data.out, &bytes).map_err(|e| format!("cannot write {}: {e}", args.data.out.display()))?;
+    crate::files::write_atomically(&args.data.out, &bytes)?;
     println!("wrote {}", args.data.out.display());
     Ok(())
 }

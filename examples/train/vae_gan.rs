@@ -201,7 +201,7 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
         let bytes = trainer
             .weight_file(&original, dtype, trained_on)
             .map_err(|e| e.to_string())?;
-        std::fs::write(&args.data.out, &bytes).map_err(|e| format!("cannot write {}: {e}", args.data.out.display()))?;
+        crate::files::write_atomically(&args.data.out, &bytes)?;
         Ok(bytes)
     };
     let (before, _) = psnr(

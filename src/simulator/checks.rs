@@ -3,21 +3,9 @@
 
 use super::rollout::Seeds;
 use super::Simulator;
-use crate::error::{expect_finite, expect_frames, expect_len};
+use crate::error::{expect_finite, expect_frames, expect_len, whole_items};
 use crate::{Error, Model, Result};
 use core::borrow::Borrow;
-
-/// How many items of `item_len` values `data` holds: a whole, non-zero number.
-fn whole_items(buffer: &'static str, data: &[f32], item_len: usize) -> Result<usize> {
-    if data.is_empty() || !data.len().is_multiple_of(item_len) {
-        return Err(Error::NotWholeItems {
-            buffer,
-            item_len,
-            found: data.len(),
-        });
-    }
-    Ok(data.len() / item_len)
-}
 
 impl<M: Borrow<Model>> Simulator<M> {
     /// How many items of `item_len` values `data` holds: a whole, non-zero number, at most the batch.

@@ -7,6 +7,8 @@
 //! - [`VaeGanTrainer`] trains the encoder and generator with a discriminator; its
 //!   [`VaeGanPlan`] is measured by building the trainer without allocating (as ggml's
 //!   allocator measures a graph), then exactly that is allocated.
+//! - [`PolicyTrainer`] trains the policy, the cloned driver of [`crate::Simulator::act`], by
+//!   behavioural cloning on the caller's examples.
 //!
 //! Steps allocate nothing. The backward passes run on the forward kernels where the maths
 //! allows (the data gradient of a dense layer is the forward product by the transposed
@@ -21,11 +23,13 @@
 
 mod adam;
 mod arena;
+mod policy;
 mod shared;
 mod transition;
 mod vae_gan;
 
 pub use adam::Adam;
+pub use policy::{PolicySettings, PolicyTrainer};
 pub use transition::{TransitionPlan, TransitionSettings, TransitionTrainer};
 #[cfg(feature = "std")]
 pub use vae_gan::random_weight_file;

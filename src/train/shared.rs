@@ -1,5 +1,5 @@
-//! What both trainers need: their worker threads, the check of a step's learning rate, and the
-//! weight file they write their tensors into.
+//! What the trainers share: their worker threads, the check of a step's learning rate, a bias's
+//! gradient, and the weight file they write their tensors into.
 
 use crate::pool::Pool;
 use crate::{Error, Result};
@@ -48,4 +48,12 @@ pub(super) fn weight_file(
         .map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..]))
         .collect();
     crate::weights::rewrite(original, &replace, dtype, trained_on)
+}
+
+/// `sums[r] = Σ_k dy[k][r]`: the gradient of a bias.
+pub(super) fn column_sums(dy: &[f32], sums: &mut [f32]) {
+    sums.fill(0.0);
+    for row in dy.chunks_exact(sums.len()) {
+        sums.iter_mut().zip(row).for_each(|(s, v)| *s += v);
+    }
 }

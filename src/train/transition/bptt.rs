@@ -5,6 +5,7 @@ use super::trainer::TransitionTrainer;
 use crate::layers::dense;
 use crate::pool::Exec;
 use crate::train::arena::{cut, cut_ref};
+use crate::train::shared::column_sums;
 use crate::{Error, Result};
 use drivesim_kernels::pack::dense_from_fn;
 use drivesim_kernels::{Activation, Matrix, MatrixData, OutputParts};
@@ -192,12 +193,4 @@ fn weight_grad(exec: Exec<'_>, dy: &[f32], x: &[f32], rows: usize, cols: usize, 
             drivesim_kernels::dense_weight_grad_rows(exec.isa, dy, x, rows, cols, part);
         }
     });
-}
-
-/// `sums[r] = Σ_k dy[k][r]`: the gradient of a bias.
-fn column_sums(dy: &[f32], sums: &mut [f32]) {
-    sums.fill(0.0);
-    for row in dy.chunks_exact(sums.len()) {
-        sums.iter_mut().zip(row).for_each(|(s, v)| *s += v);
-    }
 }

@@ -1,0 +1,235 @@
+//! `train policy`: behavioural cloning of the recorded driver. Encodes the episodes (and their
+//! mirror images), steps the transition along each drive for the hidden state the policy reads,
+//! trains the policy to give the driver's steering and the speed it reached `--lead` frames
+//! later, reports the held-out error before and after, and writes the weights with the policy.
+
+use crate::args::{data_help, Data};
+use crate::common::{bar, encode_view, Encoded};
+use crate::files::read;
+use clap::Parser;
+use drivesim::train::{cosine_lr, PolicySettings, PolicyTrainer};
+use drivesim::{Episodes, Model, Simulator};
+use std::time::Instant;
+
+#[derive(Parser)]
+#[command(mut_args = data_help(&[
+    ("weights", "Weight file to start from (its encoder and transition give the policy's input)"),
+    ("episodes", "Episodes of the driver to clone (weights/tool record writes them)"),
+    ("heldout", "Episodes to evaluate on; without it, the last --holdout episodes of --episodes"),
+    ("holdout", "Episodes of --episodes held out when there is no --heldout file"),
+    ("out", "Where to write the weights with the trained policy"),
+]))]
+pub struct PolicyArgs {
+    #[command(flatten)]
+    pub data: Data,
+    #[arg(long, default_value_t = 4000)]
+    pub steps: usize,
+    /// Examples (frames) per step
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub batch: u32,
+    /// Peak learning rate (cosine decay to zero)
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f32,
+    /// Units of the policy's hidden layer (a new policy; one the file has keeps its own)
+    #[arg(long, default_value_t = 64)]
+    pub width: usize,
+    /// The speed to learn is the one the driver reached this many frames later
+    #[arg(long, default_value_t = 4)]
+    pub lead: usize,
+    /// Train on the episodes only, not also on their mirror images (frames flipped, steering negated)
+    #[arg(long)]
+    pub no_mirror: bool,
+    /// Start a new policy even where the file has one
+    #[arg(long)]
+    pub restart: bool,
+    /// Threads that encode the frames
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub threads: u32,
+    /// Seed of the new policy's weights and of the order of the examples
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// The policy's examples: inputs `[z | h]` and actions (speed `lead` frames later, steering).
+struct Examples {
+    inputs: Vec<f32>,
+    actions: Vec<f32>,
+}
+
+/// The examples of encoded drives: the transition stepped along each from zeros, as the
+/// policy's user steps it (`Simulator::act`'s documentation).
+fn examples(model: &Model, drives: &[Encoded], lead: usize) -> Result<Examples, String> {
+    let c = model.config();
+    let (z, hd) = (c.z_dim, c.hidden_dim);
+    let mut sim = Simulator::new(model).map_err(|e| e.to_string())?;
+    let (mut inputs, mut actions) = (Vec::new(), Vec::new());
+    let (mut h, mut next) = (vec![0.0; hd], vec![0.0; z]);
+    for drive in drives {
+        h.fill(0.0);
+        let frames = drive.codes.len() / z;
+        for t in 0..frames {
+            let code = &drive.codes[t * z..][..z];
+            if t + lead < frames {
+                inputs.extend_from_slice(code);
+                inputs.extend_from_slice(&h);
+                actions.extend_from_slice(&[drive.actions[(t + lead) * 2], drive.actions[t * 2 + 1]]);
+            }
+            let action = &drive.actions[t * 2..][..2];
+            sim.transition(code, &mut h, action, &mut next)
+                .map_err(|e| e.to_string())?;
+        }
+    }
+    Ok(Examples { inputs, actions })
+}
+
+/// The drives of `episodes` encoded: as they are, then (unless `--no-mirror`) their mirror
+/// images, the mirrored drives in the same order after the plain ones.
+fn views(model: &Model, episodes: &Episodes, args: &PolicyArgs, what: &str) -> Result<Vec<Encoded>, String> {
+    let threads = args.threads as usize;
+    let mut drives = encode_view(model, episodes, threads, what, false)?;
+    if !args.no_mirror {
+        drives.extend(encode_view(
+            model,
+            episodes,
+            threads,
+            &format!("{what}, mirrored"),
+            true,
+        )?);
+    }
+    Ok(drives)
+}
+
+/// The training and held-out drives: every view of the `--heldout` file's episodes, or of the
+/// last `--holdout` episodes.
+fn split(model: &Model, args: &PolicyArgs) -> Result<(Vec<Encoded>, Vec<Encoded>), String> {
+    let load = |path: &std::path::Path| Episodes::load(path).map_err(|e| format!("{}: {e}", path.display()));
+    let all = load(&args.data.episodes)?;
+    let mut train = views(model, &all, args, "episodes")?;
+    if let Some(path) = &args.data.heldout {
+        return Ok((train, views(model, &load(path)?, args, "held-out episodes")?));
+    }
+    let (episodes, holdout) = (all.len(), args.data.holdout);
+    if holdout >= episodes {
+        return Err(format!("--holdout {holdout} leaves no training episode"));
+    }
+    let mut heldout = Vec::new();
+    for view in (0..train.len() / episodes).rev() {
+        let end = (view + 1) * episodes;
+        heldout.extend(train.drain(end - holdout..end));
+    }
+    Ok((train, heldout))
+}
+
+/// Root mean squared error of each action of the policy on `examples`, in the actions' units.
+fn errors(model: &Model, examples: &Examples) -> Result<[f64; 2], String> {
+    let c = model.config();
+    let cols = c.z_dim + c.hidden_dim;
+    const BATCH: usize = 256;
+    let mut sim = Simulator::with_batch(model, BATCH).map_err(|e| e.to_string())?;
+    let (mut sums, mut out) = ([0.0f64; 2], vec![0.0; BATCH * 2]);
+    for (inputs, wanted) in examples
+        .inputs
+        .chunks(BATCH * cols)
+        .zip(examples.actions.chunks(BATCH * 2))
+    {
+        let n = inputs.len() / cols;
+        let (z, h): (Vec<f32>, Vec<f32>) = (
+            inputs.chunks_exact(cols).flat_map(|r| r[..c.z_dim].to_vec()).collect(),
+            inputs.chunks_exact(cols).flat_map(|r| r[c.z_dim..].to_vec()).collect(),
+        );
+        sim.act(&z, &h, &mut out[..n * 2]).map_err(|e| e.to_string())?;
+        for (i, (o, w)) in out[..n * 2].iter().zip(wanted).enumerate() {
+            sums[i % 2] += ((o - w) as f64).powi(2);
+        }
+    }
+    let n = (examples.actions.len() / 2).max(1) as f64;
+    Ok([(sums[0] / n).sqrt(), (sums[1] / n).sqrt()])
+}
+
+/// A small seeded generator for the order of the examples (SplitMix64).
+fn shuffle(order: &mut [usize], state: &mut u64) {
+    for i in (1..order.len()).rev() {
+        *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut x = *state;
+        x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        order.swap(i, ((x ^ (x >> 31)) % (i as u64 + 1)) as usize);
+    }
+}
+
+pub fn policy(args: &PolicyArgs) -> Result<(), String> {
+    let bytes = read(&args.data.weights)?;
+    let model = Model::from_bytes(&bytes).map_err(|e| format!("{}: {e}", args.data.weights.display()))?;
+    let (train, heldout) = split(&model, args)?;
+    let (train, heldout) = (
+        examples(&model, &train, args.lead)?,
+        examples(&model, &heldout, args.lead)?,
+    );
+    let settings = PolicySettings {
+        width: args.width,
+        batch: args.batch as usize,
+        restart: (args.restart || model.policy_width().is_none()).then_some(args.seed),
+        ..PolicySettings::default()
+    };
+    let mut trainer = PolicyTrainer::new(&model, settings).map_err(|e| e.to_string())?;
+    let c = model.config();
+    let cols = c.z_dim + c.hidden_dim;
+    let count = train.actions.len() / 2;
+    if count == 0 {
+        return Err(format!(
+            "no examples: every episode is at most --lead {} frames long",
+            args.lead
+        ));
+    }
+    println!(
+        "{count} examples ({} held out), policy width {}, {} steps of {}",
+        heldout.actions.len() / 2,
+        trainer.width(),
+        args.steps,
+        args.batch
+    );
+    let report = |model: &Model, when: &str| -> Result<(), String> {
+        if model.policy_width().is_some() && !heldout.actions.is_empty() {
+            let [speed, steering] = errors(model, &heldout)?;
+            println!("held out, {when}: RMS error speed {speed:.2}, steering {steering:.3}");
+        }
+        Ok(())
+    };
+    report(&model, "before")?;
+    let (mut order, mut state) = ((0..count).collect::<Vec<_>>(), args.seed);
+    let (mut inputs, mut actions) = (Vec::new(), Vec::new());
+    let (batch, mut next, mut loss_sum, start) = (args.batch as usize, count, 0.0, Instant::now());
+    let progress = bar(
+        args.steps as u64,
+        "training: {pos}/{len} steps ({per_sec}, {eta} left) {msg}",
+    );
+    for step in 0..args.steps {
+        inputs.clear();
+        actions.clear();
+        for _ in 0..batch.min(count) {
+            if next == count {
+                shuffle(&mut order, &mut state);
+                next = 0;
+            }
+            let i = order[next];
+            next += 1;
+            inputs.extend_from_slice(&train.inputs[i * cols..][..cols]);
+            actions.extend_from_slice(&train.actions[i * 2..][..2]);
+        }
+        let lr = cosine_lr(args.lr, step, args.steps);
+        loss_sum += trainer.step(&inputs, &actions, lr).map_err(|e| e.to_string())?;
+        if (step + 1) % 500 == 0 {
+            progress.set_message(format!("loss {:.4}", loss_sum / 500.0));
+            loss_sum = 0.0;
+        }
+        progress.inc(1);
+    }
+    progress.finish_and_clear();
+    let written = trainer.weight_file(&bytes).map_err(|e| e.to_string())?;
+    let trained = Model::from_bytes(&written).map_err(|e| e.to_string())?;
+    println!("trained in {:.1} s", start.elapsed().as_secs_f64());
+    report(&trained, "after")?;
+    crate::files::write_atomically(&args.data.out, &written)?;
+    println!("wrote {}", args.data.out.display());
+    Ok(())
+}
