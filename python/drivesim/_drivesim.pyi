@@ -41,6 +41,10 @@ class Model:
     @property
     def actions(self) -> Optional[list[dict[str, Any]]]:
         """Each action's ``name``, ``unit``, ``mean``, ``std``, ``min``, ``max``, or None."""
+    @property
+    def policy_width(self) -> Optional[int]:
+        """Units of the policy's hidden layer (the cloned driver ``Simulator.act`` runs), or
+        None where the weight file has no policy."""
 
 class Simulator:
     """Encodes frames, steps the transition, generates frames, rolls out dreams.
@@ -68,6 +72,10 @@ class Simulator:
         """One step from given codes: ``(z_next, h_next)``."""
     def transition_fed_back(self, h: F32, action: F32) -> tuple[F32, F32]:
         """One step from the code ``h`` predicts: ``(z_next, h_next)``."""
+    def act(self, z: F32, h: F32) -> F32:
+        """The cloned driver's actions ``(N, 2)`` (speed to drive at, steering) for the codes
+        ``z`` of the frames seen now and the hidden states ``h`` after the drive so far; ValueError
+        for a model without a policy."""
     def rollout(self, seed_frames: Frames, actions: F32, frames: bool = False, dtype: DType = ...) -> Any:
         """``(S, H, W, 3)`` seeds and ``(S - 1 + T, 2)`` actions: codes ``(T, z_dim)``, or
         ``(codes, frames)`` with ``frames=True``."""

@@ -102,6 +102,13 @@ impl PyModel {
         self.inner.frame_hz()
     }
 
+    /// Units of the hidden layer of the model's policy (the cloned driver that
+    /// `Simulator.act` runs), or None where the weight file has none.
+    #[getter]
+    fn policy_width(&self) -> Option<usize> {
+        self.inner.policy_width()
+    }
+
     /// What each action means and the range it was trained on (the file's `drivesim.actions`):
     /// a list of dicts with `name`, `unit`, `mean`, `std`, `min`, `max`, or None.
     #[getter]

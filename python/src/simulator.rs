@@ -158,6 +158,36 @@ impl PySimulator {
         self.step(py, None, &lead, h, action)
     }
 
+    /// The cloned driver's actions (the model's policy; `Model.policy_width` is None without
+    /// one, and then this raises ValueError): `z` `(N, z_dim)`, the codes of the frames seen
+    /// now, and `h` `(N, hidden_dim)`, the transition's hidden states after the drive's earlier
+    /// codes and actions (zeros at its first frame, then each `transition`'s `h_next`), give
+    /// `(N, 2)` float32 actions, the speed to drive at and the steering, within the model's
+    /// trained ranges; one of each without the leading N gives `(2,)`.
+    fn act<'py>(
+        &self,
+        py: Python<'py>,
+        z: &Bound<'py, PyAny>,
+        h: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let mut guard = lock(&self.state)?;
+        let sim = &mut guard.sim;
+        let c = *sim.config();
+        let (z, lead) = f32_items(z, "z", &[0, 1], &[c.z_dim])?;
+        let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
+        if h_lead != lead {
+            return Err(value_error(format!(
+                "z and h must have the same leading dimensions: {lead:?} and {h_lead:?}"
+            )));
+        }
+        let actions = new_array::<f32>(py, &shape_of(&lead, &[c.action_dim]));
+        // SAFETY: the array was just created here and no other reference to it exists.
+        let out = unsafe { actions.as_slice_mut() }.expect("new");
+        let (z, h) = (slice(&z), slice(&h));
+        py.detach(|| sim.act(z, h, out)).map_err(to_py)?;
+        Ok(actions)
+    }
+
     /// A dream from seed frames: `seed_frames` `(S, height, width, 3)` and `actions`
     /// `(S - 1 + T, 2)` (the actions between the seeds, then one per predicted step) give the
     /// `T` predicted codes `(T, z_dim)`; with `frames=True`, also the generated frames

@@ -71,3 +71,31 @@ def test_baselines_act_in_range(clip):
             x, y = a.act(f, float(act[0])), b.act(f, float(act[0]))
             np.testing.assert_array_equal(x, y)  # deterministic
             assert x.dtype == np.float32 and -1 <= x[0] <= 1 and 0 <= x[1] <= 1 and 0 <= x[2] <= 1
+
+
+def test_cloned_agent_is_the_policy_stepped_along_the_drive(model, clip):
+    frames, actions = clip
+    agent = carracing.make_agent("cloned")
+    agent.warmup = 0
+    sim = drivesim.Simulator(model)
+    h = np.zeros(model.hidden_dim, np.float32)
+    for frame, recorded in zip(frames, actions):
+        speed = float(recorded[0])
+        action = agent.act(frame, speed)
+        # The same by hand: the policy on the code and the hidden state, then a transition step.
+        z = sim.encode(frame)
+        target, steer = sim.act(z, h)
+        _, h = sim.transition(z, h, np.array([speed, steer], np.float32))
+        np.testing.assert_array_equal(action[0], np.float32(steer))
+        np.testing.assert_array_equal(action[1:], np.float32(carracing.speed_control(speed, float(target))))
+    assert action.dtype == np.float32 and -1 <= action[0] <= 1
+    assert agent.imagine(3).shape == (3, 80, 160, 3)
+    agent.reset()
+    assert agent.imagine() is None and not agent.h.any()
+
+
+def test_cloned_agent_needs_a_policy():
+    from conftest import fixture
+
+    with pytest.raises(ValueError, match="no policy"):
+        carracing.make_agent("cloned", weights=fixture("small_f32.safetensors"))

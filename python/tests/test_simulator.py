@@ -183,3 +183,25 @@ def test_one_simulator_is_not_shared_between_threads(model, clip):
         t.join()
     # Either the calls did not overlap, or the second was told to use its own simulator.
     assert all("another thread" in str(e) for e in errors)
+
+
+def test_act(model, clip):
+    """The cloned driver's policy: shapes, the trained ranges, one item as in a batch, errors."""
+    assert model.policy_width is not None
+    sim = drivesim.Simulator(model, batch=4)
+    z = sim.encode(clip[0][:4])
+    h = np.random.default_rng(0).uniform(-1, 1, (4, model.hidden_dim)).astype(np.float32)
+    actions = sim.act(z, h)
+    assert actions.shape == (4, 2) and actions.dtype == np.float32
+    for value, spec in zip(actions.T, model.actions):
+        assert (value >= spec["min"]).all() and (value <= spec["max"]).all()
+    np.testing.assert_array_equal(sim.act(z[2], h[2]), actions[2])
+    with pytest.raises(ValueError, match="same leading"):
+        sim.act(z, h[0])
+    with pytest.raises(ValueError):
+        sim.act(z[:, 1:], h)
+    no_policy = drivesim.Model.load(fixture("small_f32.safetensors"))
+    assert no_policy.policy_width is None
+    small = drivesim.Simulator(no_policy)
+    with pytest.raises(ValueError, match="no policy"):
+        small.act(np.zeros(no_policy.z_dim, np.float32), np.zeros(no_policy.hidden_dim, np.float32))
