@@ -310,11 +310,14 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
 /// written in `dtype` (or the file's own dtype), the metadata kept but for what `trained_on`
 /// gives (`drivesim.actions`, `drivesim.frame_hz`): how a trainer saves what it trained. The
 /// file is validated as
-/// [`SafetensorsSource::parse`] does, and each replacement must have its tensor's shape.
+/// [`SafetensorsSource::parse`] does, and each replacement must have its tensor's shape, but
+/// under `group` (a prefix such as the policy's): the file's tensors there are left out, and the
+/// replacements are the whole group, in their own shapes.
 #[cfg(all(feature = "std", feature = "train"))]
 pub(crate) fn rewrite(
     bytes: &[u8],
     replace: &[(&str, &[usize], &[f32])],
+    group: Option<&str>,
     dtype: Option<WeightDtype>,
     trained_on: crate::train::TrainedOn<'_>,
 ) -> Result<Vec<u8>> {
@@ -331,7 +334,14 @@ pub(crate) fn rewrite(
         parse_frame_hz(FRAME_HZ_KEY, &text)?; // what is written must read back
         metadata.insert(FRAME_HZ_KEY.to_string(), text);
     }
-    let mut names: Vec<String> = src.file.names().into_iter().map(String::from).collect();
+    let in_group = |name: &str| group.is_some_and(|prefix| name.starts_with(prefix));
+    let mut names: Vec<String> = src
+        .file
+        .names()
+        .into_iter()
+        .filter(|n| !in_group(n))
+        .map(String::from)
+        .collect();
     names.sort();
     let stored = names.first().map_or(Ok(Dtype::F32), |n| {
         src.file.tensor(n).map(|v| v.dtype()).map_err(malformed)
@@ -346,7 +356,10 @@ pub(crate) fn rewrite(
     names.extend(added);
     let mut encoded = Vec::with_capacity(names.len());
     for name in &names {
-        let stored = src.file.tensor(name).ok().map(|view| view.shape().to_vec());
+        let stored = match in_group(name) {
+            true => None,
+            false => src.file.tensor(name).ok().map(|view| view.shape().to_vec()),
+        };
         let values = match (replace.iter().find(|(n, ..)| *n == name.as_str()), stored) {
             (Some((_, shape, values)), stored) => {
                 let expected = stored.unwrap_or_else(|| shape.to_vec());

@@ -95,14 +95,14 @@ impl Reference {
         }
         self.step += 1;
         let (b1, b2, eps) = (0.9f64, 0.999f64, 1e-8);
-        for i in 0..4 {
-            for j in 0..grads[i].len() {
-                let g = grads[i][j];
-                self.m[i][j] = b1 * self.m[i][j] + (1.0 - b1) * g;
-                self.v[i][j] = b2 * self.v[i][j] + (1.0 - b2) * g * g;
-                let m_hat = self.m[i][j] / (1.0 - b1.powi(self.step));
-                let v_hat = self.v[i][j] / (1.0 - b2.powi(self.step));
-                self.params[i][j] -= lr * m_hat / (v_hat.sqrt() + eps);
+        let moments = self.m.iter_mut().zip(self.v.iter_mut());
+        for ((params, grads), (m, v)) in self.params.iter_mut().zip(&grads).zip(moments) {
+            for (((p, g), m), v) in params.iter_mut().zip(grads).zip(m.iter_mut()).zip(v.iter_mut()) {
+                *m = b1 * *m + (1.0 - b1) * g;
+                *v = b2 * *v + (1.0 - b2) * g * g;
+                let m_hat = *m / (1.0 - b1.powi(self.step));
+                let v_hat = *v / (1.0 - b2.powi(self.step));
+                *p -= lr * m_hat / (v_hat.sqrt() + eps);
             }
         }
         loss
@@ -228,7 +228,9 @@ fn actions_stay_in_the_trained_ranges() {
     for _ in 0..50 {
         trainer.step(&inputs, &actions, 0.05).unwrap();
     }
+    // The default model's own policy (64 wide) is replaced, not mixed with this one.
     let trained = Model::from_bytes(&trainer.weight_file(&bytes).unwrap()).unwrap();
+    assert_eq!((model.policy_width(), trained.policy_width()), (Some(64), Some(8)));
     let mut sim = Simulator::new(&trained).unwrap();
     let mut action = [0.0; 2];
     sim.act(
@@ -248,7 +250,7 @@ fn edited(bytes: &[u8], name: &str, shape: Option<Vec<usize>>) -> Vec<u8> {
     let (_, metadata) = SafeTensors::read_metadata(bytes).unwrap();
     let mut tensors = Vec::new();
     for (n, view) in file.tensors() {
-        let tensor = match (&n == name, &shape) {
+        let tensor = match (n == name, &shape) {
             (true, None) => continue,
             (true, Some(shape)) => Tensor::new(Dtype::F32, shape.clone(), vec![0; 4 * shape.iter().product::<usize>()]),
             (false, _) => Tensor::new(view.dtype(), view.shape().to_vec(), view.data().to_vec()),

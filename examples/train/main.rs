@@ -11,7 +11,7 @@
 //! cargo run --release --features train --example train -- fit --weights W --episodes DATA \
 //!     --out model.safetensors [--from-scratch] [--vae-steps 1000] [--transition-steps 2000] [--threads 2]
 //! cargo run --release --features train --example train -- policy --weights W --episodes DATA \
-//!     --out model.safetensors [--steps 4000] [--batch 256] [--lr 1e-3] [--width 64] [--lead 4] [--no-mirror]
+//!     --out model.safetensors [--steps 4000] [--batch 256] [--lr 1e-3] [--width 64] [--lead 1] [--no-mirror]
 //! cargo run --release --features train --example train -- step --stage transition|vae-gan \
 //!     --weights W.safetensors --batch B.safetensors --out O.safetensors [--lr ...] [--teacher 5] [--clip 1.0]
 //! ```

@@ -34,7 +34,7 @@ pub struct PolicyArgs {
     #[arg(long, default_value_t = 64)]
     pub width: usize,
     /// The speed to learn is the one the driver reached this many frames later
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = 1)]
     pub lead: usize,
     /// Train on the episodes only, not also on their mirror images (frames flipped, steering negated)
     #[arg(long)]

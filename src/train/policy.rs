@@ -306,7 +306,7 @@ impl PolicyTrainer {
     }
 
     /// `original` (the model's weight file) with this policy's tensors added (or in place of
-    /// its own), in the file's dtype: a file [`Model::load`] reads, whose
+    /// its own policy, of any width), in the file's dtype: a file [`Model::load`] reads, whose
     /// [`crate::Simulator::act`] is this policy.
     #[cfg(feature = "std")]
     pub fn weight_file(&self, original: &[u8]) -> Result<Vec<u8>> {
@@ -316,7 +316,9 @@ impl PolicyTrainer {
                 reason: format!("the file's config is {config:?}, the trainer's {:?}", self.config),
             });
         }
-        super::shared::weight_file(original, &self.tensors(), None, super::TrainedOn::default())
+        // The file's own policy goes, whatever its width.
+        let group = Some(crate::policy::POLICY_PREFIX);
+        super::shared::weight_file(original, &self.tensors(), group, None, super::TrainedOn::default())
     }
 }
 

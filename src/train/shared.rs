@@ -35,11 +35,13 @@ pub(super) fn check_lr(name: &'static str, lr: f32) -> Result<()> {
 
 /// `original` (a drivesim weight file) with `tensors` in place of its own of the same names
 /// (or added), every tensor in `dtype` (`None`: the file's own), and `trained_on` in its
-/// metadata: [`crate::weights::rewrite`] of a trainer's tensors.
+/// metadata: [`crate::weights::rewrite`] of a trainer's tensors. With `group`, the file's tensors
+/// under that prefix go, and `tensors` are the whole group.
 #[cfg(feature = "std")]
 pub(super) fn weight_file(
     original: &[u8],
     tensors: &[super::NamedTensor],
+    group: Option<&str>,
     dtype: Option<crate::WeightDtype>,
     trained_on: super::TrainedOn<'_>,
 ) -> Result<alloc::vec::Vec<u8>> {
@@ -47,7 +49,7 @@ pub(super) fn weight_file(
         .iter()
         .map(|(name, shape, values)| (name.as_str(), &shape[..], &values[..]))
         .collect();
-    crate::weights::rewrite(original, &replace, dtype, trained_on)
+    crate::weights::rewrite(original, &replace, group, dtype, trained_on)
 }
 
 /// `sums[r] = Σ_k dy[k][r]`: the gradient of a bias.

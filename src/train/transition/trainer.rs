@@ -317,7 +317,7 @@ impl<'a> TransitionTrainer<'a> {
         dtype: Option<crate::WeightDtype>,
         trained_on: crate::train::TrainedOn<'_>,
     ) -> Result<Vec<u8>> {
-        crate::train::shared::weight_file(original, &self.tensors(), dtype, trained_on)
+        crate::train::shared::weight_file(original, &self.tensors(), None, dtype, trained_on)
     }
 
     /// The gradients computed last, named and laid out as the tensors they belong to

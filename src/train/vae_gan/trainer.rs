@@ -265,6 +265,6 @@ impl VaeGanTrainer {
         dtype: Option<WeightDtype>,
         trained_on: crate::train::TrainedOn<'_>,
     ) -> Result<Vec<u8>> {
-        crate::train::shared::weight_file(original, &self.tensors(), dtype, trained_on)
+        crate::train::shared::weight_file(original, &self.tensors(), None, dtype, trained_on)
     }
 }
