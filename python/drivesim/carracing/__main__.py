@@ -7,8 +7,8 @@ the share of the track's tiles visited, the share of decisions with a wheel on t
 the milliseconds the agent took per decision; then the mean and standard deviation. With
 ``--out``, each track's figures go to ``DIR/track_SEED.json`` (a run that stops resumes: tracks
 already there are read, not driven again) and an animation ``DIR/track_SEED.gif`` of the real
-frames beside what the agent imagined at each decision (its chosen plan, dreamed 2 and
-``horizon`` steps ahead).
+frames beside what the agent imagined at each decision, dreamed 2 and 8 steps ahead (``mpc``:
+its chosen plan; ``cloned``: its policy driving on in the dream).
 """
 
 from __future__ import annotations
@@ -70,7 +70,8 @@ def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple
 
 
 def picture_row(agent, view: np.ndarray) -> np.ndarray:
-    """The real frame beside the chosen plan dreamed 2 and ``horizon`` steps ahead."""
+    """The real frame beside what the agent imagined (``agent.imagine()``), 2 steps and its
+    last step ahead."""
     dream = agent.imagine() if hasattr(agent, "imagine") else None
     blank = np.zeros_like(view)
     if dream is None:
