@@ -14,6 +14,10 @@ from pathlib import Path
 import numpy as np
 from safetensors.numpy import load, save
 
+import package
+
+_files = package.load("_files.py")
+
 
 class EpisodesError(ValueError):
     """An episodes file or array set that breaks the format."""
@@ -93,7 +97,9 @@ def validate(frames, actions, starts):
 
 
 def write(path, episodes, metadata=None):
-    """Save episodes; a path ending in .gz is gzipped. metadata: optional str->str header dict."""
+    """Save episodes; a path ending in .gz is gzipped. metadata: optional str->str header dict.
+    Atomic: a temporary file beside `path`, flushed to disk and renamed over it, so a crash or a
+    full disk leaves the old file whole (the package's `atomic_write`)."""
     blob = save(
         {
             "frames": np.ascontiguousarray(episodes.frames),
@@ -105,7 +111,8 @@ def write(path, episodes, metadata=None):
     path = Path(path)
     if path.suffix == ".gz":
         blob = gzip.compress(blob, compresslevel=6)
-    path.write_bytes(blob)
+    with _files.atomic_write(path) as f:
+        f.write(blob)
 
 
 def _blob(path):

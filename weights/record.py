@@ -41,21 +41,11 @@ import numpy as np
 from gymnasium.envs.box2d import car_racing
 
 import episodes
+import package
 
 
-def _load_view():
-    """The models' view of CarRacing, shared with the Python package's agents
-    (python/drivesim/carracing/view.py), loaded by path: the package need not be installed."""
-    import importlib.util
-
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python", "drivesim", "carracing", "view.py")
-    spec = importlib.util.spec_from_file_location("drivesim_carracing_view", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-view = _load_view()
+# The models' view of CarRacing, shared with the Python package's agents.
+view = package.load("carracing/view.py")
 HEIGHT, WIDTH = view.HEIGHT, view.WIDTH
 WARMUP_STEPS = 60  # the env zooms in during its first second; skip it
 GAIN = 1.5  # steering per radian between heading and aim point

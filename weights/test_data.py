@@ -334,3 +334,23 @@ def test_action_normalisation_is_folded_into_u_and_b():
         u, b = tr.U * std, tr.b + (tr.U * std) @ (mean / std)  # undo the fold
         h_ref = torch.tanh(h @ tr.W.T + z @ tr.V.T + ((c - mean) / std) @ u.T + b)
     torch.testing.assert_close(folded[1], h_ref)
+
+
+def test_a_failed_write_leaves_the_old_file_whole(tmp_path, monkeypatch):
+    """A write that fails (here: the disk full when the data is flushed) leaves the file that was
+    there as it was, and no temporary file beside it."""
+    path = tmp_path / "data.safetensors.gz"
+    old = make_episodes()
+    episodes.write(path, old)
+
+    def full_disk(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(episodes._files.os, "fsync", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        episodes.write(path, make_episodes(n=9, starts=(0, 3, 5)))
+    monkeypatch.undo()
+    back = episodes.read(path)
+    np.testing.assert_array_equal(back.frames, old.frames)
+    np.testing.assert_array_equal(back.episode_starts, old.episode_starts)
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]
