@@ -396,5 +396,38 @@ pub(crate) fn rewrite(
                 .map_err(malformed)
         })
         .collect::<Result<Vec<_>>>()?;
-    safetensors::serialize(views, Some(metadata)).map_err(malformed)
+    let bytes = safetensors::serialize(views, Some(metadata)).map_err(malformed)?;
+    Ok(sort_metadata(bytes))
+}
+
+/// A safetensors file with its `__metadata__` entries in key order. `safetensors::serialize`
+/// writes them in a `HashMap`'s order, which changes from run to run, so that two runs of a
+/// deterministic trainer would write different bytes. The sorted header has the same length
+/// (the same entries, written as compactly), so it is rewritten in place.
+#[cfg(all(feature = "std", feature = "train"))]
+fn sort_metadata(mut bytes: Vec<u8>) -> Vec<u8> {
+    use serde_json::{Map, Value};
+    let Some(len) = bytes
+        .get(..8)
+        .map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")) as usize)
+    else {
+        return bytes;
+    };
+    let Some(Ok(Value::Object(mut header))) = bytes.get(8..8 + len).map(serde_json::from_slice::<Value>) else {
+        return bytes;
+    };
+    if let Some(Value::Object(metadata)) = header.remove("__metadata__") {
+        let mut entries: Vec<(String, Value)> = metadata.into_iter().collect();
+        entries.sort_by(|a, b| a.0.cmp(&b.0));
+        header.insert(
+            "__metadata__".to_string(),
+            Value::Object(entries.into_iter().collect::<Map<_, _>>()),
+        );
+    }
+    let sorted = serde_json::to_vec(&Value::Object(header)).unwrap_or_default();
+    if sorted.len() <= len {
+        let spaces = core::iter::repeat_n(b' ', len - sorted.len());
+        bytes.splice(8..8 + len, sorted.into_iter().chain(spaces));
+    }
+    bytes
 }

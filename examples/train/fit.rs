@@ -2,6 +2,7 @@
 //! transition on its codes.
 
 use crate::args::{data_help, Data, DtypeArg};
+use crate::checkpoint::Checkpointing;
 use crate::transition::{transition, TransitionArgs};
 use crate::vae_gan::{vae_gan, VaeGanArgs};
 use clap::Parser;
@@ -83,5 +84,11 @@ pub fn fit(args: &FitArgs) -> Result<(), String> {
         restart: args.from_scratch,
         dtype: args.dtype,
         seed: args.seed,
+        // `fit` has no checkpoints yet (its VAE-GAN stage would need the discriminator's).
+        checkpointing: Checkpointing {
+            checkpoint: None,
+            checkpoint_every: 500,
+            resume: false,
+        },
     })
 }

@@ -3,7 +3,8 @@
 //! ```text
 //! cargo run --release --features train --example train -- transition \
 //!     --weights weights/default.safetensors --episodes DATA.safetensors.gz --out tuned.safetensors \
-//!     [--heldout HELDOUT.safetensors.gz] [--steps 2000] [--batch 64] [--lr 1e-3] [--threads 2] [--full-bptt]
+//!     [--heldout HELDOUT.safetensors.gz] [--steps 2000] [--batch 64] [--lr 1e-3] [--threads 2] [--full-bptt] \
+//!     [--checkpoint CKPT [--checkpoint-every 500] [--resume]]
 //! cargo run --release --features train --example train -- vae-gan \
 //!     --weights weights/default.safetensors --episodes DATA.safetensors.gz --out tuned.safetensors \
 //!     [--heldout HELDOUT.safetensors.gz] [--steps 1000] [--batch 32] [--threads 2] [--minutes 20] \
@@ -33,6 +34,7 @@
 //! and the file helpers in `files.rs`.
 
 mod args;
+mod checkpoint;
 #[path = "../common.rs"]
 mod common;
 mod files;

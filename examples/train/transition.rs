@@ -2,6 +2,7 @@
 //! transition on windows of their codes, and report the held-out latent error before and after.
 
 use crate::args::{data_help, dtype, Data, DtypeArg};
+use crate::checkpoint::Checkpointing;
 use crate::common::{bar, encode, Encoded};
 use crate::files::read;
 use clap::Parser;
@@ -49,6 +50,21 @@ pub struct TransitionArgs {
     pub dtype: Option<DtypeArg>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    #[command(flatten)]
+    pub checkpointing: Checkpointing,
+}
+
+impl TransitionArgs {
+    /// The arguments that decide the run (and so its checkpoints): all but the threads, which
+    /// change no bit, and the checkpointing itself.
+    fn run_arguments(&self) -> String {
+        let d = &self.data;
+        format!(
+            "weights {:?} episodes {:?} heldout {:?} holdout {} steps {} batch {} window {} teacher {} lr {} full_bptt {} restart {} seed {}",
+            d.weights, d.episodes, d.heldout, d.holdout, self.steps, self.batch, self.window, self.teacher,
+            self.lr, self.full_bptt, self.restart, self.seed
+        )
+    }
 }
 
 /// Every window of `window` consecutive frames inside one episode: (episode, first frame).
@@ -255,11 +271,29 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
         "{bar:40} {pos}/{len} steps, {msg} ({per_sec}, {eta} left)",
     );
     let mut draw = Draw(args.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
+    let (checkpoints, arguments) = (&args.checkpointing, args.run_arguments());
+    let mut first_step = 0;
+    if let Some(resumed) = checkpoints.resume("transition", &arguments)? {
+        trainer
+            .load_state(&resumed.state)
+            .map_err(|e| format!("the checkpoint: {e}"))?;
+        (first_step, draw) = (resumed.step, Draw(resumed.draw));
+        progress.set_position(first_step as u64);
+        println!("resumed at step {first_step}");
+    }
+    let mut state = vec![
+        0u8;
+        if checkpoints.checkpoint.is_some() {
+            trainer.state_len()
+        } else {
+            0
+        }
+    ];
     let (mut codes, mut actions) = (Vec::new(), Vec::new());
     let mut picked = vec![(0, 0); batch];
     let start = Instant::now();
     let (mut first, mut recent) = (0.0, 0.0);
-    for step in 0..args.steps {
+    for step in first_step..args.steps {
         picked
             .iter_mut()
             .for_each(|p| *p = train_starts[draw.below(train_starts.len())]);
@@ -267,19 +301,23 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
         let loss = trainer
             .step(&codes, &actions, cosine_lr(args.lr, step, args.steps))
             .map_err(|e| format!("step {step}: {e}"))?;
-        if step == 0 {
-            first = loss;
+        if step == first_step {
+            (first, recent) = (loss, loss);
         }
-        recent = if step == 0 { loss } else { 0.98 * recent + 0.02 * loss };
+        recent = 0.98 * recent + 0.02 * loss;
         progress.set_message(format!("loss {recent:.4}"));
         progress.inc(1);
+        if checkpoints.due(step + 1, args.steps) {
+            trainer.save_state(&mut state).map_err(|e| e.to_string())?;
+            checkpoints.save("transition", &arguments, step + 1, draw.0, &state)?;
+        }
     }
     progress.finish_and_clear();
     let seconds = start.elapsed().as_secs_f64();
     println!(
         "{} steps of {batch} windows in {seconds:.1} s ({:.1} steps/s), training loss {first:.4} at the first step, {recent:.4} at the end",
-        args.steps,
-        args.steps as f64 / seconds
+        args.steps - first_step,
+        (args.steps - first_step) as f64 / seconds
     );
     let after = evaluate(&mut trainer, &heldout, &heldout_starts, &mean_code, dims)?;
     // Predictions from the last true code: the first, and the last of the window (10 steps

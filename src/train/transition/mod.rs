@@ -9,12 +9,14 @@
 //! backward pass multiplies by, and the activations saved for it.
 //!
 //! The files: `plan` (the [`TransitionPlan`] and the arena's buffers), `settings`
-//! ([`TransitionSettings`]), `trainer` (the public API of [`TransitionTrainer`]) and `bptt` (the
-//! forward pass over windows and back-propagation through time).
+//! ([`TransitionSettings`]), `trainer` (the public API of [`TransitionTrainer`]), `bptt` (the
+//! forward pass over windows and back-propagation through time) and `state` (its state as bytes,
+//! for checkpoints).
 
 mod bptt;
 mod plan;
 mod settings;
+mod state;
 mod trainer;
 
 pub use plan::TransitionPlan;

@@ -224,6 +224,19 @@ impl<'a> TransitionTrainer<'a> {
         Ok(loss)
     }
 
+    /// Adam steps taken so far.
+    pub fn steps(&self) -> u32 {
+        self.steps
+    }
+
+    /// After a restored state: `steps` Adam steps taken, no gradients pending, the transposed
+    /// packings to be made again.
+    pub(super) fn restore_steps(&mut self, steps: u32) {
+        self.steps = steps;
+        self.pending = None;
+        self.transposed = false;
+    }
+
     /// The global L2 norm of the gradients computed last (before clipping), if they were not
     /// applied yet.
     pub fn gradient_norm(&self) -> Option<f32> {

@@ -1,0 +1,129 @@
+//! A transition trainer's state (checkpoints): a run saved, restored in a new trainer and gone
+//! on gives the bits of the run never stopped; bad states are typed errors that change nothing.
+#![cfg(feature = "train")]
+
+mod common;
+
+use common::values;
+use drivesim::train::{TransitionPlan, TransitionSettings, TransitionTrainer};
+use drivesim::{Config, Error, Model, WeightDtype};
+
+const CONFIG: Config = Config {
+    z_dim: 12,
+    hidden_dim: 20,
+    ..Config::COMMA
+};
+const WINDOW: usize = 6;
+
+fn trainer(model: &Model, batch: usize, threads: usize) -> TransitionTrainer<'static> {
+    let plan = TransitionPlan::new(&CONFIG, batch, WINDOW).unwrap();
+    let settings = TransitionSettings {
+        teacher: 2,
+        ..TransitionSettings::default()
+    };
+    let mut t = TransitionTrainer::new(model, &plan, settings)
+        .unwrap()
+        .with_threads(threads)
+        .unwrap();
+    t.set_action_normalisation(&[20.0, 0.1], &[5.0, 0.5]).unwrap();
+    t
+}
+
+/// Step `step`'s batch of 4 windows.
+fn batch(step: u64) -> (Vec<f32>, Vec<f32>) {
+    let codes = values(100 + step, 4 * WINDOW * CONFIG.z_dim, 1.0);
+    let actions = values(200 + step, 4 * (WINDOW - 1) * 2, 3.0);
+    (codes, actions)
+}
+
+fn run(t: &mut TransitionTrainer<'_>, steps: std::ops::Range<u64>) {
+    for step in steps {
+        let (codes, actions) = batch(step);
+        t.step(&codes, &actions, 1e-2 * (1.0 - step as f32 / 10.0)).unwrap();
+    }
+}
+
+fn bits(t: &TransitionTrainer<'_>) -> Vec<u32> {
+    t.tensors()
+        .iter()
+        .flat_map(|(_, _, v)| v.iter().map(|x| x.to_bits()))
+        .collect()
+}
+
+#[test]
+fn a_restored_run_goes_on_bit_for_bit() {
+    let model = Model::random(&CONFIG, 4, WeightDtype::F32).unwrap();
+    let mut whole = trainer(&model, 4, 1);
+    run(&mut whole, 0..6);
+
+    let mut first = trainer(&model, 4, 1);
+    run(&mut first, 0..3);
+    let mut state = vec![0u8; first.state_len()];
+    first.save_state(&mut state).unwrap();
+    drop(first);
+    // Another plan (a larger batch) and two threads: the state is the run's, not the plan's.
+    let mut second = trainer(&model, 8, 2);
+    second.load_state(&state).unwrap();
+    assert_eq!(second.steps(), 3);
+    run(&mut second, 3..6);
+    assert_eq!(bits(&second), bits(&whole));
+    assert_eq!(second.steps(), whole.steps());
+}
+
+#[test]
+fn bad_states_are_typed_errors_that_change_nothing() {
+    let model = Model::random(&CONFIG, 4, WeightDtype::F32).unwrap();
+    let mut t = trainer(&model, 4, 1);
+    run(&mut t, 0..2);
+    let mut state = vec![0u8; t.state_len()];
+    t.save_state(&mut state).unwrap();
+    assert!(matches!(t.save_state(&mut state[1..]), Err(Error::BufferLength { .. })));
+
+    let mut fresh = trainer(&model, 4, 1);
+    let before = bits(&fresh);
+    let truncated = fresh.load_state(&state[..state.len() - 4]);
+    assert!(matches!(truncated, Err(Error::Malformed { .. })), "{truncated:?}");
+    let mut other_kind = state.clone();
+    other_kind[0] = b'X';
+    assert!(matches!(fresh.load_state(&other_kind), Err(Error::Malformed { .. })));
+    let mut nan = state.clone();
+    let at = nan.len() - 8;
+    nan[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    assert!(matches!(fresh.load_state(&nan), Err(Error::BadWeight { .. })));
+    assert_eq!(
+        (bits(&fresh), fresh.steps()),
+        (before, 0),
+        "a refused state changes nothing"
+    );
+
+    let wider = Config {
+        hidden_dim: 24,
+        ..CONFIG
+    };
+    let model = Model::random(&wider, 4, WeightDtype::F32).unwrap();
+    let plan = TransitionPlan::new(&wider, 4, WINDOW).unwrap();
+    let mut other = TransitionTrainer::new(&model, &plan, TransitionSettings::default()).unwrap();
+    // Same length by chance or not, another size is refused by name.
+    let refused = other.load_state(&state);
+    assert!(matches!(refused, Err(Error::Malformed { .. })), "{refused:?}");
+}
+
+#[test]
+fn the_written_file_is_the_same_bytes_every_time() {
+    // The metadata's entries used to come out in a `HashMap`'s order, different from call to
+    // call: a resumed run could not write the bytes of the run never stopped.
+    let original = std::fs::read("weights/default.safetensors").unwrap();
+    let model = Model::from_bytes(&original).unwrap();
+    let plan = TransitionPlan::new(model.config(), 2, WINDOW).unwrap();
+    let t = TransitionTrainer::new(&model, &plan, TransitionSettings::default()).unwrap();
+    let specs = model.actions().unwrap();
+    let trained_on = drivesim::train::TrainedOn {
+        actions: Some(specs),
+        frame_hz: Some(12.5),
+    };
+    let first = t.weight_file(&original, None, trained_on).unwrap();
+    for _ in 0..8 {
+        assert!(t.weight_file(&original, None, trained_on).unwrap() == first);
+    }
+    Model::from_bytes(&first).unwrap();
+}
