@@ -16,6 +16,7 @@ weights/README.md for the tensor names.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -29,6 +30,8 @@ from train import ADAM_VAE_GAN, Discriminator, transition_step, vae_gan_step
 
 OUT = Path(__file__).resolve().parent.parent / "tests" / "fixtures"
 RTOL = 1e-6
+# The convolutions followed by BatchNorm, whose bias gradients are zero in exact arithmetic.
+BEFORE_NORM = re.compile(r"\.(conv[123]|convs\.[123]|deconv[123])\.bias$")
 TRANSITION_STEPS = 30
 ROLLOUT_SEEDS = 3
 ROLLOUT_PREDICTIONS = 5
@@ -259,6 +262,7 @@ def compare(committed: Path, fresh: Path) -> list[str]:
     with safe_open(str(committed), "pt") as a, safe_open(str(fresh), "pt") as b:
         if a.metadata() != b.metadata():
             errors.append(f"{committed.name}: metadata {a.metadata()} != {b.metadata()}")
+        lr = float((b.metadata() or {}).get("lr", 0.0))
     old, new = load_file(str(committed)), load_file(str(fresh))
     if old.keys() != new.keys():
         errors.append(f"{committed.name}: tensor names differ: {sorted(old.keys() ^ new.keys())}")
@@ -267,12 +271,51 @@ def compare(committed: Path, fresh: Path) -> list[str]:
         if x.dtype != y.dtype or x.shape != y.shape:
             errors.append(f"{committed.name}: {k}: {x.dtype}{list(x.shape)} != {y.dtype}{list(y.shape)}")
             continue
-        x, y = x.double(), y.double()
-        err = (x - y).abs().max().item() if x.numel() else 0.0
-        # Relative to the tensor's scale: element-wise relative error is meaningless near zero.
-        if err > RTOL * max(y.abs().max().item() if y.numel() else 0.0, 1e-30):
-            errors.append(f"{committed.name}: {k}: max abs difference {err:.3g}")
+        problem = difference(k, x.double(), y.double(), old, new, lr)
+        if problem:
+            errors.append(f"{committed.name}: {k}: {problem}")
     return errors
+
+
+def relative(x, y):
+    """max |x - y| / max |y|: the error relative to the tensor's scale (element-wise relative
+    error is meaningless near zero)."""
+    return (x - y).abs().max().item() / max(y.abs().max().item(), 1e-30) if x.numel() else 0.0
+
+
+def difference(k, x, y, old, new, lr):
+    """What is wrong with the fresh value `y` of tensor `k` against the committed `x`, or None.
+
+    A float32 result of the VAE-GAN step has its float64 twin (`f64.` + k), the exact step the
+    Rust tests compare with. Another CPU's PyTorch sums convolutions in another order, and Adam
+    moves each weight by about ±lr whatever its gradient's size, so its float32 results differ
+    from the committed ones by far more than rounding; what must hold is what the Rust tests ask
+    of drivesim: as close to the exact step as the committed float32 run was (3x, or 1e-4). The
+    gradient of a bias before BatchNorm is zero in exact arithmetic (rounding noise on both
+    sides): it must stay within 1e-5 of its layer's weight gradient. A weight after the one step
+    (`lr`), as the Rust tests check drivesim's: within 1e-4 of the tensor's scale of the exact
+    step, or 2 lr where the exact gradient is within rounding of zero (Adam's first step moves a
+    weight by lr, its direction the gradient's sign). The losses of that step within 1e-4;
+    everything else (the float64 values, every other fixture) within RTOL."""
+    twin = "f64." + k
+    if twin in new:
+        exact = new[twin].double()
+        if k.startswith("grad.") and k.endswith(".bias") and BEFORE_NORM.search(k):
+            scale = new["f64." + k.removesuffix(".bias") + ".weight"].double().abs().max().item()
+            worst = max(y.abs().max().item(), exact.abs().max().item())
+            return f"{worst:.3g}, not rounding's zero (weights' gradient {scale:.3g})" if worst > 1e-5 * scale else None
+        grad = new.get("f64.grad." + k)
+        if not k.startswith(("grad.", "after5.")) and grad is not None:
+            grad = grad.double().abs()
+            undetermined = (grad < 1e-3 * grad.max()) | bool(BEFORE_NORM.search("." + k))
+            allowed = 1e-4 * exact.abs().max() + 2 * lr * undetermined
+            worst = ((y - exact).abs() - allowed).max().item()
+            return f"{worst:.3g} past the one step's bound" if worst > 0 else None
+        ours, theirs = relative(y, exact), relative(x, old[twin].double())
+        return f"{ours:.3g} from float64, the committed run {theirs:.3g}" if ours > max(1e-4, 3 * theirs) else None
+    tolerance = 1e-4 if k == "losses" or k.startswith("loss.") else RTOL
+    err = relative(x, y)
+    return f"max difference {err:.3g} of the tensor's scale" if err > tolerance else None
 
 
 def check() -> int:
