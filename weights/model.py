@@ -15,7 +15,11 @@ from pathlib import Path
 
 import torch
 from safetensors import safe_open
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
+
+import package
+
+_files = package.load("_files.py")
 from torch import nn
 
 CONFIG_KEY = "drivesim.config"
@@ -226,7 +230,10 @@ def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | t
     tensors = state_tensors(model, dtype)
     if discriminator is not None:
         tensors.update({DISCRIMINATOR + k: v for k, v in state_tensors(discriminator, dtype).items()})
-    save_file(tensors, str(path), metadata=metadata)
+    # Atomic: a crash or a full disk during the save leaves the file that was there whole.
+    blob = save(tensors, metadata=metadata)
+    with _files.atomic_write(path) as f:
+        f.write(blob)
 
 
 def load_drivesim(path: str | Path) -> tuple[DriveSim, Config]:

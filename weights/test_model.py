@@ -45,6 +45,26 @@ def test_round_trip(model, tmp_path, dtype):
             assert torch.equal(v, model.state_dict()[k].to(DTYPES[dtype]).float()), k
 
 
+def test_a_failed_save_leaves_the_old_file_whole(model, tmp_path, monkeypatch):
+    """A save that fails as the data is flushed (a full disk) leaves the old weights loadable,
+    and no temporary file beside them."""
+    import model as model_module
+
+    path = tmp_path / "m.safetensors"
+    save_drivesim(model, CFG, path)
+    before = path.read_bytes()
+
+    def full_disk(fd):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(model_module._files.os, "fsync", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        save_drivesim(DriveSim(CFG), CFG, path, "f16")
+    monkeypatch.undo()
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == [path.name]
+    load_drivesim(path)
+
+
 def test_rejects_mixed_dtypes(model, tmp_path):
     path = tmp_path / "m.safetensors"
     save_drivesim(model, CFG, path)

@@ -44,6 +44,9 @@ from torch.nn import functional as F
 
 import episodes
 from model import LEAK, Config, DriveSim, _conv, load_discriminator, load_drivesim, save_drivesim
+import package
+
+_files = package.load("_files.py")
 
 SEQ, TEACHER = 15, 5  # transition sequences: 15 frames, the first 5 from the encoder
 STEER = 0.6  # constant steering of the steering-response test, well inside the recorded range
@@ -397,7 +400,8 @@ def fit(args):
     hz = episodes.metadata(args.data).get("frame_hz")
     save_drivesim(model.cpu(), cfg, out, args.dtype, actions=described, discriminator=dis.cpu(),
                   frame_hz=float(hz) if hz else None)
-    out.with_suffix(".log.json").write_text(json.dumps(log, indent=1))
+    with _files.atomic_write(out.with_suffix(".log.json")) as f:
+        f.write(json.dumps(log, indent=1).encode())
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB) in {t2 - t0:.0f} s", flush=True)
     if world() > 1:
         dist.destroy_process_group()
