@@ -127,3 +127,76 @@ fn the_written_file_is_the_same_bytes_every_time() {
     }
     Model::from_bytes(&first).unwrap();
 }
+
+mod vae_gan {
+    use super::values;
+    use drivesim::train::{random_weight_file, VaeGanPlan, VaeGanSettings, VaeGanTrainer};
+    use drivesim::{Config, Error};
+
+    const SMALL: Config = Config {
+        height: 16,
+        width: 32,
+        base_channels: 2,
+        z_dim: 6,
+        hidden_dim: 8,
+        ..Config::COMMA
+    };
+
+    fn trainer(file: &[u8], batch: usize, threads: usize) -> VaeGanTrainer {
+        let plan = VaeGanPlan::new(&SMALL, batch, threads).unwrap();
+        VaeGanTrainer::new(file, &plan, VaeGanSettings::default()).unwrap()
+    }
+
+    fn run(t: &mut VaeGanTrainer, steps: std::ops::Range<u64>) {
+        for step in steps {
+            let frames = values(300 + step, 2 * SMALL.frame_len(), 1.0);
+            let (eps, prior) = (
+                values(400 + step, 2 * SMALL.z_dim, 1.0),
+                values(500 + step, 2 * SMALL.z_dim, 1.0),
+            );
+            t.step(&frames, &eps, &prior, 1e-3).unwrap();
+        }
+    }
+
+    fn bits(t: &VaeGanTrainer) -> Vec<u32> {
+        t.tensors()
+            .iter()
+            .flat_map(|(_, _, v)| v.iter().map(|x| x.to_bits()))
+            .collect()
+    }
+
+    #[test]
+    fn a_restored_run_goes_on_bit_for_bit() {
+        let file = random_weight_file(&SMALL, 9).unwrap();
+        let mut whole = trainer(&file, 2, 1);
+        run(&mut whole, 0..4);
+        let mut first = trainer(&file, 2, 1);
+        run(&mut first, 0..2);
+        let mut state = vec![0u8; first.state_len()];
+        first.save_state(&mut state).unwrap();
+        drop(first);
+        let mut second = trainer(&file, 3, 2);
+        second.load_state(&state).unwrap();
+        assert_eq!(second.steps(), 2);
+        run(&mut second, 2..4);
+        assert_eq!(bits(&second), bits(&whole));
+
+        let mut nan = state.clone();
+        let at = nan.len() - 4;
+        nan[at..].copy_from_slice(&f32::NAN.to_le_bytes());
+        let mut fresh = trainer(&file, 2, 1);
+        let before = bits(&fresh);
+        assert!(matches!(fresh.load_state(&nan), Err(Error::BadWeight { .. })));
+        assert!(matches!(fresh.load_state(&state[1..]), Err(Error::Malformed { .. })));
+        assert_eq!((bits(&fresh), fresh.steps()), (before, 0));
+        let wider = Config { z_dim: 7, ..SMALL };
+        let plan = VaeGanPlan::new(&wider, 2, 1).unwrap();
+        let mut other = VaeGanTrainer::new(
+            &random_weight_file(&wider, 1).unwrap(),
+            &plan,
+            VaeGanSettings::default(),
+        )
+        .unwrap();
+        assert!(matches!(other.load_state(&state), Err(Error::Malformed { .. })));
+    }
+}

@@ -4,7 +4,8 @@
 //! A checkpoint file (`weights/README.md`, "Checkpoints"): the 8 bytes `DSCKPT01`, a
 //! little-endian u32 `L`, `L` bytes of JSON (`command`, the `arguments` that decide the run,
 //! `step`: steps done, `draw`: the data order's generator state as a decimal string), then the
-//! trainer's state (`TransitionTrainer::save_state`). Written atomically (`files.rs`).
+//! trainer's state (`TransitionTrainer::save_state`, `VaeGanTrainer::save_state`). Written
+//! atomically (`files.rs`).
 
 use clap::Args;
 use std::path::{Path, PathBuf};
@@ -34,6 +35,15 @@ pub struct Resumed {
 }
 
 impl Checkpointing {
+    /// No checkpoints (`fit`'s stages: it has no `--checkpoint` of its own yet).
+    pub fn none() -> Checkpointing {
+        Checkpointing {
+            checkpoint: None,
+            checkpoint_every: 500,
+            resume: false,
+        }
+    }
+
     /// Whether a checkpoint is due after `done` of `steps` steps (not after the last: `--out` is).
     pub fn due(&self, done: usize, steps: usize) -> bool {
         self.checkpoint.is_some() && done < steps && done.is_multiple_of(self.checkpoint_every as usize)

@@ -68,6 +68,7 @@ pub fn fit(args: &FitArgs) -> Result<(), String> {
         w_feature: defaults.feature,
         w_kl: defaults.kl,
         w_gan: defaults.gan,
+        checkpointing: Checkpointing::none(),
     })?;
     transition(&TransitionArgs {
         data: Data {
@@ -84,11 +85,6 @@ pub fn fit(args: &FitArgs) -> Result<(), String> {
         restart: args.from_scratch,
         dtype: args.dtype,
         seed: args.seed,
-        // `fit` has no checkpoints yet (its VAE-GAN stage would need the discriminator's).
-        checkpointing: Checkpointing {
-            checkpoint: None,
-            checkpoint_every: 500,
-            resume: false,
-        },
+        checkpointing: Checkpointing::none(),
     })
 }

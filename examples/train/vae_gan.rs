@@ -2,6 +2,7 @@
 //! VAE-GAN, measuring the held-out reconstruction PSNR as it goes.
 
 use crate::args::{data_help, dtype, Data, DtypeArg};
+use crate::checkpoint::Checkpointing;
 use crate::common::{bar, write_png, Gaussian};
 use crate::files::read;
 use clap::Parser;
@@ -64,6 +65,33 @@ pub struct VaeGanArgs {
     /// Weight of the generator's GAN term
     #[arg(long, default_value_t = VaeGanSettings::default().gan)]
     pub w_gan: f32,
+    #[command(flatten)]
+    pub checkpointing: Checkpointing,
+}
+
+impl VaeGanArgs {
+    /// The arguments that decide the run (and so its checkpoints): all but the threads, which
+    /// change no bit, the time limit, the reports (`--every`, `--sheet`) and the checkpointing.
+    fn run_arguments(&self) -> String {
+        let d = &self.data;
+        format!(
+            "weights {:?} episodes {:?} heldout {:?} holdout {} steps {} batch {} lr {} seed {} from_scratch {} \
+             w_pixel {} w_feature {} w_kl {} w_gan {}",
+            d.weights,
+            d.episodes,
+            d.heldout,
+            d.holdout,
+            self.steps,
+            self.batch,
+            self.lr,
+            self.seed,
+            self.from_scratch,
+            self.w_pixel,
+            self.w_feature,
+            self.w_kl,
+            self.w_gan
+        )
+    }
 }
 
 /// Frames of the held-out episodes spread evenly over them, at most this many.
@@ -218,13 +246,31 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
         "{bar:30} {pos}/{len} steps, {msg} ({per_sec}, {eta} left)",
     );
     let mut draws = Gaussian(args.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5eed);
+    let (checkpoints, arguments) = (&args.checkpointing, args.run_arguments());
+    let mut first_step = 0;
+    if let Some(resumed) = checkpoints.resume("vae-gan", &arguments)? {
+        trainer
+            .load_state(&resumed.state)
+            .map_err(|e| format!("the checkpoint: {e}"))?;
+        (first_step, draws) = (resumed.step, Gaussian(resumed.draw));
+        progress.set_position(first_step as u64);
+        println!("resumed at step {first_step}");
+    }
+    let mut state = vec![
+        0u8;
+        if checkpoints.checkpoint.is_some() {
+            trainer.state_len()
+        } else {
+            0
+        }
+    ];
     let mut batch_frames = vec![0.0; batch * c.frame_len()];
     let (mut eps, mut prior) = (vec![0.0; batch * c.z_dim], vec![0.0; batch * c.z_dim]);
     let started = Instant::now();
     let mut recent = VaeGanLosses::default();
-    let mut done = 0;
+    let mut done = first_step;
     let mut last_psnr = before;
-    for step in 0..args.steps {
+    for step in first_step..args.steps {
         if args.minutes.is_some_and(|m| started.elapsed().as_secs_f64() > 60.0 * m) {
             progress.println(format!("--minutes reached after {step} steps"));
             break;
@@ -237,7 +283,11 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
         let losses = trainer
             .step(&batch_frames, &eps, &prior, args.lr)
             .map_err(|e| format!("step {step}: {e}"))?;
-        recent = if step == 0 { losses } else { smooth(recent, losses) };
+        recent = if step == first_step {
+            losses
+        } else {
+            smooth(recent, losses)
+        };
         done = step + 1;
         progress.set_message(format!(
             "D {:.3} GAN {:.3} feature {:.3} L1 {:.4} KL {:.3}, held-out {last_psnr:.2} dB",
@@ -247,6 +297,10 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
         if ((step + 1) as u64).is_multiple_of(args.every) {
             last_psnr = psnr(&save(&trainer)?, &picked, threads)?.0;
         }
+        if checkpoints.due(step + 1, args.steps) {
+            trainer.save_state(&mut state).map_err(|e| e.to_string())?;
+            checkpoints.save("vae-gan", &arguments, step + 1, draws.0, &state)?;
+        }
     }
     progress.finish_and_clear();
     let seconds = started.elapsed().as_secs_f64();
@@ -255,7 +309,7 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
     println!(
         "{done} steps of {batch} frames in {seconds:.0} s ({:.2} steps/s); losses at the end: D {:.3}, GAN {:.3}, \
          feature {:.3}, pixel L1 {:.4}, KL {:.3}",
-        done as f64 / seconds,
+        (done - first_step) as f64 / seconds,
         recent.discriminator,
         recent.gan,
         recent.feature,

@@ -25,6 +25,7 @@ mod adam;
 mod arena;
 mod policy;
 mod shared;
+mod state;
 mod transition;
 mod vae_gan;
 

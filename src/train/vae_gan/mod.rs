@@ -20,7 +20,8 @@
 //! [`VaeGanPlan`] and a step's buffers), `networks` (the tensors' table, the networks built),
 //! `layers` (packed convolutions and dense layers), `stack` (a convolution stack's forward and
 //! backward passes), `norm` (BatchNorm's training passes), `loss` (the losses' building blocks),
-//! `step` (one step, top to bottom) and `update` (the gradients checked, Adam, the repacking).
+//! `step` (one step, top to bottom), `update` (the gradients checked, Adam, the repacking) and
+//! `state` (the trainer's state as bytes, for checkpoints).
 
 // Passes are lists of item ranges, each a batch of its own for BatchNorm: often just one.
 #![allow(clippy::single_range_in_vec_init)]
@@ -31,6 +32,7 @@ mod networks;
 mod norm;
 mod plan;
 mod stack;
+mod state;
 mod step;
 mod trainer;
 mod update;

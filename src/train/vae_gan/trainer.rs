@@ -113,12 +113,12 @@ pub struct VaeGanLosses {
 /// # Ok::<(), drivesim::Error>(())
 /// ```
 pub struct VaeGanTrainer {
-    config: Config,
+    pub(super) config: Config,
     settings: VaeGanSettings,
-    isa: Isa,
-    pool: Option<Pool>,
-    steps: u32,
-    parts: Networks,
+    pub(super) isa: Isa,
+    pub(super) pool: Option<Pool>,
+    pub(super) steps: u32,
+    pub(super) parts: Networks,
 }
 
 impl VaeGanTrainer {
