@@ -28,30 +28,43 @@ pub struct Checkpointing {
 }
 
 /// Where a resumed run goes on from.
-pub struct Resumed {
-    pub step: usize,
-    pub draw: u64,
-    pub state: Vec<u8>,
+struct Resumed {
+    step: usize,
+    draw: u64,
+    state: Vec<u8>,
 }
 
 impl Checkpointing {
-    /// No checkpoints (`fit`'s stages: it has no `--checkpoint` of its own yet).
-    pub fn none() -> Checkpointing {
-        Checkpointing {
-            checkpoint: None,
-            checkpoint_every: 500,
-            resume: false,
-        }
-    }
-
     /// Whether a checkpoint is due after `done` of `steps` steps (not after the last: `--out` is).
     pub fn due(&self, done: usize, steps: usize) -> bool {
         self.checkpoint.is_some() && done < steps && done.is_multiple_of(self.checkpoint_every as usize)
     }
 
+    /// Where `command`'s run goes on from: with `--resume` and a checkpoint there (of the same
+    /// command and `arguments`), `load` gets the trainer's state and this returns the steps done
+    /// and the data order's generator state; `None` starts afresh.
+    pub fn restore(
+        &self,
+        command: &str,
+        arguments: &str,
+        load: impl FnOnce(&[u8]) -> Result<(), drivesim::Error>,
+    ) -> Result<Option<(usize, u64)>, String> {
+        let Some(resumed) = self.resume(command, arguments)? else {
+            return Ok(None);
+        };
+        load(&resumed.state).map_err(|e| format!("the checkpoint: {e}"))?;
+        println!("resumed at step {}", resumed.step);
+        Ok(Some((resumed.step, resumed.draw)))
+    }
+
+    /// Room for a trainer's state of `len` bytes, where there are checkpoints to write.
+    pub fn buffer(&self, len: usize) -> Vec<u8> {
+        vec![0; if self.checkpoint.is_some() { len } else { 0 }]
+    }
+
     /// The checkpoint to resume from: with `--resume` and a file there, it must be `command`'s
     /// with the same `arguments`.
-    pub fn resume(&self, command: &str, arguments: &str) -> Result<Option<Resumed>, String> {
+    fn resume(&self, command: &str, arguments: &str) -> Result<Option<Resumed>, String> {
         let Some(path) = self.checkpoint.as_ref().filter(|p| self.resume && p.exists()) else {
             return Ok(None);
         };

@@ -43,6 +43,18 @@ pub struct FitArgs {
     /// Dtype of the written file (default: the input file's)
     #[arg(long)]
     dtype: Option<DtypeArg>,
+    #[command(flatten)]
+    checkpointing: Checkpointing,
+}
+
+/// Each stage's checkpoints: `CKPT.vae-gan` and `CKPT.transition`. A resumed `fit` runs the
+/// VAE-GAN stage again from its last checkpoint (at most `--checkpoint-every` steps again, to
+/// the same autoencoder), then goes on with the transition's.
+fn stage(c: &Checkpointing, name: &str) -> Checkpointing {
+    Checkpointing {
+        checkpoint: c.checkpoint.as_ref().map(|p| p.with_extension(name)),
+        ..c.clone()
+    }
 }
 
 /// `fit`: the VAE-GAN stage into OUT.autoencoder.safetensors (f32), then the transition from it.
@@ -68,7 +80,7 @@ pub fn fit(args: &FitArgs) -> Result<(), String> {
         w_feature: defaults.feature,
         w_kl: defaults.kl,
         w_gan: defaults.gan,
-        checkpointing: Checkpointing::none(),
+        checkpointing: stage(&args.checkpointing, "vae-gan"),
     })?;
     transition(&TransitionArgs {
         data: Data {
@@ -85,6 +97,6 @@ pub fn fit(args: &FitArgs) -> Result<(), String> {
         restart: args.from_scratch,
         dtype: args.dtype,
         seed: args.seed,
-        checkpointing: Checkpointing::none(),
+        checkpointing: stage(&args.checkpointing, "transition"),
     })
 }

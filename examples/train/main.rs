@@ -3,14 +3,14 @@
 //! ```text
 //! cargo run --release --features train --example train -- transition \
 //!     --weights weights/default.safetensors --episodes DATA.safetensors.gz --out tuned.safetensors \
-//!     [--heldout HELDOUT.safetensors.gz] [--steps 2000] [--batch 64] [--lr 1e-3] [--threads 2] [--full-bptt] \
-//!     [--checkpoint CKPT [--checkpoint-every 500] [--resume]]
+//!     [--heldout HELDOUT.safetensors.gz] [--steps 2000] [--batch 64] [--lr 1e-3] [--threads 2] [--full-bptt]
 //! cargo run --release --features train --example train -- vae-gan \
 //!     --weights weights/default.safetensors --episodes DATA.safetensors.gz --out tuned.safetensors \
 //!     [--heldout HELDOUT.safetensors.gz] [--steps 1000] [--batch 32] [--threads 2] [--minutes 20] \
 //!     [--every 200] [--sheet sheet.png] [--from-scratch] [--w-pixel 1 --w-feature 0.1 --w-kl 0.001 --w-gan 0.01]
 //! cargo run --release --features train --example train -- fit --weights W --episodes DATA \
 //!     --out model.safetensors [--from-scratch] [--vae-steps 1000] [--transition-steps 2000] [--threads 2]
+//!     (transition, vae-gan, fit: [--checkpoint CKPT [--checkpoint-every 500] [--resume]])
 //! cargo run --release --features train --example train -- policy --weights W --episodes DATA \
 //!     --out model.safetensors [--steps 4000] [--batch 256] [--lr 1e-3] [--width 64] [--lead 1] [--no-mirror]
 //! cargo run --release --features train --example train -- step --stage transition|vae-gan \

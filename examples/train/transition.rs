@@ -273,22 +273,11 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
     let mut draw = Draw(args.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
     let (checkpoints, arguments) = (&args.checkpointing, args.run_arguments());
     let mut first_step = 0;
-    if let Some(resumed) = checkpoints.resume("transition", &arguments)? {
-        trainer
-            .load_state(&resumed.state)
-            .map_err(|e| format!("the checkpoint: {e}"))?;
-        (first_step, draw) = (resumed.step, Draw(resumed.draw));
-        progress.set_position(first_step as u64);
-        println!("resumed at step {first_step}");
+    if let Some((step, state)) = checkpoints.restore("transition", &arguments, |s| trainer.load_state(s))? {
+        (first_step, draw) = (step, Draw(state));
+        progress.set_position(step as u64);
     }
-    let mut state = vec![
-        0u8;
-        if checkpoints.checkpoint.is_some() {
-            trainer.state_len()
-        } else {
-            0
-        }
-    ];
+    let mut state = checkpoints.buffer(trainer.state_len());
     let (mut codes, mut actions) = (Vec::new(), Vec::new());
     let mut picked = vec![(0, 0); batch];
     let start = Instant::now();

@@ -248,22 +248,11 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
     let mut draws = Gaussian(args.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5eed);
     let (checkpoints, arguments) = (&args.checkpointing, args.run_arguments());
     let mut first_step = 0;
-    if let Some(resumed) = checkpoints.resume("vae-gan", &arguments)? {
-        trainer
-            .load_state(&resumed.state)
-            .map_err(|e| format!("the checkpoint: {e}"))?;
-        (first_step, draws) = (resumed.step, Gaussian(resumed.draw));
-        progress.set_position(first_step as u64);
-        println!("resumed at step {first_step}");
+    if let Some((step, state)) = checkpoints.restore("vae-gan", &arguments, |s| trainer.load_state(s))? {
+        (first_step, draws) = (step, Gaussian(state));
+        progress.set_position(step as u64);
     }
-    let mut state = vec![
-        0u8;
-        if checkpoints.checkpoint.is_some() {
-            trainer.state_len()
-        } else {
-            0
-        }
-    ];
+    let mut state = checkpoints.buffer(trainer.state_len());
     let mut batch_frames = vec![0.0; batch * c.frame_len()];
     let (mut eps, mut prior) = (vec![0.0; batch * c.z_dim], vec![0.0; batch * c.z_dim]);
     let started = Instant::now();

@@ -37,6 +37,17 @@ def speed_control(speed: float, target: float) -> tuple[float, float]:
     return gas, brake
 
 
+def warmup_action(agent, speed: float) -> Optional[np.ndarray]:
+    """Counts the agent's decision; while there have been at most ``agent.warmup`` (the env's
+    first second, its camera zooming in: frames unlike anything the models saw), the action
+    that drives straight at 25 units/s, else None."""
+    agent.decisions += 1
+    if agent.decisions > agent.warmup:
+        return None
+    gas, brake = speed_control(speed, 25.0)
+    return np.array([0.0, gas, brake], np.float32)
+
+
 def proportional_steering(road: np.ndarray) -> float:
     """Steering toward the road's centre as measured in the near and middle bands (pixels;
     positive: road to the right, so steer right)."""
@@ -82,10 +93,9 @@ class ReactiveAgent:
         self.decisions = 0
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
-        self.decisions += 1
-        if self.decisions <= self.warmup:
-            gas, brake = speed_control(speed, 25.0)
-            return np.array([0.0, gas, brake], np.float32)
+        warming_up = warmup_action(self, speed)
+        if warming_up is not None:
+            return warming_up
         road = measure(frame[None])[0]
         gas, brake = speed_control(speed, target_speed(road, self.max_speed, frame.shape[1] / 2))
         return np.array([proportional_steering(road), gas, brake], np.float32)
@@ -118,10 +128,9 @@ class ClonedAgent:
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
         """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
-        self.decisions += 1
-        if self.decisions <= self.warmup:
-            gas, brake = speed_control(speed, 25.0)
-            return np.array([0.0, gas, brake], np.float32)
+        warming_up = warmup_action(self, speed)
+        if warming_up is not None:
+            return warming_up
         z = self.sim.encode(frame)
         target, steer = (float(v) for v in self.sim.act(z, self.h))
         steer = float(np.clip(steer, -1.0, 1.0))
@@ -252,10 +261,9 @@ class MPCAgent:
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
         """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
-        self.decisions += 1
-        if self.decisions <= self.warmup:
-            gas, brake = speed_control(speed, 25.0)
-            return np.array([0.0, gas, brake], np.float32)
+        warming_up = warmup_action(self, speed)
+        if warming_up is not None:
+            return warming_up
         z = self.sim.encode(frame)
         h = self._hidden(z)
         # Offset-free MPC: the dream's road is corrected by what it gets wrong now (the road
