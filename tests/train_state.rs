@@ -5,8 +5,9 @@
 mod common;
 
 use common::values;
-use drivesim::train::{TransitionPlan, TransitionSettings, TransitionTrainer};
+use drivesim::train::{NamedTensor, TransitionPlan, TransitionSettings, TransitionTrainer};
 use drivesim::{Config, Error, Model, WeightDtype};
+use std::ops::Range;
 
 const CONFIG: Config = Config {
     z_dim: 12,
@@ -36,38 +37,86 @@ fn batch(step: u64) -> (Vec<f32>, Vec<f32>) {
     (codes, actions)
 }
 
-fn run(t: &mut TransitionTrainer<'_>, steps: std::ops::Range<u64>) {
+fn run(t: &mut TransitionTrainer<'_>, steps: Range<u64>) {
     for step in steps {
         let (codes, actions) = batch(step);
         t.step(&codes, &actions, 1e-2 * (1.0 - step as f32 / 10.0)).unwrap();
     }
 }
 
-fn bits(t: &TransitionTrainer<'_>) -> Vec<u32> {
-    t.tensors()
-        .iter()
-        .flat_map(|(_, _, v)| v.iter().map(|x| x.to_bits()))
-        .collect()
+/// What the tests ask of both trainers: their state, steps and tensors.
+trait Resumable {
+    fn state(&self) -> Vec<u8>;
+    fn load(&mut self, state: &[u8]) -> Result<(), Error>;
+    fn taken(&self) -> u32;
+    fn trained(&self) -> Vec<NamedTensor>;
+
+    fn bits(&self) -> Vec<u32> {
+        self.trained()
+            .iter()
+            .flat_map(|(_, _, v)| v.iter().map(|x| x.to_bits()))
+            .collect()
+    }
+}
+
+/// Both trainers have the same methods, not a trait of the crate's.
+macro_rules! resumable {
+    ($trainer:ty) => {
+        impl Resumable for $trainer {
+            fn state(&self) -> Vec<u8> {
+                let mut out = vec![0u8; self.state_len()];
+                self.save_state(&mut out).unwrap();
+                out
+            }
+            fn load(&mut self, state: &[u8]) -> Result<(), Error> {
+                self.load_state(state)
+            }
+            fn taken(&self) -> u32 {
+                self.steps()
+            }
+            fn trained(&self) -> Vec<NamedTensor> {
+                self.tensors()
+            }
+        }
+    };
+}
+resumable!(TransitionTrainer<'_>);
+resumable!(drivesim::train::VaeGanTrainer);
+
+fn bits(t: &impl Resumable) -> Vec<u32> {
+    t.bits()
+}
+
+/// `2 n` steps in one go against `n` steps, the state saved, restored in a trainer of another
+/// plan (a larger batch) and two threads, then `n` more: the same bits, the same step count.
+/// Returns the state saved.
+fn resumes_bit_for_bit<T: Resumable>(make: impl Fn(bool) -> T, run: impl Fn(&mut T, Range<u64>), n: u64) -> Vec<u8> {
+    let mut whole = make(false);
+    run(&mut whole, 0..2 * n);
+    let mut first = make(false);
+    run(&mut first, 0..n);
+    let state = first.state();
+    drop(first);
+    let mut second = make(true);
+    second.load(&state).unwrap();
+    assert_eq!(second.taken(), n as u32);
+    run(&mut second, n..2 * n);
+    assert_eq!(second.bits(), whole.bits());
+    assert_eq!(second.taken(), whole.taken());
+    state
 }
 
 #[test]
 fn a_restored_run_goes_on_bit_for_bit() {
     let model = Model::random(&CONFIG, 4, WeightDtype::F32).unwrap();
-    let mut whole = trainer(&model, 4, 1);
-    run(&mut whole, 0..6);
-
-    let mut first = trainer(&model, 4, 1);
-    run(&mut first, 0..3);
-    let mut state = vec![0u8; first.state_len()];
-    first.save_state(&mut state).unwrap();
-    drop(first);
-    // Another plan (a larger batch) and two threads: the state is the run's, not the plan's.
-    let mut second = trainer(&model, 8, 2);
-    second.load_state(&state).unwrap();
-    assert_eq!(second.steps(), 3);
-    run(&mut second, 3..6);
-    assert_eq!(bits(&second), bits(&whole));
-    assert_eq!(second.steps(), whole.steps());
+    let other = |other: bool| {
+        if other {
+            trainer(&model, 8, 2)
+        } else {
+            trainer(&model, 4, 1)
+        }
+    };
+    resumes_bit_for_bit(other, run, 3);
 }
 
 #[test]
@@ -129,7 +178,7 @@ fn the_written_file_is_the_same_bytes_every_time() {
 }
 
 mod vae_gan {
-    use super::values;
+    use super::{bits, resumes_bit_for_bit, values};
     use drivesim::train::{random_weight_file, VaeGanPlan, VaeGanSettings, VaeGanTrainer};
     use drivesim::{Config, Error};
 
@@ -158,28 +207,17 @@ mod vae_gan {
         }
     }
 
-    fn bits(t: &VaeGanTrainer) -> Vec<u32> {
-        t.tensors()
-            .iter()
-            .flat_map(|(_, _, v)| v.iter().map(|x| x.to_bits()))
-            .collect()
-    }
-
     #[test]
     fn a_restored_run_goes_on_bit_for_bit() {
         let file = random_weight_file(&SMALL, 9).unwrap();
-        let mut whole = trainer(&file, 2, 1);
-        run(&mut whole, 0..4);
-        let mut first = trainer(&file, 2, 1);
-        run(&mut first, 0..2);
-        let mut state = vec![0u8; first.state_len()];
-        first.save_state(&mut state).unwrap();
-        drop(first);
-        let mut second = trainer(&file, 3, 2);
-        second.load_state(&state).unwrap();
-        assert_eq!(second.steps(), 2);
-        run(&mut second, 2..4);
-        assert_eq!(bits(&second), bits(&whole));
+        let other = |other: bool| {
+            if other {
+                trainer(&file, 3, 2)
+            } else {
+                trainer(&file, 2, 1)
+            }
+        };
+        let state = resumes_bit_for_bit(other, run, 2);
 
         let mut nan = state.clone();
         let at = nan.len() - 4;
