@@ -11,7 +11,8 @@ import tempfile
 def atomic_write(path: str | os.PathLike):
     """Yields a binary file in ``path``'s directory; when the block ends without an error it is
     flushed to disk and renamed over ``path`` (then the directory is synced). On an error the
-    temporary file is removed and ``path`` is left as it was."""
+    temporary file is removed and ``path`` is left as it was; an ``OSError`` (a full disk, a
+    missing directory) is raised again naming ``path``."""
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix="-" + os.path.basename(path))
@@ -24,9 +25,11 @@ def atomic_write(path: str | os.PathLike):
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # as open() would have made it (mkstemp makes 0600)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and e.filename is None:
+            raise OSError(e.errno, f"cannot write {path}: {e.strerror or e}") from e
         raise
     with contextlib.suppress(OSError):
         dir_fd = os.open(directory, os.O_RDONLY)
