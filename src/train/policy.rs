@@ -18,7 +18,6 @@ use crate::policy::Policy;
 use crate::pool::Exec;
 use crate::weights::{RandomSource, WeightDtype};
 use crate::{Config, Error, Model, Result};
-use alloc::format;
 use alloc::string::ToString;
 use alloc::vec;
 use alloc::vec::Vec;
@@ -313,7 +312,7 @@ impl PolicyTrainer {
         let (config, ..) = crate::weights::SafetensorsSource::parse(original)?;
         if config != self.config {
             return Err(Error::Metadata {
-                reason: format!("the file's config is {config:?}, the trainer's {:?}", self.config),
+                reason: alloc::format!("the file's config is {config:?}, the trainer's {:?}", self.config),
             });
         }
         // The file's own policy goes, whatever its width.
