@@ -300,14 +300,14 @@ def difference(k, x, y, old, new, lr):
     twin = "f64." + k
     if twin in new:
         exact = new[twin].double()
-        if k.startswith("grad.") and k.endswith(".bias") and BEFORE_NORM.search(k):
+        if k.startswith("grad.") and BEFORE_NORM.search(k):
             scale = new["f64." + k.removesuffix(".bias") + ".weight"].double().abs().max().item()
             worst = max(y.abs().max().item(), exact.abs().max().item())
             return f"{worst:.3g}, not rounding's zero (weights' gradient {scale:.3g})" if worst > 1e-5 * scale else None
         grad = new.get("f64.grad." + k)
         if not k.startswith(("grad.", "after5.")) and grad is not None:
             grad = grad.double().abs()
-            undetermined = (grad < 1e-3 * grad.max()) | bool(BEFORE_NORM.search("." + k))
+            undetermined = (grad < 1e-3 * grad.max()) | bool(BEFORE_NORM.search(k))
             allowed = 1e-4 * exact.abs().max() + 2 * lr * undetermined
             worst = ((y - exact).abs() - allowed).max().item()
             return f"{worst:.3g} past the one step's bound" if worst > 0 else None

@@ -27,34 +27,10 @@ pub struct Checkpointing {
     pub resume: bool,
 }
 
-/// Where a resumed run goes on from.
-struct Resumed {
-    step: usize,
-    draw: u64,
-    state: Vec<u8>,
-}
-
 impl Checkpointing {
     /// Whether a checkpoint is due after `done` of `steps` steps (not after the last: `--out` is).
     pub fn due(&self, done: usize, steps: usize) -> bool {
         self.checkpoint.is_some() && done < steps && done.is_multiple_of(self.checkpoint_every as usize)
-    }
-
-    /// Where `command`'s run goes on from: with `--resume` and a checkpoint there (of the same
-    /// command and `arguments`), `load` gets the trainer's state and this returns the steps done
-    /// and the data order's generator state; `None` starts afresh.
-    pub fn restore(
-        &self,
-        command: &str,
-        arguments: &str,
-        load: impl FnOnce(&[u8]) -> Result<(), drivesim::Error>,
-    ) -> Result<Option<(usize, u64)>, String> {
-        let Some(resumed) = self.resume(command, arguments)? else {
-            return Ok(None);
-        };
-        load(&resumed.state).map_err(|e| format!("the checkpoint: {e}"))?;
-        println!("resumed at step {}", resumed.step);
-        Ok(Some((resumed.step, resumed.draw)))
     }
 
     /// Room for a trainer's state of `len` bytes, where there are checkpoints to write.
@@ -62,9 +38,15 @@ impl Checkpointing {
         vec![0; if self.checkpoint.is_some() { len } else { 0 }]
     }
 
-    /// The checkpoint to resume from: with `--resume` and a file there, it must be `command`'s
-    /// with the same `arguments`.
-    fn resume(&self, command: &str, arguments: &str) -> Result<Option<Resumed>, String> {
+    /// Where `command`'s run goes on from: with `--resume` and a checkpoint there (it must be
+    /// `command`'s, with the same `arguments`), `load` gets the trainer's state and this returns
+    /// the steps done and the data order's generator state; `None` starts afresh.
+    pub fn restore(
+        &self,
+        command: &str,
+        arguments: &str,
+        load: impl FnOnce(&[u8]) -> Result<(), drivesim::Error>,
+    ) -> Result<Option<(usize, u64)>, String> {
         let Some(path) = self.checkpoint.as_ref().filter(|p| self.resume && p.exists()) else {
             return Ok(None);
         };
@@ -94,11 +76,9 @@ impl Checkpointing {
             .ok_or_else(|| bad("`step` is not a count".into()))? as usize;
         let draw = field("draw")?.as_str().and_then(|s| s.parse().ok());
         let draw = draw.ok_or_else(|| bad("`draw` is not a decimal u64".into()))?;
-        Ok(Some(Resumed {
-            step,
-            draw,
-            state: bytes[12 + len..].to_vec(),
-        }))
+        load(&bytes[12 + len..]).map_err(|e| bad(e.to_string()))?;
+        println!("resumed at step {step}");
+        Ok(Some((step, draw)))
     }
 
     /// Writes the checkpoint after `step` steps.

@@ -50,16 +50,6 @@ impl Default for PolicySettings {
     }
 }
 
-/// The floats of each buffer of the trainer's block, in order.
-struct Lens {
-    /// Parameters, gradients and Adam's two moments, each `[W1 | b1 | W2 | b2]` (weights packed).
-    params: usize,
-    /// A batch's hidden activations and their gradient.
-    hidden: usize,
-    /// A batch's outputs and their gradient.
-    out: usize,
-}
-
 /// Trains a model's policy by behavioural cloning (see the module's documentation).
 pub struct PolicyTrainer {
     config: Config,
@@ -67,8 +57,10 @@ pub struct PolicyTrainer {
     batch: usize,
     adam: Adam,
     isa: Isa,
-    lens: Lens,
-    /// Parameters, gradients, moments, hidden, hidden gradient, outputs, output gradient.
+    /// The floats of each buffer of `memory`, in order: parameters, gradients and Adam's two
+    /// moments (each `[W1 | b1 | W2 | b2]`, weights packed), a batch's hidden activations and
+    /// their gradient, its outputs and their gradient.
+    lens: [usize; 8],
     memory: Memory<'static>,
     /// Each action's mean and standard deviation: the outputs are trained in these units.
     mean: Vec<f32>,
@@ -117,24 +109,10 @@ impl PolicyTrainer {
                 bytes: None,
             })
         };
-        let lens = Lens {
-            params: Matrix::packed_len(width, cols) + width + Matrix::packed_len(a, width) + a,
-            hidden: per_batch(width)?,
-            out: per_batch(a)?,
-        };
-        let floats = super::arena::total(
-            &[
-                lens.params,
-                lens.params,
-                lens.params,
-                lens.params,
-                lens.hidden,
-                lens.hidden,
-                lens.out,
-                lens.out,
-            ],
-            "the policy trainer's memory",
-        )?;
+        let params = Matrix::packed_len(width, cols) + width + Matrix::packed_len(a, width) + a;
+        let (hidden, out) = (per_batch(width)?, per_batch(a)?);
+        let lens = [params, params, params, params, hidden, hidden, out, out];
+        let floats = super::arena::total(&lens, "the policy trainer's memory")?;
         let bytes = super::arena::bytes_of(floats, "the policy trainer's memory")?;
         let mut trainer = PolicyTrainer {
             config,
@@ -156,7 +134,7 @@ impl PolicyTrainer {
     fn start_from(&mut self, policy: &Policy) {
         let (hidden, output) = policy.layers();
         let (mean, std) = (self.mean.clone(), self.std.clone());
-        let (lens, width, params) = (self.param_lens(), self.width, self.lens.params);
+        let (lens, width, params) = (self.param_lens(), self.width, self.lens[0]);
         let [w1, b1, w2, b2] = cut(&mut self.memory.floats()[..params], &lens);
         copy_packed(hidden.matrix().data, w1);
         b1.copy_from_slice(&hidden.bias);
@@ -197,7 +175,7 @@ impl PolicyTrainer {
         super::shared::check_lr("lr", lr)?;
         let loss = self.forward_backward(inputs, actions, true)?;
         self.steps += 1;
-        let lens = self.block_lens();
+        let lens = self.lens;
         let [params, grads, m, v, ..] = cut(self.memory.floats(), &lens);
         self.adam.update(self.steps, lr, 1.0, params, grads, [m, v]);
         Ok(loss)
@@ -206,11 +184,6 @@ impl PolicyTrainer {
     /// The loss on a batch of examples, as [`PolicyTrainer::step`] measures it, without a step.
     pub fn loss(&mut self, inputs: &[f32], actions: &[f32]) -> Result<f32> {
         self.forward_backward(inputs, actions, false)
-    }
-
-    fn block_lens(&self) -> [usize; 8] {
-        let Lens { params, hidden, out } = self.lens;
-        [params, params, params, params, hidden, hidden, out, out]
     }
 
     /// The forward pass and its loss, then (with `gradients`) every parameter's gradient.
@@ -235,8 +208,7 @@ impl PolicyTrainer {
             pool: None,
         };
         let (mean, std) = (&self.mean, &self.std);
-        let lens = self.block_lens();
-        let param_lens = self.param_lens();
+        let (lens, param_lens) = (self.lens, self.param_lens());
         let [params, grads, _, _, hidden, dhidden, out, dout] = cut(self.memory.floats(), &lens);
         let [w1, b1, w2, b2] = cut_ref(params, &param_lens);
         let matrix = |w, rows, cols| Matrix {
@@ -281,7 +253,7 @@ impl PolicyTrainer {
             self.config.action_dim,
             self.width,
         );
-        let [w1, b1, w2, b2] = cut_ref(&self.memory.floats_ref()[..self.lens.params], &self.param_lens());
+        let [w1, b1, w2, b2] = cut_ref(&self.memory.floats_ref()[..self.lens[0]], &self.param_lens());
         let unpack = |w: &[f32], rows, cols, scale: &dyn Fn(usize) -> f32| -> Vec<f32> {
             (0..rows * cols)
                 .map(|i| scale(i / cols) * w[Matrix::packed_index(i / cols, i % cols, cols)])
