@@ -47,6 +47,9 @@ impl Checkpointing {
         arguments: &str,
         load: impl FnOnce(&[u8]) -> Result<(), drivesim::Error>,
     ) -> Result<Option<(usize, u64)>, String> {
+        if let Some(path) = &self.checkpoint {
+            crate::files::remove_leftover(path);
+        }
         let Some(path) = self.checkpoint.as_ref().filter(|p| self.resume && p.exists()) else {
             return Ok(None);
         };

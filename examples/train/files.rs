@@ -2,21 +2,40 @@
 //! files.
 
 use safetensors::{Dtype, SafeTensors};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-/// Writes `bytes` to `path` so that a crash or a full disk never leaves it half written: a
-/// temporary file beside it, flushed to disk, renamed over it, the directory flushed. On failure
-/// the old file is as it was and the temporary one is removed.
-pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), String> {
-    let fail = |e: std::io::Error| format!("cannot write {}: {e}", path.display());
-    let dir = match path.parent() {
+/// The directory `path` is in.
+fn directory(path: &Path) -> &Path {
+    match path.parent() {
         Some(dir) if !dir.as_os_str().is_empty() => dir,
         _ => Path::new("."),
-    };
+    }
+}
+
+/// The temporary file `write_atomically` writes `path` through: `.NAME.tmp` beside it, one name,
+/// so that the next save of `path` replaces what a killed one left there.
+fn temporary(path: &Path) -> Result<PathBuf, String> {
     let name = path
         .file_name()
         .ok_or_else(|| format!("cannot write {}: not a file name", path.display()))?;
-    let temporary = dir.join(format!(".{}.{}.tmp", name.to_string_lossy(), std::process::id()));
+    Ok(directory(path).join(format!(".{}.tmp", name.to_string_lossy())))
+}
+
+/// Removes the temporary file a save of `path` killed mid-write left behind, if any (a run's
+/// start: its last save may never come again).
+pub fn remove_leftover(path: &Path) {
+    if let Ok(temporary) = temporary(path) {
+        let _ = std::fs::remove_file(temporary);
+    }
+}
+
+/// Writes `bytes` to `path` so that a crash or a full disk never leaves it half written: a
+/// temporary file beside it, flushed to disk, renamed over it, the directory flushed. On failure
+/// the old file is as it was and the temporary one is removed. (A kill mid-write leaves the
+/// temporary file; the next save, or [`remove_leftover`], removes it.)
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), String> {
+    let fail = |e: std::io::Error| format!("cannot write {}: {e}", path.display());
+    let (dir, temporary) = (directory(path), temporary(path)?);
     let written = (|| {
         let mut file = std::fs::File::create(&temporary)?;
         std::io::Write::write_all(&mut file, bytes)?;
