@@ -1,6 +1,6 @@
 //! The VAE-GAN trainer (`--features train`) against PyTorch: `weights/fixtures.py` wrote
 //! `NAME.gan.safetensors` (weights with a discriminator) and `NAME.gan.io.safetensors` (a batch,
-//! `weights/train.py`'s `vae_gan_step` losses, gradients and updated tensors, and the tensors
+//! `weights/vae_gan.py`'s `vae_gan_step` losses, gradients and updated tensors, and the tensors
 //! after five steps on the batch).
 #![cfg(feature = "train")]
 

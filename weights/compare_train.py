@@ -53,7 +53,7 @@ def config(name: str) -> Config:
 
 
 class TorchStep:
-    """train.py's step of `stage` on random data, per (config, batch), made once."""
+    """The reference's step of `stage` on random data, per (config, batch), made once."""
 
     def __init__(self, stage: str):
         self.stage = stage
@@ -67,7 +67,7 @@ class TorchStep:
 
     @staticmethod
     def transition(name: str, batch: int):
-        from train import transition_step
+        from sequences import transition_step
 
         tr = Transition(config(name))
         opt = torch.optim.Adam(tr.parameters(), lr=1e-4)
@@ -77,7 +77,7 @@ class TorchStep:
 
     @staticmethod
     def vae_gan(name: str, batch: int):
-        from train import ADAM_VAE_GAN, Discriminator, vae_gan_step
+        from vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
 
         cfg = config(name)
         model, dis = DriveSim(cfg).train(), Discriminator(cfg).train()

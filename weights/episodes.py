@@ -96,6 +96,20 @@ def validate(frames, actions, starts):
     need(starts[-1] < len(frames), "an episode starts past the last frame")
 
 
+def sort_metadata(blob: bytes) -> bytes:
+    """A safetensors file's bytes with its header's `__metadata__` in key order. safetensors
+    writes it in a hash map's order, which changes from one save to the next: sorted, the same
+    tensors and metadata are the same bytes (the crate's `weights::sort_metadata` is the twin)."""
+    n = int.from_bytes(blob[:8], "little")
+    header = json.loads(blob[8:8 + n])  # dicts keep the tensors' order
+    if "__metadata__" not in header:
+        return blob
+    header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
+    text = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode()
+    assert len(text) <= n, "the same header, reordered, is no longer"
+    return blob[:8] + text.ljust(n) + blob[8 + n:]
+
+
 def write(path, episodes, metadata=None):
     """Save episodes; a path ending in .gz is gzipped. metadata: optional str->str header dict.
     Atomic: a temporary file beside `path`, flushed to disk and renamed over it, so a crash or a
@@ -108,9 +122,10 @@ def write(path, episodes, metadata=None):
         },
         metadata=metadata,
     )
+    blob = sort_metadata(blob)
     path = Path(path)
     if path.suffix == ".gz":
-        blob = gzip.compress(blob, compresslevel=6)
+        blob = gzip.compress(blob, compresslevel=6, mtime=0)  # no time stamp: the same data, the same bytes
     with _files.atomic_write(path) as f:
         f.write(blob)
 

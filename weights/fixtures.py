@@ -7,7 +7,7 @@ For each fixture NAME this writes NAME.safetensors (random weights in the
 drivesim format), NAME.io.safetensors (float32 inputs and reference outputs,
 frames HWC) and NAME.train.safetensors (a batch of transition training windows,
 the first step's loss, gradients and updated tensors, and the tensors after ten
-steps, from train.py's step); for some, NAME.gan.safetensors (the weights with a
+steps, from reference_step.py's); for some, NAME.gan.safetensors (the weights with a
 discriminator) and NAME.gan.io.safetensors (a VAE-GAN batch, the first step's
 losses, gradients and updated tensors, and the tensors after five steps). See
 weights/README.md for the tensor names.
@@ -26,7 +26,8 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from model import CONFIG_KEY, Config, DriveSim, load_discriminator, load_drivesim, save_drivesim
-from train import ADAM_VAE_GAN, Discriminator, transition_step, vae_gan_step
+from sequences import transition_step
+from vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
 
 OUT = Path(__file__).resolve().parent.parent / "tests" / "fixtures"
 RTOL = 1e-6

@@ -15,19 +15,20 @@ from pathlib import Path
 
 import torch
 from safetensors import safe_open
+from torch import nn
 from safetensors.torch import load_file, save
 
 import package
+from episodes import sort_metadata
 
 _files = package.load("_files.py")
-from torch import nn
 
 CONFIG_KEY = "drivesim.config"
 # What each action input means and the range it was trained on: a JSON array of
 # {"name", "unit", "mean", "std", "min", "max"}, one per action (weights/README.md §3).
 ACTIONS_KEY = "drivesim.actions"
 FRAME_HZ_KEY = "drivesim.frame_hz"  # frames per second the model was trained at, e.g. "12.5"
-# A weight file may also carry the VAE-GAN's discriminator (train.py's `Discriminator`) under
+# A weight file may also carry the VAE-GAN's discriminator (vae_gan.py's `Discriminator`) under
 # this prefix, so that training can resume from it; inference ignores those tensors.
 DISCRIMINATOR = "discriminator."
 DTYPES = {"f32": torch.float32, "f16": torch.float16, "bf16": torch.bfloat16}
@@ -231,7 +232,7 @@ def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | t
     if discriminator is not None:
         tensors.update({DISCRIMINATOR + k: v for k, v in state_tensors(discriminator, dtype).items()})
     # Atomic: a crash or a full disk during the save leaves the file that was there whole.
-    blob = save(tensors, metadata=metadata)
+    blob = sort_metadata(save(tensors, metadata=metadata))
     with _files.atomic_write(path) as f:
         f.write(blob)
 

@@ -241,25 +241,26 @@ def test_varied_noise_driver_redraws_its_noise_level():
 
 def test_road_offset_finds_a_grey_band():
     pytest.importorskip("torch")
-    import train
+    import evaluation
 
     frame = np.zeros((80, 160, 3), np.uint8)
     frame[..., 1] = 200  # grass
-    assert train.road_offset(frame) is None
+    assert evaluation.road_offset(frame) is None
     frame[:, 100:120] = 105  # road from column 100 to 119: its centre 29.5 px right of the car
-    assert train.road_offset(frame) == pytest.approx(29.5)
+    assert evaluation.road_offset(frame) == pytest.approx(29.5)
     grass = np.zeros_like(frame)
     grass[..., 1] = 200
     left = grass.copy()
     left[:, 40:60] = 105  # centre 49.5: 30.5 px left of the car
     # Frames without road do not count; the others' offsets are averaged.
-    assert train.mean_offset([frame, grass, left]) == pytest.approx((29.5 - 30.5) / 2)
-    assert train.mean_offset([grass]) is None
+    assert evaluation.mean_offset([frame, grass, left]) == pytest.approx((29.5 - 30.5) / 2)
+    assert evaluation.mean_offset([grass]) is None
 
 
 def test_fit_and_eval_tiny(tmp_path):
     """A few steps of both training phases and the evaluation, on a tiny model and data set."""
     torch = pytest.importorskip("torch")
+    import sequences
     import train
     from model import load_drivesim
 
@@ -290,18 +291,18 @@ def test_fit_and_eval_tiny(tmp_path):
     assert fidelity["psnr_p10_db"] <= fidelity["psnr_db"]
     latent = fidelity["latent"]
     assert latent["windows"] > 0 and latent["ratio_30"] > 0
-    # Step by step, apart from train.predict: the error after k fed-back steps, and over the first k.
-    codes = train.encode(model, torch.from_numpy(data.frames), 256)
+    # Step by step, apart from sequences.predict: the error after k fed-back steps, and over the first k.
+    codes = sequences.encode(model, torch.from_numpy(data.frames), 256)
     acts = torch.from_numpy(data.actions)
     per_step = []
     with torch.no_grad():
-        for s in train.windows(data, train.TEACHER + 30)[::5]:
+        for s in sequences.windows(data, sequences.TEACHER + 30)[::5]:
             h, errs = torch.zeros(1, cfg.hidden_dim), []
-            for t in range(train.TEACHER + 29):
-                if t < train.TEACHER:
+            for t in range(sequences.TEACHER + 29):
+                if t < sequences.TEACHER:
                     z = codes[s + t][None]
                 z, h = model.transition(z, h, acts[s + t][None])
-                if t >= train.TEACHER - 1:
+                if t >= sequences.TEACHER - 1:
                     errs.append(float((z[0] - codes[s + t + 1]).square().mean()))
             per_step.append(errs)
     per_step = np.mean(per_step, axis=0)  # [30]: the error after 1..30 fed-back steps
@@ -316,7 +317,8 @@ def test_action_normalisation_is_folded_into_u_and_b():
     """After training, the transition on raw actions equals the trained one on normalised actions."""
     torch = pytest.importorskip("torch")
     import argparse
-    import train
+    import sequences
+    from checkpoints import Checkpoints
     from model import Config, DriveSim
 
     torch.manual_seed(0)
@@ -325,7 +327,9 @@ def test_action_normalisation_is_folded_into_u_and_b():
     codes = torch.randn(40, 4)
     actions = torch.stack([torch.rand(40) * 30 + 5, torch.rand(40) * 2 - 1], 1)
     args = argparse.Namespace(transition_lr=1e-3, transition_steps=1, transition_batch=4, seed=0, log_every=1)
-    norm = train.train_transition(model, codes, actions, np.arange(0, 40 - train.SEQ + 1), args, [])
+    args = argparse.Namespace(**vars(args), checkpoint=None, checkpoint_every=1, resume=False)
+    starts = np.arange(0, 40 - sequences.SEQ + 1)
+    norm = sequences.train_transition(model, None, codes, actions, starts, args, [], Checkpoints(args, "cpu"))
     mean, std = torch.tensor(norm["action_mean"]), torch.tensor(norm["action_std"])
     tr = model.transition
     z, h, c = torch.randn(3, 4), torch.randn(3, 6), actions[:3]
@@ -354,3 +358,17 @@ def test_a_failed_write_leaves_the_old_file_whole(tmp_path, monkeypatch):
     np.testing.assert_array_equal(back.frames, old.frames)
     np.testing.assert_array_equal(back.episode_starts, old.episode_starts)
     assert [p.name for p in tmp_path.iterdir()] == [path.name]
+
+
+def test_written_files_are_the_same_bytes_for_the_same_data(tmp_path):
+    """safetensors writes its metadata in a hash map's order and gzip a time stamp: a file written
+    twice differed. Sorted and without the stamp, the same episodes are the same bytes."""
+    metadata = {f"key{i}": f"value {i}" for i in range(8)}
+    for name in ("a.safetensors", "b.safetensors", "a.safetensors.gz", "b.safetensors.gz"):
+        episodes.write(tmp_path / name, make_episodes(), metadata)
+    assert (tmp_path / "a.safetensors").read_bytes() == (tmp_path / "b.safetensors").read_bytes()
+    assert (tmp_path / "a.safetensors.gz").read_bytes() == (tmp_path / "b.safetensors.gz").read_bytes()
+    blob = (tmp_path / "a.safetensors").read_bytes()
+    header = json.loads(blob[8:8 + int.from_bytes(blob[:8], "little")])
+    assert list(header["__metadata__"]) == sorted(metadata)
+    assert episodes.metadata(tmp_path / "a.safetensors.gz") == metadata

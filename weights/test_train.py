@@ -12,6 +12,8 @@ from safetensors.torch import load_file, save_file
 
 import episodes
 import train
+from sequences import predict, transition_step
+from vae_gan import Discriminator, vae_gan_step
 from model import Config, DriveSim, save_drivesim
 
 HERE = Path(__file__).resolve().parent
@@ -30,15 +32,15 @@ def test_full_bptt_gradient_matches_finite_differences():
     tr = DriveSim(CFG).transition.double()
     z, c = (t.double() for t in windows())
     opt = torch.optim.SGD(tr.parameters(), lr=0.0)  # the gradients, no update
-    _, grads = train.transition_step(tr, opt, z, c, teacher=2, clip=1e9, detach=False)
+    _, grads = transition_step(tr, opt, z, c, teacher=2, clip=1e9, detach=False)
     eps = 1e-6
     for name, p in tr.named_parameters():
         direction = torch.randn_like(p)
         with torch.no_grad():
             p += eps * direction
-            up = torch.nn.functional.mse_loss(train.predict(tr, z, c, 2), z[:, 1:])
+            up = torch.nn.functional.mse_loss(predict(tr, z, c, 2), z[:, 1:])
             p -= 2 * eps * direction
-            down = torch.nn.functional.mse_loss(train.predict(tr, z, c, 2), z[:, 1:])
+            down = torch.nn.functional.mse_loss(predict(tr, z, c, 2), z[:, 1:])
             p += eps * direction
         numeric = (up - down) / (2 * eps)
         analytic = (grads[name] * direction).sum()
@@ -53,7 +55,7 @@ def test_detach_changes_only_fed_back_gradients():
         torch.manual_seed(1)
         tr = DriveSim(CFG).transition
         opt = torch.optim.SGD(tr.parameters(), lr=0.0)
-        results.append(train.transition_step(tr, opt, z, c, teacher=4, clip=1e9, detach=detach)[1])
+        results.append(transition_step(tr, opt, z, c, teacher=4, clip=1e9, detach=detach)[1])
     # Every input teacher-forced (teacher = T - 1): nothing is fed back, both agree.
     for name in results[0]:
         assert torch.equal(results[0][name], results[1][name]), name
@@ -87,7 +89,7 @@ def gan_files(tmp_path, with_discriminator=True):
     """A small weight file (with a discriminator) and a VAE-GAN batch of uint8 frames."""
     torch.manual_seed(3)
     weights, batch = tmp_path / "w.safetensors", tmp_path / "b.safetensors"
-    dis = train.Discriminator(CFG) if with_discriminator else None
+    dis = Discriminator(CFG) if with_discriminator else None
     save_drivesim(DriveSim(CFG), CFG, weights, "f32", discriminator=dis)
     g = torch.Generator().manual_seed(4)
     frames = torch.randint(0, 256, (4, CFG.height, CFG.width, CFG.channels), generator=g, dtype=torch.uint8)
@@ -101,7 +103,7 @@ def test_vae_gan_step_command_writes_every_tensor(tmp_path):
     out = tmp_path / "o.safetensors"
     train.main(["step", "--stage", "vae-gan", "--weights", str(weights), "--batch", str(batch), "--out", str(out)])
     got = load_file(str(out))
-    model, dis = DriveSim(CFG), train.Discriminator(CFG)
+    model, dis = DriveSim(CFG), Discriminator(CFG)
     params = [f"{net}.{k}" for net, m in (("encoder", model.encoder), ("generator", model.generator),
                                           ("discriminator", dis)) for k, _ in m.named_parameters()]
     stats = [f"{net}.{k}" for net, m in (("encoder", model.encoder), ("generator", model.generator),
@@ -123,14 +125,14 @@ def test_vae_gan_encoder_gradient_is_its_losss_derivative():
     # The encoder's gradient is d(loss_e)/d(encoder), with the GAN term absent: checked by
     # central differences of loss_e in float64 along a random direction.
     torch.manual_seed(5)
-    model, dis = DriveSim(CFG).double().train(), train.Discriminator(CFG).double().train()
+    model, dis = DriveSim(CFG).double().train(), Discriminator(CFG).double().train()
     g = torch.Generator().manual_seed(6)
     x = torch.rand(3, CFG.channels, CFG.height, CFG.width, generator=g, dtype=torch.float64) * 2 - 1
     eps, prior = (torch.randn(3, CFG.z_dim, generator=g, dtype=torch.float64) for _ in range(2))
     state = {k: v.clone() for k, v in model.state_dict().items()}
     dstate = {k: v.clone() for k, v in dis.state_dict().items()}
     opts = [torch.optim.SGD(m.parameters(), lr=0.0) for m in (model.encoder, model.generator, dis)]
-    losses, grads, _ = train.vae_gan_step(model.encoder, model.generator, dis, opts, x, eps, prior)
+    losses, grads, _ = vae_gan_step(model.encoder, model.generator, dis, opts, x, eps, prior)
 
     def loss_e(params):
         """loss_e with the encoder's parameters `params`, everything else as at the start."""
@@ -140,7 +142,7 @@ def test_vae_gan_encoder_gradient_is_its_losss_derivative():
             for p, v in zip(model.encoder.parameters(), params):
                 p.copy_(v)
         zero = [torch.optim.SGD(m.parameters(), lr=0.0) for m in (model.encoder, model.generator, dis)]
-        return train.vae_gan_step(model.encoder, model.generator, dis, zero, x, eps, prior)[0]["e"]
+        return vae_gan_step(model.encoder, model.generator, dis, zero, x, eps, prior)[0]["e"]
 
     base = [p.detach().clone() for p in model.encoder.parameters()]
     direction = [torch.randn_like(p) for p in base]

@@ -7,6 +7,9 @@ import os
 import tempfile
 
 
+TEMPORARY_PREFIX = ".tmp-"
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | os.PathLike):
     """Yields a binary file in ``path``'s directory; when the block ends without an error it is
@@ -15,7 +18,7 @@ def atomic_write(path: str | os.PathLike):
     missing directory) is raised again naming ``path``."""
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix="-" + os.path.basename(path))
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=TEMPORARY_PREFIX, suffix="-" + os.path.basename(path))
     try:
         with os.fdopen(fd, "wb") as f:
             yield f
@@ -37,3 +40,16 @@ def atomic_write(path: str | os.PathLike):
             os.fsync(dir_fd)
         finally:
             os.close(dir_fd)
+
+
+def remove_leftovers(path: str | os.PathLike):
+    """Removes the temporary files that ``atomic_write(path)`` left where a kill interrupted it
+    (``.tmp-*-NAME`` beside ``path``). For a file one process writes, at the start of its run."""
+    path = os.fspath(path)
+    directory, name = os.path.split(os.path.abspath(path))
+    with contextlib.suppress(OSError):
+        for entry in os.listdir(directory):
+            middle = entry[len(TEMPORARY_PREFIX):-len(name) - 1]  # mkstemp's random letters
+            if entry == f"{TEMPORARY_PREFIX}{middle}-{name}" and middle.replace("_", "").isalnum():
+                with contextlib.suppress(OSError):
+                    os.unlink(os.path.join(directory, entry))

@@ -1,0 +1,93 @@
+"""The transition stage: the tanh RNN trained on encoded 15-frame sequences, 5 frames teacher
+forced, then 10 with its own output fed back, gradient stopped (the paper)."""
+
+import json
+import time
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from checkpoints import restore_random
+from distributed import average_gradients, share
+from vae_gan import to_input
+
+SEQ, TEACHER = 15, 5  # transition sequences: 15 frames, the first 5 from the encoder
+
+
+@torch.no_grad()
+def encode(model, frames, batch=512):
+    return torch.cat([model.encoder(to_input(frames[i:i + batch]))[0] for i in range(0, len(frames), batch)])
+
+
+def windows(data, length):
+    """Start indices of every run of `length` frames inside one episode."""
+    return np.concatenate([np.arange(s, e - length + 1) for s, e in data.bounds() if e - s >= length])
+
+
+def predict(transition, z, c, teacher, detach=True):
+    """Run the transition over z [B,T,z] and c [B,T-1,a]: the first `teacher` inputs are the
+    true codes, later ones the model's previous output, detached (the paper) or not (full
+    back-propagation through time). Returns codes 1..T-1."""
+    h = z.new_zeros(len(z), transition.W.shape[0])
+    out = []
+    for t in range(z.shape[1] - 1):
+        if t < teacher:
+            zin = z[:, t]
+        zin, h = transition(zin, h, c[:, t])
+        out.append(zin)
+        if detach:
+            zin = zin.detach()  # no gradient through fed-back outputs
+    return torch.stack(out, 1)
+
+
+def transition_step(tr, opt, z, c, teacher, clip, detach=True):
+    """One training step of the transition `tr` on windows z [B,T,z], c [B,T-1,a]: MSE of
+    the predictions, backward, gradient norm clipped to `clip`, `opt.step()`. Returns the loss
+    and the gradients as computed (before clipping), by parameter name."""
+    loss = F.mse_loss(predict(tr, z, c, teacher, detach), z[:, 1:])
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    average_gradients([p.grad for p in tr.parameters()])
+    grads = {name: p.grad.detach().clone() for name, p in tr.named_parameters()}
+    nn.utils.clip_grad_norm_(tr.parameters(), clip)
+    opt.step()
+    return loss.detach(), grads
+
+
+def train_transition(model, dis, codes, actions, starts, args, log, checkpoints, state=None):
+    """Trains the transition for --transition-steps on windows of the encoded episodes, from
+    the checkpoint `state` where it is one of this stage; then folds the action normalisation
+    into U and b and returns it."""
+    dev = codes.device
+    mean, std = actions.mean(0), actions.std(0).clamp_min(1e-6)
+    norm = (actions - mean) / std
+    tr = model.transition
+    opt = torch.optim.Adam(tr.parameters(), lr=args.transition_lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.transition_steps)
+    rng = np.random.default_rng(args.seed)
+    done = 0
+    if state is not None and state["step"]:
+        opt.load_state_dict(state["optimisers"][0])
+        sched.load_state_dict(state["scheduler"])
+        restore_random(state, windows=rng)
+        done = state["step"]
+    offsets = torch.arange(SEQ, device=dev)
+    start = time.time()
+    for step in range(done + 1, args.transition_steps + 1):
+        idx = share(torch.as_tensor(rng.choice(starts, args.transition_batch), device=dev)[:, None] + offsets)
+        z, c = codes[idx], norm[idx[:, :-1]]
+        loss, _ = transition_step(tr, opt, z, c, TEACHER, 1.0)
+        sched.step()
+        if step % args.log_every == 0 or step == args.transition_steps:
+            entry = dict(phase="transition", step=step, seconds=round(time.time() - start, 1), mse=loss.item())
+            log.append(entry)
+            print(json.dumps(entry), flush=True)
+        if checkpoints.due(step, args.transition_steps):
+            checkpoints.save("transition", step, model, dis, log, [opt], sched, windows=rng)
+    # U c_norm + b = (U / std) c + (b - U mean / std): the exported model takes raw actions.
+    with torch.no_grad():
+        tr.U /= std
+        tr.b -= tr.U @ mean
+    return dict(action_mean=mean.tolist(), action_std=std.tolist())
