@@ -82,6 +82,7 @@ macro_rules! resumable {
 }
 resumable!(TransitionTrainer<'_>);
 resumable!(drivesim::train::VaeGanTrainer);
+resumable!(drivesim::train::PolicyTrainer);
 
 fn bits(t: &impl Resumable) -> Vec<u32> {
     t.bits()
@@ -236,5 +237,68 @@ mod vae_gan {
         )
         .unwrap();
         assert!(matches!(other.load_state(&state), Err(Error::Malformed { .. })));
+    }
+}
+
+mod policy {
+    use super::{bits, resumes_bit_for_bit, values, CONFIG};
+    use drivesim::train::{PolicySettings, PolicyTrainer};
+    use drivesim::{Config, Error, Model, WeightDtype};
+
+    fn trainer(model: &Model, width: usize, batch: usize) -> PolicyTrainer {
+        let settings = PolicySettings {
+            width,
+            batch,
+            restart: Some(2),
+            ..PolicySettings::default()
+        };
+        PolicyTrainer::new(model, settings).unwrap()
+    }
+
+    fn run(t: &mut PolicyTrainer, steps: std::ops::Range<u64>) {
+        let cols = CONFIG.z_dim + CONFIG.hidden_dim;
+        for step in steps {
+            let (inputs, actions) = (values(600 + step, 3 * cols, 1.0), values(700 + step, 6, 2.0));
+            t.step(&inputs, &actions, 1e-2).unwrap();
+        }
+    }
+
+    #[test]
+    fn a_restored_run_goes_on_bit_for_bit() {
+        let model = Model::random(&CONFIG, 6, WeightDtype::F32).unwrap();
+        let state = resumes_bit_for_bit(|other| trainer(&model, 5, if other { 7 } else { 3 }), run, 3);
+
+        let mut fresh = trainer(&model, 5, 3);
+        let before = bits(&fresh);
+        let mut nan = state.clone();
+        let at = nan.len() - 4;
+        nan[at..].copy_from_slice(&f32::INFINITY.to_le_bytes());
+        assert!(matches!(fresh.load_state(&nan), Err(Error::BadWeight { .. })));
+        assert!(matches!(
+            fresh.load_state(&state[..state.len() - 1]),
+            Err(Error::Malformed { .. })
+        ));
+        let mut renamed = state.clone();
+        renamed[0] = b'X';
+        assert!(matches!(fresh.load_state(&renamed), Err(Error::Malformed { .. })));
+        assert_eq!((bits(&fresh), fresh.steps()), (before, 0));
+        // Another width, or another model's sizes: refused.
+        assert!(matches!(
+            trainer(&model, 4, 3).load_state(&state),
+            Err(Error::Malformed { .. })
+        ));
+        let wider = Model::random(
+            &Config {
+                z_dim: CONFIG.z_dim + 1,
+                ..CONFIG
+            },
+            6,
+            WeightDtype::F32,
+        )
+        .unwrap();
+        assert!(matches!(
+            trainer(&wider, 5, 3).load_state(&state),
+            Err(Error::Malformed { .. })
+        ));
     }
 }

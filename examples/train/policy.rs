@@ -4,6 +4,7 @@
 //! later, reports the held-out error before and after, and writes the weights with the policy.
 
 use crate::args::{data_help, Data};
+use crate::checkpoint::Checkpointing;
 use crate::common::{bar, encode_view, Encoded};
 use crate::files::read;
 use clap::Parser;
@@ -48,6 +49,21 @@ pub struct PolicyArgs {
     /// Seed of the new policy's weights and of the order of the examples
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    #[command(flatten)]
+    pub checkpointing: Checkpointing,
+}
+
+impl PolicyArgs {
+    /// The arguments that decide the run (and so its checkpoints): all but the threads, which
+    /// change no bit, and the checkpointing itself.
+    fn run_arguments(&self) -> String {
+        let d = &self.data;
+        format!(
+            "weights {:?} episodes {:?} heldout {:?} holdout {} steps {} batch {} lr {} width {} lead {} no_mirror {} restart {} seed {}",
+            d.weights, d.episodes, d.heldout, d.holdout, self.steps, self.batch, self.lr, self.width, self.lead,
+            self.no_mirror, self.restart, self.seed
+        )
+    }
 }
 
 /// The policy's examples: inputs `[z | h]` and actions (speed `lead` frames later, steering).
@@ -146,14 +162,50 @@ fn errors(model: &Model, examples: &Examples) -> Result<[f64; 2], String> {
     Ok([(sums[0] / n).sqrt(), (sums[1] / n).sqrt()])
 }
 
-/// A small seeded generator for the order of the examples (SplitMix64).
-fn shuffle(order: &mut [usize], state: &mut u64) {
-    for i in (1..order.len()).rev() {
-        *state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut x = *state;
-        x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        order.swap(i, ((x ^ (x >> 31)) % (i as u64 + 1)) as usize);
+/// The order the examples are drawn in: each pass over them a new shuffle, from a seeded
+/// generator (SplitMix64).
+struct Order {
+    order: Vec<usize>,
+    next: usize,
+    state: u64,
+}
+
+impl Order {
+    /// The order after `drawn` examples of `count` were drawn, from `seed`: the shuffles of the
+    /// passes begun replayed, so that a resumed run draws what the run never stopped would.
+    fn after(count: usize, seed: u64, drawn: usize) -> Order {
+        let mut order = Order {
+            order: (0..count).collect(),
+            next: count,
+            state: seed,
+        };
+        let passes = drawn.div_ceil(count);
+        for _ in 0..passes {
+            order.shuffle();
+        }
+        if passes > 0 {
+            order.next = drawn - (passes - 1) * count;
+        }
+        order
+    }
+
+    fn shuffle(&mut self) {
+        for i in (1..self.order.len()).rev() {
+            self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut x = self.state;
+            x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            self.order.swap(i, ((x ^ (x >> 31)) % (i as u64 + 1)) as usize);
+        }
+    }
+
+    fn draw(&mut self) -> usize {
+        if self.next == self.order.len() {
+            self.shuffle();
+            self.next = 0;
+        }
+        self.next += 1;
+        self.order[self.next - 1]
     }
 }
 
@@ -196,23 +248,29 @@ pub fn policy(args: &PolicyArgs) -> Result<(), String> {
         Ok(())
     };
     report(&model, "before")?;
-    let (mut order, mut state) = ((0..count).collect::<Vec<_>>(), args.seed);
+    let batch = (args.batch as usize).min(count);
+    let (checkpoints, arguments) = (&args.checkpointing, args.run_arguments());
+    let mut first_step = 0;
+    if let Some((step, draw)) = checkpoints.restore("policy", &arguments, |s| trainer.load_state(s))? {
+        first_step = step;
+        if Order::after(count, args.seed, step * batch).state != draw {
+            return Err("the checkpoint's order of the examples is not this data's: other episodes?".into());
+        }
+    }
+    let mut order = Order::after(count, args.seed, first_step * batch);
+    let mut state = checkpoints.buffer(trainer.state_len());
     let (mut inputs, mut actions) = (Vec::new(), Vec::new());
-    let (batch, mut next, mut loss_sum, start) = (args.batch as usize, count, 0.0, Instant::now());
+    let (mut loss_sum, start) = (0.0, Instant::now());
     let progress = bar(
         args.steps as u64,
         "training: {pos}/{len} steps ({per_sec}, {eta} left) {msg}",
     );
-    for step in 0..args.steps {
+    progress.set_position(first_step as u64);
+    for step in first_step..args.steps {
         inputs.clear();
         actions.clear();
-        for _ in 0..batch.min(count) {
-            if next == count {
-                shuffle(&mut order, &mut state);
-                next = 0;
-            }
-            let i = order[next];
-            next += 1;
+        for _ in 0..batch {
+            let i = order.draw();
             inputs.extend_from_slice(&train.inputs[i * cols..][..cols]);
             actions.extend_from_slice(&train.actions[i * 2..][..2]);
         }
@@ -223,6 +281,10 @@ pub fn policy(args: &PolicyArgs) -> Result<(), String> {
             loss_sum = 0.0;
         }
         progress.inc(1);
+        if checkpoints.due(step + 1, args.steps) {
+            trainer.save_state(&mut state).map_err(|e| e.to_string())?;
+            checkpoints.save("policy", &arguments, step + 1, order.state, &state)?;
+        }
     }
     progress.finish_and_clear();
     let written = trainer.weight_file(&bytes).map_err(|e| e.to_string())?;

@@ -23,6 +23,9 @@ use alloc::vec;
 use alloc::vec::Vec;
 use drivesim_kernels::{Activation, Isa, Matrix, MatrixData};
 
+/// The first 8 bytes of a policy trainer's state (`weights/README.md`, "Checkpoints").
+const STATE_MAGIC: &[u8; 8] = b"DSPOLI01";
+
 /// How a [`PolicyTrainer`] starts and steps.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PolicySettings {
@@ -274,6 +277,39 @@ impl PolicyTrainer {
             ),
             ("policy.output.bias".to_string(), vec![a], output_bias.collect()),
         ]
+    }
+
+    /// Bytes of [`PolicyTrainer::save_state`]'s state.
+    pub fn state_len(&self) -> usize {
+        let a = self.config.action_dim;
+        super::state::state_len(5, 3 * self.lens[0] + 2 * a)
+    }
+
+    fn sizes(&self) -> [u32; 4] {
+        let c = &self.config;
+        [self.width, c.z_dim, c.hidden_dim, c.action_dim].map(|n| n as u32)
+    }
+
+    /// Writes the trainer's state into `out` ([`PolicyTrainer::state_len`] bytes): the
+    /// parameters, Adam's moments and step count, and the action units it trains in. A trainer
+    /// that [`PolicyTrainer::load_state`] reads it back goes on bit for bit as this one would.
+    pub fn save_state(&self, out: &mut [u8]) -> Result<()> {
+        let [params, _, m, v, ..] = cut_ref(self.memory.floats_ref(), &self.lens);
+        let [width, z, hd, a] = self.sizes();
+        let buffers = [params, m, v, &self.mean, &self.std];
+        super::state::write_state(out, STATE_MAGIC, &[width, z, hd, a, self.steps], &buffers)
+    }
+
+    /// Restores a state [`PolicyTrainer::save_state`] wrote, for a policy of the same width and
+    /// model sizes (any batch). A state of other sizes, of another kind or truncated is
+    /// [`Error::Malformed`], one holding a non-finite value [`Error::BadWeight`]; then the
+    /// trainer is unchanged.
+    pub fn load_state(&mut self, state: &[u8]) -> Result<()> {
+        let (sizes, lens) = (self.sizes(), self.lens);
+        let [params, _, m, v, ..] = cut(self.memory.floats(), &lens);
+        let buffers = &mut [params, m, v, &mut self.mean[..], &mut self.std[..]];
+        self.steps = super::state::read_state(state, STATE_MAGIC, "policy trainer state", &sizes, buffers)?;
+        Ok(())
     }
 
     /// `original` (the model's weight file) with this policy's tensors added (or in place of
