@@ -60,9 +60,7 @@ pub fn encode_view(
             for (j, frame) in frames.chunks_exact_mut(c.frame_len()).take(n).enumerate() {
                 episode.frame_f32(start + j, frame).map_err(|e| e.to_string())?;
                 if mirrored {
-                    for row in frame.chunks_exact_mut(c.width * c.channels) {
-                        mirror_row(row, c.channels);
-                    }
+                    mirror(frame, c.width, c.channels);
                 }
             }
             let z = &mut codes[start * c.z_dim..][..n * c.z_dim];
@@ -83,12 +81,13 @@ pub fn encode_view(
     Ok(out)
 }
 
-/// A row of pixels of `channels` values each, flipped left to right in place.
-fn mirror_row(row: &mut [f32], channels: usize) {
-    let pixels = row.len() / channels;
-    for i in 0..pixels / 2 {
-        for k in 0..channels {
-            row.swap(i * channels + k, (pixels - 1 - i) * channels + k);
+/// An HWC frame `width` pixels wide, of `channels` values each, flipped left to right in place.
+pub fn mirror(frame: &mut [f32], width: usize, channels: usize) {
+    for row in frame.chunks_exact_mut(width * channels) {
+        for i in 0..width / 2 {
+            for k in 0..channels {
+                row.swap(i * channels + k, (width - 1 - i) * channels + k);
+            }
         }
     }
 }

@@ -43,6 +43,16 @@ class Episodes:
         ends = list(self.episode_starts[1:]) + [len(self.frames)]
         return [(int(s), int(e)) for s, e in zip(self.episode_starts, ends)]
 
+    def with_mirror_images(self):
+        """These episodes followed by their mirror images: every frame flipped left to right,
+        the steering (the second action) negated, as the drive on the mirrored track would be
+        (the Rust trainers' `--no-mirror` default, examples/common.rs `encode_view`)."""
+        actions = self.actions.copy()
+        actions[:, 1] *= -1
+        return Episodes(np.concatenate([self.frames, self.frames[:, :, ::-1]]),
+                        np.concatenate([self.actions, actions]),
+                        np.concatenate([self.episode_starts, self.episode_starts + len(self.frames)]))
+
     def episode(self, i):
         s, e = self.bounds()[i]
         return self.frames[s:e], self.actions[s:e]

@@ -372,3 +372,15 @@ def test_written_files_are_the_same_bytes_for_the_same_data(tmp_path):
     header = json.loads(blob[8:8 + int.from_bytes(blob[:8], "little")])
     assert list(header["__metadata__"]) == sorted(metadata)
     assert episodes.metadata(tmp_path / "a.safetensors.gz") == metadata
+
+
+def test_mirror_images_flip_the_frames_and_negate_the_steering():
+    data = make_episodes()
+    both = data.with_mirror_images()
+    n = len(data.frames)
+    assert both.bounds() == data.bounds() + [(s + n, e + n) for s, e in data.bounds()]
+    assert np.array_equal(both.frames[:n], data.frames)
+    assert np.array_equal(both.frames[n:, :, 0], data.frames[:, :, -1])  # the left column was the right
+    assert np.array_equal(both.actions[n:, 0], data.actions[:, 0])
+    assert np.array_equal(both.actions[n:, 1], -data.actions[:, 1])
+    assert np.array_equal(both.with_mirror_images().frames[3 * n:], data.frames)  # twice: the original

@@ -7,7 +7,8 @@
 
 fit: (1) VAE-GAN (vae_gan.py): encoder, generator and a discriminator. (2) The transition RNN
 (sequences.py) on encoded 15-frame sequences: 5 frames teacher forced, then 10 with its own
-output fed back, gradient stopped. Adam throughout. With --checkpoint FILE it writes a
+output fed back, gradient stopped. Adam throughout. Both on the episodes and their mirror
+images (frames flipped left to right, steering negated; --no-mirror: the episodes only). With --checkpoint FILE it writes a
 checkpoint every --checkpoint-every steps and at the end of the VAE-GAN; with --resume it goes
 on from one, to the bytes the run that never stopped writes (checkpoints.py). The action
 normalisation used in training is folded into U and b, so the exported model takes raw
@@ -58,6 +59,8 @@ def fit(args):
     np.random.seed(args.seed)
     torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
     data = episodes.read(args.data)
+    if not args.no_mirror:  # left and right learned from the same drives
+        data = data.with_mirror_images()
     cfg = Config(height=data.frames.shape[1], width=data.frames.shape[2], channels=3,
                  base_channels=args.base_channels, z_dim=args.z_dim, hidden_dim=args.hidden_dim, action_dim=2)
     frames = torch.from_numpy(data.frames).to(dev)
@@ -132,6 +135,8 @@ def main(argv=None):
     f.add_argument("--transition-lr", type=float, default=1e-3)
     f.add_argument("--log-every", type=int, default=1000)
     f.add_argument("--dtype", default="f16", choices=["f32", "f16", "bf16"], help="dtype of the written weights")
+    f.add_argument("--no-mirror", action="store_true", help="train on the episodes only, not also on their mirror "
+                   "images (frames flipped left to right, steering negated)")
     f.add_argument("--checkpoint", help="checkpoint file: written every --checkpoint-every steps, read by --resume")
     f.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints")
     f.add_argument("--resume", action="store_true",

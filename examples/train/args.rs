@@ -5,8 +5,8 @@ use clap::{Arg, Args, ValueEnum};
 use drivesim::WeightDtype;
 use std::path::PathBuf;
 
-// --weights, --episodes, --heldout, --holdout and --out: what `transition`, `vae-gan` and `fit`
-// start from, train and measure on, and write. No doc comments (clap would make this one the
+// --weights, --episodes, --heldout, --holdout, --no-mirror and --out: what `transition`,
+// `vae-gan`, `fit` and `policy` start from, train and measure on, and write. No doc comments (clap would make this one the
 // commands' about, and the flags' help differs between the commands): each command gives the
 // flags their help with `data_help`.
 #[derive(Args, Clone)]
@@ -19,6 +19,10 @@ pub struct Data {
     pub heldout: Option<PathBuf>,
     #[arg(long, default_value_t = 1)]
     pub holdout: usize,
+    /// Train on the episodes only, not also on their mirror images (every frame flipped left
+    /// to right, the steering negated: the drive on the mirrored track)
+    #[arg(long)]
+    pub no_mirror: bool,
     #[arg(long)]
     pub out: PathBuf,
 }

@@ -10,9 +10,9 @@
 //!     [--every 200] [--sheet sheet.png] [--from-scratch] [--w-pixel 1 --w-feature 0.1 --w-kl 0.001 --w-gan 0.01]
 //! cargo run --release --features train --example train -- fit --weights W --episodes DATA \
 //!     --out model.safetensors [--from-scratch] [--vae-steps 1000] [--transition-steps 2000] [--threads 2]
-//!     (transition, vae-gan, fit: [--checkpoint CKPT [--checkpoint-every 500] [--resume]])
 //! cargo run --release --features train --example train -- policy --weights W --episodes DATA \
-//!     --out model.safetensors [--steps 4000] [--batch 256] [--lr 1e-3] [--width 64] [--lead 1] [--no-mirror]
+//!     --out model.safetensors [--steps 4000] [--batch 256] [--lr 1e-3] [--width 64] [--lead 1]
+//!     (transition, vae-gan, fit, policy: [--no-mirror] [--checkpoint CKPT [--checkpoint-every 500] [--resume]])
 //! cargo run --release --features train --example train -- step --stage transition|vae-gan \
 //!     --weights W.safetensors --batch B.safetensors --out O.safetensors [--lr ...] [--teacher 5] [--clip 1.0]
 //! ```
@@ -29,14 +29,19 @@
 //!
 //! `policy` clones the recorded driver (see `policy.rs`): the policy that `Simulator::act` runs.
 //!
+//! Every training command learns from the episodes and their mirror images (each frame flipped
+//! left to right, the steering negated: CarRacing's laps turn mostly one way, the mirror gives
+//! the other) unless `--no-mirror`.
+//!
 //! This file parses the command line and dispatches; each command is a module of its own
-//! (`transition.rs`, `vae_gan.rs`, `fit.rs`, `policy.rs`, `step.rs`), the flags they share are in `args.rs`
-//! and the file helpers in `files.rs`.
+//! (`transition.rs`, `vae_gan.rs`, `fit.rs`, `policy.rs`, `step.rs`), the flags they share are in `args.rs`,
+//! the drives they encode in `drives.rs` and the file helpers in `files.rs`.
 
 mod args;
 mod checkpoint;
 #[path = "../common.rs"]
 mod common;
+mod drives;
 mod files;
 mod fit;
 mod policy;

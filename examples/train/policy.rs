@@ -5,11 +5,12 @@
 
 use crate::args::{data_help, Data};
 use crate::checkpoint::Checkpointing;
-use crate::common::{bar, encode_view, Encoded};
+use crate::common::{bar, Encoded};
+use crate::drives::split;
 use crate::files::read;
 use clap::Parser;
 use drivesim::train::{cosine_lr, PolicySettings, PolicyTrainer};
-use drivesim::{Episodes, Model, Simulator};
+use drivesim::{Model, Simulator};
 use std::time::Instant;
 
 #[derive(Parser)]
@@ -37,9 +38,6 @@ pub struct PolicyArgs {
     /// The speed to learn is the one the driver reached this many frames later
     #[arg(long, default_value_t = 1)]
     pub lead: usize,
-    /// Train on the episodes only, not also on their mirror images (frames flipped, steering negated)
-    #[arg(long)]
-    pub no_mirror: bool,
     /// Start a new policy even where the file has one
     #[arg(long)]
     pub restart: bool,
@@ -61,7 +59,7 @@ impl PolicyArgs {
         format!(
             "weights {:?} episodes {:?} heldout {:?} holdout {} steps {} batch {} lr {} width {} lead {} no_mirror {} restart {} seed {}",
             d.weights, d.episodes, d.heldout, d.holdout, self.steps, self.batch, self.lr, self.width, self.lead,
-            self.no_mirror, self.restart, self.seed
+            d.no_mirror, self.restart, self.seed
         )
     }
 }
@@ -96,44 +94,6 @@ fn examples(model: &Model, drives: &[Encoded], lead: usize) -> Result<Examples, 
         }
     }
     Ok(Examples { inputs, actions })
-}
-
-/// The drives of `episodes` encoded: as they are, then (unless `--no-mirror`) their mirror
-/// images, the mirrored drives in the same order after the plain ones.
-fn views(model: &Model, episodes: &Episodes, args: &PolicyArgs, what: &str) -> Result<Vec<Encoded>, String> {
-    let threads = args.threads as usize;
-    let mut drives = encode_view(model, episodes, threads, what, false)?;
-    if !args.no_mirror {
-        drives.extend(encode_view(
-            model,
-            episodes,
-            threads,
-            &format!("{what}, mirrored"),
-            true,
-        )?);
-    }
-    Ok(drives)
-}
-
-/// The training and held-out drives: every view of the `--heldout` file's episodes, or of the
-/// last `--holdout` episodes.
-fn split(model: &Model, args: &PolicyArgs) -> Result<(Vec<Encoded>, Vec<Encoded>), String> {
-    let load = |path: &std::path::Path| Episodes::load(path).map_err(|e| format!("{}: {e}", path.display()));
-    let all = load(&args.data.episodes)?;
-    let mut train = views(model, &all, args, "episodes")?;
-    if let Some(path) = &args.data.heldout {
-        return Ok((train, views(model, &load(path)?, args, "held-out episodes")?));
-    }
-    let (episodes, holdout) = (all.len(), args.data.holdout);
-    if holdout >= episodes {
-        return Err(format!("--holdout {holdout} leaves no training episode"));
-    }
-    let mut heldout = Vec::new();
-    for view in (0..train.len() / episodes).rev() {
-        let end = (view + 1) * episodes;
-        heldout.extend(train.drain(end - holdout..end));
-    }
-    Ok((train, heldout))
 }
 
 /// Root mean squared error of each action of the policy on `examples`, in the actions' units.
@@ -212,7 +172,8 @@ impl Order {
 pub fn policy(args: &PolicyArgs) -> Result<(), String> {
     let bytes = read(&args.data.weights)?;
     let model = Model::from_bytes(&bytes).map_err(|e| format!("{}: {e}", args.data.weights.display()))?;
-    let (train, heldout) = split(&model, args)?;
+    let drives = split(&model, &args.data, args.threads as usize)?;
+    let (train, heldout) = (drives.train, drives.heldout);
     let (train, heldout) = (
         examples(&model, &train, args.lead)?,
         examples(&model, &heldout, args.lead)?,

@@ -3,12 +3,12 @@
 
 use crate::args::{data_help, dtype, Data, DtypeArg};
 use crate::checkpoint::Checkpointing;
-use crate::common::{bar, encode, Encoded};
+use crate::common::{bar, Encoded};
+use crate::drives::{split, Drives};
 use crate::files::read;
 use clap::Parser;
 use drivesim::train::{cosine_lr, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer};
 use drivesim::{ActionSpec, Episodes, Model, WeightDtype};
-use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Parser)]
@@ -60,8 +60,8 @@ impl TransitionArgs {
     fn run_arguments(&self) -> String {
         let d = &self.data;
         format!(
-            "weights {:?} episodes {:?} heldout {:?} holdout {} steps {} batch {} window {} teacher {} lr {} full_bptt {} restart {} seed {}",
-            d.weights, d.episodes, d.heldout, d.holdout, self.steps, self.batch, self.window, self.teacher,
+            "weights {:?} episodes {:?} heldout {:?} holdout {} no_mirror {} steps {} batch {} window {} teacher {} lr {} full_bptt {} restart {} seed {}",
+            d.weights, d.episodes, d.heldout, d.holdout, d.no_mirror, self.steps, self.batch, self.window, self.teacher,
             self.lr, self.full_bptt, self.restart, self.seed
         )
     }
@@ -212,15 +212,11 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
             "--teacher {teacher}: it must be below --window {window}, so that predictions are fed back"
         ));
     }
-    let load = |path: &PathBuf| Episodes::load(path).map_err(|e| format!("{}: {e}", path.display()));
-    let all = load(&args.data.episodes)?;
-    let frame_hz = all.frame_hz();
-    let mut train = encode(&model, &all, threads, "episodes")?;
-    let heldout = match &args.data.heldout {
-        Some(path) => encode(&model, &load(path)?, threads, "held-out episodes")?,
-        None if args.data.holdout < train.len() => train.split_off(train.len() - args.data.holdout),
-        None => return Err(format!("--holdout {} leaves no training episode", args.data.holdout)),
-    };
+    let Drives {
+        train,
+        heldout,
+        frame_hz,
+    } = split(&model, &args.data, threads)?;
     let (train_starts, heldout_starts) = (windows(&train, z, window), windows(&heldout, z, window));
     if train_starts.is_empty() || heldout_starts.is_empty() {
         return Err(format!(

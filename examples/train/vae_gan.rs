@@ -3,7 +3,7 @@
 
 use crate::args::{data_help, dtype, Data, DtypeArg};
 use crate::checkpoint::Checkpointing;
-use crate::common::{bar, write_png, Gaussian};
+use crate::common::{bar, mirror, write_png, Gaussian};
 use crate::files::read;
 use clap::Parser;
 use drivesim::train::{
@@ -75,12 +75,13 @@ impl VaeGanArgs {
     fn run_arguments(&self) -> String {
         let d = &self.data;
         format!(
-            "weights {:?} episodes {:?} heldout {:?} holdout {} steps {} batch {} lr {} seed {} from_scratch {} \
+            "weights {:?} episodes {:?} heldout {:?} holdout {} no_mirror {} steps {} batch {} lr {} seed {} from_scratch {} \
              w_pixel {} w_feature {} w_kl {} w_gan {}",
             d.weights,
             d.episodes,
             d.heldout,
             d.holdout,
+            d.no_mirror,
             self.steps,
             self.batch,
             self.lr,
@@ -202,6 +203,7 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
         None => return Err(format!("--holdout {} leaves no training episode", args.data.holdout)),
     };
     let (count, held) = (train.len() / c.frame_len(), heldout.len() / c.frame_len());
+    let views = if args.data.no_mirror { 1 } else { 2 };
     if count == 0 || held == 0 {
         return Err("no training or no held-out frames".into());
     }
@@ -265,8 +267,12 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
             break;
         }
         for frame in batch_frames.chunks_exact_mut(c.frame_len()) {
-            let i = ((draws.uniform() * count as f64) as usize).min(count - 1);
-            frame.copy_from_slice(&train[i * c.frame_len()..][..c.frame_len()]);
+            // Unless --no-mirror, the frames' mirror images are as likely as the frames.
+            let i = ((draws.uniform() * (views * count) as f64) as usize).min(views * count - 1);
+            frame.copy_from_slice(&train[i % count * c.frame_len()..][..c.frame_len()]);
+            if i >= count {
+                mirror(frame, c.width, c.channels);
+            }
         }
         eps.iter_mut().chain(prior.iter_mut()).for_each(|v| *v = draws.next());
         let losses = trainer
