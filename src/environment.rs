@@ -46,6 +46,8 @@ pub struct Environment<M: Borrow<Model>> {
     predicted: bool,
     /// Whether a reset has given every drive a state.
     seeded: bool,
+    /// Steps since the last reset: the step of a sampled step's noise.
+    steps: u64,
 }
 
 impl<M: Borrow<Model>> Environment<M> {
@@ -70,6 +72,7 @@ impl<M: Borrow<Model>> Environment<M> {
             drives,
             predicted: false,
             seeded: false,
+            steps: 0,
         })
     }
 
@@ -93,7 +96,7 @@ impl<M: Borrow<Model>> Environment<M> {
         let c = *self.sim.config();
         let seeds = self.seed_count("codes", codes, c.z_dim, actions)?;
         self.hidden.fill(0.0);
-        self.seeded = false;
+        (self.seeded, self.steps) = (false, 0);
         let per_seed = self.codes.len();
         for s in 0..seeds {
             self.codes.copy_from_slice(&codes[s * per_seed..][..per_seed]);
@@ -109,7 +112,7 @@ impl<M: Borrow<Model>> Environment<M> {
         let c = *self.sim.config();
         let seeds = self.seed_count("frames", frames, c.frame_len(), actions)?;
         self.hidden.fill(0.0);
-        self.seeded = false;
+        (self.seeded, self.steps) = (false, 0);
         let per_seed = self.drives * c.frame_len();
         for s in 0..seeds {
             self.sim.encode(&frames[s * per_seed..][..per_seed], &mut self.codes)?;
@@ -150,11 +153,26 @@ impl<M: Borrow<Model>> Environment<M> {
         Ok(())
     }
 
+    /// Samples every later step's codes and rollouts ([`Simulator::set_sampling`]): a step's
+    /// noise is that of the steps since the last reset and the drive, so a reset and the same
+    /// actions give the same drive again. Temperature 0: the mean.
+    pub fn set_sampling(&mut self, temperature: f32, seed: u64) -> Result<()> {
+        self.sim.set_sampling(temperature, seed)
+    }
+
     /// One step of every drive: `actions` holds one action per drive (`[drive][action_dim]`);
-    /// each drive's current code becomes its predicted next one.
+    /// each drive's current code becomes its predicted next one (a sample of it with sampling
+    /// on, [`Environment::set_sampling`]).
     pub fn step(&mut self, actions: &[f32]) -> Result<()> {
         self.expect_seeded()?;
-        if self.predicted {
+        if self.sim.sampling().0 > 0.0 {
+            // A sample is not what the hidden state predicts: step from it.
+            self.sim
+                .transition(&self.codes, &mut self.hidden, actions, &mut self.next)?;
+            self.sim.sample(&self.hidden, self.steps, &mut self.next)?;
+            core::mem::swap(&mut self.codes, &mut self.next);
+            self.predicted = false;
+        } else if self.predicted {
             self.sim
                 .transition_fed_back(&mut self.hidden, actions, &mut self.codes)?;
         } else {
@@ -163,6 +181,7 @@ impl<M: Borrow<Model>> Environment<M> {
             core::mem::swap(&mut self.codes, &mut self.next);
             self.predicted = true;
         }
+        self.steps += 1;
         Ok(())
     }
 

@@ -163,6 +163,9 @@ pub enum Error {
     /// [`crate::Simulator::act`] on a model whose weight file has no policy (`policy.*`
     /// tensors; `train policy` adds them).
     NoPolicy,
+    /// Sampling asked of a model whose transition has no spread head (`transition.S` and
+    /// `transition.s`): it predicts its mean only.
+    NoSampling,
     /// A trainer asked to apply gradients it has not computed (each set is applied once).
     NoGradients,
     /// A caller-supplied arena is smaller than its plan.
@@ -285,6 +288,11 @@ impl fmt::Display for Error {
             Error::NotSeeded => write!(
                 f,
                 "the environment has no state: reset it from seed frames or codes first"
+            ),
+            Error::NoSampling => write!(
+                f,
+                "the model's transition predicts no spread (no `transition.S` and `transition.s` in its weight file): \
+                 it cannot sample, only give its mean (temperature 0)"
             ),
             Error::NoPolicy => write!(
                 f,

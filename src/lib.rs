@@ -63,6 +63,7 @@ mod model;
 mod plan;
 mod policy;
 mod pool;
+mod sampling;
 mod simulator;
 #[cfg(feature = "train")]
 pub mod train;

@@ -122,6 +122,12 @@ impl Model {
         self.policy.as_ref().map(Policy::width)
     }
 
+    /// Whether the transition predicts its codes' spread (`transition.S`, `transition.s`), so
+    /// that a simulator can sample futures ([`crate::Simulator::set_sampling`]).
+    pub fn samples(&self) -> bool {
+        self.transition.samples()
+    }
+
     /// The architecture the weights were built for.
     pub fn config(&self) -> &Config {
         &self.config

@@ -17,6 +17,9 @@ pub(crate) struct Transition {
     fed_back: Option<DenseLayer>,
     /// `A` and `a`.
     output: DenseLayer,
+    /// `S` and `s`, where the model has them: the log standard deviation of each dimension of
+    /// the next code, `S h' + s` (sampled futures, `crate::sampling`).
+    spread: Option<DenseLayer>,
 }
 
 /// Per-simulator scratch of the transition, as planned.
@@ -52,6 +55,16 @@ impl Transition {
         let b = src.f32("transition.b", &[hd], fan_in)?;
         let big_a = src.tensor("transition.A", &[z, hd], Init::FanIn(hd))?;
         let small_a = src.f32("transition.a", &[z], Init::FanIn(hd))?;
+        let spread = match src.contains(SPREAD_WEIGHT) || src.contains(SPREAD_BIAS) {
+            true => Some(DenseLayer::new(
+                src.tensor(SPREAD_WEIGHT, &[z, hd], Init::FanIn(hd))?,
+                src.f32(SPREAD_BIAS, &[z], Init::FanIn(hd))?,
+                z,
+                hd,
+                Activation::Identity,
+            )),
+            false => None,
+        };
         let (input, fed_back) = match (w, v, u) {
             // All three in f16: keep f16, the kernel widens it.
             (Tensor::F16(w), Tensor::F16(v), Tensor::F16(u)) => {
@@ -70,7 +83,22 @@ impl Transition {
             input: DenseLayer::new(input, b, hd, hd + z + a, Activation::Tanh),
             fed_back,
             output: DenseLayer::new(big_a, small_a, z, hd, Activation::Identity),
+            spread,
         })
+    }
+
+    /// Whether the model predicts its codes' spread (`transition.S` and `transition.s`).
+    pub fn samples(&self) -> bool {
+        self.spread.is_some()
+    }
+
+    /// The log standard deviation `S h + s` of the next code of each hidden state `h` (after a
+    /// step), into the buffers' scratch; `None` for a model without the spread head.
+    pub fn log_sigma<'b>(&self, exec: Exec<'_>, buf: &'b mut TransitionBuffers, h: &[f32]) -> Option<&'b [f32]> {
+        let spread = self.spread.as_ref()?;
+        let out = &mut buf.code[..h.len() / spread.cols * spread.rows];
+        spread.run(exec, h, out);
+        Some(out)
     }
 
     /// The step's two layers: `[W | V | U]` with `b`, and `A` with `a` (a trainer's start).
@@ -115,6 +143,10 @@ impl Transition {
         self.output.run(exec, h, z_next);
     }
 }
+
+/// The spread head's tensors: `S` `[z_dim, hidden_dim]` and `s` `[z_dim]` (optional).
+pub(crate) const SPREAD_WEIGHT: &str = "transition.S";
+pub(crate) const SPREAD_BIAS: &str = "transition.s";
 
 /// Writes each batch item's `[h | z | c]` (or `[h | c]` without `z`) to `concat`, the input of
 /// the step's first product.

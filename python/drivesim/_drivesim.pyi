@@ -45,6 +45,10 @@ class Model:
     def policy_width(self) -> Optional[int]:
         """Units of the policy's hidden layer (the cloned driver ``Simulator.act`` runs), or
         None where the weight file has no policy."""
+    @property
+    def samples(self) -> bool:
+        """Whether the transition predicts its codes' spread, so that rollouts can be sampled
+        (``Simulator.set_sampling``)."""
 
 class Simulator:
     """Encodes frames, steps the transition, generates frames, rolls out dreams.
@@ -72,6 +76,13 @@ class Simulator:
         """One step from given codes: ``(z_next, h_next)``."""
     def transition_fed_back(self, h: F32, action: F32) -> tuple[F32, F32]:
         """One step from the code ``h`` predicts: ``(z_next, h_next)``."""
+    def set_sampling(self, temperature: float, seed: int) -> None:
+        """Samples every later rollout: each predicted code ``mean + temperature * sigma *
+        noise``, the noise from ``seed``, the step and the item alone. Temperature 0: the mean.
+        ValueError below 0, or above 0 for a model that cannot sample."""
+    @property
+    def sampling(self) -> tuple[float, int]:
+        """``(temperature, seed)``; temperature 0: off."""
     def act(self, z: F32, h: F32) -> F32:
         """The cloned driver's actions ``(N, 2)`` (speed to drive at, steering) for the codes
         ``z`` of the frames seen now and the hidden states ``h`` after the drive so far; ValueError
@@ -95,6 +106,9 @@ class Environment:
         """``frames`` ``(S, drives, H, W, 3)``, ``actions`` ``(S - 1, drives, 2)``."""
     def reset_from_codes(self, codes: F32, actions: F32) -> None:
         """``codes`` ``(S, drives, z_dim)``, ``actions`` ``(S - 1, drives, 2)``."""
+    def set_sampling(self, temperature: float, seed: int) -> None:
+        """Samples every later step and rollout (``Simulator.set_sampling``); a step's noise is
+        that of the steps since the reset and the drive."""
     def step(self, actions: F32) -> None:
         """``actions`` ``(drives, 2)``: (speed, steering) each."""
     @property

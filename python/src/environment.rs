@@ -86,6 +86,14 @@ impl PyEnvironment {
         py.detach(|| env.reset_from_codes(codes, &actions)).map_err(to_py)
     }
 
+    /// Samples every later step and rollout (`Simulator.set_sampling`): a step's noise is that
+    /// of the steps since the last reset and the drive, so a reset and the same actions give
+    /// the same drive again. Temperature 0 (the default): the mean. ValueError for a
+    /// temperature below 0, or above 0 where the model cannot sample (`Model.samples`).
+    fn set_sampling(&self, temperature: f32, seed: u64) -> PyResult<()> {
+        lock(&self.state)?.env.set_sampling(temperature, seed).map_err(to_py)
+    }
+
     /// One step of every drive: `actions` `(drives, 2)`, (speed, steering) each.
     fn step(&self, py: Python<'_>, actions: &Bound<'_, PyAny>) -> PyResult<()> {
         let mut guard = lock(&self.state)?;

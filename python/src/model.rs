@@ -109,6 +109,13 @@ impl PyModel {
         self.inner.policy_width()
     }
 
+    /// Whether the transition predicts its codes' spread (`transition.S`, `transition.s`), so
+    /// that simulators can sample futures (`Simulator.set_sampling`).
+    #[getter]
+    fn samples(&self) -> bool {
+        self.inner.samples()
+    }
+
     /// What each action means and the range it was trained on (the file's `drivesim.actions`):
     /// a list of dicts with `name`, `unit`, `mean`, `std`, `min`, `max`, or None.
     #[getter]

@@ -158,6 +158,22 @@ impl PySimulator {
         self.step(py, None, &lead, h, action)
     }
 
+    /// Samples the futures of every later rollout (`rollout`, `rollout_from_codes`,
+    /// `rollout_candidates`) of a model whose transition predicts its spread (`Model.samples`):
+    /// each predicted code becomes `mean + temperature * sigma * noise`, the noise drawn from
+    /// `seed`, the step and the item alone (the same seed, the same dream, whatever the
+    /// threads or batch). Temperature 0 is the mean, as without. ValueError for a temperature
+    /// below 0, or above 0 where the model cannot sample.
+    fn set_sampling(&self, temperature: f32, seed: u64) -> PyResult<()> {
+        lock(&self.state)?.sim.set_sampling(temperature, seed).map_err(to_py)
+    }
+
+    /// The sampling's `(temperature, seed)`; temperature 0: off.
+    #[getter]
+    fn sampling(&self) -> PyResult<(f32, u64)> {
+        Ok(lock(&self.state)?.sim.sampling())
+    }
+
     /// The cloned driver's actions (the model's policy; `Model.policy_width` is None without
     /// one, and then this raises ValueError): `z` `(N, z_dim)`, the codes of the frames seen
     /// now, and `h` `(N, hidden_dim)`, the transition's hidden states after the drive's earlier

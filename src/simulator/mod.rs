@@ -5,9 +5,11 @@
 mod checks;
 mod networks;
 mod rollout;
+mod sampled;
 
 use crate::plan::{zeros, Plan, StackBuffers};
 use crate::pool::Pool;
+use crate::sampling::Sampling;
 use crate::transition::TransitionBuffers;
 #[cfg(feature = "std")]
 use crate::Error;
@@ -74,6 +76,8 @@ pub struct Simulator<M: Borrow<Model>> {
     /// ([`Simulator::rollout_candidates`]) in the first two.
     rollout_h: Vec<f32>,
     rollout_z: [Vec<f32>; 2],
+    /// Whether rollouts sample their futures ([`Simulator::set_sampling`]).
+    sampling: Sampling,
 }
 
 impl<M: Borrow<Model>> Simulator<M> {
@@ -103,6 +107,7 @@ impl<M: Borrow<Model>> Simulator<M> {
             transition: TransitionBuffers::new(&plan)?,
             rollout_h: zeros(plan.max_batch() * c.hidden_dim, bytes)?,
             rollout_z: [zeros(plan.max_batch() * c.z_dim, bytes)?, zeros(c.z_dim, bytes)?],
+            sampling: Sampling::OFF,
             plan,
         })
     }
@@ -139,10 +144,13 @@ impl<M: Borrow<Model>> Simulator<M> {
             transition,
             rollout_h,
             rollout_z,
+            sampling,
             plan: _,
         } = self;
         drop((old_pool, encoder, generator, transition, rollout_h, rollout_z));
-        Ok(Simulator::from_plan(model, plan, pool)?.with_isa(isa))
+        let mut sim = Simulator::from_plan(model, plan, pool)?.with_isa(isa);
+        sim.sampling = sampling;
+        Ok(sim)
     }
 
     /// Threads that share each frame's work, the caller's included.

@@ -1,6 +1,7 @@
 //! Rollouts of a [`Simulator`]: hallucinated drives seeded with frames or codes, and
 //! [`Simulator::rollout_candidates`], many action sequences stepped in one batch.
 
+use super::sampled::sample_codes;
 use super::Simulator;
 use crate::error::expect_finite_output;
 use crate::pool::Exec;
@@ -115,7 +116,9 @@ impl<M: Borrow<Model>> Simulator<M> {
                 code.copy_from_slice(z);
             }
         }
-        let (len, folds) = (n * c.z_dim, model.transition.folds());
+        // Sampled codes are not what `h` predicts: every step then takes its input.
+        let (len, sampling) = (n * c.z_dim, self.sampling);
+        let folds = model.transition.folds() && !sampling.is_on();
         for t in 0..steps {
             let (done, rest) = codes.split_at_mut(t * len);
             let out = &mut rest[..len];
@@ -129,6 +132,7 @@ impl<M: Borrow<Model>> Simulator<M> {
             model
                 .transition
                 .step(exec, &mut self.transition, hs, input, action, out);
+            sample_codes(&sampling, model, exec, &mut self.transition, hs, t as u64, out);
             expect_finite_output("codes", out)?;
             if let Some(frames) = frames.as_deref_mut() {
                 let frames = &mut frames[t * n * c.frame_len()..][..n * c.frame_len()];
@@ -156,7 +160,9 @@ impl<M: Borrow<Model>> Simulator<M> {
         };
         // An unfolded model's fed-back step would recompute `A h + a`: the last prediction,
         // bit for bit (the kernels sum in one order whatever the split), so give it that.
-        let folds = self.model.borrow().transition.folds();
+        // Sampled codes are not what `h` predicts: every step then takes its input.
+        let sampling = self.sampling;
+        let folds = self.model.borrow().transition.folds() && !sampling.is_on();
         let h = &mut self.rollout_h[..c.hidden_dim];
         h.fill(0.0);
         let [z, z_next] = &mut self.rollout_z;
@@ -180,6 +186,8 @@ impl<M: Borrow<Model>> Simulator<M> {
                 .transition
                 .step(exec, &mut self.transition, h, input, action, z_next);
             if let Some(t) = (step + 1).checked_sub(seed_count) {
+                let model = self.model.borrow();
+                sample_codes(&sampling, model, exec, &mut self.transition, h, t as u64, z_next);
                 codes[t * c.z_dim..][..c.z_dim].copy_from_slice(z_next);
                 if let Some(frames) = frames.as_deref_mut() {
                     let frame = &mut frames[t * c.frame_len()..][..c.frame_len()];

@@ -120,3 +120,22 @@ impl View for &Tensor {
         self.data.len()
     }
 }
+
+/// `bytes` (a weight file) with the f32 tensors `added` (name, shape, values) added, or in
+/// place of the file's own of the same names.
+pub fn with_f32_tensors(bytes: &[u8], added: &[(&str, Vec<usize>, Vec<f32>)]) -> Vec<u8> {
+    let file = SafeTensors::deserialize(bytes).unwrap();
+    let (_, metadata) = SafeTensors::read_metadata(bytes).unwrap();
+    let mut tensors: Vec<(String, Tensor)> = file
+        .tensors()
+        .into_iter()
+        .filter(|(n, _)| !added.iter().any(|(a, ..)| a == n))
+        .map(|(n, v)| (n, Tensor::new(v.dtype(), v.shape().to_vec(), v.data().to_vec())))
+        .collect();
+    for (name, shape, values) in added {
+        let data = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        tensors.push((name.to_string(), Tensor::new(Dtype::F32, shape.clone(), data)));
+    }
+    let views = tensors.iter().map(|(n, t)| (n.clone(), t));
+    safetensors::serialize(views, metadata.metadata().clone()).unwrap()
+}
