@@ -103,7 +103,7 @@ fn run(args: &Args) -> Result<(), String> {
             batch_codes.extend_from_slice(&codes[w * (window - 1) * z..][..window * z]);
         }
         let steps = windows * (window - 1);
-        let plan = TransitionPlan::new(&c, windows, window).map_err(|e| e.to_string())?;
+        let plan = TransitionPlan::for_model(&model, windows, window).map_err(|e| e.to_string())?;
         let settings = TransitionSettings {
             teacher: window,
             ..TransitionSettings::default()

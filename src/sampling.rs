@@ -38,7 +38,7 @@ impl Sampling {
 }
 
 /// `exp(log_sigma)`, `log_sigma` clamped to [-20, 20] (the kernels' exp covers [0, 20]).
-fn sigma(log_sigma: f32) -> f32 {
+pub(crate) fn sigma(log_sigma: f32) -> f32 {
     let x = log_sigma.clamp(-20.0, 20.0);
     if x >= 0.0 {
         math::exp(x)

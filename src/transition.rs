@@ -107,6 +107,12 @@ impl Transition {
         (&self.input, &self.output)
     }
 
+    /// The spread head `S` with `s`, where the model has one (a trainer's start).
+    #[cfg(feature = "train")]
+    pub fn spread_layer(&self) -> Option<&DenseLayer> {
+        self.spread.as_ref()
+    }
+
     /// Whether steps fed their own prediction run on `[W + V A | U]` (f32 weights).
     pub fn folds(&self) -> bool {
         self.fed_back.is_some()

@@ -49,7 +49,10 @@ fn fixture(name: &str) -> Fixture {
 
 impl Fixture {
     fn trainer(&self, isa: Isa, full_bptt: bool) -> TransitionTrainer<'static> {
-        let plan = TransitionPlan::new(self.model.config(), self.batch, self.window).unwrap();
+        let mut plan = TransitionPlan::new(self.model.config(), self.batch, self.window).unwrap();
+        if self.model.samples() {
+            plan = plan.with_spread().unwrap();
+        }
         let settings = TransitionSettings {
             full_bptt,
             ..self.settings

@@ -159,6 +159,37 @@ fn bad_states_are_typed_errors_that_change_nothing() {
 }
 
 #[test]
+fn a_spread_head_resumes_and_a_state_without_one_is_refused() {
+    let model = Model::random(&CONFIG, 4, WeightDtype::F32).unwrap();
+    let spread = |batch: usize, threads: usize| {
+        let plan = TransitionPlan::new(&CONFIG, batch, WINDOW)
+            .unwrap()
+            .with_spread()
+            .unwrap();
+        let settings = TransitionSettings {
+            teacher: 2,
+            ..TransitionSettings::default()
+        };
+        TransitionTrainer::new(&model, &plan, settings)
+            .unwrap()
+            .with_threads(threads)
+            .unwrap()
+    };
+    let state = resumes_bit_for_bit(|other| if other { spread(8, 2) } else { spread(4, 1) }, run, 3);
+    let names: Vec<String> = spread(4, 1).tensors().into_iter().map(|(n, ..)| n).collect();
+    assert_eq!(names[6..], ["transition.S", "transition.s"]);
+    // A state with the head and a trainer without, or the other way: refused by name.
+    let refused = trainer(&model, 4, 1).load_state(&state);
+    assert!(matches!(refused, Err(Error::Malformed { .. })), "{refused:?}");
+    let mut without = vec![0u8; trainer(&model, 4, 1).state_len()];
+    trainer(&model, 4, 1).save_state(&mut without).unwrap();
+    assert!(matches!(
+        spread(4, 1).load_state(&without),
+        Err(Error::Malformed { .. })
+    ));
+}
+
+#[test]
 fn the_written_file_is_the_same_bytes_every_time() {
     // The metadata's entries used to come out in a `HashMap`'s order, different from call to
     // call: a resumed run could not write the bytes of the run never stopped.

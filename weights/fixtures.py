@@ -49,6 +49,7 @@ TRAIN_WINDOWS = {
     "tiny_bf16": (9, 3, 1.0),
     "tall_f32": (9, 3, 1.0),
     "wide_f32": (9, 3, 5.0),
+    "spread_f32": (12, 4, 1.0),
 }
 
 # VAE-GAN fixtures: frames per batch (BatchNorm statistics over few items), and the Adam steps
@@ -69,7 +70,10 @@ FIXTURES = {
     # Eight channels on a 16x32 plane: the encoder's second and the generator's third layer
     # take 4x4 Winograd tiles.
     "wide_f32": (Config(32, 64, 3, 8, z_dim=12, hidden_dim=16, action_dim=2), "f32", 5),
+    # The transition's spread head (sampled futures): its loss, gradients and steps.
+    "spread_f32": (Config(32, 64, 3, 4, z_dim=10, hidden_dim=14, action_dim=2), "f32", 6),
 }
+SPREAD = {"spread_f32"}
 
 
 def randomize(model: torch.nn.Module) -> None:
@@ -98,6 +102,9 @@ def randomize(model: torch.nn.Module) -> None:
         if isinstance(model, DriveSim):
             model.transition.b.normal_(0, 0.1)
             model.transition.a.normal_(0, 0.1)
+            if model.transition.spread:  # spreads of about 0.5 to 2
+                model.transition.S.normal_(0, 0.3 * model.cfg.hidden_dim ** -0.5)
+                model.transition.s.normal_(0, 0.3)
 
 
 def hwc(frames: torch.Tensor) -> torch.Tensor:
@@ -236,7 +243,7 @@ def generate(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name, (cfg, dtype, seed) in FIXTURES.items():
         torch.manual_seed(seed)
-        model = DriveSim(cfg)
+        model = DriveSim(cfg, spread=name in SPREAD)
         randomize(model)
         weights = out / f"{name}.safetensors"
         save_drivesim(model, cfg, weights, dtype)

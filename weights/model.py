@@ -147,9 +147,11 @@ class Generator(nn.Module):
 
 
 class Transition(nn.Module):
-    """RNN in code space: h' = tanh(W h + V z + U c + b), z' = A h' + a."""
+    """RNN in code space: h' = tanh(W h + V z + U c + b), z' = A h' + a. With `spread`, also the
+    log standard deviation of each dimension of z', `S h' + s` (weights/README.md): the spread
+    sampled futures draw from (the crate's `Simulator::set_sampling`)."""
 
-    def __init__(self, cfg: Config):
+    def __init__(self, cfg: Config, spread: bool = False):
         super().__init__()
         hd, zd, ad = cfg.hidden_dim, cfg.z_dim, cfg.action_dim
         self.W = nn.Parameter(torch.empty(hd, hd))
@@ -161,6 +163,17 @@ class Transition(nn.Module):
         for m in (self.W, self.V, self.U, self.A):
             # std 1/sqrt(fan_in) keeps long rollouts from exploding or vanishing.
             nn.init.normal_(m, std=m.shape[1] ** -0.5)
+        if spread:  # zeros: a unit spread to start from, and no draw taken from the other weights'
+            self.S = nn.Parameter(torch.zeros(zd, hd))
+            self.s = nn.Parameter(torch.zeros(zd))
+
+    @property
+    def spread(self) -> bool:
+        return hasattr(self, "S")
+
+    def log_sigma(self, h: torch.Tensor) -> torch.Tensor:
+        """The log standard deviation of the next code, `S h' + s`, of the hidden state h' a step left."""
+        return h @ self.S.T + self.s
 
     def forward(self, z: torch.Tensor, h: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """One step on [N,z], [N,hd], [N,action] (or unbatched 1-D) -> (z', h')."""
@@ -168,13 +181,31 @@ class Transition(nn.Module):
         return h @ self.A.T + self.a, h
 
 
+class Policy(nn.Module):
+    """The cloned driver (the crate's `Simulator::act`, trained by `train policy`): one tanh layer
+    on `[z | h]`, then the action (before the crate clips it to the trained ranges)."""
+
+    def __init__(self, cfg: Config, width: int):
+        super().__init__()
+        self.hidden = nn.Linear(cfg.z_dim + cfg.hidden_dim, width)
+        self.output = nn.Linear(width, cfg.action_dim)
+
+    def forward(self, z: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        return self.output(torch.tanh(self.hidden(torch.cat([z, h], -1))))
+
+
 class DriveSim(nn.Module):
-    def __init__(self, cfg: Config):
+    """The three networks; with `spread`, the transition's spread head; with `policy_width`, the
+    cloned driver's policy (both optional in a weight file)."""
+
+    def __init__(self, cfg: Config, spread: bool = False, policy_width: int | None = None):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg)
         self.generator = Generator(cfg)
-        self.transition = Transition(cfg)
+        self.transition = Transition(cfg, spread)
+        if policy_width is not None:
+            self.policy = Policy(cfg, policy_width)
 
     def rollout(self, seed_frames: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Predict codes from S seed frames [S,C,H,W] and S-1+T actions [S-1+T,action].
@@ -258,8 +289,10 @@ def load_discriminator(path: str | Path) -> dict[str, torch.Tensor]:
 
 
 def from_state_dict(cfg: Config, tensors: dict[str, torch.Tensor]) -> DriveSim:
-    """Float32 model in eval mode; every tensor must be present except num_batches_tracked."""
-    model = DriveSim(cfg)
+    """Float32 model in eval mode; every tensor must be present except num_batches_tracked (the
+    spread head and the policy where the tensors hold them)."""
+    policy = tensors.get("policy.hidden.weight")
+    model = DriveSim(cfg, spread="transition.S" in tensors, policy_width=None if policy is None else policy.shape[0])
     # Shape mismatches raise here; missing/unexpected names are checked below.
     res = model.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=False)
     missing = [k for k in res.missing_keys if not k.endswith("num_batches_tracked")]

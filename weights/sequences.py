@@ -26,32 +26,50 @@ def windows(data, length):
     return np.concatenate([np.arange(s, e - length + 1) for s, e in data.bounds() if e - s >= length])
 
 
-def predict(transition, z, c, teacher, detach=True):
+def predict(transition, z, c, teacher, detach=True, hidden=False):
     """Run the transition over z [B,T,z] and c [B,T-1,a]: the first `teacher` inputs are the
     true codes, later ones the model's previous output, detached (the paper) or not (full
-    back-propagation through time). Returns codes 1..T-1."""
+    back-propagation through time). Returns codes 1..T-1 (and, with `hidden`, the hidden
+    state each step left, [B,T-1,hd])."""
     h = z.new_zeros(len(z), transition.W.shape[0])
-    out = []
+    out, hs = [], []
     for t in range(z.shape[1] - 1):
         if t < teacher:
             zin = z[:, t]
         zin, h = transition(zin, h, c[:, t])
         out.append(zin)
+        hs.append(h)
         if detach:
             zin = zin.detach()  # no gradient through fed-back outputs
-    return torch.stack(out, 1)
+    return (torch.stack(out, 1), torch.stack(hs, 1)) if hidden else torch.stack(out, 1)
+
+
+def spread_loss(transition, hidden, pred, target):
+    """The spread head's loss: the Gaussian negative log-likelihood (without its constant) of
+    each target dimension around the prediction, mean over batch, steps and dimensions,
+    `0.5 r^2 exp(-2 l) + l` with `r` the prediction's error and `l = S h' + s`. The mean and
+    the hidden states are detached: the head learns the error the mean makes, and the mean
+    trains as without a head."""
+    log_sigma = transition.log_sigma(hidden.detach())
+    r = target - pred.detach()
+    return (0.5 * r.square() * torch.exp(-2 * log_sigma) + log_sigma).mean()
 
 
 def transition_step(tr, opt, z, c, teacher, clip, detach=True):
     """One training step of the transition `tr` on windows z [B,T,z], c [B,T-1,a]: MSE of
-    the predictions, backward, gradient norm clipped to `clip`, `opt.step()`. Returns the loss
-    and the gradients as computed (before clipping), by parameter name."""
-    loss = F.mse_loss(predict(tr, z, c, teacher, detach), z[:, 1:])
+    the predictions (plus the spread head's `spread_loss` where `tr` has one), backward, the
+    mean's gradient norm clipped to `clip` (the head's gradient is not: it is a loss of its
+    own, and Adam bounds its steps), `opt.step()`. Returns the loss and the gradients as
+    computed (before clipping), by parameter name."""
+    pred, hidden = predict(tr, z, c, teacher, detach, hidden=True)
+    loss = F.mse_loss(pred, z[:, 1:])
+    if tr.spread:
+        loss = loss + spread_loss(tr, hidden, pred, z[:, 1:])
     opt.zero_grad(set_to_none=True)
     loss.backward()
     average_gradients([p.grad for p in tr.parameters()])
     grads = {name: p.grad.detach().clone() for name, p in tr.named_parameters()}
-    nn.utils.clip_grad_norm_(tr.parameters(), clip)
+    nn.utils.clip_grad_norm_([p for name, p in tr.named_parameters() if name not in ("S", "s")], clip)
     opt.step()
     return loss.detach(), grads
 

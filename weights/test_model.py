@@ -1,6 +1,7 @@
 """Light checks of the reference model and the weight format: weights/tool -m pytest"""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
@@ -99,3 +100,22 @@ def test_onnx_matches_torch(model, tmp_path):
         got = sess.run(None, {k: v.numpy() for k, v in feeds.items()})
         for g, e in zip(got, expected[name]):
             np.testing.assert_allclose(g, e.numpy(), rtol=1e-5, atol=1e-5)
+
+
+def test_the_optional_networks_load_and_round_trip(tmp_path):
+    """The spread head (`transition.S`, `.s`) and the policy (`policy.*`) are part of a file
+    where it has them: the default weights (with a policy) loaded, which failed before."""
+    torch.manual_seed(3)
+    full = DriveSim(CFG, spread=True, policy_width=4).eval()
+    with torch.no_grad():
+        full.transition.S.normal_()
+    path = tmp_path / "full.safetensors"
+    save_drivesim(full, CFG, path)
+    loaded, _ = load_drivesim(path)
+    assert loaded.transition.spread and loaded.policy.hidden.out_features == 4
+    for (name, a), (_, b) in zip(full.state_dict().items(), loaded.state_dict().items()):
+        assert torch.equal(a, b), name
+    h = torch.randn(2, CFG.hidden_dim)
+    assert torch.equal(loaded.transition.log_sigma(h), h @ full.transition.S.T + full.transition.s)
+    plain, _ = load_drivesim(Path(__file__).parent / "default.safetensors")
+    assert not plain.transition.spread and plain.policy.hidden.out_features == 64

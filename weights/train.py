@@ -8,7 +8,9 @@
 fit: (1) VAE-GAN (vae_gan.py): encoder, generator and a discriminator. (2) The transition RNN
 (sequences.py) on encoded 15-frame sequences: 5 frames teacher forced, then 10 with its own
 output fed back, gradient stopped. Adam throughout. Both on the episodes and their mirror
-images (frames flipped left to right, steering negated; --no-mirror: the episodes only). With --checkpoint FILE it writes a
+images (frames flipped left to right, steering negated; --no-mirror: the episodes only).
+With --spread the transition also learns the spread of its predictions (sequences.py's
+`spread_loss`), which the crate's sampled futures draw from. With --checkpoint FILE it writes a
 checkpoint every --checkpoint-every steps and at the end of the VAE-GAN; with --resume it goes
 on from one, to the bytes the run that never stopped writes (checkpoints.py). The action
 normalisation used in training is folded into U and b, so the exported model takes raw
@@ -65,7 +67,7 @@ def fit(args):
                  base_channels=args.base_channels, z_dim=args.z_dim, hidden_dim=args.hidden_dim, action_dim=2)
     frames = torch.from_numpy(data.frames).to(dev)
     print(f"{len(data)} episodes, {len(frames)} frames, config {cfg}", flush=True)
-    model = globalise_batch_norms(DriveSim(cfg).to(dev))
+    model = globalise_batch_norms(DriveSim(cfg, spread=args.spread).to(dev))
     dis = globalise_batch_norms(Discriminator(cfg).to(dev))
     checkpoints = Checkpoints(args, dev)
     if not rank:
@@ -135,6 +137,8 @@ def main(argv=None):
     f.add_argument("--transition-lr", type=float, default=1e-3)
     f.add_argument("--log-every", type=int, default=1000)
     f.add_argument("--dtype", default="f16", choices=["f32", "f16", "bf16"], help="dtype of the written weights")
+    f.add_argument("--spread", action="store_true", help="also train the transition's spread head (sampled "
+                   "futures: the log standard deviation of each predicted code, S h' + s)")
     f.add_argument("--no-mirror", action="store_true", help="train on the episodes only, not also on their mirror "
                    "images (frames flipped left to right, steering negated)")
     f.add_argument("--checkpoint", help="checkpoint file: written every --checkpoint-every steps, read by --resume")

@@ -36,6 +36,9 @@ pub struct FitArgs {
     transition_batch: u32,
     #[arg(long, default_value_t = 1e-3)]
     transition_lr: f32,
+    /// Also train the transition's spread head (sampled futures; see `transition --spread`)
+    #[arg(long)]
+    spread: bool,
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
     threads: u32,
     #[arg(long, default_value_t = 0)]
@@ -95,6 +98,7 @@ pub fn fit(args: &FitArgs) -> Result<(), String> {
         threads: args.threads,
         full_bptt: false,
         restart: args.from_scratch,
+        spread: args.spread,
         dtype: args.dtype,
         seed: args.seed,
         checkpointing: stage(&args.checkpointing, "transition"),

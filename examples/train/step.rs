@@ -68,7 +68,7 @@ fn step_transition(args: &StepArgs) -> Result<(), String> {
             [b, t - 1, c.action_dim]
         ));
     }
-    let plan = TransitionPlan::new(&c, b, t).map_err(|e| e.to_string())?;
+    let plan = TransitionPlan::for_model(&model, b, t).map_err(|e| e.to_string())?;
     let settings = TransitionSettings {
         teacher: args.teacher as usize,
         clip: args.clip,

@@ -45,6 +45,10 @@ pub struct TransitionArgs {
     /// file's: training from scratch, the encoder still the file's
     #[arg(long)]
     pub restart: bool,
+    /// Also train a spread head (the spread of each predicted code, which sampled futures draw
+    /// from: `Simulator::set_sampling`); a file that has one trains its own
+    #[arg(long)]
+    pub spread: bool,
     /// Dtype of the written file (default: the input file's)
     #[arg(long)]
     pub dtype: Option<DtypeArg>,
@@ -60,9 +64,9 @@ impl TransitionArgs {
     fn run_arguments(&self) -> String {
         let d = &self.data;
         format!(
-            "weights {:?} episodes {:?} heldout {:?} holdout {} no_mirror {} steps {} batch {} window {} teacher {} lr {} full_bptt {} restart {} seed {}",
+            "weights {:?} episodes {:?} heldout {:?} holdout {} no_mirror {} steps {} batch {} window {} teacher {} lr {} full_bptt {} restart {} spread {} seed {}",
             d.weights, d.episodes, d.heldout, d.holdout, d.no_mirror, self.steps, self.batch, self.window, self.teacher,
-            self.lr, self.full_bptt, self.restart, self.seed
+            self.lr, self.full_bptt, self.restart, self.spread, self.seed
         )
     }
 }
@@ -232,7 +236,10 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
             .for_each(|(m, c)| *m += c / frames as f32);
     }
 
-    let plan = TransitionPlan::new(&c, batch, window).map_err(|e| e.to_string())?;
+    let mut plan = TransitionPlan::new(&c, batch, window).map_err(|e| e.to_string())?;
+    if args.spread || (model.samples() && !args.restart) {
+        plan = plan.with_spread().map_err(|e| e.to_string())?;
+    }
     println!(
         "{} training windows in {} episodes, {} held out; arena {:.2} MiB",
         train_starts.len(),

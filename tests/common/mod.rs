@@ -21,7 +21,15 @@ pub const SMALL: drivesim::Config = drivesim::Config {
     ..drivesim::Config::COMMA
 };
 
-pub const FIXTURES: [&str; 5] = ["small_f32", "small_f16", "tiny_bf16", "tall_f32", "wide_f32"];
+/// The PyTorch fixtures (`weights/fixtures.py`); `spread_f32`'s transition has the spread head.
+pub const FIXTURES: [&str; 6] = [
+    "small_f32",
+    "small_f16",
+    "tiny_bf16",
+    "tall_f32",
+    "wide_f32",
+    "spread_f32",
+];
 
 pub fn fixture_path(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))

@@ -1,6 +1,7 @@
 //! The transition's forward pass over windows of codes (every activation saved) and
 //! back-propagation through time, with the products of the backward pass.
 
+use super::spread::{spread_loss, Saved};
 use super::trainer::TransitionTrainer;
 use crate::layers::dense;
 use crate::pool::Exec;
@@ -19,8 +20,8 @@ impl TransitionTrainer<'_> {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
-        let [params, _, _, _, _, _, xs, hs, outs, .., norm] = cut(self.memory.floats(), &self.plan.lens);
-        let [wx, bx, wa, ba] = cut_ref(params, &d.params());
+        let [params, _, _, _, _, _, xs, hs, outs, _, dout, .., norm] = cut(self.memory.floats(), &self.plan.lens);
+        let [wx, bx, wa, ba, ws, bs] = cut_ref(params, &d.params());
         let (h, z, a, cols) = (d.hidden, d.z, d.actions, d.cols());
         let (mean, std) = norm.split_at(a);
         let input = Matrix {
@@ -65,7 +66,13 @@ impl TransitionTrainer<'_> {
                     .sum::<f64>();
             }
         }
-        let loss = (sum / (batch * d.steps() * z) as f64) as f32;
+        let mut loss = sum / (batch * d.steps() * z) as f64;
+        if d.spread {
+            // The prediction gradients' buffer is free until the backward pass.
+            let saved = Saved { hs, outs, codes, batch };
+            loss += spread_loss(exec, d, (ws, bs), saved, dout, false);
+        }
+        let loss = loss as f32;
         if !loss.is_finite() {
             return Err(Error::NonFiniteOutput {
                 buffer: "loss",
@@ -89,7 +96,7 @@ impl TransitionTrainer<'_> {
             cut(self.memory.floats(), &self.plan.lens);
         let (h, z, a, cols, steps) = (d.hidden, d.z, d.actions, d.cols(), d.steps());
         if !self.transposed {
-            let [wx, _, wa, _] = cut_ref(params, &d.params());
+            let [wx, _, wa, ..] = cut_ref(params, &d.params());
             let wx_at = |r: usize, c: usize| wx[Matrix::packed_index(r, c, cols)];
             // [Aᵀ | Wᵀ]: the hidden state's gradient from the prediction's and the next step's.
             dense_from_fn(h, z + h, bt, |r, c| match c < z {
@@ -160,12 +167,21 @@ impl TransitionTrainer<'_> {
             }
         }
         if what == Backward::Weights {
-            let [gwx, gbx, gwa, gba] = cut(grads, &d.params());
+            let [gwx, gbx, gwa, gba, gws, gbs] = cut(grads, &d.params());
             let items = steps * batch;
             weight_grad(exec, &dpre[..items * h], &xs[..items * cols], h, cols, gwx);
             column_sums(&dpre[..items * h], gbx);
             weight_grad(exec, &dout[..items * z], &hs[..items * h], z, h, gwa);
             column_sums(&dout[..items * z], gba);
+            if d.spread {
+                // The input gradients' buffer is free once the steps are done.
+                let [.., ws, bs] = cut_ref(params, &d.params());
+                let saved = Saved { hs, outs, codes, batch };
+                let dls = &mut dzc[..items * z];
+                spread_loss(exec, d, (ws, bs), saved, dls, true);
+                weight_grad(exec, dls, &hs[..items * h], z, h, gws);
+                column_sums(dls, gbs);
+            }
         }
         Ok(())
     }

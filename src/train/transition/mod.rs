@@ -16,6 +16,7 @@
 mod bptt;
 mod plan;
 mod settings;
+mod spread;
 mod state;
 mod trainer;
 

@@ -57,6 +57,8 @@ pub(super) struct Dims {
     pub(super) batch: usize,
     /// Codes per window (`T`): `T - 1` predictions.
     pub(super) window: usize,
+    /// Whether the transition has the spread head `S`, `s` (sampled futures).
+    pub(super) spread: bool,
 }
 
 impl Dims {
@@ -70,10 +72,28 @@ impl Dims {
         self.window - 1
     }
 
-    /// Floats of `[W | V | U]` packed, `b`, `A` packed and `a`, in that order.
-    pub(super) fn params(&self) -> [usize; 4] {
+    /// Floats of `[W | V | U]` packed, `b`, `A` packed, `a`, and the spread head's `S`
+    /// packed and `s` (none without it), in that order.
+    pub(super) fn params(&self) -> [usize; 6] {
         let (h, z) = (self.hidden, self.z);
-        [Matrix::packed_len(h, self.cols()), h, Matrix::packed_len(z, h), z]
+        let spread = if self.spread {
+            [Matrix::packed_len(z, h), z]
+        } else {
+            [0, 0]
+        };
+        [
+            Matrix::packed_len(h, self.cols()),
+            h,
+            Matrix::packed_len(z, h),
+            z,
+            spread[0],
+            spread[1],
+        ]
+    }
+
+    /// Floats of the parameters before the spread head's: those the clipping norm covers.
+    pub(super) fn clipped(&self) -> usize {
+        self.params()[..4].iter().sum()
     }
 }
 
@@ -105,14 +125,45 @@ impl TransitionPlan {
                 found: 0,
             });
         }
-        let dims = Dims {
+        TransitionPlan::of(Dims {
             hidden: config.hidden_dim,
             z: config.z_dim,
             actions: config.action_dim,
             batch,
             window,
-        };
-        let (h, z, a) = (dims.hidden, dims.z, dims.actions);
+            spread: false,
+        })
+    }
+
+    /// The plan with room for the spread head (`transition.S`, `transition.s`): the log standard
+    /// deviation of each predicted code's dimension, which sampled futures draw from
+    /// ([`crate::Simulator::set_sampling`]). A model with a spread head trains only in such a
+    /// plan; one without starts a new head (zeros: a unit spread).
+    pub fn with_spread(&self) -> Result<TransitionPlan> {
+        TransitionPlan::of(Dims {
+            spread: true,
+            ..self.dims
+        })
+    }
+
+    /// [`TransitionPlan::new`] for `model`'s config, with room for its spread head where it
+    /// has one ([`crate::Model::samples`]).
+    pub fn for_model(model: &crate::Model, batch: usize, window: usize) -> Result<TransitionPlan> {
+        let plan = TransitionPlan::new(model.config(), batch, window)?;
+        match model.samples() {
+            true => plan.with_spread(),
+            false => Ok(plan),
+        }
+    }
+
+    /// Whether the plan has room for the spread head ([`TransitionPlan::with_spread`]).
+    pub fn spread(&self) -> bool {
+        self.dims.spread
+    }
+
+    /// The buffers of checked sizes.
+    fn of(dims: Dims) -> Result<TransitionPlan> {
+        let (h, z, a, batch) = (dims.hidden, dims.z, dims.actions, dims.batch);
         let params = total(&dims.params(), WHAT)?;
         let items = mul(dims.steps(), batch)?;
         let lens = [

@@ -1,29 +1,30 @@
 //! A [`TransitionTrainer`]'s state as bytes: everything a run needs to go on exactly where it
 //! stopped (a checkpoint), into and from the caller's bytes, so that it needs no allocator.
 //!
-//! Layout (`weights/README.md`, "Checkpoints"): the 8 bytes `DSTRAN01`; `hidden_dim`, `z_dim`,
-//! `action_dim` and the Adam steps taken, each a little-endian u32; then little-endian f32: the
-//! packed weights, Adam's first and second moments (the arena's own layout) and the action
-//! normalisation (each action's mean, then each's standard deviation).
+//! Layout (`weights/README.md`, "Checkpoints"): the 8 bytes `DSTRAN02`; `hidden_dim`, `z_dim`,
+//! `action_dim`, whether the spread head is there (1 or 0) and the Adam steps taken, each a
+//! little-endian u32; then little-endian f32: the packed weights (the spread head's last),
+//! Adam's first and second moments (the arena's own layout) and the action normalisation (each
+//! action's mean, then each's standard deviation).
 
 use super::trainer::TransitionTrainer;
 use crate::train::arena::{cut, cut_ref};
 use crate::train::state::{read_state, state_len, write_state};
 use crate::Result;
 
-const MAGIC: &[u8; 8] = b"DSTRAN01";
+const MAGIC: &[u8; 8] = b"DSTRAN02";
 /// The arena's buffers the state holds: weights, first and second moments, normalisation.
 const SAVED: [usize; 4] = [0, 2, 3, 14];
 
 impl TransitionTrainer<'_> {
     /// Bytes of [`TransitionTrainer::save_state`]'s state.
     pub fn state_len(&self) -> usize {
-        state_len(4, SAVED.iter().map(|&i| self.plan.lens[i]).sum())
+        state_len(5, SAVED.iter().map(|&i| self.plan.lens[i]).sum())
     }
 
-    fn sizes(&self) -> [u32; 3] {
+    fn sizes(&self) -> [u32; 4] {
         let d = self.plan.dims;
-        [d.hidden as u32, d.z as u32, d.actions as u32]
+        [d.hidden as u32, d.z as u32, d.actions as u32, d.spread as u32]
     }
 
     /// Writes the trainer's state into `out` ([`TransitionTrainer::state_len`] bytes): the
@@ -32,8 +33,8 @@ impl TransitionTrainer<'_> {
     /// (gradients computed but not applied are not kept: save between steps).
     pub fn save_state(&self, out: &mut [u8]) -> Result<()> {
         let buffers = cut_ref(self.memory.floats_ref(), &self.plan.lens);
-        let [h, z, a] = self.sizes();
-        write_state(out, MAGIC, &[h, z, a, self.steps()], &SAVED.map(|i| buffers[i]))
+        let [h, z, a, spread] = self.sizes();
+        write_state(out, MAGIC, &[h, z, a, spread, self.steps()], &SAVED.map(|i| buffers[i]))
     }
 
     /// Restores a state [`TransitionTrainer::save_state`] wrote, for a transition of the same

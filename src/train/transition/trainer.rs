@@ -16,8 +16,8 @@ use alloc::vec;
 use alloc::vec::Vec;
 use drivesim_kernels::{math, Isa, Matrix, MatrixData};
 
-/// The tensors a transition has, in PyTorch layout: name, shape.
-fn tensor_shapes(d: &Dims) -> [(&'static str, [usize; 2]); 6] {
+/// The tensors a transition has, in PyTorch layout: name, shape (the spread head's last).
+fn tensor_shapes(d: &Dims) -> [(&'static str, [usize; 2]); 8] {
     let (h, z, a) = (d.hidden, d.z, d.actions);
     [
         ("transition.W", [h, h]),
@@ -26,6 +26,8 @@ fn tensor_shapes(d: &Dims) -> [(&'static str, [usize; 2]); 6] {
         ("transition.b", [h, 1]),
         ("transition.A", [z, h]),
         ("transition.a", [z, 1]),
+        ("transition.S", [z, h]),
+        ("transition.s", [z, 1]),
     ]
 }
 
@@ -105,6 +107,14 @@ impl<'a> TransitionTrainer<'a> {
             }
         }
         check_settings(&settings)?;
+        let spread = model.transition.spread_layer();
+        if spread.is_some() && !d.spread {
+            return Err(Error::Config {
+                field: "spread head",
+                expected: "a plan with room for it (TransitionPlan::with_spread), as the model has one",
+                found: 0,
+            });
+        }
         let mut trainer = TransitionTrainer {
             plan: plan.clone(),
             settings,
@@ -116,16 +126,22 @@ impl<'a> TransitionTrainer<'a> {
             transposed: false,
         };
         let [params, .., norm] = cut(trainer.memory.floats(), &trainer.plan.lens);
-        let [wx, bx, wa, ba] = cut(params, &d.params());
+        let [wx, bx, wa, ba, ws, bs] = cut(params, &d.params());
         let (input, output) = model.transition.layers();
-        for (dst, layer) in [(wx, input), (wa, output)] {
+        let layers = [(wx, bx, Some(input)), (wa, ba, Some(output)), (ws, bs, spread)];
+        for (weights, bias, layer) in layers {
+            let Some(layer) = layer else {
+                // A new spread head: zeros, a unit spread to start from.
+                weights.fill(0.0);
+                bias.fill(0.0);
+                continue;
+            };
             match layer.matrix().data {
-                MatrixData::F32(w) => dst.copy_from_slice(w),
-                MatrixData::F16(w) => dst.iter_mut().zip(w).for_each(|(d, w)| *d = w.to_f32()),
+                MatrixData::F32(w) => weights.copy_from_slice(w),
+                MatrixData::F16(w) => weights.iter_mut().zip(w).for_each(|(d, w)| *d = w.to_f32()),
             }
+            bias.copy_from_slice(&layer.bias);
         }
-        bx.copy_from_slice(&input.bias);
-        ba.copy_from_slice(&output.bias);
         // Identity normalisation: mean 0, standard deviation 1.
         norm[d.actions..].fill(1.0);
         Ok(trainer)
@@ -212,6 +228,9 @@ impl<'a> TransitionTrainer<'a> {
         let loss = self.forward(codes, actions, batch)?;
         self.backward(codes, batch, Backward::Weights)?;
         let [_, grads, ..] = cut_ref(self.memory.floats_ref(), &self.plan.lens);
+        // The norm that clipping scales by is the mean's alone: the spread head's loss is one of
+        // its own, and Adam bounds its steps (`weights/sequences.py`'s `transition_step`).
+        let grads = &grads[..self.plan.dims.clipped()];
         let norm = grads.iter().map(|&g| g as f64 * g as f64).sum::<f64>();
         let norm = math::sqrt(norm) as f32;
         if !norm.is_finite() {
@@ -252,7 +271,15 @@ impl<'a> TransitionTrainer<'a> {
         let scale = (self.settings.clip / (norm + 1e-6)).min(1.0);
         self.steps += 1;
         let [params, grads, m, v, ..] = cut(self.memory.floats(), &self.plan.lens);
-        self.settings.adam.update(self.steps, lr, scale, params, grads, [m, v]);
+        let at = self.plan.dims.clipped();
+        let (params, spread_params) = params.split_at_mut(at);
+        let ((grads, spread_grads), (m, spread_m), (v, spread_v)) =
+            (grads.split_at(at), m.split_at_mut(at), v.split_at_mut(at));
+        let adam = self.settings.adam;
+        adam.update(self.steps, lr, scale, params, grads, [m, v]);
+        if !spread_params.is_empty() {
+            adam.update(self.steps, lr, 1.0, spread_params, spread_grads, [spread_m, spread_v]);
+        }
         self.transposed = false;
         Ok(())
     }
@@ -330,7 +357,8 @@ impl<'a> TransitionTrainer<'a> {
         dtype: Option<crate::WeightDtype>,
         trained_on: crate::train::TrainedOn<'_>,
     ) -> Result<Vec<u8>> {
-        crate::train::shared::weight_file(original, &self.tensors(), None, dtype, trained_on)
+        // The whole group: a spread head the trainer has not (after a restart) leaves the file too.
+        crate::train::shared::weight_file(original, &self.tensors(), Some("transition."), dtype, trained_on)
     }
 
     /// The gradients computed last, named and laid out as the tensors they belong to
@@ -346,7 +374,7 @@ impl<'a> TransitionTrainer<'a> {
     /// Packed parameters (or gradients) as PyTorch-layout tensors.
     fn unpack(&self, packed: &[f32]) -> Vec<NamedTensor> {
         let d = self.plan.dims;
-        let [wx, bx, wa, ba] = cut_ref(packed, &d.params());
+        let [wx, bx, wa, ba, ws, bs] = cut_ref(packed, &d.params());
         let (h, z, cols) = (d.hidden, d.z, d.cols());
         let from_wx = |rows: usize, first: usize, n: usize| -> Vec<f32> {
             (0..rows * n)
@@ -360,10 +388,17 @@ impl<'a> TransitionTrainer<'a> {
             bx.to_vec(),
             (0..z * h).map(|i| wa[Matrix::packed_index(i / h, i % h, h)]).collect(),
             ba.to_vec(),
+            match d.spread {
+                true => (0..z * h).map(|i| ws[Matrix::packed_index(i / h, i % h, h)]).collect(),
+                false => Vec::new(),
+            },
+            bs.to_vec(),
         ];
+        let tensors = if d.spread { 8 } else { 6 };
         tensor_shapes(&d)
             .into_iter()
             .zip(values)
+            .take(tensors)
             .map(|((name, shape), values)| {
                 let shape = if shape[1] == 1 { vec![shape[0]] } else { shape.to_vec() };
                 (name.into(), shape, values)
