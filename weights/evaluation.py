@@ -9,6 +9,7 @@ from PIL import Image
 
 import episodes
 from model import load_drivesim
+from futures import sampled_futures, steering_probe
 from sequences import SEQ, TEACHER, encode, predict, windows
 from vae_gan import psnr, to_image, to_input
 
@@ -148,6 +149,8 @@ def evaluate(args):
     )
 
     result["fidelity"] = fidelity(model, data, codes, recon, frames, actions, decode)
+    result["futures"] = dict(steering_probe=steering_probe(model, data, codes, actions, decode),
+                             at_30_steps=sampled_futures(model, data, codes, actions))
 
     # Steering response: same seed frames, constant actions, 30 steps.
     s0, _ = data.bounds()[0]
@@ -181,6 +184,14 @@ def evaluate(args):
         top = list(data.frames[s0:s0 + TEACHER]) + list(decode(pred[shown]))
         bottom = list(data.frames[s0:s0 + TEACHER]) + list(data.frames[[s0 + TEACHER + i for i in shown]])
         sheet([top, bottom]).save(figs / "contact_sheet.png")
+        if model.transition.spread:
+            # The same drive sampled (temperature 1) between the mean rollout and the recording.
+            g = torch.Generator().manual_seed(0)
+            z = torch.cat([seed_codes, seed_codes.new_zeros(n, seed_codes.shape[1])])[None]
+            drawn = predict(model.transition, z, actions[None, s0:s0 + TEACHER - 1 + n], TEACHER,
+                            temperature=1.0, generator=g)[0, TEACHER - 1:]
+            sampled = list(data.frames[s0:s0 + TEACHER]) + list(decode(drawn[shown]))
+            sheet([top, sampled, bottom]).save(figs / "contact_sheet_sampled.png")
 
     if args.seed_clip:
         clip = episodes.Episodes(data.frames[s0:s0 + 8].copy(), data.actions[s0:s0 + 8].copy(),

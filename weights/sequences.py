@@ -26,17 +26,22 @@ def windows(data, length):
     return np.concatenate([np.arange(s, e - length + 1) for s, e in data.bounds() if e - s >= length])
 
 
-def predict(transition, z, c, teacher, detach=True, hidden=False):
+def predict(transition, z, c, teacher, detach=True, hidden=False, temperature=0.0, generator=None):
     """Run the transition over z [B,T,z] and c [B,T-1,a]: the first `teacher` inputs are the
     true codes, later ones the model's previous output, detached (the paper) or not (full
     back-propagation through time). Returns codes 1..T-1 (and, with `hidden`, the hidden
-    state each step left, [B,T-1,hd])."""
+    state each step left, [B,T-1,hd]). With a temperature above 0 (a transition with the spread
+    head), each output is a sample, `mean + temperature * exp(S h' + s) * noise`, as the crate's
+    sampled rollouts draw them (the noise from `generator`, not the crate's)."""
     h = z.new_zeros(len(z), transition.W.shape[0])
     out, hs = [], []
     for t in range(z.shape[1] - 1):
         if t < teacher:
             zin = z[:, t]
         zin, h = transition(zin, h, c[:, t])
+        if temperature > 0:
+            noise = torch.randn(zin.shape, generator=generator, dtype=zin.dtype, device=zin.device)
+            zin = zin + temperature * transition.log_sigma(h).clamp(-20, 20).exp() * noise
         out.append(zin)
         hs.append(h)
         if detach:

@@ -310,6 +310,9 @@ def test_fit_and_eval_tiny(tmp_path):
         assert latent[f"mse_{k}"] == pytest.approx(per_step[k - 1], rel=1e-4)
         assert latent[f"mse_1_to_{k}"] == pytest.approx(per_step[:k].mean(), rel=1e-4)
     assert set(fidelity["road_moves_right_way"]) == {"0.3", "0.6"}
+    futures = json.loads((tmp_path / "fig" / "eval.json").read_text())["futures"]
+    assert set(futures["steering_probe"]) == {"0.3", "0.6"}
+    assert futures["at_30_steps"]["windows"] > 0 and "sampled" not in futures["at_30_steps"]
     assert episodes.read(tmp_path / "clip.safetensors").frames.shape == (8, 32, 64, 3)
 
 
@@ -384,3 +387,16 @@ def test_mirror_images_flip_the_frames_and_negate_the_steering():
     assert np.array_equal(both.actions[n:, 0], data.actions[:, 0])
     assert np.array_equal(both.actions[n:, 1], -data.actions[:, 1])
     assert np.array_equal(both.with_mirror_images().frames[3 * n:], data.frames)  # twice: the original
+
+
+def test_frechet_distance_of_gaussians():
+    torch = pytest.importorskip("torch")
+    from futures import frechet
+
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(4000, 3, generator=g, dtype=torch.float64)
+    a -= a.mean(0)
+    assert frechet(a, a) == pytest.approx(0.0, abs=1e-6)
+    # Shifted by d: |d|^2. Scaled by 2: tr(ca) + tr(4 ca) - 2 tr(2 ca) = tr(ca).
+    assert frechet(a + torch.tensor([1.0, 2.0, 0.0], dtype=torch.float64), a) == pytest.approx(5.0, rel=1e-6)
+    assert frechet(2 * a, a) == pytest.approx(float(torch.cov(a.T).trace()), rel=1e-6)
