@@ -43,6 +43,11 @@ class Episodes:
         ends = list(self.episode_starts[1:]) + [len(self.frames)]
         return [(int(s), int(e)) for s, e in zip(self.episode_starts, ends)]
 
+    def windows(self, length):
+        """Start indices of every run of `length` frames inside one episode."""
+        runs = [np.arange(s, e - length + 1) for s, e in self.bounds() if e - s >= length]
+        return np.concatenate(runs) if runs else np.zeros(0, np.int64)
+
     def with_mirror_images(self):
         """These episodes followed by their mirror images: every frame flipped left to right,
         the steering (the second action) negated, as the drive on the mirrored track would be

@@ -10,7 +10,7 @@ from PIL import Image
 import episodes
 from model import load_drivesim
 from futures import sampled_futures, steering_probe
-from sequences import SEQ, TEACHER, encode, predict, windows
+from sequences import SEQ, TEACHER, encode, predict
 from vae_gan import psnr, to_image, to_input
 
 STEER = 0.6  # constant steering of the steering-response test, well inside the recorded range
@@ -70,7 +70,7 @@ def fidelity(model, data, codes, recon, frames, actions, decode):
     out = dict(psnr_db=float(per_frame.mean()), psnr_p10_db=float(per_frame.quantile(0.1)))
 
     horizon = max(FED_BACK)
-    starts = windows(data, TEACHER + horizon)
+    starts = data.windows(TEACHER + horizon)
     if len(starts):
         starts = starts[::5]
         idx = torch.as_tensor(starts)[:, None] + torch.arange(TEACHER + horizon)
@@ -91,7 +91,7 @@ def fidelity(model, data, codes, recon, frames, actions, decode):
         out["code_norm"] = dict(rollout=float(fed.norm(dim=2).mean()), encoded=float(codes.norm(dim=1).mean()))
         out["code_norm"]["ratio"] = out["code_norm"]["rollout"] / out["code_norm"]["encoded"]
 
-    starts = windows(data, TEACHER)
+    starts = data.windows(TEACHER)
     if len(starts):
         picks = starts[np.linspace(0, len(starts) - 1, DIRECTION_SEEDS).astype(int)]
         seeds = codes[torch.as_tensor(picks)[:, None] + torch.arange(TEACHER)]
@@ -133,7 +133,7 @@ def evaluate(args):
     sheet([list(data.frames[pick]), list(to_image(recon[pick]))]).save(figs / "reconstruction.png")
 
     # Latent prediction: 5 true codes, then 10 steps fed back, from windows 5 frames apart.
-    starts = windows(data, SEQ)[::5]
+    starts = data.windows(SEQ)[::5]
     idx = torch.as_tensor(starts)[:, None] + torch.arange(SEQ)
     z, c = codes[idx], actions[idx[:, :-1]]
     pred = predict(model.transition, z, c, TEACHER)  # pred[:, t] is the code of frame t+1

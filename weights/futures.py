@@ -1,12 +1,9 @@
 """The measures of a dream that steers both ways and samples its futures (issue 31), on held-out
 episodes (`train eval` reports them under `futures` in eval.json; docs/fidelity.md):
 
-- the steering probe: 50 starts evenly spaced over the episodes, 5 seed codes from real frames,
-  then 30 steps at the seed's speed with constant steering -x, 0 and +x; in the 30th generated
-  frame, the road's centre (the mean column of the grey road pixels of the top 60 rows). The
-  road moves the right way where left steering's centre is right of right steering's;
-  symmetry is (centre at 0 - centre at +x) / (centre at -x - centre at 0), means over the starts
-  that show road in all three frames;
+- the steering probe (probe.py): 5 seed codes from real frames, then 30 fed-back steps with
+  constant steering, the road's centre in the 30th generated frame (probe_real.py measures the
+  same in the real environment);
 - sampled futures (a transition with the spread head, temperature 1): windows every 5 frames, 5
   seed codes then 30 steps under the recorded actions, 16 sampled futures each: the best of the
   16 at the 30th step against predicting the held-out codes' mean; the 30th sampled codes' norm
@@ -14,53 +11,32 @@ episodes (`train eval` reports them under `futures` in eval.json; docs/fidelity.
   features) between the 30th predicted codes and the real codes there, for the mean rollout and
   the sampled one."""
 
-import numpy as np
 import torch
 
-from sequences import TEACHER, predict, windows
+import probe
+from sequences import TEACHER, predict
 
-PROBE_STARTS, PROBE_STEPS, PROBE_STEER, PROBE_ROWS = 50, 30, (0.3, 0.6), 60
 HORIZON, FUTURES = 30, 16
-
-
-def road_centre(frame, rows=PROBE_ROWS):
-    """The mean column of the grey road pixels of the top `rows` rows, or None without road."""
-    band = frame[:rows].astype(np.int16)
-    lo, hi = band.min(2), band.max(2)
-    grey = (hi - lo < 25) & (hi < 170) & (hi > 60)
-    xs = np.nonzero(grey)[1]
-    return float(xs.mean()) if len(xs) else None
 
 
 @torch.no_grad()
 def steering_probe(model, data, codes, actions, decode):
-    """The right-way share and the symmetry at each steering of PROBE_STEER (module docstring)."""
-    starts = windows(data, TEACHER)
-    if not len(starts):
+    """The right-way share and the symmetry at each steering of probe.PROBE_STEER."""
+    picks = probe.starts(data)
+    if not len(picks):
         return None
-    picks = starts[np.linspace(0, len(starts) - 1, PROBE_STARTS).astype(int)]
-    seeds = codes[torch.as_tensor(picks)[:, None] + torch.arange(TEACHER)]
-    speed = actions[torch.as_tensor(picks) + TEACHER - 1, 0]
-    z = torch.cat([seeds, seeds.new_zeros(len(seeds), PROBE_STEPS, seeds.shape[2])], 1)
+    seeds = codes[torch.as_tensor(picks)[:, None] + torch.arange(probe.SEEDS)]
+    speed = actions[torch.as_tensor(picks) + probe.SEEDS - 1, 0]
+    z = torch.cat([seeds, seeds.new_zeros(len(seeds), probe.PROBE_STEPS, seeds.shape[2])], 1)
 
     def centres(steer):
-        c = torch.stack([speed, torch.full_like(speed, steer)], 1)[:, None].expand(-1, TEACHER - 1 + PROBE_STEPS, -1)
-        last = predict(model.transition, z, c, TEACHER)[:, -1]
-        return [road_centre(f) for f in decode(last)]
+        steps = probe.SEEDS - 1 + probe.PROBE_STEPS
+        c = torch.stack([speed, torch.full_like(speed, steer)], 1)[:, None].expand(-1, steps, -1)
+        last = predict(model.transition, z, c, probe.SEEDS)[:, -1]
+        return [probe.centre(f) for f in decode(last)]
 
-    out = {}
     straight = centres(0.0)
-    for x in PROBE_STEER:
-        left, right = centres(-x), centres(x)
-        seen = [(l, s, r) for l, s, r in zip(left, straight, right) if None not in (l, s, r)]
-        right_way = np.mean([l is not None and r is not None and l > r for l, r in zip(left, right)])
-        # None where no start shows road in all three frames (or the road never moves left).
-        moved_right = float(np.mean([s - r for _, s, r in seen])) if seen else None
-        moved_left = float(np.mean([l - s for l, s, _ in seen])) if seen else None
-        symmetry = moved_right / moved_left if seen and moved_left else None
-        out[str(x)] = dict(right_way=float(right_way), symmetry=symmetry, road_moves_px_right_steering=moved_right,
-                           road_moves_px_left_steering=moved_left, starts_with_road=len(seen))
-    return out
+    return {str(x): probe.symmetry(centres(-x), straight, centres(x)) for x in probe.PROBE_STEER}
 
 
 def frechet(a, b):
@@ -79,7 +55,7 @@ def frechet(a, b):
 def sampled_futures(model, data, codes, actions, seed=0):
     """The mean rollout's and (with the spread head) the sampled rollouts' measures at the 30th
     fed-back step (module docstring)."""
-    starts = windows(data, TEACHER + HORIZON)
+    starts = data.windows(TEACHER + HORIZON)
     if not len(starts):
         return None
     starts = starts[::5]

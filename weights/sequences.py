@@ -21,11 +21,6 @@ def encode(model, frames, batch=512):
     return torch.cat([model.encoder(to_input(frames[i:i + batch]))[0] for i in range(0, len(frames), batch)])
 
 
-def windows(data, length):
-    """Start indices of every run of `length` frames inside one episode."""
-    return np.concatenate([np.arange(s, e - length + 1) for s, e in data.bounds() if e - s >= length])
-
-
 def predict(transition, z, c, teacher, detach=True, hidden=False, temperature=0.0, generator=None):
     """Run the transition over z [B,T,z] and c [B,T-1,a]: the first `teacher` inputs are the
     true codes, later ones the model's previous output, detached (the paper) or not (full
@@ -49,14 +44,17 @@ def predict(transition, z, c, teacher, detach=True, hidden=False, temperature=0.
     return (torch.stack(out, 1), torch.stack(hs, 1)) if hidden else torch.stack(out, 1)
 
 
-def spread_loss(transition, hidden, pred, target):
+def spread_loss(transition, hidden, pred, target, teacher):
     """The spread head's loss: the Gaussian negative log-likelihood (without its constant) of
-    each target dimension around the prediction, mean over batch, steps and dimensions,
-    `0.5 r^2 exp(-2 l) + l` with `r` the prediction's error and `l = S h' + s`. The mean and
-    the hidden states are detached: the head learns the error the mean makes, and the mean
-    trains as without a head."""
-    log_sigma = transition.log_sigma(hidden.detach())
-    r = target - pred.detach()
+    each target dimension around the prediction, `0.5 r^2 exp(-2 l) + l` with `r` the
+    prediction's error and `l = S h' + s`, mean over the windows, dimensions and the first
+    `teacher` predictions: those from true codes, whose error is one step's innovation (a
+    sampled rollout adds it at every step; the later predictions' error is the drift of the
+    mean fed back, which it would add again and again). The mean and the hidden states are
+    detached: the head learns the error the mean makes, and the mean trains as without it."""
+    steps = min(teacher, pred.shape[1])
+    log_sigma = transition.log_sigma(hidden[:, :steps].detach())
+    r = target[:, :steps] - pred[:, :steps].detach()
     return (0.5 * r.square() * torch.exp(-2 * log_sigma) + log_sigma).mean()
 
 
@@ -69,7 +67,7 @@ def transition_step(tr, opt, z, c, teacher, clip, detach=True):
     pred, hidden = predict(tr, z, c, teacher, detach, hidden=True)
     loss = F.mse_loss(pred, z[:, 1:])
     if tr.spread:
-        loss = loss + spread_loss(tr, hidden, pred, z[:, 1:])
+        loss = loss + spread_loss(tr, hidden, pred, z[:, 1:], teacher)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     average_gradients([p.grad for p in tr.parameters()])

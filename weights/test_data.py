@@ -296,7 +296,7 @@ def test_fit_and_eval_tiny(tmp_path):
     acts = torch.from_numpy(data.actions)
     per_step = []
     with torch.no_grad():
-        for s in sequences.windows(data, sequences.TEACHER + 30)[::5]:
+        for s in data.windows(sequences.TEACHER + 30)[::5]:
             h, errs = torch.zeros(1, cfg.hidden_dim), []
             for t in range(sequences.TEACHER + 29):
                 if t < sequences.TEACHER:

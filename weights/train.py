@@ -47,7 +47,7 @@ from distributed import globalise_batch_norms, start_distributed, world
 from evaluation import evaluate
 from model import Config, DriveSim, save_drivesim
 from reference_step import step
-from sequences import SEQ, TEACHER, encode, train_transition, windows
+from sequences import SEQ, TEACHER, encode, train_transition
 from vae_gan import ADAM_VAE_GAN, LOSS_WEIGHTS, Discriminator, train_vae_gan
 
 _files = package.load("_files.py")
@@ -91,7 +91,7 @@ def fit(args):
     t1 = time.time()
     codes = encode(model, frames)
     actions = torch.from_numpy(data.actions).to(dev)
-    norm = train_transition(model, dis, codes, actions, windows(data, SEQ), args, log, checkpoints, state)
+    norm = train_transition(model, dis, codes, actions, data.windows(SEQ), args, log, checkpoints, state)
     t2 = time.time()
     log.append(dict(vae_gan_seconds=round(t1 - t0, 1), transition_seconds=round(t2 - t1, 1), **norm))
     if rank:  # every process holds the same weights: the first writes them

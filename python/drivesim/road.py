@@ -29,6 +29,14 @@ def road_mask(frames: np.ndarray) -> np.ndarray:
     return (hi - lo < 25) & (hi > 60) & (hi < 170)
 
 
+def centre(frame: np.ndarray, rows: int = 60) -> float | None:
+    """The mean column of the road pixels in the top ``rows`` rows of one uint8 frame
+    ``(H, W, 3)``, or None where they show no road: the steering probe's road centre
+    (``weights/futures.py``)."""
+    xs = np.nonzero(road_mask(frame[:rows]))[1]
+    return float(xs.mean()) if len(xs) else None
+
+
 def measure(frames: np.ndarray) -> np.ndarray:
     """Road figures of uint8 frames ``(N, 80, 160, 3)``: ``(N, 4)`` float32, the offsets of the
     road's centre in the near, middle and far bands (pixels; where a band shows no road, the

@@ -205,3 +205,36 @@ def test_act(model, clip):
     small = drivesim.Simulator(no_policy)
     with pytest.raises(ValueError, match="no policy"):
         small.act(np.zeros(no_policy.z_dim, np.float32), np.zeros(no_policy.hidden_dim, np.float32))
+
+
+def test_sampled_futures(model):
+    # The default model predicts its mean only; the spread_f32 fixture's transition its spread.
+    assert not model.samples
+    sim = drivesim.Simulator(model)
+    with pytest.raises(ValueError, match="spread"):
+        sim.set_sampling(1.0, 3)
+    sim.set_sampling(0.0, 3)
+    spread = drivesim.Model.load(fixture("spread_f32.safetensors"))
+    assert spread.samples
+    rng = np.random.default_rng(0)
+    h = (rng.standard_normal(spread.hidden_dim) * 0.5).astype(np.float32)
+    z = rng.standard_normal(spread.z_dim).astype(np.float32)
+    plans = np.zeros((6, 5, 2), np.float32)
+    plans[..., 1] = np.linspace(-0.5, 0.5, 5)
+
+    def futures(threads, temperature, seed):
+        s = drivesim.Simulator(spread, batch=5, threads=threads)
+        s.set_sampling(temperature, seed)
+        assert s.sampling == (temperature, seed)
+        return s.rollout_candidates(h, plans, z=z)
+
+    mean = futures(1, 0.0, 9)
+    np.testing.assert_array_equal(mean, drivesim.Simulator(spread, batch=5).rollout_candidates(h, plans, z=z))
+    drawn = futures(1, 1.0, 9)
+    assert not np.array_equal(drawn, mean)
+    np.testing.assert_array_equal(futures(2, 1.0, 9), drawn)  # the seed's bits, whatever the threads
+    assert not np.array_equal(futures(1, 1.0, 10), drawn)
+    with pytest.raises(ValueError, match="temperature"):
+        sim.set_sampling(-1.0, 3)
+    env = drivesim.Environment(spread, drives=1, candidates=5)
+    env.set_sampling(1.0, 4)

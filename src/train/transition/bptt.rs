@@ -70,7 +70,7 @@ impl TransitionTrainer<'_> {
         if d.spread {
             // The prediction gradients' buffer is free until the backward pass.
             let saved = Saved { hs, outs, codes, batch };
-            loss += spread_loss(exec, d, (ws, bs), saved, dout, false);
+            loss += spread_loss(exec, d, teacher, (ws, bs), saved, dout, false);
         }
         let loss = loss as f32;
         if !loss.is_finite() {
@@ -177,9 +177,11 @@ impl TransitionTrainer<'_> {
                 // The input gradients' buffer is free once the steps are done.
                 let [.., ws, bs] = cut_ref(params, &d.params());
                 let saved = Saved { hs, outs, codes, batch };
-                let dls = &mut dzc[..items * z];
-                spread_loss(exec, d, (ws, bs), saved, dls, true);
-                weight_grad(exec, dls, &hs[..items * h], z, h, gws);
+                // The head's loss covers the teacher-forced steps, the first items.
+                let forced = teacher.min(steps) * batch;
+                let dls = &mut dzc[..forced * z];
+                spread_loss(exec, d, teacher, (ws, bs), saved, dls, true);
+                weight_grad(exec, dls, &hs[..forced * h], z, h, gws);
                 column_sums(dls, gbs);
             }
         }

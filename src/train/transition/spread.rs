@@ -1,9 +1,12 @@
 //! The spread head's loss and gradient (`transition.S`, `transition.s`; `crate::sampling`):
 //! `log σ = S h' + s` of each saved hidden state, and the Gaussian negative log-likelihood
 //! (without its constant) of each target dimension around the prediction,
-//! `0.5 r² exp(-2 log σ) + log σ`, mean over the windows' predictions and dimensions. The mean
-//! and the hidden states enter as constants (`weights/sequences.py`'s `spread_loss` detaches
-//! them): the head learns the error the mean makes, and the mean trains as without a head.
+//! `0.5 r² exp(-2 log σ) + log σ`, mean over the windows, the dimensions and the predictions
+//! made from true codes (the teacher-forced ones: their error is one step's innovation, which a
+//! sampled rollout adds at every step; a fed-back prediction's error is the drift of the mean,
+//! which sampling would add again and again). The mean and the hidden states enter as constants
+//! (`weights/sequences.py`'s `spread_loss` detaches them): the head learns the error the mean
+//! makes, and the mean trains as without a head.
 
 use super::plan::Dims;
 use crate::layers::dense;
@@ -20,17 +23,19 @@ pub(super) struct Saved<'s> {
     pub batch: usize,
 }
 
-/// The head's mean loss; `log_sigma` (`items x z`) receives `S h' + s`, or with `gradient`
-/// the loss's gradient with respect to it.
+/// The head's mean loss over the first `teacher` steps' predictions; `log_sigma` (`items x z`
+/// for those items, time-major) receives `S h' + s`, or with `gradient` the loss's gradient
+/// with respect to it.
 pub(super) fn spread_loss(
     exec: Exec<'_>,
     d: Dims,
+    teacher: usize,
     head: (&[f32], &[f32]),
     saved: Saved<'_>,
     log_sigma: &mut [f32],
     gradient: bool,
 ) -> f64 {
-    let (z, items) = (d.z, d.steps() * saved.batch);
+    let (z, items) = (d.z, teacher.min(d.steps()) * saved.batch);
     let s = Matrix {
         data: MatrixData::F32(head.0),
         rows: z,

@@ -1,0 +1,39 @@
+"""The steering probe (issue 31), shared by the dream's (futures.py) and the real
+environment's (probe_real.py): PROBE_STARTS starts evenly spaced over held-out episodes, each
+the last of SEEDS consecutive frames; from there PROBE_STEPS steps at the start's speed with
+constant steering -x, 0 and +x (x in PROBE_STEER); in the last frame, the road's centre (the
+mean column of the road pixels of the top PROBE_ROWS rows). The road moves the right way where
+left steering's centre is right of right steering's; the symmetry is (centre at 0 - centre at
++x) / (centre at -x - centre at 0), means over the starts whose three frames all show road."""
+
+import numpy as np
+
+import package
+
+road = package.load("road.py")
+
+SEEDS, PROBE_STARTS, PROBE_STEPS, PROBE_STEER, PROBE_ROWS = 5, 50, 30, (0.3, 0.6), 60
+
+
+def starts(data):
+    """The first frame of each start's SEEDS frames (the probe steers from the last)."""
+    first = data.windows(SEEDS)
+    return first[np.linspace(0, len(first) - 1, PROBE_STARTS).astype(int)] if len(first) else first
+
+
+def centre(frame):
+    """The road's centre in the top PROBE_ROWS rows of a uint8 frame, or None without road."""
+    return road.centre(frame, PROBE_ROWS)
+
+
+def symmetry(left, straight, right):
+    """The right-way share and the symmetry from the road centres after steering -x, 0 and +x
+    from each start (None where a frame shows no road)."""
+    seen = [(l, s, r) for l, s, r in zip(left, straight, right) if None not in (l, s, r)]
+    right_way = np.mean([l is not None and r is not None and l > r for l, r in zip(left, right)])
+    # None where no start shows road in all three frames (or the road never moves left).
+    moved_right = float(np.mean([s - r for _, s, r in seen])) if seen else None
+    moved_left = float(np.mean([l - s for l, s, _ in seen])) if seen else None
+    return dict(right_way=float(right_way), symmetry=moved_right / moved_left if seen and moved_left else None,
+                road_moves_px_right_steering=moved_right, road_moves_px_left_steering=moved_left,
+                starts_with_road=len(seen))

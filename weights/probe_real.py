@@ -1,0 +1,86 @@
+"""The steering probe (probe.py) in the real environment: what a perfect dream would show.
+
+For each of the probe's starts in a recorded episodes file (`weights/tool record` writes the
+seeds and the driver in its metadata), the recording is replayed from its seed (the scripted
+driver and CarRacing are deterministic) to the start's last seed frame; then the car steers
+-x, 0 or +x for 30 frames, its gas and brake holding the start's speed, and the probe reads the
+road's centre in the last frame, as `train eval` does in the dream's. Prints and writes (--out)
+the right-way share and the symmetry for each x:
+
+  weights/tool probe-real --data held_out.safetensors.gz [--workers 2] [--out probe.json]
+"""
+
+import argparse
+import json
+import os
+import sys
+from multiprocessing import Pool
+
+import numpy as np
+
+import episodes
+import probe
+import record
+from record import car_racing
+
+
+def branch(job):
+    """The road centre after steering `steer` for PROBE_STEPS frames from frame `frame` of the
+    recording of `seed` by `style`, and how far the replayed frame is from the recorded one
+    (mean absolute difference, 0-255: the replay's check)."""
+    seed, style, frame, speed, steer, recorded = job
+    env = car_racing.CarRacing()
+    env.reset(seed=seed)
+    driver = record.Driver(env.track, np.random.default_rng(seed), style)
+    for _ in range(record.WARMUP_STEPS):
+        env.step(np.array([0.0, 0.3, 0.0], dtype=np.float32))
+    skip = 4  # the recordings' frame skip (12.5 frames per second)
+    for _ in range(frame):  # the recording's frames before the start
+        action, _, _ = driver.act(env.car, skip / car_racing.FPS)
+        for _ in range(skip):
+            env.step(action)
+    replayed = float(np.abs(record.view.observe(env).astype(np.int16) - recorded).mean())
+    for _ in range(probe.PROBE_STEPS):
+        now = float(np.linalg.norm(env.car.hull.linearVelocity))
+        gas = float(np.clip(0.05 * (speed - now), 0.0, 0.5))
+        brake = float(np.clip(0.05 * (now - speed - 5.0), 0.0, 0.8))
+        for _ in range(skip):
+            env.step(np.array([steer, gas, brake], dtype=np.float32))
+    centre = probe.centre(record.view.observe(env))
+    env.close()
+    return centre, replayed
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", required=True, help="episodes file recorded by weights/tool record")
+    p.add_argument("--workers", type=int, default=os.cpu_count())
+    p.add_argument("--out", help="JSON file to write the figures to")
+    args = p.parse_args(argv)
+    data, meta = episodes.read(args.data), episodes.metadata(args.data)
+    if "seeds" not in meta or "driver" not in meta:
+        p.error(f"{args.data}: no `seeds` and `driver` metadata (weights/tool record writes them)")
+    seeds = [int(s) for s in meta["seeds"].split(",")]
+    bounds = data.bounds()
+    jobs = []
+    for first in probe.starts(data):
+        last = int(first) + probe.SEEDS - 1
+        e = next(i for i, (s, end) in enumerate(bounds) if s <= last < end)
+        start = (seeds[e], meta["driver"], last - bounds[e][0], float(data.actions[last, 0]))
+        jobs += [(*start, steer, data.frames[last]) for x in probe.PROBE_STEER for steer in (-x, 0.0, x)]
+    with Pool(args.workers) as pool:
+        results = pool.map(branch, jobs, chunksize=1)
+    centres = [c for c, _ in results]
+    out = dict(data=str(args.data), driver=meta["driver"], starts=len(jobs) // 6,
+               replay_mean_abs_difference=float(np.mean([r for _, r in results])))
+    for k, x in enumerate(probe.PROBE_STEER):
+        per_start = [centres[i * 6 + 3 * k:i * 6 + 3 * k + 3] for i in range(len(jobs) // 6)]
+        out[str(x)] = probe.symmetry(*zip(*per_start))
+    print(json.dumps(out, indent=1))
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
