@@ -9,25 +9,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
-import episodes
 import train
 
 HERE = Path(__file__).resolve().parent
 TWO_PROCESSES = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
-
-
-@pytest.fixture
-def data(tmp_path):
-    rng = np.random.default_rng(7)
-    frames = rng.integers(0, 256, (40, 16, 32, 3), dtype=np.uint8)
-    actions = rng.normal(size=(40, 2)).astype(np.float32)
-    path = tmp_path / "data.safetensors"
-    episodes.write(path, episodes.Episodes(frames, actions, np.array([0, 20])), {"source": "test"})
-    return path
 
 
 def fit_args(data, vae_steps, transition_steps):
@@ -84,19 +72,19 @@ def check_kills_and_resumes(launcher, data, tmp_path, kills, vae_steps, transiti
     assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".tmp-")]
 
 
-def test_a_killed_fit_resumes_to_the_same_bytes(data, tmp_path):
+def test_a_killed_fit_resumes_to_the_same_bytes(tiny_episodes, tmp_path):
     stages = ["vae_gan", "vae_gan", "transition", "transition"]
-    check_kills_and_resumes([sys.executable], data, tmp_path, stages, vae_steps=60, transition_steps=300)
+    check_kills_and_resumes([sys.executable], tiny_episodes, tmp_path, stages, vae_steps=60, transition_steps=300)
 
 
-def test_a_killed_fit_on_two_processes_resumes_to_the_same_bytes(data, tmp_path):
-    check_kills_and_resumes(TWO_PROCESSES, data, tmp_path, ["vae_gan", "transition"], vae_steps=40,
+def test_a_killed_fit_on_two_processes_resumes_to_the_same_bytes(tiny_episodes, tmp_path):
+    check_kills_and_resumes(TWO_PROCESSES, tiny_episodes, tmp_path, ["vae_gan", "transition"], vae_steps=40,
                             transition_steps=300)
 
 
-def test_a_checkpoint_of_another_run_is_refused(data, tmp_path, capsys):
+def test_a_checkpoint_of_another_run_is_refused(tiny_episodes, tmp_path, capsys):
     checkpoint = tmp_path / "ck"
-    args = fit_args(data, 4, 4) + ["--out", str(tmp_path / "m.safetensors"), "--checkpoint", str(checkpoint),
+    args = fit_args(tiny_episodes, 4, 4) + ["--out", str(tmp_path / "m.safetensors"), "--checkpoint", str(checkpoint),
                                    "--checkpoint-every", "2"]
     train.main(args)
     before = checkpoint.read_bytes()
@@ -114,10 +102,10 @@ def test_a_checkpoint_of_another_run_is_refused(data, tmp_path, capsys):
     assert "not a checkpoint to resume from" in capsys.readouterr().err
 
 
-def test_leftovers_of_killed_saves_are_removed(data, tmp_path):
+def test_leftovers_of_killed_saves_are_removed(tiny_episodes, tmp_path):
     checkpoint = tmp_path / "ck"
     leftover, other = tmp_path / ".tmp-abc_123x-ck", tmp_path / ".tmp-abc_123x-other-ck"
     leftover.write_bytes(b"half a checkpoint")
     other.write_bytes(b"another file's")
-    train.main(fit_args(data, 2, 2) + ["--out", str(tmp_path / "m.safetensors"), "--checkpoint", str(checkpoint)])
+    train.main(fit_args(tiny_episodes, 2, 2) + ["--out", str(tmp_path / "m.safetensors"), "--checkpoint", str(checkpoint)])
     assert not leftover.exists() and other.exists()

@@ -5,12 +5,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-import episodes
 import train
 from sequences import predict, transition_step
 from vae_gan import Discriminator, vae_gan_step
@@ -185,13 +183,8 @@ def test_two_processes_take_the_step_of_one(tmp_path):
             assert relative(b[name], a[name]) <= 1e-4, name
 
 
-def test_fit_on_two_processes_is_fit_on_one(tmp_path):
-    rng = np.random.default_rng(7)
-    frames = rng.integers(0, 256, (40, 16, 32, 3), dtype=np.uint8)
-    actions = rng.normal(size=(40, 2)).astype(np.float32)
-    data = tmp_path / "data.safetensors"
-    episodes.write(data, episodes.Episodes(frames, actions, np.array([0, 20])), {"source": "test"})
-    args = ["fit", "--data", str(data), "--device", "cpu", "--base-channels", "2", "--z-dim", "4", "--hidden-dim", "6",
+def test_fit_on_two_processes_is_fit_on_one(tmp_path, tiny_episodes):
+    args = ["fit", "--data", str(tiny_episodes), "--device", "cpu", "--base-channels", "2", "--z-dim", "4", "--hidden-dim", "6",
             "--vae-steps", "3", "--batch", "4", "--transition-steps", "3", "--transition-batch", "4",
             "--lr", "1e-6", "--transition-lr", "1e-6", "--log-every", "1", "--dtype", "f32"]
     one, two = tmp_path / "one.safetensors", tmp_path / "two.safetensors"
