@@ -21,7 +21,8 @@ HORIZON, FUTURES = 30, 16
 
 @torch.no_grad()
 def steering_probe(model, data, codes, actions, decode):
-    """The right-way share and the symmetry at each steering of probe.PROBE_STEER."""
+    """The right-way share and the symmetry at each steering of probe.PROBE_STEER, after each
+    of probe.READINGS steps: {steps: {steering: figures}}."""
     picks = probe.starts(data)
     if not len(picks):
         return None
@@ -32,11 +33,13 @@ def steering_probe(model, data, codes, actions, decode):
     def centres(steer):
         steps = probe.SEEDS - 1 + probe.PROBE_STEPS
         c = torch.stack([speed, torch.full_like(speed, steer)], 1)[:, None].expand(-1, steps, -1)
-        last = predict(model.transition, z, c, probe.SEEDS)[:, -1]
-        return [probe.centre(f) for f in decode(last)]
+        fed = predict(model.transition, z, c, probe.SEEDS)[:, probe.SEEDS - 2:]  # [:, k]: after k steps
+        return {k: [probe.centre(f) for f in decode(fed[:, k])] for k in probe.READINGS}
 
     straight = centres(0.0)
-    return {str(x): probe.symmetry(centres(-x), straight, centres(x)) for x in probe.PROBE_STEER}
+    turned = {x: (centres(-x), centres(x)) for x in probe.PROBE_STEER}
+    return {str(k): {str(x): probe.symmetry(left[k], straight[k], right[k]) for x, (left, right) in turned.items()}
+            for k in probe.READINGS}
 
 
 def frechet(a, b):

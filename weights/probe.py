@@ -13,6 +13,9 @@ import package
 road = package.load("road.py")
 
 SEEDS, PROBE_STARTS, PROBE_STEPS, PROBE_STEER, PROBE_ROWS = 5, 50, 30, (0.3, 0.6), 60
+# Steps after which the road's centre is also read (the figures are at PROBE_STEPS):
+# in the real CarRacing, 30 steps (2.4 s) of constant steering spin the car off the road.
+READINGS = (5, 10, PROBE_STEPS)
 
 
 def starts(data):

@@ -4,8 +4,8 @@ For each of the probe's starts in a recorded episodes file (`weights/tool record
 seeds and the driver in its metadata), the recording is replayed from its seed (the scripted
 driver and CarRacing are deterministic) to the start's last seed frame; then the car steers
 -x, 0 or +x for 30 frames, its gas and brake holding the start's speed, and the probe reads the
-road's centre in the last frame, as `train eval` does in the dream's. Prints and writes (--out)
-the right-way share and the symmetry for each x:
+road's centre after 5, 10 and 30 frames, as `train eval` does in the dream's. Prints and writes
+(--out) the right-way share and the symmetry for each x and number of steps:
 
   weights/tool probe-real --data held_out.safetensors.gz [--workers 2] [--out probe.json]
 """
@@ -40,15 +40,17 @@ def branch(job):
         for _ in range(skip):
             env.step(action)
     replayed = float(np.abs(record.view.observe(env).astype(np.int16) - recorded).mean())
-    for _ in range(probe.PROBE_STEPS):
+    centres = {}
+    for step in range(1, probe.PROBE_STEPS + 1):
         now = float(np.linalg.norm(env.car.hull.linearVelocity))
         gas = float(np.clip(0.05 * (speed - now), 0.0, 0.5))
         brake = float(np.clip(0.05 * (now - speed - 5.0), 0.0, 0.8))
         for _ in range(skip):
             env.step(np.array([steer, gas, brake], dtype=np.float32))
-    centre = probe.centre(record.view.observe(env))
+        if step in probe.READINGS:
+            centres[step] = probe.centre(record.view.observe(env))
     env.close()
-    return centre, replayed
+    return centres, replayed
 
 
 def main(argv=None):
@@ -70,12 +72,14 @@ def main(argv=None):
         jobs += [(*start, steer, data.frames[last]) for x in probe.PROBE_STEER for steer in (-x, 0.0, x)]
     with Pool(args.workers) as pool:
         results = pool.map(branch, jobs, chunksize=1)
-    centres = [c for c, _ in results]
     out = dict(data=str(args.data), driver=meta["driver"], starts=len(jobs) // 6,
                replay_mean_abs_difference=float(np.mean([r for _, r in results])))
-    for k, x in enumerate(probe.PROBE_STEER):
-        per_start = [centres[i * 6 + 3 * k:i * 6 + 3 * k + 3] for i in range(len(jobs) // 6)]
-        out[str(x)] = probe.symmetry(*zip(*per_start))
+    for steps in probe.READINGS:
+        centres = [c[steps] for c, _ in results]
+        out[str(steps)] = {}
+        for k, x in enumerate(probe.PROBE_STEER):
+            per_start = [centres[i * 6 + 3 * k:i * 6 + 3 * k + 3] for i in range(len(jobs) // 6)]
+            out[str(steps)][str(x)] = probe.symmetry(*zip(*per_start))
     print(json.dumps(out, indent=1))
     if args.out:
         with open(args.out, "w") as f:
