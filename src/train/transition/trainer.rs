@@ -222,7 +222,8 @@ impl<'a> TransitionTrainer<'a> {
     ///
     /// `codes` holds `[batch, window, z]` values (each window's codes in order), `actions`
     /// `[batch, window - 1, action_dim]` (the action taken after each code but the last), raw.
-    /// The loss is the mean squared error of the `window - 1` predictions.
+    /// The loss is the mean squared error of the `window - 1` predictions (plus, with the spread
+    /// head, its negative log-likelihood: `weights/README.md`).
     pub fn compute_gradients(&mut self, codes: &[f32], actions: &[f32]) -> Result<f32> {
         let batch = self.check_batch(codes, actions)?;
         let loss = self.forward(codes, actions, batch)?;
@@ -285,7 +286,7 @@ impl<'a> TransitionTrainer<'a> {
     }
 
     /// The predictions of a batch of windows (`[batch, window - 1, z]`: the code after each
-    /// input, teacher-forced as in training) and their mean squared error against the codes.
+    /// input, teacher-forced as in training) and their loss against the codes.
     pub fn predict(&mut self, codes: &[f32], actions: &[f32], predictions: &mut [f32]) -> Result<f32> {
         let batch = self.check_batch(codes, actions)?;
         let d = self.plan.dims;
