@@ -25,11 +25,11 @@ impl Sampling {
         self.temperature > 0.0
     }
 
-    /// Adds the spread to the mean codes of `items` (`[item][z]`, numbered from `first_item`)
-    /// at `step`: `code += temperature * exp(log_sigma) * noise(seed, step, item, dim)`.
-    pub fn perturb(&self, codes: &mut [f32], log_sigma: &[f32], z: usize, step: u64, first_item: usize) {
+    /// Adds the spread to the mean codes of the items (`[item][z]`, numbered from 0) at `step`:
+    /// `code += temperature * exp(log_sigma) * noise(seed, step, item, dim)`.
+    pub fn perturb(&self, codes: &mut [f32], log_sigma: &[f32], z: usize, step: u64) {
         for (n, (item, spread)) in codes.chunks_exact_mut(z).zip(log_sigma.chunks_exact(z)).enumerate() {
-            let key = stream_key(self.seed, step, (first_item + n) as u64);
+            let key = stream_key(self.seed, step, n as u64);
             for (d, (code, &log_sigma)) in item.iter_mut().zip(spread).enumerate() {
                 *code += self.temperature * sigma(log_sigma) * standard_normal(key, d as u64);
             }
@@ -57,13 +57,13 @@ fn mix(mut x: u64) -> u64 {
 const GOLDEN: u64 = 0x9E37_79B9_7F4A_7C15;
 
 /// The key of one (seed, step, item) stream: its dimensions are SplitMix64's outputs from it.
-pub(crate) fn stream_key(seed: u64, step: u64, item: u64) -> u64 {
+fn stream_key(seed: u64, step: u64, item: u64) -> u64 {
     mix(mix(seed ^ GOLDEN) ^ mix(step.wrapping_add(GOLDEN)) ^ mix(item.wrapping_mul(GOLDEN) ^ 0xD1B5_4A32_D192_ED03))
 }
 
 /// The standard normal value of dimension `dim` of the stream `key`: a uniform in (0, 1) from
 /// 53 bits, through the normal's inverse distribution function.
-pub(crate) fn standard_normal(key: u64, dim: u64) -> f32 {
+fn standard_normal(key: u64, dim: u64) -> f32 {
     let bits = mix(key.wrapping_add(dim.wrapping_add(1).wrapping_mul(GOLDEN)));
     let uniform = ((bits >> 11) as f64 + 0.5) * (1.0 / (1u64 << 53) as f64);
     inverse_normal(uniform) as f32
@@ -71,7 +71,7 @@ pub(crate) fn standard_normal(key: u64, dim: u64) -> f32 {
 
 /// Φ⁻¹(p) for p in (0, 1) by Acklam's rational approximation (relative error below 1.2e-9): a
 /// rational function in the centre, of `sqrt(-2 ln p)` in the tails (one draw in 20).
-pub(crate) fn inverse_normal(p: f64) -> f64 {
+fn inverse_normal(p: f64) -> f64 {
     const A: [f64; 6] = [
         -3.969_683_028_665_376e1,
         2.209_460_984_245_205e2,

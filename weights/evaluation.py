@@ -8,6 +8,7 @@ import torch
 from PIL import Image
 
 import episodes
+import probe
 from model import load_drivesim
 from futures import sampled_futures, steering_probe
 from sequences import SEQ, TEACHER, encode, predict
@@ -39,10 +40,7 @@ def road_offset(frame):
     """The road's centre in a band just ahead of the car minus the car's column, in pixels, or
     None where no road shows (grey pixels against grass, as examples/drive.rs measures it)."""
     h, w, _ = frame.shape
-    band = frame[h * 6 // 10:h * 3 // 4].astype(np.int16)
-    lo, hi = band.min(2), band.max(2)
-    grey = (hi - lo < 25) & (hi < 170) & (hi > 60)
-    xs = np.nonzero(grey)[1]
+    xs = np.nonzero(probe.road.road_mask(frame[h * 6 // 10:h * 3 // 4]))[1]
     return float(xs.mean() - w // 2) if len(xs) else None
 
 

@@ -79,7 +79,7 @@ pub(super) fn sample_codes(
 ) {
     if sampling.is_on() {
         if let Some(log_sigma) = model.transition.log_sigma(exec, buffers, h) {
-            sampling.perturb(codes, log_sigma, model.config().z_dim, step, 0);
+            sampling.perturb(codes, log_sigma, model.config().z_dim, step);
         }
     }
 }
