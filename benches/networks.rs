@@ -1,7 +1,8 @@
 //! Criterion benchmarks of the comma config: whole networks (encode, generate, one transition
-//! step, also on 2 threads) and their layers, at z = hidden = 512 and 2048, batch 1 and 16, f32
-//! and f16 weights. Throughput is in
-//! floating-point operations (see `common::conv_flops`), so criterion's "elem/s" is FLOP/s.
+//! step, also on 2 threads) and their layers, at z = hidden = 512 and 2048, batch 1 and 16 (the
+//! transition's products also at a planner's 64 and 256), f32 and f16 weights. Throughput is in
+//! floating-point operations (see `common::conv_flops`), so criterion's "elem/s" is FLOP/s; the
+//! share of the FMA peak per shape: `cargo run --release -p drivesim-kernels --example dense_speed`.
 //!
 //! `cargo bench --bench networks [-- FILTER]`; `DRIVESIM_ISA=avx2|scalar` caps the kernels.
 
@@ -19,6 +20,8 @@ use std::time::Duration;
 
 const SEED: u64 = 2016;
 const BATCHES: [usize; 2] = [1, 16];
+/// A planner's batches of candidates.
+const PLANNER_BATCHES: [usize; 4] = [1, 16, 64, 256];
 
 fn group<'a>(c: &'a mut Criterion, name: &str) -> BenchmarkGroup<'a, criterion::measurement::WallTime> {
     let mut g = c.benchmark_group(name);
@@ -237,13 +240,15 @@ fn dense_layers(c: &mut Criterion) {
     for z in [512, 2048] {
         let cfg = comma(z);
         let flat = cfg.flat_len();
+        // The transition's products: its state's part from a code (`[W | V]`) and fed back
+        // (`W + V A`, the same shape as `A`), at a planner's batches too.
         let layers = [
-            ("encoder.mean", z, flat, Activation::Identity),
-            ("generator.fc", flat, z, Activation::Relu),
-            ("transition.WVU", z, 2 * z + cfg.action_dim, Activation::Tanh),
-            ("transition.A", z, z, Activation::Identity),
+            ("encoder.mean", z, flat, Activation::Identity, &BATCHES[..]),
+            ("generator.fc", flat, z, Activation::Relu, &BATCHES[..]),
+            ("transition.WV", z, 2 * z, Activation::Identity, &PLANNER_BATCHES[..]),
+            ("transition.A", z, z, Activation::Identity, &PLANNER_BATCHES[..]),
         ];
-        for (name, rows, cols, act) in layers {
+        for (name, rows, cols, act, batches) in layers {
             let w32 = pack::dense_weights(&values(7, rows * cols, 1.0 / (cols as f32).sqrt()), rows, cols);
             let w16: Vec<f16> = w32.iter().map(|&v| f16::from_f32(v)).collect();
             let bias = values(8, rows, 0.1);
@@ -255,7 +260,7 @@ fn dense_layers(c: &mut Criterion) {
                     MatrixData::F32(&w32)
                 };
                 let m = Matrix { data, rows, cols };
-                for batch in BATCHES {
+                for &batch in batches {
                     let x = values(9, batch * cols, 1.0);
                     let mut y = vec![0.0; batch * rows];
                     let dtype = if half { "f16" } else { "f32" };

@@ -4,7 +4,7 @@
 //!
 //! ```text
 //! cargo run --release --example bench_report -- [--weights FILE | --z N [--hidden N] [--base N]] [--dtype f32|f16]
-//!     [--batch 1,16] [--threads 1,2] [--networks encode,generate,transition,transition_fed_back]
+//!     [--batch 1,16] [--threads 1,2] [--networks encode,generate,transition,transition_fed_back,planner]
 //!     [--seconds S]
 //!     [--serve]
 //! ```
@@ -39,15 +39,24 @@ use std::time::{Duration, Instant};
 /// the model's FLOPs.
 /// `encode_rgb` encodes 8-bit frames (`frames_from_rgb`, then `encode`): what the Python
 /// package's `Simulator.encode` does with a `uint8` array.
-const NETWORKS: [&str; 7] = [
+/// `planner` is a planner's inner loop: `Simulator::rollout_candidates` of BATCH candidates
+/// for [`PLANNER_STEPS`] steps from one state and code, codes only (FLOPs counted as that many
+/// steps of the model from codes, what a runtime without the crate's shortcuts computes).
+const NETWORKS: [&str; 8] = [
     "encode",
     "encode_rgb",
     "generate",
     "transition",
     "transition_fed_back",
+    PLANNER,
     TRAIN,
     TRAIN_VAE_GAN,
 ];
+
+/// The planner's loop (see [`NETWORKS`]).
+const PLANNER: &str = "planner";
+/// Steps of each candidate in the planner's loop.
+const PLANNER_STEPS: usize = 10;
 
 /// One transition training step on `batch` windows of [`WINDOW`] codes (`--features train`).
 const TRAIN: &str = "train_transition";
@@ -263,6 +272,16 @@ fn measure(sim: &mut Simulator<&Model>, network: &str, batch: usize, budget: Dur
                     .unwrap()
             }),
         ),
+        PLANNER => {
+            let (state, code) = (values(4, cfg.hidden_dim, 0.5), values(5, cfg.z_dim, 1.0));
+            let actions = values(6, PLANNER_STEPS * batch * cfg.action_dim, 1.0);
+            let mut codes = vec![0.0; PLANNER_STEPS * batch * cfg.z_dim];
+            let ms = median_ms(budget, || {
+                sim.rollout_candidates(&state, Some(black_box(&code)), batch, &actions, &mut codes, None)
+                    .unwrap()
+            });
+            (PLANNER_STEPS as u64 * transition_flops(&cfg), ms)
+        }
         _ => (
             transition_flops(&cfg),
             median_ms(budget, || {

@@ -202,19 +202,61 @@ impl DenseLayer {
     pub fn run(&self, exec: Exec<'_>, x: &[f32], y: &mut [f32]) {
         dense(exec, self.matrix(), &self.bias, self.act, x, y);
     }
+
+    /// `y = act(y + W x)` for a batch: the bias left out, the sums added to what `y` holds
+    /// (the bits of [`DenseLayer::run`] with that as the bias).
+    pub fn run_add(&self, exec: Exec<'_>, x: &[f32], y: &mut [f32]) {
+        let (isa, w, act) = (exec.isa, self.matrix(), self.act);
+        match rows_shared(exec, w) {
+            None => drivesim_kernels::dense_add(isa, w, act, x, y),
+            Some(threads) => {
+                let parts = OutputParts::new(y, w.rows, threads);
+                exec.run(&|| {
+                    while let Some(part) = parts.take() {
+                        drivesim_kernels::dense_add_rows(isa, w, act, x, part);
+                    }
+                });
+            }
+        }
+    }
+
+    /// The packed weights as f32 ([`Matrix`]'s panels).
+    #[cfg(feature = "train")]
+    pub fn copy_packed(&self, packed: &mut [f32]) {
+        match self.matrix().data {
+            drivesim_kernels::MatrixData::F32(w) => packed.copy_from_slice(w),
+            drivesim_kernels::MatrixData::F16(w) => packed.iter_mut().zip(w).for_each(|(d, w)| *d = w.to_f32()),
+        }
+    }
+
+    /// Weight `(row, col)` as f32.
+    #[cfg(feature = "train")]
+    pub fn weight(&self, row: usize, col: usize) -> f32 {
+        let at = Matrix::packed_index(row, col, self.cols);
+        match self.matrix().data {
+            drivesim_kernels::MatrixData::F32(w) => w[at],
+            drivesim_kernels::MatrixData::F16(w) => w[at].to_f32(),
+        }
+    }
 }
 
 /// `y = act(W x + b)` for a batch; with threads, each takes a share of the rows (and so reads
 /// only its share of the weights) for every item.
 pub(crate) fn dense(exec: Exec<'_>, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
-    let (isa, threads) = (exec.isa, exec.threads());
-    if threads == 1 || w.rows * w.cols < PARALLEL_MIN_WEIGHTS {
+    let isa = exec.isa;
+    let Some(threads) = rows_shared(exec, w) else {
         return drivesim_kernels::dense(isa, w, bias, act, x, y);
-    }
+    };
     let parts = OutputParts::new(y, w.rows, threads);
     exec.run(&|| {
         while let Some(part) = parts.take() {
             drivesim_kernels::dense_rows(isa, w, bias, act, x, part);
         }
     });
+}
+
+/// The threads that share the rows of a product by `w`, or `None` where one thread does it.
+fn rows_shared(exec: Exec<'_>, w: Matrix<'_>) -> Option<usize> {
+    let threads = exec.threads();
+    (threads > 1 && w.rows * w.cols >= PARALLEL_MIN_WEIGHTS).then_some(threads)
 }

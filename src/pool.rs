@@ -367,3 +367,52 @@ impl<'a, T> Parts<'a, T> {
         }))
     }
 }
+
+/// Several buffers of one batch cut into the same ranges of whole items and taken together:
+/// what a thread needs to run its share of the items alone, every layer of them, with no
+/// barrier between the layers. `parts` balanced ranges; taking is safe as for [`Parts`].
+pub(crate) struct ItemParts<'a, const B: usize> {
+    /// Each buffer's start and floats per item.
+    buffers: [(*mut f32, usize); B],
+    items: usize,
+    parts: usize,
+    next: AtomicUsize,
+    _borrow: PhantomData<&'a mut [f32]>,
+}
+
+// SAFETY: the buffers are only reached through `take`, which hands each range of items out
+// once, and the ranges are disjoint.
+unsafe impl<const B: usize> Sync for ItemParts<'_, B> {}
+
+impl<'a, const B: usize> ItemParts<'a, B> {
+    /// `buffers`, each holding `items` items of equal length, in `parts` ranges of items.
+    pub fn new(buffers: [&'a mut [f32]; B], items: usize, parts: usize) -> Self {
+        assert!(
+            items > 0 && buffers.iter().all(|b| b.len().is_multiple_of(items)),
+            "not whole items"
+        );
+        ItemParts {
+            buffers: buffers.map(|b| (b.as_mut_ptr(), b.len() / items)),
+            items,
+            parts: parts.clamp(1, items),
+            next: AtomicUsize::new(0),
+            _borrow: PhantomData,
+        }
+    }
+
+    /// The next range of items no thread has taken, with each buffer's part of it.
+    #[allow(clippy::mut_from_ref)] // each range is handed out once
+    pub fn take(&self) -> Option<(Range<usize>, [&mut [f32]; B])> {
+        let i = self.next.fetch_add(1, Ordering::Relaxed);
+        if i >= self.parts {
+            return None;
+        }
+        let items = i * self.items / self.parts..(i + 1) * self.items / self.parts;
+        // SAFETY: the range lies in every buffer (whole items, checked at construction) and is
+        // disjoint from every other part's; `next` gives index `i` to one caller only.
+        let parts = self.buffers.map(|(ptr, len)| unsafe {
+            core::slice::from_raw_parts_mut(ptr.add(items.start * len), items.len() * len)
+        });
+        Some((items, parts))
+    }
+}

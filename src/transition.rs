@@ -2,19 +2,27 @@
 
 use crate::layers::DenseLayer;
 use crate::plan::{zeros, Plan};
-use crate::pool::Exec;
+use crate::pool::{Exec, ItemParts};
 use crate::weights::{Init, TensorSource};
 use crate::{Config, Result};
 use alloc::vec::Vec;
+use core::ops::Range;
 use drivesim_kernels::{Activation, Isa, Tensor};
 
+///
+/// A step sums the state's part first, `[W | V] [h | z] + b`, then adds the action's, `U c`, and
+/// takes the tanh: candidates that share a state share the first part, and each still gets the
+/// bits a step of its own would.
 pub(crate) struct Transition {
-    /// `[W | V | U]` and `b`: a step from any code.
+    /// `[W | V]` and `b`: the state's part of a step from any code.
     input: DenseLayer,
-    /// `[W + V A | U]` and `b + V a`: a step from the code `h` itself predicted (`V z = V A h + V a`),
-    /// a third fewer weights to read. Only for f32 weights: for f16 ones it would have to be
-    /// f32 to stay the weights' own product, and then it reads as many bytes as `[W | V]`.
+    /// `W + V A` and `b + V a`: the state's part of a step from the code `h` itself predicted
+    /// (`V z = V A h + V a`), half the weights to read. Only for f32 weights: for f16 ones it
+    /// would have to be f32 to stay the weights' own product, and then it reads as many bytes
+    /// as `[W | V]`.
     fed_back: Option<DenseLayer>,
+    /// `U`: the action's part, added to the state's, then the tanh.
+    action: DenseLayer,
     /// `A` and `a`.
     output: DenseLayer,
     /// `S` and `s`, where the model has them: the log standard deviation of each dimension of
@@ -24,7 +32,7 @@ pub(crate) struct Transition {
 
 /// Per-simulator scratch of the transition, as planned.
 pub(crate) struct TransitionBuffers {
-    /// Each batch element's input, `[h | z | c]` or `[h | c]`.
+    /// Each batch element's input, `[h | z]` or `h`.
     concat: Vec<f32>,
     /// The code `A h + a` that a fed-back step of an unfolded (f16) model recomputes.
     code: Vec<f32>,
@@ -65,23 +73,20 @@ impl Transition {
             )),
             false => None,
         };
-        let (input, fed_back) = match (w, v, u) {
-            // All three in f16: keep f16, the kernel widens it.
-            (Tensor::F16(w), Tensor::F16(v), Tensor::F16(u)) => {
-                (Tensor::F16(concat_cols(&[(&w, hd), (&v, z), (&u, a)])), None)
-            }
-            (w, v, u) => {
-                let (w, v, u) = (w.into_f32(), v.into_f32(), u.into_f32());
+        let (input, fed_back) = match (w, v) {
+            // Both in f16: keep f16, the kernel widens it.
+            (Tensor::F16(w), Tensor::F16(v)) => (Tensor::F16(concat_cols(&[(&w, hd), (&v, z)])), None),
+            (w, v) => {
+                let (w, v) = (w.into_f32(), v.into_f32());
                 let (folded, bias) = fold_feedback(&w, &v, &b, &big_a.clone().into_f32(), &small_a, z);
-                let weights = Tensor::F32(concat_cols(&[(&folded, hd), (&u, a)]));
-                let fed_back = DenseLayer::new(weights, bias, hd, hd + a, Activation::Tanh);
-                let input = Tensor::F32(concat_cols(&[(&w, hd), (&v, z), (&u, a)]));
-                (input, Some(fed_back))
+                let fed_back = DenseLayer::new(Tensor::F32(folded), bias, hd, hd, Activation::Identity);
+                (Tensor::F32(concat_cols(&[(&w, hd), (&v, z)])), Some(fed_back))
             }
         };
         Ok(Transition {
-            input: DenseLayer::new(input, b, hd, hd + z + a, Activation::Tanh),
+            input: DenseLayer::new(input, b, hd, hd + z, Activation::Identity),
             fed_back,
+            action: DenseLayer::new(u, alloc::vec![0.0; hd], hd, a, Activation::Tanh),
             output: DenseLayer::new(big_a, small_a, z, hd, Activation::Identity),
             spread,
         })
@@ -101,10 +106,19 @@ impl Transition {
         Some(out)
     }
 
-    /// The step's two layers: `[W | V | U]` with `b`, and `A` with `a` (a trainer's start).
+    /// The step's weights as a trainer holds them (its start): `[W | V | U]` packed
+    /// ([`drivesim_kernels::Matrix`]) with `b`, and `A` packed with `a`.
     #[cfg(feature = "train")]
-    pub fn layers(&self) -> (&DenseLayer, &DenseLayer) {
-        (&self.input, &self.output)
+    pub fn trainer_weights(&self, input: (&mut [f32], &mut [f32]), output: (&mut [f32], &mut [f32])) {
+        let (state, action) = (&self.input, &self.action);
+        let cols = state.cols + action.cols;
+        drivesim_kernels::pack::dense_from_fn(state.rows, cols, input.0, |r, c| match c.checked_sub(state.cols) {
+            None => state.weight(r, c),
+            Some(c) => action.weight(r, c),
+        });
+        input.1.copy_from_slice(&state.bias);
+        self.output.copy_packed(output.0);
+        output.1.copy_from_slice(&self.output.bias);
     }
 
     /// The spread head `S` with `s`, where the model has one (a trainer's start).
@@ -118,13 +132,12 @@ impl Transition {
         self.fed_back.is_some()
     }
 
-    /// One step for a batch, `h' = tanh([W | V | U] [h | z | c] + b)` then `z' = A h' + a`, from
-    /// the codes `z`, or, with `z` `None`, from the codes `h` itself predicts (`A h + a`, as in
-    /// a rollout): then from
-    /// `[W + V A | U]` where the model folds, else from `A h + a` computed here. The caller
-    /// chooses: the result depends on the arguments alone. With threads, each product is split
-    /// between them by rows ([`DenseLayer::run`]), so the two products are two tasks, the
-    /// second waiting for all of `h'`.
+    /// One step for a batch, `h' = tanh(([W | V] [h | z] + b) + U c)` then `z' = A h' + a`,
+    /// from the codes `z`, or, with `z` `None`, from the codes `h` itself predicts (`A h + a`,
+    /// as in a rollout): then from `W + V A` where the model folds, else from `A h + a`
+    /// computed here. The caller chooses: the result depends on the arguments alone. With
+    /// threads and enough items, each thread steps a share of the items alone; with fewer,
+    /// the threads share each product's rows ([`DenseLayer::run`]).
     pub fn step(
         &self,
         exec: Exec<'_>,
@@ -134,37 +147,129 @@ impl Transition {
         action: &[f32],
         z_next: &mut [f32],
     ) {
-        let (input, z) = match (&self.fed_back, z) {
+        let (hd, zd) = (self.input.rows, self.output.rows);
+        let batch = h.len() / hd;
+        let ad = action.len() / batch;
+        let concat = &mut buf.concat[..batch * self.input.cols];
+        let code = &mut buf.code[..batch * zd];
+        by_items(
+            exec,
+            batch,
+            [h, concat, code, z_next],
+            |exec, items, [h, concat, code, z_next]| {
+                let z = z.map(|z| &z[items.start * zd..items.end * zd]);
+                let action = &action[items.start * ad..items.end * ad];
+                let (input, z) = self.state_input(exec, h, z, code);
+                let concat = &mut concat[..h.len() / hd * input.cols];
+                gather(concat, hd, h, z);
+                input.run(exec, concat, h);
+                self.finish(exec, action, h, z_next);
+            },
+        );
+    }
+
+    /// [`Transition::step`] for a batch whose items all start from one hidden state `state`
+    /// and one code `z` (or the code `state` predicts), each with its own action: the state's
+    /// part is summed once, for one item, and every item still gets the bits of
+    /// [`Transition::step`] (a planner's candidates, [`crate::Simulator::rollout_candidates`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn step_shared(
+        &self,
+        exec: Exec<'_>,
+        buf: &mut TransitionBuffers,
+        state: &[f32],
+        z: Option<&[f32]>,
+        action: &[f32],
+        h: &mut [f32],
+        z_next: &mut [f32],
+    ) {
+        let hd = self.input.rows;
+        let (input, z) = self.state_input(exec, state, z, &mut buf.code[..self.output.rows]);
+        let concat = &mut buf.concat[..input.cols];
+        gather(concat, hd, state, z);
+        let (first, rest) = h.split_at_mut(hd);
+        input.run(exec, concat, first);
+        for other in rest.chunks_exact_mut(hd) {
+            other.copy_from_slice(first);
+        }
+        let ad = action.len() / (h.len() / hd);
+        by_items(exec, h.len() / hd, [h, z_next], |exec, items, [h, z_next]| {
+            self.finish(exec, &action[items.start * ad..items.end * ad], h, z_next);
+        });
+    }
+
+    /// The layer of a step's state part from hidden states `h` and its code input: `[W | V]`
+    /// with the codes `z`, or without them `W + V A` where the model folds, else `[W | V]` with
+    /// the codes `A h + a`, computed into `code`.
+    fn state_input<'a>(
+        &'a self,
+        exec: Exec<'_>,
+        h: &[f32],
+        z: Option<&'a [f32]>,
+        code: &'a mut [f32],
+    ) -> (&'a DenseLayer, Option<&'a [f32]>) {
+        match (&self.fed_back, z) {
             (_, Some(z)) => (&self.input, Some(z)),
             (Some(fed_back), None) => (fed_back, None),
             (None, None) => {
-                let code = &mut buf.code[..h.len() / self.input.rows * self.output.rows];
                 self.output.run(exec, h, code);
                 (&self.input, Some(&*code))
             }
-        };
-        let concat = &mut buf.concat[..h.len() / input.rows * input.cols];
-        gather(concat, input.rows, h, z, action);
-        input.run(exec, concat, h);
+        }
+    }
+
+    /// A step's end from the state's part in `h`: `h = tanh(h + U c)`, `z' = A h + a`.
+    fn finish(&self, exec: Exec<'_>, action: &[f32], h: &mut [f32], z_next: &mut [f32]) {
+        self.action.run_add(exec, action, h);
         self.output.run(exec, h, z_next);
     }
 }
+
+/// Runs `step` on a batch of `items`: where there are enough of them, each thread runs it alone
+/// on a share of the items (every layer, no barrier between them: a batch's items are
+/// independent, and each gets the bits it would get alone); else once on all of them, with the
+/// threads sharing each product's rows. `step` gets the items' range and their parts of
+/// `buffers`, which hold whole items.
+fn by_items<const B: usize>(
+    exec: Exec<'_>,
+    items: usize,
+    buffers: [&mut [f32]; B],
+    step: impl Fn(Exec<'_>, Range<usize>, [&mut [f32]; B]) + Sync,
+) {
+    let threads = exec.threads();
+    if threads == 1 || items < ITEMS_PER_THREAD * threads {
+        return step(exec, 0..items, buffers);
+    }
+    let parts = ItemParts::new(buffers, items, threads);
+    let alone = Exec {
+        isa: exec.isa,
+        pool: None,
+    };
+    exec.run(&|| {
+        while let Some((range, buffers)) = parts.take() {
+            step(alone, range, buffers);
+        }
+    });
+}
+
+/// Below this many items per thread, threads share each product's rows instead of the items:
+/// a thread with fewer items streams all the weights for little work.
+const ITEMS_PER_THREAD: usize = 8;
 
 /// The spread head's tensors: `S` `[z_dim, hidden_dim]` and `s` `[z_dim]` (optional).
 pub(crate) const SPREAD_WEIGHT: &str = "transition.S";
 pub(crate) const SPREAD_BIAS: &str = "transition.s";
 
-/// Writes each batch item's `[h | z | c]` (or `[h | c]` without `z`) to `concat`, the input of
-/// the step's first product.
-fn gather(concat: &mut [f32], hidden: usize, h: &[f32], z: Option<&[f32]>, action: &[f32]) {
+/// Writes each batch item's `[h | z]` (or `h` without `z`) to `concat`, the input of the step's
+/// first product.
+fn gather(concat: &mut [f32], hidden: usize, h: &[f32], z: Option<&[f32]>) {
     let batch = h.len() / hidden;
-    let (zd, ad) = (z.map_or(0, |z| z.len() / batch), action.len() / batch);
-    for (n, row) in concat.chunks_exact_mut(hidden + zd + ad).enumerate() {
+    let zd = z.map_or(0, |z| z.len() / batch);
+    for (n, row) in concat.chunks_exact_mut(hidden + zd).enumerate() {
         row[..hidden].copy_from_slice(&h[n * hidden..][..hidden]);
         if let Some(z) = z {
-            row[hidden..hidden + zd].copy_from_slice(&z[n * zd..][..zd]);
+            row[hidden..].copy_from_slice(&z[n * zd..][..zd]);
         }
-        row[hidden + zd..].copy_from_slice(&action[n * ad..][..ad]);
     }
 }
 

@@ -8,11 +8,19 @@ use common::values;
 use drivesim::{Config, Error, Model, Simulator, WeightDtype};
 
 const CONFIG: Config = common::SMALL;
-const CANDIDATES: usize = 5;
+/// Fewer than 8 per thread (the threads share each product's rows) and more (each thread steps
+/// its own candidates).
+const CANDIDATES: [usize; 2] = [5, 17];
 const STEPS: usize = 4;
 
 /// Candidate `n`'s codes and frames, one step at a time on a single simulator.
-fn alone(model: &Model, h: &[f32], z: Option<&[f32]>, actions: &[f32], n: usize) -> (Vec<f32>, Vec<f32>) {
+fn alone(
+    model: &Model,
+    h: &[f32],
+    z: Option<&[f32]>,
+    actions: &[f32],
+    (n, of): (usize, usize),
+) -> (Vec<f32>, Vec<f32>) {
     let c = CONFIG;
     let mut sim = Simulator::new(model).unwrap();
     let mut h = h.to_vec();
@@ -20,7 +28,7 @@ fn alone(model: &Model, h: &[f32], z: Option<&[f32]>, actions: &[f32], n: usize)
     let mut out = vec![0.0; c.z_dim];
     let mut frame = vec![0.0; c.frame_len()];
     for t in 0..STEPS {
-        let action = &actions[(t * CANDIDATES + n) * c.action_dim..][..c.action_dim];
+        let action = &actions[(t * of + n) * c.action_dim..][..c.action_dim];
         match (t, z) {
             (0, Some(z)) => sim.transition(z, &mut h, action, &mut out).unwrap(),
             _ => sim.transition_fed_back(&mut h, action, &mut out).unwrap(),
@@ -35,37 +43,39 @@ fn alone(model: &Model, h: &[f32], z: Option<&[f32]>, actions: &[f32], n: usize)
 #[test]
 fn each_candidate_gets_the_bits_of_its_own_rollout() {
     let c = CONFIG;
-    let actions = values(3, STEPS * CANDIDATES * c.action_dim, 1.0);
     for dtype in [WeightDtype::F32, WeightDtype::F16] {
         let model = Model::random(&c, 4, dtype).unwrap();
-        let mut sim = Simulator::with_batch(&model, 8).unwrap().with_threads(2).unwrap();
-        let shared_h = values(5, c.hidden_dim, 0.5);
-        let own_h = values(6, CANDIDATES * c.hidden_dim, 0.5);
-        let z = values(7, c.z_dim, 1.0);
-        for (h, z) in [(&shared_h, Some(&z[..])), (&own_h, None), (&shared_h, None)] {
-            let mut codes = vec![0.0; STEPS * CANDIDATES * c.z_dim];
-            let mut frames = vec![0.0; STEPS * CANDIDATES * c.frame_len()];
-            sim.rollout_candidates(h, z, CANDIDATES, &actions, &mut codes, Some(&mut frames))
-                .unwrap();
-            for n in 0..CANDIDATES {
-                let state = if h.len() == c.hidden_dim {
-                    &h[..]
-                } else {
-                    &h[n * c.hidden_dim..][..c.hidden_dim]
-                };
-                let (want_codes, want_frames) = alone(&model, state, z, &actions, n);
-                for t in 0..STEPS {
-                    let at = |len: usize| (t * CANDIDATES + n) * len;
-                    assert_eq!(
-                        codes[at(c.z_dim)..][..c.z_dim],
-                        want_codes[t * c.z_dim..][..c.z_dim],
-                        "{dtype:?} candidate {n} step {t} code (z given: {})",
-                        z.is_some()
-                    );
-                    assert_eq!(
-                        frames[at(c.frame_len())..][..c.frame_len()],
-                        want_frames[t * c.frame_len()..][..c.frame_len()]
-                    );
+        let mut sim = Simulator::with_batch(&model, 24).unwrap().with_threads(2).unwrap();
+        for candidates in CANDIDATES {
+            let actions = values(3, STEPS * candidates * c.action_dim, 1.0);
+            let shared_h = values(5, c.hidden_dim, 0.5);
+            let own_h = values(6, candidates * c.hidden_dim, 0.5);
+            let z = values(7, c.z_dim, 1.0);
+            for (h, z) in [(&shared_h, Some(&z[..])), (&own_h, None), (&shared_h, None)] {
+                let mut codes = vec![0.0; STEPS * candidates * c.z_dim];
+                let mut frames = vec![0.0; STEPS * candidates * c.frame_len()];
+                sim.rollout_candidates(h, z, candidates, &actions, &mut codes, Some(&mut frames))
+                    .unwrap();
+                for n in 0..candidates {
+                    let state = if h.len() == c.hidden_dim {
+                        &h[..]
+                    } else {
+                        &h[n * c.hidden_dim..][..c.hidden_dim]
+                    };
+                    let (want_codes, want_frames) = alone(&model, state, z, &actions, (n, candidates));
+                    for t in 0..STEPS {
+                        let at = |len: usize| (t * candidates + n) * len;
+                        assert_eq!(
+                            codes[at(c.z_dim)..][..c.z_dim],
+                            want_codes[t * c.z_dim..][..c.z_dim],
+                            "{dtype:?} candidate {n} of {candidates} step {t} code (z given: {})",
+                            z.is_some()
+                        );
+                        assert_eq!(
+                            frames[at(c.frame_len())..][..c.frame_len()],
+                            want_frames[t * c.frame_len()..][..c.frame_len()]
+                        );
+                    }
                 }
             }
         }

@@ -19,6 +19,11 @@ range across rounds.
 drivesim alone also times a transition step fed the previous step's prediction, as in a
 rollout (for f32 weights it folds `V A` into `W`), against its own and ONNX Runtime's step.
 
+The planner's inner loop (`--planner 64x10`: candidates x steps; `--planner 0` skips it):
+drivesim's `rollout_candidates` from one state and code, codes only, against the same loop
+over ONNX Runtime's step, each step's predicted code and hidden state fed to the next, in
+candidate steps per second.
+
 FLOPs count every kernel tap (`benches/common/mod.rs`): about 1.04 GFLOP per frame for the
 encoder and the generator at the comma config. "of peak" is GFLOP/s over the FMA peak of the
 widest vector measured with as many threads at once.
@@ -47,6 +52,9 @@ NETWORKS = ("encode", "generate", "transition")
 # Timed for drivesim alone: a transition step fed the previous step's prediction, as in a rollout,
 # which drivesim recognises and runs with `V A` folded into `W` (the peers' graphs take the code).
 FED_BACK = "transition_fed_back"
+# A planner's inner loop (bench_report's `planner`: its steps are bench_report's PLANNER_STEPS).
+PLANNER = "planner"
+PLANNER_STEPS = 10
 
 
 def comma(z: int) -> Config:
@@ -139,10 +147,29 @@ class Ort:
                 self.sessions[(net, t)] = ort.InferenceSession(str(paths[net]), opts, providers=["CPUExecutionProvider"])
 
     def time(self, cfg, net, batch, threads, seconds) -> float:
+        if net == PLANNER:
+            return self.planner(cfg, batch, threads, seconds)
         sess = self.sessions[(net, threads)]
         names = [i.name for i in sess.get_inputs()]
         feed = {n: v.numpy() for n, v in zip(names, inputs(cfg, batch)[net])}
         return median_ms(lambda: sess.run(None, feed), seconds)
+
+
+    def planner(self, cfg, candidates, threads, seconds) -> float:
+        """`PLANNER_STEPS` steps of `candidates` from one state and code, each step's outputs
+        fed to the next, as a planner written over ONNX Runtime's step would."""
+        sess = self.sessions[("transition", threads)]
+        g = torch.Generator().manual_seed(4)
+        z = torch.randn(1, cfg.z_dim, generator=g).repeat(candidates, 1).numpy()
+        h = (torch.randn(1, cfg.hidden_dim, generator=g) * 0.5).repeat(candidates, 1).numpy()
+        actions = torch.randn(PLANNER_STEPS, candidates, cfg.action_dim, generator=g).numpy()
+
+        def run():
+            code, hidden = z, h
+            for c in actions:
+                code, hidden = sess.run(None, {"z": code, "h": hidden, "c": c})
+
+        return median_ms(run, seconds)
 
 
 class Torch:
@@ -170,7 +197,7 @@ class Drivesim:
         """`model_args`: bench_report's `--weights FILE` or `--z N [--hidden N]`; `features`:
         cargo features to build it with (`train` for the training step)."""
         cargo = ["cargo", "run", "--quiet", "--release"] + (["--features", features] if features else [])
-        run = [str(binary)] if binary else cargo + ["--example", "bench_report", "--"]
+        run = [str(binary.resolve())] if binary else cargo + ["--example", "bench_report", "--"]
         cmd = run + model_args + ["--threads", ",".join(map(str, threads)), "--seconds", str(seconds), "--serve"]
         print("$", " ".join(cmd), file=sys.stderr)
         self.proc = subprocess.Popen(cmd, cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -203,12 +230,15 @@ class Drivesim:
         self.proc.wait()
 
 
-def time_rounds(runtimes: dict, cfg, batches, threads, seconds, rounds) -> dict:
+def time_rounds(runtimes: dict, cfg, batches, threads, seconds, rounds, candidates) -> dict:
     """`{(runtime, net, batch, threads): [median ms of each round]}`, the runtimes interleaved."""
     samples: dict = {}
     names = list(runtimes)
     for r in range(rounds):
         for t in threads:
+            for name in (names[:2] if r % 2 == 0 else names[1::-1]) if candidates else []:
+                ms = runtimes[name].time(cfg, PLANNER, candidates, t, seconds)
+                samples.setdefault((name, PLANNER, candidates, t), []).append(ms)
             for net in NETWORKS + (FED_BACK,):
                 for b in batches:
                     # Alternate the order, so that no runtime always follows the same one.
@@ -245,11 +275,16 @@ def main() -> int:
     p.add_argument("--threads", default="1,2", help="peer intra-op thread counts")
     p.add_argument("--seconds", type=float, default=1.0, help="time budget per measurement and round")
     p.add_argument("--rounds", type=int, default=3, help="rounds of every measurement, interleaved")
+    p.add_argument("--planner", default="64x10", help="candidates x steps of the planner loop (0: skip)")
     p.add_argument("--seed", type=int, default=2016)
     p.add_argument("--out", type=Path, help="where to write the weights and graphs (default: a temp dir)")
     p.add_argument("--bench-report", type=Path, help="a prebuilt examples/bench_report binary to run instead of cargo")
     a = p.parse_args()
     batches = [int(b) for b in a.batch.split(",")]
+    candidates, _, steps = a.planner.partition("x")
+    candidates = int(candidates)
+    if candidates and int(steps or PLANNER_STEPS) != PLANNER_STEPS:
+        p.error(f"--planner: the loop has {PLANNER_STEPS} steps (bench_report's PLANNER_STEPS)")
     threads = [int(t) for t in a.threads.split(",")]
     cfg = comma(a.z)
     out = a.out or Path(tempfile.mkdtemp(prefix="drivesim-compare-"))
@@ -263,7 +298,7 @@ def main() -> int:
     drivesim = Drivesim(["--weights", str(weights)], threads, a.seconds, a.bench_report)
     runtimes = {"drivesim": drivesim, "onnxruntime": Ort(paths, threads), "pytorch": Torch(model)}
     try:
-        samples = time_rounds(runtimes, cfg, batches, threads, a.seconds, a.rounds)
+        samples = time_rounds(runtimes, cfg, batches, threads, a.seconds, a.rounds, candidates)
     finally:
         drivesim.close()
     gflop, peaks = drivesim.gflop, drivesim.peaks
@@ -301,6 +336,16 @@ def main() -> int:
             own, ort = samples[("drivesim", "transition", b, t)], samples[("onnxruntime", "transition", b, t)]
             ratios = [spread([o / f for o, f in zip(step, fed)]) for step in (own, ort)]
             print(f"- batch {b}, {t} thread(s): {statistics.median(fed):.4f} ms; own step {ratios[0]}; ONNX Runtime {ratios[1]}")
+    if candidates:
+        print(f"\nThe planner's loop, {candidates} candidates x {PLANNER_STEPS} steps from one state and code,")
+        print("codes only: drivesim's rollout_candidates and ONNX Runtime's step in a loop (above 1: drivesim is faster):")
+        print("| threads | drivesim ms | candidate steps/s | ONNX Runtime ms | candidate steps/s | ONNX Runtime/drivesim (range) |")
+        print("|---:|---:|---:|---:|---:|---:|")
+        for t in threads:
+            own, ort = (samples[(rt, PLANNER, candidates, t)] for rt in ("drivesim", "onnxruntime"))
+            rate = [candidates * PLANNER_STEPS / (statistics.median(x) / 1e3) for x in (own, ort)]
+            ratio = spread([o / d for o, d in zip(ort, own)])
+            print(f"| {t} | {statistics.median(own):.3f} | {rate[0]:,.0f} | {statistics.median(ort):.3f} | {rate[1]:,.0f} | {ratio} |")
     if 1 in batches and len(batches) > 1:
         print("\ndrivesim per item at the largest batch against batch 1, per round (above 1: batching helps):")
         big = max(batches)

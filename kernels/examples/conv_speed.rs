@@ -5,23 +5,13 @@
 //! Times are this thread's CPU time (from `/proc/thread-self/schedstat` where it exists, else
 //! wall time), so that other processes sharing the cores do not inflate them.
 
-use drivesim_kernels::{conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Plane};
-use std::time::Instant;
+#[path = "common/speed_clock.rs"]
+mod speed_clock;
 
-/// Nanoseconds this thread has run on a CPU, or wall time when the kernel does not say.
-/// `DRIVESIM_SPEED_CLOCK=wall` measures wall time (on an idle machine, where the scheduler's
-/// clock may be coarse).
-fn now_ns(start: Instant) -> u64 {
-    let wall = std::env::var("DRIVESIM_SPEED_CLOCK").is_ok_and(|v| v == "wall");
-    (!wall)
-        .then(|| std::fs::read_to_string("/proc/thread-self/schedstat").ok())
-        .flatten()
-        .and_then(|s| s.split_whitespace().next()?.parse().ok())
-        .unwrap_or_else(|| start.elapsed().as_nanos() as u64)
-}
+use drivesim_kernels::{conv, Activation, ConvKind, ConvParams, ConvShape, Isa, Plane};
+use speed_clock::best_seconds;
 
 fn main() {
-    let epoch = Instant::now();
     let isa = Isa::best();
     let leaky = Activation::LeakyRelu(0.2);
     let layers = [
@@ -75,26 +65,7 @@ fn main() {
             act,
         };
         let flops = 2.0 * shape.macs() as f64;
-        // Calibrate to ~250 ms per measurement (the clock may tick coarsely), then take the best of 3.
-        let mut reps = 1;
-        loop {
-            let t = now_ns(epoch);
-            for _ in 0..reps {
-                conv(isa, layer, &input, &mut output);
-            }
-            if now_ns(epoch) - t > 250_000_000 {
-                break;
-            }
-            reps *= 2;
-        }
-        let mut best = f64::INFINITY;
-        for _ in 0..3 {
-            let t = now_ns(epoch);
-            for _ in 0..reps {
-                conv(isa, layer, &input, &mut output);
-            }
-            best = best.min((now_ns(epoch) - t) as f64 * 1e-9 / reps as f64);
-        }
+        let best = best_seconds(|| conv(isa, layer, &input, &mut output));
         let net = (kind == ConvKind::Up) as usize;
         totals[net].0 += best;
         totals[net].1 += flops;

@@ -108,8 +108,26 @@ pub fn dense(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], 
 /// threads can fill disjoint row ranges of one batch's output at once, each reading only its
 /// rows of the weights.
 pub fn dense_rows(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], part: OutputPart<'_>) {
+    assert_eq!(bias.len(), w.rows);
+    dense_part(isa, w, Some(bias), act, x, part);
+}
+
+/// `y[n] = act(y[n] + W x[n])`: [`dense`] adding to what `y` holds instead of a bias, with the
+/// same bits as [`dense`] given that as the bias. What a product's second part does after its
+/// first (a transition's action after its shared state).
+pub fn dense_add(isa: Isa, w: Matrix<'_>, act: Activation, x: &[f32], y: &mut [f32]) {
+    dense_add_rows(isa, w, act, x, OutputPart::whole(y, w.rows));
+}
+
+/// [`dense_add`] for the rows of `part` only, as [`dense_rows`].
+pub fn dense_add_rows(isa: Isa, w: Matrix<'_>, act: Activation, x: &[f32], part: OutputPart<'_>) {
+    dense_part(isa, w, None, act, x, part);
+}
+
+/// [`dense_rows`] and [`dense_add_rows`].
+fn dense_part(isa: Isa, w: Matrix<'_>, bias: Option<&[f32]>, act: Activation, x: &[f32], part: OutputPart<'_>) {
     let rows = part.units();
-    assert!(rows.start.is_multiple_of(crate::OC_ALIGN) && rows.end <= w.rows && bias.len() == w.rows);
+    assert!(rows.start.is_multiple_of(crate::OC_ALIGN) && rows.end <= w.rows);
     w.check_packed();
     assert!(w.cols > 0 && x.len().is_multiple_of(w.cols), "input is not whole rows");
     assert_eq!(part.buffer_len(), x.len() / w.cols * w.rows);
@@ -118,7 +136,7 @@ pub fn dense_rows(isa: Isa, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f
     // of every item (checked), and its rows are this call's alone.
     unsafe {
         let y = part.ptr().add(rows.start);
-        (simd::entries(isa).dense)(sub, &bias[rows], act, x, y, ldy)
+        (simd::entries(isa).dense)(sub, bias.map(|b| &b[rows]), act, x, y, ldy)
     }
 }
 

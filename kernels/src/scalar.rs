@@ -98,14 +98,22 @@ pub(crate) unsafe fn winograd_channels(
 pub fn dense(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
     assert_eq!(y.len(), x.len() / w.cols * w.rows);
     // SAFETY: `y` holds every row of every item.
-    unsafe { dense_rows(w, bias, act, x, y.as_mut_ptr(), w.rows) }
+    unsafe { dense_rows(w, Some(bias), act, x, y.as_mut_ptr(), w.rows) }
 }
 
-/// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row `r` of `w` and item `n`.
+/// `y[n * ldy + r] = act(W[r] . x[n] + bias[r])` for every row `r` of `w` and item `n`; without
+/// a bias, `act(W[r] . x[n] + y[n * ldy + r])`.
 ///
 /// # Safety
-/// `y` must be valid for those writes, and no other thread may read or write them.
-pub(crate) unsafe fn dense_rows(w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: *mut f32, ldy: usize) {
+/// `y` must be valid for those reads and writes, and no other thread may read or write them.
+pub(crate) unsafe fn dense_rows(
+    w: Matrix<'_>,
+    bias: Option<&[f32]>,
+    act: Activation,
+    x: &[f32],
+    y: *mut f32,
+    ldy: usize,
+) {
     unsafe {
         let weight = |r: usize, c: usize| {
             let at = Matrix::packed_index(r, c, w.cols);
@@ -115,9 +123,10 @@ pub(crate) unsafe fn dense_rows(w: Matrix<'_>, bias: &[f32], act: Activation, x:
             }
         };
         for (n, x) in x.chunks_exact(w.cols).enumerate() {
-            for (r, &b) in bias.iter().enumerate() {
+            for r in 0..w.rows {
                 let dot: f32 = x.iter().enumerate().map(|(c, &x)| weight(r, c) * x).sum();
-                *y.add(n * ldy + r) = act.apply(dot + b);
+                let out = y.add(n * ldy + r);
+                *out = act.apply(dot + bias.map_or(*out, |b| b[r]));
             }
         }
     }

@@ -4,7 +4,9 @@ mod common;
 
 use common::{simd_levels, values, ACTS};
 use drivesim_kernels::pack::dense_weights;
-use drivesim_kernels::{dense, dense_rows, f16, Activation, Isa, Matrix, MatrixData, OutputParts};
+use drivesim_kernels::{
+    dense, dense_add, dense_add_rows, dense_rows, f16, Activation, Isa, Matrix, MatrixData, OutputParts,
+};
 
 const ROWS: [usize; 10] = [1, 2, 3, 5, 7, 8, 9, 17, 33, 129];
 const COLS: [usize; 14] = [1, 2, 3, 7, 8, 9, 15, 16, 17, 31, 33, 100, 1000, 2500];
@@ -182,6 +184,47 @@ fn dense_is_bit_identical_across_batches_and_row_splits() {
                         dense_rows(isa, w, &bias, Activation::Tanh, &x, part);
                     }
                     assert_eq!(split, whole, "{isa:?} {rows}x{cols}: rows in {count} parts");
+                }
+            }
+        }
+    }
+}
+
+/// `dense_add` starts each item's sums from what its output holds: the bits of `dense` given
+/// that as the bias, for a batch whose items start differently, whole or in row parts, at every
+/// level (the scalar one included), past a chunk and a single input's spread tile.
+#[test]
+fn dense_add_is_dense_with_the_output_as_bias() {
+    let mut levels = simd_levels();
+    levels.push(Isa::SCALAR);
+    for (rows, cols) in [(1, 1), (17, 2), (129, 33), (300, 1026), (33, 3000)] {
+        let w32 = dense_weights(&values(rows as u64, rows * cols, 0.05), rows, cols);
+        let w16 = halves(&w32);
+        let batch = 5;
+        let x = values(cols as u64, batch * cols, 1.0);
+        let start = values(3, batch * rows, 0.5);
+        for data in [MatrixData::F32(&w32), MatrixData::F16(&w16)] {
+            let w = Matrix { data, rows, cols };
+            for &isa in &levels {
+                for act in [Activation::Tanh, Activation::Identity] {
+                    let mut added = start.clone();
+                    dense_add(isa, w, act, &x, &mut added);
+                    for n in 0..batch {
+                        let mut want = vec![0.0; rows];
+                        let bias = &start[n * rows..][..rows];
+                        dense(isa, w, bias, act, &x[n * cols..][..cols], &mut want);
+                        assert_eq!(
+                            added[n * rows..][..rows],
+                            want,
+                            "{isa:?} {rows}x{cols} {act:?}: item {n}"
+                        );
+                    }
+                    let mut split = start.clone();
+                    let parts = OutputParts::new(&mut split, rows, 3);
+                    while let Some(part) = parts.take() {
+                        dense_add_rows(isa, w, act, &x, part);
+                    }
+                    assert_eq!(split, added, "{isa:?} {rows}x{cols} {act:?}: rows in 3 parts");
                 }
             }
         }

@@ -106,14 +106,18 @@ impl<M: Borrow<Model>> Simulator<M> {
             pool: self.pool.as_ref(),
         };
         let model = self.model.borrow();
+        // From one state and one code (or none), the first step sums the state's part once.
+        let shared = h.len() == c.hidden_dim && z.is_none_or(|z| z.len() == c.z_dim);
         let hs = &mut self.rollout_h[..n * c.hidden_dim];
-        for state in hs.chunks_exact_mut(h.len()) {
-            state.copy_from_slice(h);
-        }
         let first = &mut self.rollout_z[0][..n * c.z_dim];
-        if let Some(z) = z {
-            for code in first.chunks_exact_mut(z.len()) {
-                code.copy_from_slice(z);
+        if !shared {
+            for state in hs.chunks_exact_mut(h.len()) {
+                state.copy_from_slice(h);
+            }
+            if let Some(z) = z {
+                for code in first.chunks_exact_mut(z.len()) {
+                    code.copy_from_slice(z);
+                }
             }
         }
         // Sampled codes are not what `h` predicts: every step then takes its input.
@@ -129,9 +133,11 @@ impl<M: Borrow<Model>> Simulator<M> {
                 _ => None,
             };
             let action = &actions[t * step_len..][..step_len];
-            model
-                .transition
-                .step(exec, &mut self.transition, hs, input, action, out);
+            let transition = &model.transition;
+            match t {
+                0 if shared => transition.step_shared(exec, &mut self.transition, h, z, action, hs, out),
+                _ => transition.step(exec, &mut self.transition, hs, input, action, out),
+            }
             sample_codes(&sampling, model, exec, &mut self.transition, hs, t as u64, out);
             expect_finite_output("codes", out)?;
             if let Some(frames) = frames.as_deref_mut() {

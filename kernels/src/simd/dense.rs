@@ -35,7 +35,7 @@ use crate::{f16, Activation, Matrix, MatrixData, OC_ALIGN};
 #[inline(always)]
 pub(super) unsafe fn dense<S: Widen, const NI: usize, const NV: usize>(
     w: Matrix<'_>,
-    bias: &[f32],
+    bias: Option<&[f32]>,
     act: Activation,
     x: &[f32],
     y: *mut f32,
@@ -43,6 +43,7 @@ pub(super) unsafe fn dense<S: Widen, const NI: usize, const NV: usize>(
 ) {
     unsafe {
         let args = Args {
+            rows: w.rows,
             cols: w.cols,
             bias,
             act,
@@ -57,10 +58,12 @@ pub(super) unsafe fn dense<S: Widen, const NI: usize, const NV: usize>(
     }
 }
 
-/// The arguments of one call besides the weights: output item `n` starts at `y + n * ldy`.
+/// The arguments of one call besides the weights: output item `n` starts at `y + n * ldy`;
+/// the sums start from the bias, or from what `y` holds where there is none.
 pub(super) struct Args<'a> {
+    rows: usize,
     cols: usize,
-    bias: &'a [f32],
+    bias: Option<&'a [f32]>,
     act: Activation,
     x: &'a [f32],
     y: *mut f32,
@@ -117,14 +120,20 @@ impl Tile {
 }
 
 /// The sums of the tile's rows (`NV` vectors of them) times items `tile.item ..` (`NI`) over
-/// the tile's columns, then stored: plus the bias for the first chunk of columns, else added
-/// to what earlier chunks stored. Rows past the last are computed (the panel's zero padding)
+/// the tile's columns, then stored: plus the bias for the first chunk of columns, else (and
+/// without a bias) added to what is stored. Rows past the last are computed (the panel's zero padding)
 /// but not stored.
 #[inline(always)]
 unsafe fn tile<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], args: &Args<'_>, tile: Tile) {
     unsafe {
         let Args {
-            cols, bias, x, y, ldy, ..
+            rows,
+            cols,
+            bias,
+            x,
+            y,
+            ldy,
+            ..
         } = *args;
         // Vector `v` of the tile at column 0: its panel, and its lanes within the panel.
         let starts: [*const T; NV] =
@@ -146,7 +155,6 @@ unsafe fn tile<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], a
                 }
             }
         }
-        let rows = bias.len();
         for (i, acc) in acc.iter().enumerate() {
             let out = y.add((tile.item + i) * ldy);
             for (v, &sum) in acc.iter().enumerate() {
@@ -155,8 +163,11 @@ unsafe fn tile<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], a
                     break;
                 }
                 let n = S::LANES.min(rows - row);
-                let (dst, b) = (out.add(row), bias.as_ptr().add(row));
-                let earlier = if tile.col == 0 { b } else { dst };
+                let dst = out.add(row);
+                let earlier = match bias {
+                    Some(b) if tile.col == 0 => b.as_ptr().add(row),
+                    _ => dst,
+                };
                 store_n(load_n::<S>(earlier, n).add(sum), dst, n);
             }
         }
@@ -167,7 +178,7 @@ unsafe fn tile<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], a
 #[inline(always)]
 pub(super) unsafe fn body<S: Widen, T: Weight, const NI: usize, const NV: usize>(w: &[T], args: Args<'_>) {
     unsafe {
-        let (cols, rows) = (args.cols, args.bias.len());
+        let (cols, rows) = (args.cols, args.rows);
         debug_assert!(OC_ALIGN.is_multiple_of(S::LANES) && (NV * S::LANES).is_multiple_of(OC_ALIGN));
         let padded = rows.next_multiple_of(OC_ALIGN);
         let items = args.x.len() / cols;

@@ -36,7 +36,7 @@ pub(crate) struct Entries {
     /// See [`crate::scalar::conv_channels`].
     pub conv: unsafe fn(ConvParams<'_>, &[f32], *mut f32, Range<usize>),
     /// See [`crate::scalar::dense_rows`].
-    pub dense: unsafe fn(Matrix<'_>, &[f32], Activation, &[f32], *mut f32, usize),
+    pub dense: Dense,
     /// See [`crate::scalar::dense_weight_grad_rows`].
     pub dense_weight_grad: DenseWeightGrad,
     /// See [`crate::scalar::dense_data_grad_cols`].
@@ -60,6 +60,9 @@ pub(crate) struct Entries {
     /// See [`crate::scalar::adam`].
     pub adam: Adam,
 }
+
+/// `(w, bias, act, x, y, ldy)`: without a bias, the sums add to what `y` holds.
+type Dense = unsafe fn(Matrix<'_>, Option<&[f32]>, Activation, &[f32], *mut f32, usize);
 
 /// `(dy, x, cols, grad, rows, total_rows, accumulate)`.
 type DenseWeightGrad = unsafe fn(&[f32], &[f32], usize, *mut f32, Range<usize>, usize, bool);
@@ -205,7 +208,7 @@ macro_rules! entries {
             #[target_feature(enable = $features)]
             unsafe fn dense(
                 w: $crate::Matrix<'_>,
-                bias: &[f32],
+                bias: Option<&[f32]>,
                 act: $crate::Activation,
                 x: &[f32],
                 y: *mut f32,

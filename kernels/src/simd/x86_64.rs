@@ -304,7 +304,7 @@ impl Double for __m512 {
 // The dense batch tile on AVX2 takes 14 of the 16 registers: 4 x 2 accumulators, 2 weight
 // vectors and the 4 broadcasts, which the compiler loads all at once (with more items, an
 // accumulator spills to the stack and the loop waits on it).
-entries!(AVX2, "avx2,fma,f16c", __m256, dense tile 4 x 2);
+entries!(AVX2, "avx2,fma,f16c", __m256, dense tile 6 x 2);
 // On AVX-512, 8 x 3 accumulators and 3 weight vectors; the broadcasts fold into the
 // multiply-adds' memory operands. On a Xeon this measured level with or ahead of 8 x 2 and
 // 12 x 2.

@@ -14,7 +14,7 @@ use crate::train::NamedTensor;
 use crate::{Error, Model, Result};
 use alloc::vec;
 use alloc::vec::Vec;
-use drivesim_kernels::{math, Isa, Matrix, MatrixData};
+use drivesim_kernels::{math, Isa, Matrix};
 
 /// The tensors a transition has, in PyTorch layout: name, shape (the spread head's last).
 fn tensor_shapes(d: &Dims) -> [(&'static str, [usize; 2]); 8] {
@@ -127,20 +127,17 @@ impl<'a> TransitionTrainer<'a> {
         };
         let [params, .., norm] = cut(trainer.memory.floats(), &trainer.plan.lens);
         let [wx, bx, wa, ba, ws, bs] = cut(params, &d.params());
-        let (input, output) = model.transition.layers();
-        let layers = [(wx, bx, Some(input)), (wa, ba, Some(output)), (ws, bs, spread)];
-        for (weights, bias, layer) in layers {
-            let Some(layer) = layer else {
-                // A new spread head: zeros, a unit spread to start from.
-                weights.fill(0.0);
-                bias.fill(0.0);
-                continue;
-            };
-            match layer.matrix().data {
-                MatrixData::F32(w) => weights.copy_from_slice(w),
-                MatrixData::F16(w) => weights.iter_mut().zip(w).for_each(|(d, w)| *d = w.to_f32()),
+        model.transition.trainer_weights((wx, bx), (wa, ba));
+        match spread {
+            Some(layer) => {
+                layer.copy_packed(ws);
+                bs.copy_from_slice(&layer.bias);
             }
-            bias.copy_from_slice(&layer.bias);
+            // A new spread head: zeros, a unit spread to start from.
+            None => {
+                ws.fill(0.0);
+                bs.fill(0.0);
+            }
         }
         // Identity normalisation: mean 0, standard deviation 1.
         norm[d.actions..].fill(1.0);

@@ -1,0 +1,53 @@
+//! Speed of the dense kernel on the transition's shapes (comma config, z = hidden = 512: the
+//! state's part `[W | V]`, 512 x 1024, and `A` or the folded `W + V A`, 512 x 512), f32, at
+//! batch 1 to 256, single-threaded:
+//! `cargo run --release -p drivesim-kernels --example dense_speed [-- --batch 1,16,64,256]`.
+//! Prints GFLOP/s and the share of this core's FMA peak (measured here, 12 chains of FMAs).
+//! Set `DRIVESIM_ISA` to cap the level (scalar, neon, avx2, avx512). Times are this thread's
+//! CPU time where the kernel gives it (see `conv_speed`).
+
+#[path = "common/speed_clock.rs"]
+mod speed_clock;
+
+use drivesim_kernels::{dense, pack, Activation, Isa, Matrix, MatrixData};
+use speed_clock::{best_seconds, fma_peak_gflops};
+
+fn main() {
+    let batches: Vec<usize> = std::env::args()
+        .skip_while(|a| a != "--batch")
+        .nth(1)
+        .map_or(vec![1, 16, 64, 256], |s| {
+            s.split(',').filter_map(|b| b.parse().ok()).collect()
+        });
+    let isa = Isa::best();
+    let peak = fma_peak_gflops(isa);
+    println!("level {}  FMA peak {peak:.1} GFLOP/s (one thread)", isa.level().name());
+    for (name, rows, cols, act) in [
+        ("transition [W|V]", 512, 1024, Activation::Identity),
+        ("transition A, W+VA", 512, 512, Activation::Identity),
+    ] {
+        let row_major: Vec<f32> = (0..rows * cols)
+            .map(|i| ((i * 104729) % 97) as f32 / 970.0 - 0.05)
+            .collect();
+        let packed = pack::dense_weights(&row_major, rows, cols);
+        let w = Matrix {
+            data: MatrixData::F32(&packed),
+            rows,
+            cols,
+        };
+        let bias = vec![0.01; rows];
+        for &batch in &batches {
+            let x: Vec<f32> = (0..batch * cols)
+                .map(|i| ((i * 7919) % 101) as f32 / 101.0 - 0.5)
+                .collect();
+            let mut y = vec![0.0; batch * rows];
+            let seconds = best_seconds(|| dense(isa, w, &bias, act, &x, &mut y));
+            let gflops = 2.0 * (rows * cols * batch) as f64 / seconds / 1e9;
+            println!(
+                "{name:20} {rows}x{cols} batch {batch:3}  {:8.4} ms  {gflops:6.1} GFLOP/s  {:5.1}% of peak",
+                seconds * 1e3,
+                100.0 * gflops / peak
+            );
+        }
+    }
+}
