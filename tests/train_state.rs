@@ -195,7 +195,7 @@ fn the_written_file_is_the_same_bytes_every_time() {
     // call: a resumed run could not write the bytes of the run never stopped.
     let original = std::fs::read("weights/default.safetensors").unwrap();
     let model = Model::from_bytes(&original).unwrap();
-    let plan = TransitionPlan::new(model.config(), 2, WINDOW).unwrap();
+    let plan = TransitionPlan::for_model(&model, 2, WINDOW).unwrap();
     let t = TransitionTrainer::new(&model, &plan, TransitionSettings::default()).unwrap();
     let specs = model.actions().unwrap();
     let trained_on = drivesim::train::TrainedOn {

@@ -55,6 +55,10 @@ FED_BACK = "transition_fed_back"
 # A planner's inner loop (bench_report's `planner`: its steps are bench_report's PLANNER_STEPS).
 PLANNER = "planner"
 PLANNER_STEPS = 10
+# Seconds of rest before each measurement: a runtime's worker threads spin for a while after its
+# last call (ONNX Runtime's intra-op pool, PyTorch's OpenMP threads), and on two cores a spinning
+# thread takes the next measurement's second core.
+SETTLE = 0.3
 
 
 def comma(z: int) -> Config:
@@ -230,21 +234,24 @@ class Drivesim:
         self.proc.wait()
 
 
-def time_rounds(runtimes: dict, cfg, batches, threads, seconds, rounds, candidates) -> dict:
+def time_rounds(runtimes: dict, cfg, networks, batches, threads, seconds, rounds, candidates) -> dict:
     """`{(runtime, net, batch, threads): [median ms of each round]}`, the runtimes interleaved."""
     samples: dict = {}
     names = list(runtimes)
     for r in range(rounds):
         for t in threads:
-            for name in (names[:2] if r % 2 == 0 else names[1::-1]) if candidates else []:
+            looping = [n for n in names if n != "pytorch"] if candidates else []
+            for name in looping if r % 2 == 0 else looping[::-1]:
+                time.sleep(SETTLE)
                 ms = runtimes[name].time(cfg, PLANNER, candidates, t, seconds)
                 samples.setdefault((name, PLANNER, candidates, t), []).append(ms)
-            for net in NETWORKS + (FED_BACK,):
+            for net in networks + ((FED_BACK,) if "transition" in networks else ()):
                 for b in batches:
                     # Alternate the order, so that no runtime always follows the same one.
                     for name in names if r % 2 == 0 else names[::-1]:
-                        if net == FED_BACK and name != "drivesim":
+                        if net == FED_BACK and name in ("onnxruntime", "pytorch"):
                             continue
+                        time.sleep(SETTLE)
                         ms = runtimes[name].time(cfg, net, b, t, seconds)
                         samples.setdefault((name, net, b, t), []).append(ms)
         print(f"round {r + 1} of {rounds} done", file=sys.stderr)
@@ -271,6 +278,7 @@ def cpu_info() -> tuple[str, list[str]]:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--z", type=int, default=512, help="z_dim = hidden_dim (default 512)")
+    p.add_argument("--networks", default=",".join(NETWORKS), help="of " + ", ".join(NETWORKS))
     p.add_argument("--batch", default="1,16")
     p.add_argument("--threads", default="1,2", help="peer intra-op thread counts")
     p.add_argument("--seconds", type=float, default=1.0, help="time budget per measurement and round")
@@ -279,8 +287,12 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=2016)
     p.add_argument("--out", type=Path, help="where to write the weights and graphs (default: a temp dir)")
     p.add_argument("--bench-report", type=Path, help="a prebuilt examples/bench_report binary to run instead of cargo")
+    p.add_argument("--before", type=Path, help="another build's bench_report, timed as the runtime `before` (a change's effect)")
     a = p.parse_args()
     batches = [int(b) for b in a.batch.split(",")]
+    networks = tuple(a.networks.split(","))
+    if not set(networks) <= set(NETWORKS):
+        p.error(f"--networks: of {', '.join(NETWORKS)}")
     candidates, _, steps = a.planner.partition("x")
     candidates = int(candidates)
     if candidates and int(steps or PLANNER_STEPS) != PLANNER_STEPS:
@@ -297,10 +309,14 @@ def main() -> int:
 
     drivesim = Drivesim(["--weights", str(weights)], threads, a.seconds, a.bench_report)
     runtimes = {"drivesim": drivesim, "onnxruntime": Ort(paths, threads), "pytorch": Torch(model)}
+    if a.before:
+        runtimes["before"] = Drivesim(["--weights", str(weights)], threads, a.seconds, a.before)
     try:
-        samples = time_rounds(runtimes, cfg, batches, threads, a.seconds, a.rounds, candidates)
+        samples = time_rounds(runtimes, cfg, networks, batches, threads, a.seconds, a.rounds, candidates)
     finally:
-        drivesim.close()
+        for rt in runtimes.values():
+            if isinstance(rt, Drivesim):
+                rt.close()
     gflop, peaks = drivesim.gflop, drivesim.peaks
 
     import onnxruntime
@@ -318,7 +334,7 @@ def main() -> int:
 
     print("| network | batch | runtime | threads | median ms | GFLOP/s | of peak | peer/drivesim (range) |")
     print("|---|---:|---|---:|---:|---:|---:|---:|")
-    for net in NETWORKS:
+    for net in networks:
         for b in batches:
             for t in threads:
                 own = samples[("drivesim", net, b, t)]
@@ -330,26 +346,32 @@ def main() -> int:
                     print(f"| {net} | {b} | {rt} | {t} | {ms:.3f} | {gf:.1f} | {gf / peak(t):.0%} | {ratio} |")
     print(f"\ndrivesim's step fed its own prediction ({FED_BACK}), median ms, and per round its step from")
     print("a code and ONNX Runtime's step over it (above 1: the fed-back step is faster):")
-    for b in batches:
+    for b in batches if "transition" in networks else []:
         for t in threads:
             fed = samples[("drivesim", FED_BACK, b, t)]
             own, ort = samples[("drivesim", "transition", b, t)], samples[("onnxruntime", "transition", b, t)]
             ratios = [spread([o / f for o, f in zip(step, fed)]) for step in (own, ort)]
-            print(f"- batch {b}, {t} thread(s): {statistics.median(fed):.4f} ms; own step {ratios[0]}; ONNX Runtime {ratios[1]}")
+            line = f"- batch {b}, {t} thread(s): {statistics.median(fed):.4f} ms; own step {ratios[0]}; ONNX Runtime {ratios[1]}"
+            if "before" in runtimes:
+                old = samples[("before", FED_BACK, b, t)]
+                line += f"; before {statistics.median(old):.4f} ms ({spread([o / f for o, f in zip(old, fed)])})"
+            print(line)
     if candidates:
-        print(f"\nThe planner's loop, {candidates} candidates x {PLANNER_STEPS} steps from one state and code,")
-        print("codes only: drivesim's rollout_candidates and ONNX Runtime's step in a loop (above 1: drivesim is faster):")
-        print("| threads | drivesim ms | candidate steps/s | ONNX Runtime ms | candidate steps/s | ONNX Runtime/drivesim (range) |")
-        print("|---:|---:|---:|---:|---:|---:|")
+        print(f"\nThe planner's loop, {candidates} candidates x {PLANNER_STEPS} steps from one state and code, codes")
+        print("only: drivesim's rollout_candidates, ONNX Runtime's step in a loop (above 1: drivesim is faster):")
+        print("| threads | runtime | median ms | candidate steps/s | runtime/drivesim (range) |")
+        print("|---:|---|---:|---:|---:|")
         for t in threads:
-            own, ort = (samples[(rt, PLANNER, candidates, t)] for rt in ("drivesim", "onnxruntime"))
-            rate = [candidates * PLANNER_STEPS / (statistics.median(x) / 1e3) for x in (own, ort)]
-            ratio = spread([o / d for o, d in zip(ort, own)])
-            print(f"| {t} | {statistics.median(own):.3f} | {rate[0]:,.0f} | {statistics.median(ort):.3f} | {rate[1]:,.0f} | {ratio} |")
+            own = samples[("drivesim", PLANNER, candidates, t)]
+            for rt in (n for n in runtimes if n != "pytorch"):
+                times = samples[(rt, PLANNER, candidates, t)]
+                rate = candidates * PLANNER_STEPS / (statistics.median(times) / 1e3)
+                ratio = "" if rt == "drivesim" else spread([o / d for o, d in zip(times, own)])
+                print(f"| {t} | {rt} | {statistics.median(times):.3f} | {rate:,.0f} | {ratio} |")
     if 1 in batches and len(batches) > 1:
         print("\ndrivesim per item at the largest batch against batch 1, per round (above 1: batching helps):")
         big = max(batches)
-        for net in NETWORKS:
+        for net in networks:
             for t in threads:
                 one, many = samples[("drivesim", net, 1, t)], samples[("drivesim", net, big, t)]
                 print(f"- {net}, {t} thread(s): {spread([o / (m / big) for o, m in zip(one, many)])}")

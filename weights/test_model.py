@@ -104,7 +104,8 @@ def test_onnx_matches_torch(model, tmp_path):
 
 def test_the_optional_networks_load_and_round_trip(tmp_path):
     """The spread head (`transition.S`, `.s`) and the policy (`policy.*`) are part of a file
-    where it has them: the default weights (with a policy) loaded, which failed before."""
+    where it has them, and absent where it has not: the default weights (with both) loaded,
+    which failed before."""
     torch.manual_seed(3)
     full = DriveSim(CFG, spread=True, policy_width=4).eval()
     with torch.no_grad():
@@ -117,5 +118,9 @@ def test_the_optional_networks_load_and_round_trip(tmp_path):
         assert torch.equal(a, b), name
     h = torch.randn(2, CFG.hidden_dim)
     assert torch.equal(loaded.transition.log_sigma(h), h @ full.transition.S.T + full.transition.s)
-    plain, _ = load_drivesim(Path(__file__).parent / "default.safetensors")
-    assert not plain.transition.spread and plain.policy.hidden.out_features == 64
+    default, _ = load_drivesim(Path(__file__).parent / "default.safetensors")
+    assert default.transition.spread and default.policy.hidden.out_features == 64
+    path = tmp_path / "plain.safetensors"
+    save_drivesim(DriveSim(CFG).eval(), CFG, path)
+    plain, _ = load_drivesim(path)
+    assert not plain.transition.spread and not hasattr(plain, "policy")

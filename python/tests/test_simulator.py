@@ -208,9 +208,12 @@ def test_act(model, clip):
 
 
 def test_sampled_futures(model):
-    # The default model predicts its mean only; the spread_f32 fixture's transition its spread.
-    assert not model.samples
-    sim = drivesim.Simulator(model)
+    # The small_f32 fixture's transition predicts its mean only; the spread_f32 fixture's and
+    # the default model's also their spread.
+    assert model.samples
+    mean_only = drivesim.Model.load(fixture("small_f32.safetensors"))
+    assert not mean_only.samples
+    sim = drivesim.Simulator(mean_only)
     with pytest.raises(ValueError, match="spread"):
         sim.set_sampling(1.0, 3)
     sim.set_sampling(0.0, 3)

@@ -123,7 +123,8 @@ impl<M: Borrow<Model>> Simulator<M> {
     ///
     /// A single frame or code is shared layer by layer: each convolution by blocks of output
     /// channels, each large dense layer (the transition's included) by rows. A batch of at
-    /// least `threads` items is shared item by item instead, so this plans again, with a set
+    /// least `threads` items (of transition steps, 8 per thread) is shared item by item
+    /// instead, each thread running every layer of its items, so this plans again, with a set
     /// of activation planes per thread when the planned batch is above 1 (see
     /// [`Simulator::buffer_bytes`]). If the threads cannot be started, those that were are
     /// stopped and joined before the error returns.
