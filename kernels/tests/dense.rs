@@ -160,12 +160,18 @@ fn row_ranges_match_whole() {
 fn dense_is_bit_identical_across_batches_and_row_splits() {
     let mut levels = simd_levels();
     levels.push(Isa::SCALAR);
-    // Columns past the kernels' chunk of 1024 and rows past a single input's spread tile.
-    for (rows, cols) in [(129, 2500), (300, 1026), (33, 3000), (512, 4097)] {
+    // Columns past the kernels' chunk of 1024, rows past a single input's spread tile, and a
+    // batch whose inputs the kernels take in several groups (past 64 Ki floats).
+    for (rows, cols, batch) in [
+        (129, 2500, 5),
+        (300, 1026, 5),
+        (33, 3000, 5),
+        (512, 4097, 5),
+        (40, 1500, 101),
+    ] {
         let w32 = dense_weights(&values(rows as u64, rows * cols, 0.05), rows, cols);
         let w16 = halves(&w32);
         let bias = values(7, rows, 0.5);
-        let batch = 5;
         let x = values(cols as u64, batch * cols, 1.0);
         for data in [MatrixData::F32(&w32), MatrixData::F16(&w16)] {
             let w = Matrix { data, rows, cols };
