@@ -109,6 +109,7 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=1.0)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--no-memory", action="store_true", help="skip the peak-memory processes")
+    p.add_argument("--before", type=Path, help="another build's bench_report (--features train), timed as `before`")
     p.add_argument("--torch-only", nargs=2, metavar=("CONFIG", "BATCH"), help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.torch_only:  # one PyTorch configuration alone, for its peak memory
@@ -128,15 +129,19 @@ def main() -> int:
     handoff: dict = {}
     for name in names:
         base, z, hidden = CONFIGS[name]
-        drivesim = Drivesim(["--z", str(z), "--hidden", str(hidden), "--base", str(base)], threads, a.seconds, binary)
+        model_args = ["--z", str(z), "--hidden", str(hidden), "--base", str(base)]
+        drivesim = Drivesim(model_args, threads, a.seconds, binary)
+        builds = {"drivesim": drivesim}
+        if a.before:
+            builds["before"] = Drivesim(model_args, threads, a.seconds, a.before)
         try:
             for r in range(a.rounds):
                 for t in threads:
                     for b in batches:
-                        order = [("drivesim", drivesim.time), ("pytorch", None)]
-                        for runtime, _ in order if r % 2 == 0 else order[::-1]:
-                            if runtime == "drivesim":
-                                ms = drivesim.time(None, net, b, t, a.seconds)
+                        order = [*builds, "pytorch"]
+                        for runtime in order if r % 2 == 0 else order[::-1]:
+                            if runtime in builds:
+                                ms = builds[runtime].time(None, net, b, t, a.seconds)
                             else:
                                 ms = torch_step.time(name, b, t, a.seconds)
                             samples.setdefault((name, runtime, b, t), []).append(ms)
@@ -145,7 +150,8 @@ def main() -> int:
             handoff.update({(name, b, t): v for (_, b, t), v in drivesim.handoff.items()})
             peaks = drivesim.peaks
         finally:
-            drivesim.close()
+            for build in builds.values():
+                build.close()
     memory = {}
     if not a.no_memory:
         for name in names:
@@ -174,6 +180,15 @@ def main() -> int:
                 print(f"| {name} | {b} | {t} | {spread(ours)} | {g / mo * 1e3:.1f} | {g / mo * 1e3 / peak:.0%} | "
                       f"{spread(theirs)} | {g / mt * 1e3:.1f} | {statistics.median(ratios):.2f}x "
                       f"({min(ratios):.2f}-{max(ratios):.2f}) | {'/'.join(f'{v:.0f}' for v in handoff.get((name, b, t), [])) or '-'} |")
+    if a.before:
+        print("\n`before` (another build), median ms, and per round its time over drivesim's (above 1: drivesim is faster):")
+        for name in names:
+            for t in threads:
+                for b in batches:
+                    old, ours = samples[(name, "before", b, t)], samples[(name, "drivesim", b, t)]
+                    ratios = [o / d for o, d in zip(old, ours)]
+                    print(f"- {name}, batch {b}, {t} thread(s): {statistics.median(old):.2f} ms; {statistics.median(ratios):.2f}x "
+                          f"({min(ratios):.2f}-{max(ratios):.2f})")
     if memory:
         print()
         print("| config | batch | drivesim peak RSS MiB | PyTorch peak RSS MiB |")

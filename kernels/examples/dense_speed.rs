@@ -3,13 +3,15 @@
 //! batch 1 to 256, single-threaded:
 //! `cargo run --release -p drivesim-kernels --example dense_speed [-- --batch 1,16,64,256]`.
 //! Prints GFLOP/s and the share of this core's FMA peak (measured here, 12 chains of FMAs).
+//! Then the weight gradient of the same shapes over a transition training step's items (`--items
+//! 3584`: 14 predictions of 256 windows), `dyᵀ x`, as the trainer computes it.
 //! Set `DRIVESIM_ISA` to cap the level (scalar, neon, avx2, avx512). Times are this thread's
 //! CPU time where the kernel gives it (see `conv_speed`).
 
 #[path = "common/speed_clock.rs"]
 mod speed_clock;
 
-use drivesim_kernels::{dense, pack, Activation, Isa, Matrix, MatrixData};
+use drivesim_kernels::{dense, dense_weight_grad, pack, Activation, Isa, Matrix, MatrixData};
 use speed_clock::{best_seconds, fma_peak_gflops};
 
 fn main() {
@@ -49,5 +51,25 @@ fn main() {
                 100.0 * gflops / peak
             );
         }
+    }
+    let items: usize = std::env::args()
+        .skip_while(|a| a != "--items")
+        .nth(1)
+        .map_or(3584, |s| s.parse().expect("--items"));
+    for (name, rows, cols) in [("grad [W|V|U]", 512, 1026), ("grad A", 512, 512)] {
+        let dy: Vec<f32> = (0..items * rows)
+            .map(|i| ((i * 7919) % 101) as f32 / 101.0 - 0.5)
+            .collect();
+        let x: Vec<f32> = (0..items * cols)
+            .map(|i| ((i * 104729) % 97) as f32 / 97.0 - 0.5)
+            .collect();
+        let mut grad = vec![0.0; Matrix::packed_len(rows, cols)];
+        let seconds = best_seconds(|| dense_weight_grad(isa, &dy, &x, rows, cols, &mut grad));
+        let gflops = 2.0 * (rows * cols * items) as f64 / seconds / 1e9;
+        println!(
+            "{name:20} {rows}x{cols} items {items}  {:8.4} ms  {gflops:6.1} GFLOP/s  {:5.1}% of peak",
+            seconds * 1e3,
+            100.0 * gflops / peak
+        );
     }
 }
