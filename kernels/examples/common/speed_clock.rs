@@ -47,24 +47,36 @@ pub fn fma_peak_gflops(isa: Isa) -> f64 {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::*;
-        #[target_feature(enable = "avx2,fma")]
-        fn chains256(iters: u64) -> f32 {
-            let (a, b) = (_mm256_set1_ps(0.999_999), _mm256_set1_ps(1e-7));
-            let mut acc = [_mm256_set1_ps(1.0); 12];
-            for _ in 0..std::hint::black_box(iters) {
-                acc.iter_mut().for_each(|v| *v = _mm256_fmadd_ps(*v, a, b));
-            }
-            _mm256_cvtss_f32(acc.iter().fold(_mm256_set1_ps(0.0), |s, &v| _mm256_add_ps(s, v)))
+        /// 12 chains of FMAs of one width, `iters` rounds.
+        macro_rules! chains {
+            ($name:ident, $features:literal, $set1:ident, $fma:ident, $add:ident, $first:ident) => {
+                #[target_feature(enable = $features)]
+                fn $name(iters: u64) -> f32 {
+                    let (a, b) = ($set1(0.999_999), $set1(1e-7));
+                    let mut acc = [$set1(1.0); 12];
+                    for _ in 0..std::hint::black_box(iters) {
+                        acc.iter_mut().for_each(|v| *v = $fma(*v, a, b));
+                    }
+                    $first(acc.iter().fold($set1(0.0), |s, &v| $add(s, v)))
+                }
+            };
         }
-        #[target_feature(enable = "avx512f")]
-        fn chains512(iters: u64) -> f32 {
-            let (a, b) = (_mm512_set1_ps(0.999_999), _mm512_set1_ps(1e-7));
-            let mut acc = [_mm512_set1_ps(1.0); 12];
-            for _ in 0..std::hint::black_box(iters) {
-                acc.iter_mut().for_each(|v| *v = _mm512_fmadd_ps(*v, a, b));
-            }
-            _mm512_cvtss_f32(acc.iter().fold(_mm512_set1_ps(0.0), |s, &v| _mm512_add_ps(s, v)))
-        }
+        chains!(
+            chains256,
+            "avx2,fma",
+            _mm256_set1_ps,
+            _mm256_fmadd_ps,
+            _mm256_add_ps,
+            _mm256_cvtss_f32
+        );
+        chains!(
+            chains512,
+            "avx512f",
+            _mm512_set1_ps,
+            _mm512_fmadd_ps,
+            _mm512_add_ps,
+            _mm512_cvtss_f32
+        );
         let iters = 2_000_000u64;
         let (lanes, seconds) = match isa.level() {
             // SAFETY: `isa` proves the features.
