@@ -149,7 +149,7 @@ impl Transition {
     ) {
         let (hd, zd) = (self.input.rows, self.output.rows);
         let batch = h.len() / hd;
-        let ad = action.len() / batch;
+        let ad = action.len().checked_div(batch).unwrap_or(0);
         let concat = &mut buf.concat[..batch * self.input.cols];
         let code = &mut buf.code[..batch * zd];
         by_items(
@@ -192,7 +192,7 @@ impl Transition {
         for other in rest.chunks_exact_mut(hd) {
             other.copy_from_slice(first);
         }
-        let ad = action.len() / (h.len() / hd);
+        let ad = action.len().checked_div(h.len() / hd).unwrap_or(0);
         by_items(exec, h.len() / hd, [h, z_next], |exec, items, [h, z_next]| {
             self.finish(exec, &action[items.start * ad..items.end * ad], h, z_next);
         });
