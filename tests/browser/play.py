@@ -1,7 +1,7 @@
 """The `play` example's page, driven in a real browser (Debian's chromium through chromedriver,
 spoken to over WebDriver's HTTP protocol with the standard library alone).
 
-    python3 tests/browser/play.py target/release/examples/play [--threads 1] [--screenshot FILE]
+    python3 tests/browser/play.py target/release/examples/play [--threads 1] [--weights FILE] [--screenshot FILE]
 
 Starts the server on a free port and a headless chromium on its page, then: waits for frames
 and reads `#fps`; after a reset drives straight, then holds the left arrow, then (after another
@@ -119,10 +119,12 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("play", help="the built examples/play binary")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--weights", help="another weight file for the server (default: its own)")
     p.add_argument("--screenshot", help="where to write a PNG of the page after the drive")
     a = p.parse_args()
     port, driver_port = free_port(), free_port()
-    server = subprocess.Popen([a.play, "--port", str(port), "--threads", str(a.threads)])
+    weights = ["--weights", a.weights] if a.weights else []
+    server = subprocess.Popen([a.play, "--port", str(port), "--threads", str(a.threads), *weights])
     driver = subprocess.Popen([CHROMEDRIVER, f"--port={driver_port}"], stdout=subprocess.DEVNULL)
     browser = None
     try:
@@ -137,6 +139,16 @@ def main() -> int:
             time.sleep(0.2)
         time.sleep(1.2)  # a whole second of frames for #fps
         fps = fps_of(browser.script(READ)[2])
+        sampling = "return document.getElementById('sampling').textContent"
+        if browser.script(sampling) == "not in this model":
+            browser.press("s")  # nothing to turn on: the drive goes on
+            time.sleep(0.4)
+            assert browser.script(sampling) == "not in this model"
+        else:
+            for want in ("on", "off"):
+                browser.press("s")
+                time.sleep(0.4)
+                assert browser.script(sampling) == want, f"s: sampling {browser.script(sampling)}, not {want}"
         ends = {}
         for name, key in (("straight", None), ("left", LEFT), ("right", RIGHT)):
             browser.press("r")
@@ -149,12 +161,6 @@ def main() -> int:
             ends[name] = sum(centres) / len(centres)
         print(f"road centre after {HOLD_MS} ms: straight {ends['straight']:.1f} px, left {ends['left']:.1f}, right {ends['right']:.1f}")
         assert ends["left"] > ends["straight"] > ends["right"], "the road did not move the right way"
-        sampling = "return document.getElementById('sampling').textContent"
-        if browser.script(sampling) != "not in this model":
-            for want in ("on", "off"):
-                browser.press("s")
-                time.sleep(0.4)
-                assert browser.script(sampling) == want, f"s: sampling {browser.script(sampling)}, not {want}"
         assert browser.script(MALFORMED, asynchronous=True), "a malformed message did not end its connection"
         before = browser.script(READ)[1]
         time.sleep(0.5)
