@@ -9,10 +9,9 @@ use alloc::vec::Vec;
 use core::ops::Range;
 use drivesim_kernels::{Activation, Isa, Tensor};
 
-///
-/// A step sums the state's part first, `[W | V] [h | z] + b`, then adds the action's, `U c`, and
-/// takes the tanh: candidates that share a state share the first part, and each still gets the
-/// bits a step of its own would.
+/// The transition's layers, packed at load. A step sums the state's part first,
+/// `[W | V] [h | z] + b`, then adds the action's, `U c`, and takes the tanh: candidates that
+/// share a state share the first part, and each still gets the bits a step of its own would.
 pub(crate) struct Transition {
     /// `[W | V]` and `b`: the state's part of a step from any code.
     input: DenseLayer,
