@@ -4,7 +4,7 @@
 // Each example uses a part of it.
 #![allow(dead_code)]
 
-use drivesim_kernels::{Isa, IsaLevel};
+use drivesim_kernels::Isa;
 use std::time::Instant;
 
 /// Nanoseconds this thread has run on a CPU, or wall time when the kernel does not say.
@@ -46,6 +46,7 @@ pub fn best_seconds(mut f: impl FnMut()) -> f64 {
 pub fn fma_peak_gflops(isa: Isa) -> f64 {
     #[cfg(target_arch = "x86_64")]
     {
+        use drivesim_kernels::IsaLevel;
         use std::arch::x86_64::*;
         /// 12 chains of FMAs of one width, `iters` rounds.
         macro_rules! chains {
