@@ -33,7 +33,10 @@ def start(launcher, args):
 def finish(launcher, args):
     run = start(launcher, args)
     _, err = run.communicate(timeout=600)
-    assert run.returncode == 0, err.decode()[-3000:]
+    # Under torchrun the failing worker's traceback may come well before the launcher's summary.
+    lines = err.decode().splitlines()
+    first = next((i for i, line in enumerate(lines) if "Traceback" in line or "Error" in line), len(lines))
+    assert run.returncode == 0, "\n".join(lines[max(first - 5, 0):first + 40] + ["..."] + lines[-20:])
 
 
 def kill_after_a_checkpoint(launcher, args, checkpoint, stage, rng):
