@@ -197,3 +197,10 @@ impl Gif {
             .map_err(|e| format!("cannot write {}: {e}", self.path.display()))
     }
 }
+
+/// `path` inside this repository (the examples' parent folder), so that the defaults work from
+/// any directory.
+pub fn in_repository(path: &str) -> PathBuf {
+    let examples = Path::new(env!("CARGO_MANIFEST_DIR"));
+    examples.parent().unwrap_or(examples).join(path)
+}

@@ -16,7 +16,7 @@
 mod common;
 
 use clap::Parser;
-use common::{report, write_png, Gaussian, Gif};
+use common::{in_repository, report, write_png, Gaussian, Gif};
 use drivesim::{frames_to_rgb, Episode, Episodes, Model, PixelLayout, Simulator};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
@@ -66,12 +66,6 @@ struct Args {
     /// Seed with codes sampled from the encoder's sigma instead of its mean
     #[arg(long)]
     sample: bool,
-}
-
-/// A file of the repository: the examples are a package of their own in examples/.
-fn in_repository(path: &str) -> PathBuf {
-    let examples = Path::new(env!("CARGO_MANIFEST_DIR"));
-    examples.parent().unwrap_or(examples).join(path)
 }
 
 fn main() -> ExitCode {

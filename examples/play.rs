@@ -20,7 +20,7 @@
 mod common;
 
 use clap::Parser;
-use common::report;
+use common::{in_repository, report};
 use drivesim::{frames_to_rgb, Environment, Episodes, Model, PixelLayout};
 use std::io::{ErrorKind, Write};
 use std::net::{TcpListener, TcpStream};
@@ -62,11 +62,6 @@ struct Args {
     /// Threads of each connection's simulator
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     threads: u32,
-}
-
-/// `path` inside this repository, so that the defaults work from any directory.
-fn in_repository(path: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").join(path)
 }
 
 /// What every connection starts from.
