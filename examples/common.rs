@@ -1,4 +1,5 @@
-//! What several examples share: encoding episodes, progress bars, PNG files, error reports.
+//! What several examples share: the model and seed arguments, encoding episodes, progress bars,
+//! PNG files, error reports.
 #![allow(dead_code)] // each example uses part of it
 
 use drivesim::{Episodes, Model, Simulator};
@@ -7,6 +8,21 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+
+/// The weights and the episode whose first frames seed a drive: the arguments of every example
+/// that dreams from real frames (`#[command(flatten)]`).
+#[derive(clap::Args)]
+pub struct SeedArgs {
+    /// drivesim weight file (safetensors; format in weights/README.md)
+    #[arg(long, default_value_os_t = in_repository("weights/default.safetensors"))]
+    pub weights: PathBuf,
+    /// Episodes file holding the seed frames and their recorded actions
+    #[arg(long, default_value_os_t = in_repository("weights/seed_clip.safetensors"))]
+    pub episodes: PathBuf,
+    /// Which episode of the file to seed from
+    #[arg(long, default_value_t = 0)]
+    pub episode: usize,
+}
 
 /// One episode's encoded frames and its actions.
 pub struct Encoded {

@@ -27,7 +27,7 @@
 mod common;
 
 use clap::Parser;
-use common::{report, write_png, Gaussian, Gif};
+use common::{report, write_png, Gaussian, Gif, SeedArgs};
 use drivesim::{frames_to_rgb, Config, Environment, Episodes, Model, PixelLayout};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -36,13 +36,8 @@ use std::time::Instant;
 #[derive(Parser)]
 #[command(about = "Drive inside the simulator with a planner, against constant and random steering")]
 struct Args {
-    #[arg(long, default_value = "weights/default.safetensors")]
-    weights: PathBuf,
-    /// Seed frames and their actions come from here
-    #[arg(long, default_value = "weights/seed_clip.safetensors")]
-    episodes: PathBuf,
-    #[arg(long, default_value_t = 0)]
-    episode: usize,
+    #[command(flatten)]
+    source: SeedArgs,
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..=100))]
     seeds: u32,
     #[arg(long, default_value_t = 500, value_parser = clap::value_parser!(u32).range(1..=100_000))]
@@ -161,15 +156,15 @@ struct Figures {
 }
 
 fn run(args: &Args) -> Result<(), String> {
-    let model = Model::load(&args.weights).map_err(|e| format!("weights: {}", report(&e)))?;
+    let model = Model::load(&args.source.weights).map_err(|e| format!("weights: {}", report(&e)))?;
     let c = *model.config();
-    let episodes = Episodes::load(&args.episodes).map_err(|e| format!("episodes: {}", report(&e)))?;
-    let episode = episodes.episode(args.episode).map_err(|e| e.to_string())?;
+    let episodes = Episodes::load(&args.source.episodes).map_err(|e| format!("episodes: {}", report(&e)))?;
+    let episode = episodes.episode(args.source.episode).map_err(|e| e.to_string())?;
     let seeds = args.seeds as usize;
     if episode.len() < seeds || (episode.height, episode.width) != (c.height, c.width) {
         return Err(format!(
             "episode {} lacks {seeds} frames of {}x{}",
-            args.episode, c.height, c.width
+            args.source.episode, c.height, c.width
         ));
     }
     let mut seed_frames = vec![0.0; seeds * c.frame_len()];

@@ -16,7 +16,7 @@
 mod common;
 
 use clap::Parser;
-use common::{in_repository, report, write_png, Gaussian, Gif};
+use common::{report, write_png, Gaussian, Gif, SeedArgs};
 use drivesim::{frames_to_rgb, Episode, Episodes, Model, PixelLayout, Simulator};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
@@ -28,15 +28,8 @@ const DEFAULT_STEPS: usize = 100;
 #[derive(Parser)]
 #[command(about = "Roll the learned driving simulator forward from real frames and write what it dreams")]
 struct Args {
-    /// drivesim weight file (safetensors; format in weights/README.md)
-    #[arg(long, default_value_os_t = in_repository("weights/default.safetensors"))]
-    weights: PathBuf,
-    /// Episodes file holding the seed frames and their recorded actions
-    #[arg(long, default_value_os_t = in_repository("weights/seed_clip.safetensors"))]
-    episodes: PathBuf,
-    /// Which episode of the file to seed from
-    #[arg(long, default_value_t = 0)]
-    episode: usize,
+    #[command(flatten)]
+    source: SeedArgs,
     /// How many frames from the start of the episode seed the rollout
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
     seeds: u32,
@@ -73,19 +66,19 @@ fn main() -> ExitCode {
 }
 
 fn run(args: &Args) -> Result<(), String> {
-    let model = Model::load(&args.weights).map_err(|e| format!("weights: {}", report(&e)))?;
+    let model = Model::load(&args.source.weights).map_err(|e| format!("weights: {}", report(&e)))?;
     let config = *model.config();
-    let episodes = Episodes::load(&args.episodes).map_err(|e| format!("episodes: {}", report(&e)))?;
+    let episodes = Episodes::load(&args.source.episodes).map_err(|e| format!("episodes: {}", report(&e)))?;
     let episode = episodes
-        .episode(args.episode)
-        .map_err(|e| format!("{}: {e}", args.episodes.display()))?;
+        .episode(args.source.episode)
+        .map_err(|e| format!("{}: {e}", args.source.episodes.display()))?;
     if (episode.height, episode.width, Episodes::CHANNELS) != (config.height, config.width, config.channels) {
         return Err(format!(
             "the weights expect {}x{}x{} frames, {} holds {}x{}x3",
             config.height,
             config.width,
             config.channels,
-            args.episodes.display(),
+            args.source.episodes.display(),
             episode.height,
             episode.width
         ));
@@ -100,7 +93,7 @@ fn run(args: &Args) -> Result<(), String> {
     if seeds > episode.len() {
         return Err(format!(
             "--seeds {seeds}: episode {} has only {} frames",
-            args.episode,
+            args.source.episode,
             episode.len()
         ));
     }
@@ -185,8 +178,8 @@ fn run(args: &Args) -> Result<(), String> {
         name(steps),
         args.out.display(),
         if seeds == 1 { "" } else { "s" },
-        args.episode,
-        args.episodes.display()
+        args.source.episode,
+        args.source.episodes.display()
     );
     match gif_frames {
         0 => println!("no rollout.gif (--gif-frames 0)"),

@@ -20,11 +20,10 @@
 mod common;
 
 use clap::Parser;
-use common::{in_repository, report};
+use common::{report, SeedArgs};
 use drivesim::{frames_to_rgb, Environment, Episodes, Model, PixelLayout};
 use std::io::{ErrorKind, Write};
 use std::net::{TcpListener, TcpStream};
-use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -50,15 +49,8 @@ struct Args {
     /// Address to listen on (only this machine unless given)
     #[arg(long, default_value = "127.0.0.1")]
     host: String,
-    /// drivesim weight file (safetensors; format in weights/README.md)
-    #[arg(long, default_value_os_t = in_repository("weights/default.safetensors"))]
-    weights: PathBuf,
-    /// Episodes file holding the seed frames and their recorded actions
-    #[arg(long, default_value_os_t = in_repository("weights/seed_clip.safetensors"))]
-    episodes: PathBuf,
-    /// Which episode of the file to seed from
-    #[arg(long, default_value_t = 0)]
-    episode: usize,
+    #[command(flatten)]
+    source: SeedArgs,
     /// Threads of each connection's simulator
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     threads: u32,
@@ -100,21 +92,22 @@ fn run(args: &Args) -> Result<(), String> {
 }
 
 fn load_seed(args: &Args) -> Result<Seed, String> {
-    let model = Model::load(&args.weights).map_err(|e| format!("{}: {}", args.weights.display(), report(&e)))?;
+    let model =
+        Model::load(&args.source.weights).map_err(|e| format!("{}: {}", args.source.weights.display(), report(&e)))?;
     let c = *model.config();
-    let episodes =
-        Episodes::load(&args.episodes).map_err(|e| format!("{}: {}", args.episodes.display(), report(&e)))?;
+    let episodes = Episodes::load(&args.source.episodes)
+        .map_err(|e| format!("{}: {}", args.source.episodes.display(), report(&e)))?;
     let episode = episodes
-        .episode(args.episode)
-        .map_err(|e| format!("{}: {}", args.episodes.display(), report(&e)))?;
+        .episode(args.source.episode)
+        .map_err(|e| format!("{}: {}", args.source.episodes.display(), report(&e)))?;
     if (episode.height, episode.width) != (c.height, c.width) || c.action_dim != Episodes::ACTION_DIM {
         return Err(format!(
             "{}: frames or actions do not fit the model",
-            args.episodes.display()
+            args.source.episodes.display()
         ));
     }
     if episode.len() < SEEDS {
-        return Err(format!("episode {} has fewer than {SEEDS} frames", args.episode));
+        return Err(format!("episode {} has fewer than {SEEDS} frames", args.source.episode));
     }
     let mut frames = vec![0.0; SEEDS * c.frame_len()];
     for (i, frame) in frames.chunks_exact_mut(c.frame_len()).enumerate() {
