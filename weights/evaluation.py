@@ -147,8 +147,12 @@ def evaluate(args):
     )
 
     result["fidelity"] = fidelity(model, data, codes, recon, frames, actions, decode)
+    reference = None
+    if args.reference:
+        ref = episodes.read(args.reference)
+        reference = (ref, encode(model, torch.from_numpy(ref.frames), 256), torch.from_numpy(ref.actions))
     result["futures"] = dict(steering_probe=steering_probe(model, data, codes, actions, decode),
-                             at_30_steps=sampled_futures(model, data, codes, actions))
+                             at_30_steps=sampled_futures(model, data, codes, actions, reference=reference))
 
     # Steering response: same seed frames, constant actions, 30 steps.
     s0, _ = data.bounds()[0]

@@ -55,20 +55,21 @@ def frechet(a, b):
 
 
 @torch.no_grad()
-def sampled_futures(model, data, codes, actions, seed=0):
+def sampled_futures(model, data, codes, actions, seed=0, reference=None):
     """The mean rollout's and (with the spread head) the sampled rollouts' measures at the 30th
-    fed-back step (module docstring)."""
-    starts = data.windows(TEACHER + HORIZON)
-    if not len(starts):
+    fed-back step (module docstring); with `reference` (episodes, their codes and actions) also
+    `real_futures`' baselines."""
+    z, c = futures_windows(data, codes, actions, 5)
+    if not len(z):
         return None
-    starts = starts[::5]
-    idx = torch.as_tensor(starts)[:, None] + torch.arange(TEACHER + HORIZON)
-    z, c = codes[idx], actions[idx[:, :-1]]
     real = z[:, -1]
-    mean_code = codes.mean(0)
-    base = float((mean_code - real).square().mean())
+    base = float((codes.mean(0) - real).square().mean())
     mean = predict(model.transition, z, c, TEACHER)[:, -1]
-    out = dict(windows=len(starts), mean_code_mse=base, encoded_norm=float(codes.norm(dim=1).mean()))
+    out = dict(windows=len(z), mean_code_mse=base, encoded_norm=float(codes.norm(dim=1).mean()))
+    if reference is not None:
+        ref_data, ref_codes, ref_actions = reference
+        ref_z, ref_c = futures_windows(ref_data, ref_codes, ref_actions, 2)
+        out["real_futures"] = real_futures(z, c, base, ref_codes, ref_z, ref_c)
     out["mean"] = dict(mse_ratio=float((mean - real).square().mean()) / base,
                        norm_ratio=float(mean.norm(dim=1).mean()) / out["encoded_norm"],
                        frechet=frechet(mean, real))
@@ -84,3 +85,36 @@ def sampled_futures(model, data, codes, actions, seed=0):
                           frechet=frechet(drawn[0], real))
     out["sampled"]["frechet_ratio"] = out["sampled"]["frechet"] / out["mean"]["frechet"]
     return out
+
+
+def futures_windows(data, codes, actions, every):
+    """Windows of 5 seed codes and 30 more, `every` frames apart: codes [B,35,z], actions [B,34,a]."""
+    starts = data.windows(TEACHER + HORIZON)[::every]
+    idx = torch.as_tensor(starts)[:, None] + torch.arange(TEACHER + HORIZON)
+    return codes[idx], actions[idx[:, :-1]]
+
+
+@torch.no_grad()
+def real_futures(z, c, base, ref_codes, ref_z, ref_c, seed=0):
+    """Best-of-16 and Fréchet figures at the 30th step for futures made of real codes (module
+    docstring): held-out windows z [B,35,z], c [B,34,a] and their mean-code error `base`; the
+    reference's codes [N,z] and its windows ref_z, ref_c (every other start)."""
+    real = z[:, -1]
+    if not len(ref_z):
+        return None
+    g = torch.Generator().manual_seed(seed)
+    drawn = ref_codes[torch.randint(len(ref_codes), (FUTURES, len(real)), generator=g)]  # [16, B, z]
+
+    def key(zz, cc):  # the last two seed codes and the actions, each block of unit variance per column
+        codes_part = zz[:, TEACHER - 2:TEACHER].flatten(1) / ref_codes.std()
+        acts = cc.flatten(1) / ref_c.flatten(0, 1).std(0).clamp_min(1e-6).repeat(cc.shape[1])
+        return torch.cat([codes_part, acts * (codes_part.shape[1] / acts.shape[1]) ** 0.5], 1)
+
+    near = torch.cdist(key(z, c), key(ref_z, ref_c)).topk(FUTURES, largest=False).indices  # [B, 16]
+    neighbours = ref_z[near, -1].transpose(0, 1)  # [16, B, z]
+
+    def figures(futures):
+        errors = (futures - real).square().mean(2)
+        return dict(best_of_16_mse_ratio=float(errors.min(0).values.mean()) / base,
+                    one_mse_ratio=float(errors[0].mean()) / base, frechet=frechet(futures[0], real))
+    return dict(reference_windows=len(ref_z), random_codes=figures(drawn), nearest_windows=figures(neighbours))

@@ -284,10 +284,13 @@ def test_fit_and_eval_tiny(tmp_path):
     with safe_open(str(tmp_path / "m.safetensors"), framework="pt") as f:
         assert f.metadata()["drivesim.frame_hz"] == "12.5"  # the data's rate travels with the weights
     train.main(["eval", "--weights", str(tmp_path / "m.safetensors"), "--data", str(tmp_path / "d.safetensors"),
-                "--figures", str(tmp_path / "fig"), "--seed-clip", str(tmp_path / "clip.safetensors")])
+                "--figures", str(tmp_path / "fig"), "--seed-clip", str(tmp_path / "clip.safetensors"),
+                "--reference", str(tmp_path / "d.safetensors")])
     for name in ("eval.json", "reconstruction.png", "steering.png", "contact_sheet.png"):
         assert (tmp_path / "fig" / name).is_file()
-    fidelity = json.loads((tmp_path / "fig" / "eval.json").read_text())["fidelity"]
+    result = json.loads((tmp_path / "fig" / "eval.json").read_text())
+    fidelity = result["fidelity"]
+    assert result["futures"]["at_30_steps"]["real_futures"]["reference_windows"] > 0
     assert fidelity["psnr_p10_db"] <= fidelity["psnr_db"]
     latent = fidelity["latent"]
     assert latent["windows"] > 0 and latent["ratio_30"] > 0
@@ -400,3 +403,23 @@ def test_frechet_distance_of_gaussians():
     # Shifted by d: |d|^2. Scaled by 2: tr(ca) + tr(4 ca) - 2 tr(2 ca) = tr(ca).
     assert frechet(a + torch.tensor([1.0, 2.0, 0.0], dtype=torch.float64), a) == pytest.approx(5.0, rel=1e-6)
     assert frechet(2 * a, a) == pytest.approx(float(torch.cov(a.T).trace()), rel=1e-6)
+
+
+def test_real_futures_find_the_window_itself_in_a_reference_that_holds_it():
+    torch = pytest.importorskip("torch")
+    from futures import FUTURES, real_futures
+
+    g = torch.Generator().manual_seed(0)
+    ref_z, ref_c = torch.randn(200, 35, 6, generator=g), torch.randn(200, 34, 2, generator=g)
+    ref_codes = ref_z.flatten(0, 1)
+    held_z, held_c = ref_z[:20].clone(), ref_c[:20].clone()
+    base = float((ref_codes.mean(0) - held_z[:, -1]).square().mean())
+    out = real_futures(held_z, held_c, base, ref_codes, ref_z, ref_c)
+    # Each held-out window is its own nearest reference window: one of the 16 is its real future.
+    assert out["nearest_windows"]["best_of_16_mse_ratio"] == pytest.approx(0.0, abs=1e-6)
+    assert out["nearest_windows"]["one_mse_ratio"] == pytest.approx(0.0, abs=1e-6)
+    # Independent random codes: one is about twice the mean code's error, the best of 16 well below one.
+    random = out["random_codes"]
+    assert 1.5 < random["one_mse_ratio"] < 2.5 and random["best_of_16_mse_ratio"] < 0.9 * random["one_mse_ratio"]
+    assert out["reference_windows"] == 200 and FUTURES == 16
+    assert real_futures(held_z, held_c, base, ref_codes, ref_z[:0], ref_c[:0]) is None

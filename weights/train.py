@@ -150,6 +150,8 @@ def main(argv=None):
     e.add_argument("--data", required=True, help="held-out episodes file")
     e.add_argument("--figures", required=True, help="folder for the PNGs and eval.json")
     e.add_argument("--seed-clip", help="also write the first 8 frames of the first episode here")
+    e.add_argument("--reference", help="episodes the model trained on: futures made of their real codes "
+                   "as a baseline for the sampled futures (futures.real_futures)")
     s = sub.add_parser("step", help="one training step on a batch file (the Rust step's reference)")
     s.add_argument("--stage", required=True, choices=["transition", "vae-gan"])
     s.add_argument("--weights", required=True, help="drivesim weight file (f16/bf16 train on f32 copies)")
