@@ -1,6 +1,8 @@
-//! Speed of the dense kernel on the transition's shapes (comma config, z = hidden = 512: the
-//! state's part `[W | V]`, 512 x 1024, and `A` or the folded `W + V A`, 512 x 512), f32, at
-//! batch 1 to 256, single-threaded:
+//! Speed of the dense kernel on the transition's shapes, f32, at batch 1 to 256, single-threaded:
+//! the comma config's (z = hidden = 512: the state's part `[W | V]`, 512 x 1024, also the shape of
+//! the training step's `[Aᵀ | Wᵀ]`, and `A` or the folded `W + V A`, 512 x 512) and the trained
+//! default's (z = 128, hidden = 256: `[W | V | U]` 256 x 386 with its tanh, `[Aᵀ | Wᵀ]` 256 x 384,
+//! `A` 128 x 256):
 //! `cargo run --release -p drivesim-kernels --example dense_speed [-- --batch 1,16,64,256]`.
 //! Prints GFLOP/s and the share of this core's FMA peak (measured here, 12 chains of FMAs).
 //! Then the weight gradient of the same shapes over a transition training step's items (`--items
@@ -25,8 +27,11 @@ fn main() {
     let peak = fma_peak_gflops(isa);
     println!("level {}  FMA peak {peak:.1} GFLOP/s (one thread)", isa.level().name());
     for (name, rows, cols, act) in [
-        ("transition [W|V]", 512, 1024, Activation::Identity),
-        ("transition A, W+VA", 512, 512, Activation::Identity),
+        ("comma [W|V], [Aᵀ|Wᵀ]", 512, 1024, Activation::Identity),
+        ("comma A, W+VA", 512, 512, Activation::Identity),
+        ("default [W|V|U]", 256, 386, Activation::Tanh),
+        ("default [Aᵀ|Wᵀ]", 256, 384, Activation::Identity),
+        ("default A", 128, 256, Activation::Identity),
     ] {
         let row_major: Vec<f32> = (0..rows * cols)
             .map(|i| ((i * 104729) % 97) as f32 / 970.0 - 0.05)
@@ -46,7 +51,7 @@ fn main() {
             let seconds = best_seconds(|| dense(isa, w, &bias, act, &x, &mut y));
             let gflops = 2.0 * (rows * cols * batch) as f64 / seconds / 1e9;
             println!(
-                "{name:20} {rows}x{cols} batch {batch:3}  {:8.4} ms  {gflops:6.1} GFLOP/s  {:5.1}% of peak",
+                "{name:22} {rows}x{cols} batch {batch:3}  {:8.4} ms  {gflops:6.1} GFLOP/s  {:5.1}% of peak",
                 seconds * 1e3,
                 100.0 * gflops / peak
             );
@@ -56,7 +61,12 @@ fn main() {
         .skip_while(|a| a != "--items")
         .nth(1)
         .map_or(3584, |s| s.parse().expect("--items"));
-    for (name, rows, cols) in [("grad [W|V|U]", 512, 1026), ("grad A", 512, 512)] {
+    for (name, rows, cols) in [
+        ("comma grad [W|V|U]", 512, 1026),
+        ("comma grad A", 512, 512),
+        ("default grad [W|V|U]", 256, 386),
+        ("default grad A", 128, 256),
+    ] {
         let dy: Vec<f32> = (0..items * rows)
             .map(|i| ((i * 7919) % 101) as f32 / 101.0 - 0.5)
             .collect();
@@ -67,7 +77,7 @@ fn main() {
         let seconds = best_seconds(|| dense_weight_grad(isa, &dy, &x, rows, cols, &mut grad));
         let gflops = 2.0 * (rows * cols * items) as f64 / seconds / 1e9;
         println!(
-            "{name:20} {rows}x{cols} items {items}  {:8.4} ms  {gflops:6.1} GFLOP/s  {:5.1}% of peak",
+            "{name:22} {rows}x{cols} items {items}  {:8.4} ms  {gflops:6.1} GFLOP/s  {:5.1}% of peak",
             seconds * 1e3,
             100.0 * gflops / peak
         );
