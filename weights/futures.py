@@ -98,14 +98,17 @@ def futures_windows(data, codes, actions, every):
 def real_futures(z, c, base, ref_codes, ref_z, ref_c, seed=0):
     """Best-of-16 and Fréchet figures at the 30th step for futures made of real codes (module
     docstring): held-out windows z [B,35,z], c [B,34,a] and their mean-code error `base`; the
-    reference's codes [N,z] and its windows ref_z, ref_c (every other start)."""
+    reference's codes [N,z] and its windows ref_z, ref_c (every other start); None if the
+    reference has fewer than 16 windows. `one_mse_ratio` is the first draw's: for the
+    neighbours, the nearest window's."""
     real = z[:, -1]
-    if not len(ref_z):
+    if len(ref_z) < FUTURES:
         return None
     g = torch.Generator().manual_seed(seed)
     drawn = ref_codes[torch.randint(len(ref_codes), (FUTURES, len(real)), generator=g)]  # [16, B, z]
 
-    def key(zz, cc):  # the last two seed codes and the actions, each block of unit variance per column
+    def key(zz, cc):  # the last two seed codes over the codes' spread, the actions over each one's,
+        # the actions weighted to count as much as the codes
         codes_part = zz[:, TEACHER - 2:TEACHER].flatten(1) / ref_codes.std()
         acts = cc.flatten(1) / ref_c.flatten(0, 1).std(0).clamp_min(1e-6).repeat(cc.shape[1])
         return torch.cat([codes_part, acts * (codes_part.shape[1] / acts.shape[1]) ** 0.5], 1)
