@@ -25,7 +25,7 @@ def fit_args(data, vae_steps, transition_steps):
 
 
 def start(launcher, args):
-    # A session of its own: a kill takes torchrun's workers with it, as a power cut would.
+    # A session of its own, so that no signal of the test's reaches the run but the kill.
     return subprocess.Popen([*launcher, "train.py", *args], cwd=HERE, env=dict(os.environ, OMP_NUM_THREADS="1"),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
 
@@ -52,9 +52,46 @@ def kill_after_a_checkpoint(launcher, args, checkpoint, stage, rng):
         time.sleep(0.005)
     time.sleep(rng.uniform(0, 0.3))
     killed = run.poll() is None
-    os.killpg(run.pid, signal.SIGKILL)
+    kill_tree(run.pid)
     run.wait()
     return killed
+
+
+def kill_tree(pid):
+    """SIGKILLs `pid` and every process under it, as a power cut would, and waits until they are
+    gone. torchrun starts each worker in a session of its own: killing the launcher's process
+    group left the workers running, still writing checkpoints beside the resumed run (the
+    flaky failures of this test on two processes)."""
+    tree = [pid]
+    for parent in tree:
+        tree += children(parent)
+    for p in tree:
+        try:
+            os.kill(p, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    for p in tree[1:]:  # the launcher is the test's child: run.wait() reaps it
+        while alive(p):
+            time.sleep(0.005)
+
+
+def children(pid):
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # the process ended meanwhile
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def alive(pid):
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 def check_kills_and_resumes(launcher, data, tmp_path, kills, vae_steps, transition_steps):
