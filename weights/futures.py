@@ -78,11 +78,8 @@ def sampled_futures(model, data, codes, actions, seed=0, reference=None):
     g = torch.Generator().manual_seed(seed)
     drawn = torch.stack([predict(model.transition, z, c, TEACHER, temperature=1.0, generator=g)[:, -1]
                          for _ in range(FUTURES)])  # [futures, windows, z]
-    errors = (drawn - real).square().mean(2)  # [futures, windows]
-    out["sampled"] = dict(best_of_16_mse_ratio=float(errors.min(0).values.mean()) / base,
-                          one_mse_ratio=float(errors[0].mean()) / base,
-                          norm_ratio=float(drawn[0].norm(dim=1).mean()) / out["encoded_norm"],
-                          frechet=frechet(drawn[0], real))
+    out["sampled"] = dict(best_of(drawn, real, base),
+                          norm_ratio=float(drawn[0].norm(dim=1).mean()) / out["encoded_norm"])
     out["sampled"]["frechet_ratio"] = out["sampled"]["frechet"] / out["mean"]["frechet"]
     return out
 
@@ -116,8 +113,14 @@ def real_futures(z, c, base, ref_codes, ref_z, ref_c, seed=0):
     near = torch.cdist(key(z, c), key(ref_z, ref_c)).topk(FUTURES, largest=False).indices  # [B, 16]
     neighbours = ref_z[near, -1].transpose(0, 1)  # [16, B, z]
 
-    def figures(futures):
-        errors = (futures - real).square().mean(2)
-        return dict(best_of_16_mse_ratio=float(errors.min(0).values.mean()) / base,
-                    one_mse_ratio=float(errors[0].mean()) / base, frechet=frechet(futures[0], real))
-    return dict(reference_windows=len(ref_z), random_codes=figures(drawn), nearest_windows=figures(neighbours))
+    return dict(reference_windows=len(ref_z), random_codes=best_of(drawn, real, base),
+                nearest_windows=best_of(neighbours, real, base))
+
+
+def best_of(futures, real, base):
+    """Futures [16, B, z] against the real codes [B, z]: the best of the 16 and the first alone,
+    each window's mean squared error averaged and over the mean code's `base`, and the first's
+    Fréchet distance to the real codes."""
+    errors = (futures - real).square().mean(2)  # [16, B]
+    return dict(best_of_16_mse_ratio=float(errors.min(0).values.mean()) / base,
+                one_mse_ratio=float(errors[0].mean()) / base, frechet=frechet(futures[0], real))
