@@ -16,13 +16,24 @@ mod speed_clock;
 use drivesim_kernels::{dense, dense_weight_grad, pack, Activation, Isa, Matrix, MatrixData};
 use speed_clock::{best_seconds, fma_peak_gflops};
 
+/// The comma-separated positive numbers after `flag`, or `default` without the flag; a bad
+/// value ends the program with a one-line error.
+fn numbers(flag: &str, default: &[usize]) -> Vec<usize> {
+    let Some(text) = std::env::args().skip_while(|a| a != flag).nth(1) else {
+        return default.to_vec();
+    };
+    match text.split(',').map(str::parse).collect::<Result<Vec<usize>, _>>() {
+        Ok(list) if !list.is_empty() && !list.contains(&0) => list,
+        _ => {
+            eprintln!("dense_speed: {flag} takes positive numbers separated by commas, not {text:?}");
+            std::process::exit(1);
+        }
+    }
+}
+
 fn main() {
-    let batches: Vec<usize> = std::env::args()
-        .skip_while(|a| a != "--batch")
-        .nth(1)
-        .map_or(vec![1, 16, 64, 256], |s| {
-            s.split(',').filter_map(|b| b.parse().ok()).collect()
-        });
+    let batches = numbers("--batch", &[1, 16, 64, 256]);
+    let items = numbers("--items", &[3584])[0];
     let isa = Isa::best();
     let peak = fma_peak_gflops(isa);
     println!("level {}  FMA peak {peak:.1} GFLOP/s (one thread)", isa.level().name());
@@ -57,10 +68,6 @@ fn main() {
             );
         }
     }
-    let items: usize = std::env::args()
-        .skip_while(|a| a != "--items")
-        .nth(1)
-        .map_or(3584, |s| s.parse().expect("--items"));
     for (name, rows, cols) in [
         ("comma grad [W|V|U]", 512, 1026),
         ("comma grad A", 512, 512),
