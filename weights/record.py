@@ -13,6 +13,11 @@ A scripted driver follows the track centre line with pure pursuit; `--driver` pi
 - `varied-noise` (data that teaches steering, with unsteady hands): `varied`, and every
   manoeuvre also draws how much coloured noise the steering gets, from a third to two and a
   half times `steady`'s, so the steering is often not what the road ahead calls for.
+- `varied-holds` (data that teaches what steering does on its own): `varied`, and a fifth of
+  the manoeuvres are holds: a constant steering of 0.1 to 0.7 either way for 0.2 to 0.8 s,
+  whatever the road does, then a recovery to the centre. Pure pursuit steers with the road, so
+  in the other styles the road's bend and the steering come together; a hold separates them
+  (open-loop steps, as a system-identification experiment).
 - `hard` (a second style, held out for evaluation): 1.4 times the steering gain, 1.5 times the
   steering noise and slower (steering sd about 0.4 against `steady`'s 0.23), as a nervous
   human driver.
@@ -66,7 +71,7 @@ class OU:
         return self.x
 
 
-DRIVERS = ("steady", "varied", "varied-noise", "hard", "jerky")
+DRIVERS = ("steady", "varied", "varied-noise", "varied-holds", "hard", "jerky")
 COLOURS = ("default", "random", "mixed")
 
 
@@ -84,7 +89,8 @@ class Driver:
         self.offset = OU(rng, theta=0.02, sigma=0.08)
         self.steer_noise = OU(rng, theta=0.15, sigma={"hard": 0.09, "jerky": 0.0}.get(style, 0.06))
         self.gain = {"hard": 1.4 * GAIN, "jerky": 0.5 * GAIN}.get(style, GAIN)
-        self.speeds = {"steady": (25, 60), "varied": (10, 70), "varied-noise": (10, 70), "hard": (15, 40),
+        self.speeds = {"steady": (25, 60), "varied": (10, 70), "varied-noise": (10, 70),
+                       "varied-holds": (10, 70), "hard": (15, 40),
                        "jerky": (20, 50)}[style]
         self.target_speed = rng.uniform(*self.speeds)
         # `varied`: the current manoeuvre's lateral aim (half-roads; None follows the drift)
@@ -92,6 +98,8 @@ class Driver:
         self.aim, self.manoeuvre_left = None, 0.0
         # `jerky`: the steering held until the next look at the road, and the seconds until then.
         self.held_steer, self.look_left = 0.0, 0.0
+        # `varied-holds`: the steering of the current hold and the seconds it has left.
+        self.hold_steer, self.hold_left = 0.0, 0.0
         self.i = None
 
     def nearest(self, pos):
@@ -118,7 +126,14 @@ class Driver:
             return drift
         self.manoeuvre_left -= frame_seconds
         if self.manoeuvre_left <= 0:
-            kind = self.rng.choice(["follow", "swerve", "recover"], p=[0.5, 0.3, 0.2])
+            if self.style == "varied-holds":
+                kind = self.rng.choice(["follow", "swerve", "recover", "hold"], p=[0.4, 0.25, 0.15, 0.2])
+            else:  # `varied`'s draws, unchanged, so its recordings stay reproducible
+                kind = self.rng.choice(["follow", "swerve", "recover"], p=[0.5, 0.3, 0.2])
+            if kind == "hold":
+                self.hold_steer = float(self.rng.choice([-1, 1]) * self.rng.uniform(0.1, 0.7))
+                self.hold_left = self.rng.uniform(0.2, 0.8)
+                kind = "recover"  # what follows the hold
             self.gain = GAIN * self.rng.uniform(0.6, 2.5)  # soft or hard turns
             if self.style == "varied-noise":  # steady or unsteady hands
                 self.steer_noise.sigma = 0.06 * self.rng.uniform(1 / 3, 2.5)
@@ -148,6 +163,9 @@ class Driver:
         to = target - pos
         alpha = math.atan2(float(to @ left), float(to @ forward))
         steer = float(np.clip(-self.gain * alpha + self.steer_noise(), -1.0, 1.0))  # env: -1 steers left
+        if self.hold_left > 0:
+            self.hold_left -= frame_seconds
+            steer = self.hold_steer
         if self.style == "jerky":
             self.look_left -= frame_seconds
             if self.look_left <= 0:

@@ -203,7 +203,7 @@ def test_record_short_episode():
     assert record.parse_seeds("0-2,7") == [0, 1, 2, 7]
 
 
-@pytest.mark.parametrize("style", ["varied", "varied-noise", "hard", "jerky"])
+@pytest.mark.parametrize("style", ["varied", "varied-noise", "varied-holds", "hard", "jerky"])
 def test_record_driver_styles(style):
     record = pytest.importorskip("record")
     frames, actions, _ = record.record_episode(seed=4, frames=40, frame_skip=2, style=style, random_colours=True)
@@ -237,6 +237,28 @@ def test_varied_noise_driver_redraws_its_noise_level():
         driver.lateral(0.08)
         levels.add(driver.steer_noise.sigma)
     assert len(levels) >= 4 and all(0.02 <= s <= 0.15 for s in levels)
+
+
+def runs_of(values):
+    """(length, value) of each run of equal consecutive values."""
+    runs, start = [], 0
+    for i in range(1, len(values) + 1):
+        if i == len(values) or values[i] != values[start]:
+            runs.append((i - start, values[start]))
+            start = i
+    return runs
+
+
+def test_varied_holds_driver_holds_constant_steering_open_loop():
+    record = pytest.importorskip("record")
+    # A hold: 0.2-0.8 s (3 to 10 frames of 0.08 s) of one steering of 0.1-0.7, whatever the road.
+    def holds(style):
+        _, actions, _ = record.record_episode(seed=7, frames=400, frame_skip=4, style=style)
+        return [n for n, s in runs_of(actions[:, 1]) if n >= 3 and 0.1 <= abs(s) <= 0.7]
+
+    held = holds("varied-holds")
+    assert len(held) >= 3 and max(held) <= 11
+    assert holds("varied") == []  # pure pursuit with coloured noise never repeats a steering
 
 
 def test_road_offset_finds_a_grey_band():
