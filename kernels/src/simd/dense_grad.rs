@@ -76,6 +76,12 @@ pub(super) unsafe fn weight_grad<S: Simd, const NC: usize, const NV: usize>(
                 let columns = panel * cols / panels..(panel + 1) * cols / panels;
                 let width = columns.len();
                 for (n, k) in ks.clone().enumerate() {
+                    // The rows a few items ahead, one cache line at a time: rows `cols` floats
+                    // apart, read once each (from L3 or memory), would otherwise wait in turn.
+                    let ahead = x.as_ptr().wrapping_add((k + PREFETCH_ITEMS) * cols + columns.start);
+                    for line in (0..width).step_by(16) {
+                        S::prefetch(ahead.wrapping_add(line).cast());
+                    }
                     packed[n * width..][..width].copy_from_slice(&x[k * cols + columns.start..][..width]);
                 }
                 let tiles = RowsForColumns::<NC> {
@@ -96,6 +102,9 @@ pub(super) unsafe fn weight_grad<S: Simd, const NC: usize, const NV: usize>(
 /// Most columns in a panel whose inputs are copied together (see [`weight_grad`]): 48 KiB for
 /// [`ITEMS`] items, which stay in L2 while every tile of rows passes over them.
 const PANEL_COLS: usize = 96;
+
+/// Items ahead of the one copied into a [`Panel`] whose inputs are prefetched.
+const PREFETCH_ITEMS: usize = 4;
 
 /// The inputs of a chunk's items for the `columns`, item after item.
 #[derive(Clone)]
