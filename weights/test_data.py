@@ -251,7 +251,8 @@ def runs_of(values):
 
 def test_varied_holds_driver_holds_constant_steering_open_loop():
     record = pytest.importorskip("record")
-    # A hold: 0.2-0.8 s (3 to 10 frames of 0.08 s) of one steering of 0.1-0.7, whatever the road.
+    # A hold: 0.2-0.8 s of one steering of 0.1-0.7, whatever the road: 3 to 10 frames of 0.08 s
+    # (11 when the seconds left round just above zero).
     def holds(style):
         _, actions, _ = record.record_episode(seed=7, frames=400, frame_skip=4, style=style)
         return [n for n, s in runs_of(actions[:, 1]) if n >= 3 and 0.1 <= abs(s) <= 0.7]
