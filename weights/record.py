@@ -18,6 +18,11 @@ A scripted driver follows the track centre line with pure pursuit; `--driver` pi
   whatever the road does, then a recovery to the centre. Pure pursuit steers with the road, so
   in the other styles the road's bend and the steering come together; a hold separates them
   (open-loop steps, as a system-identification experiment).
+- `holds` (the same experiment at full strength): hold after hold, each followed by a
+  recovery of 0.4 to 1.2 s and until the car is back within half a half-road of the centre
+  line, so that holds start on the road and make about a fifth of the frames, where
+  `varied-holds` has one in 25; the steering gain stays `steady`'s and the speeds are 15 to 45,
+  so that the car comes back to the road after each hold.
 - `hard` (a second style, held out for evaluation): 1.4 times the steering gain, 1.5 times the
   steering noise and slower (steering sd about 0.4 against `steady`'s 0.23), as a nervous
   human driver.
@@ -71,7 +76,7 @@ class OU:
         return self.x
 
 
-DRIVERS = ("steady", "varied", "varied-noise", "varied-holds", "hard", "jerky")
+DRIVERS = ("steady", "varied", "varied-noise", "varied-holds", "holds", "hard", "jerky")
 COLOURS = ("default", "random", "mixed")
 
 
@@ -90,7 +95,7 @@ class Driver:
         self.steer_noise = OU(rng, theta=0.15, sigma={"hard": 0.09, "jerky": 0.0}.get(style, 0.06))
         self.gain = {"hard": 1.4 * GAIN, "jerky": 0.5 * GAIN}.get(style, GAIN)
         self.speeds = {"steady": (25, 60), "varied": (10, 70), "varied-noise": (10, 70),
-                       "varied-holds": (10, 70), "hard": (15, 40),
+                       "varied-holds": (10, 70), "holds": (15, 45), "hard": (15, 40),
                        "jerky": (20, 50)}[style]
         self.target_speed = rng.uniform(*self.speeds)
         # `varied`: the current manoeuvre's lateral aim (half-roads; None follows the drift)
@@ -98,8 +103,9 @@ class Driver:
         self.aim, self.manoeuvre_left = None, 0.0
         # `jerky`: the steering held until the next look at the road, and the seconds until then.
         self.held_steer, self.look_left = 0.0, 0.0
-        # `varied-holds`: the steering of the current hold and the seconds it has left.
+        # `varied-holds` and `holds`: the steering of the current hold and the seconds it has left.
         self.hold_steer, self.hold_left = 0.0, 0.0
+        self.off_centre = 0.0  # half-roads from the centre line, as `act` last measured it
         self.i = None
 
     def nearest(self, pos):
@@ -122,11 +128,15 @@ class Driver:
     def lateral(self, frame_seconds):
         """Where across the road to aim, in half-roads (positive: left of the centre line)."""
         drift = float(np.clip(self.offset(), -0.6, 0.6))
-        if not self.style.startswith("varied"):
+        if not self.style.startswith("varied") and self.style != "holds":
             return drift
         self.manoeuvre_left -= frame_seconds
+        if self.manoeuvre_left <= 0 and self.style == "holds" and self.off_centre > 0.5:
+            return 0.0  # recover to the centre line before the next hold
         if self.manoeuvre_left <= 0:
-            if self.style == "varied-holds":
+            if self.style == "holds":
+                kind = "hold"
+            elif self.style == "varied-holds":
                 kind = self.rng.choice(["follow", "swerve", "recover", "hold"], p=[0.4, 0.25, 0.15, 0.2])
             else:  # `varied`'s draws, unchanged, so its recordings stay reproducible
                 kind = self.rng.choice(["follow", "swerve", "recover"], p=[0.5, 0.3, 0.2])
@@ -134,18 +144,22 @@ class Driver:
                 self.hold_steer = float(self.rng.choice([-1, 1]) * self.rng.uniform(0.1, 0.7))
                 self.hold_left = self.rng.uniform(0.2, 0.8)
                 kind = "recover"  # what follows the hold
-            self.gain = GAIN * self.rng.uniform(0.6, 2.5)  # soft or hard turns
+            if self.style != "holds":  # whose recoveries keep the calm gain: hard ones spin out
+                self.gain = GAIN * self.rng.uniform(0.6, 2.5)  # soft or hard turns
             if self.style == "varied-noise":  # steady or unsteady hands
                 self.steer_noise.sigma = 0.06 * self.rng.uniform(1 / 3, 2.5)
             self.aim = {"follow": None, "swerve": self.rng.choice([-1, 1]) * self.rng.uniform(0.7, 1.5),
                         "recover": 0.0}[kind]
             self.manoeuvre_left = self.rng.uniform(1.0, 4.0)
+            if self.style == "holds":  # the hold, then a short recovery
+                self.manoeuvre_left = self.hold_left + self.rng.uniform(0.4, 1.2)
         return drift if self.aim is None else self.aim
 
     def act(self, car, frame_seconds):
         pos = np.array(car.hull.position)
         speed = float(np.linalg.norm(car.hull.linearVelocity))
         i, off_centre = self.nearest(pos)
+        self.off_centre = off_centre / HALF_ROAD
 
         if self.rng.random() < frame_seconds / 3.0:  # new target speed every ~3 s
             self.target_speed = self.rng.uniform(*self.speeds)

@@ -203,7 +203,7 @@ def test_record_short_episode():
     assert record.parse_seeds("0-2,7") == [0, 1, 2, 7]
 
 
-@pytest.mark.parametrize("style", ["varied", "varied-noise", "varied-holds", "hard", "jerky"])
+@pytest.mark.parametrize("style", ["varied", "varied-noise", "varied-holds", "holds", "hard", "jerky"])
 def test_record_driver_styles(style):
     record = pytest.importorskip("record")
     frames, actions, _ = record.record_episode(seed=4, frames=40, frame_skip=2, style=style, random_colours=True)
@@ -260,6 +260,9 @@ def test_varied_holds_driver_holds_constant_steering_open_loop():
     held = holds("varied-holds")
     assert len(held) >= 3 and max(held) <= 11
     assert holds("varied") == []  # pure pursuit with coloured noise never repeats a steering
+    # `holds`: a hold, then a recovery of 0.4-1.2 s and back to the road, again and again.
+    many = holds("holds")
+    assert len(many) >= 8 and max(many) <= 11 and 0.1 < sum(many) / 400 < 0.5
 
 
 def test_road_offset_finds_a_grey_band():
