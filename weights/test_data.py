@@ -241,12 +241,8 @@ def test_varied_noise_driver_redraws_its_noise_level():
 
 def runs_of(values):
     """(length, value) of each run of equal consecutive values."""
-    runs, start = [], 0
-    for i in range(1, len(values) + 1):
-        if i == len(values) or values[i] != values[start]:
-            runs.append((i - start, values[start]))
-            start = i
-    return runs
+    ends = [*np.flatnonzero(values[1:] != values[:-1]) + 1, len(values)]
+    return [(end - start, values[start]) for start, end in zip([0, *ends[:-1]], ends)]
 
 
 def test_varied_holds_driver_holds_constant_steering_open_loop():
