@@ -16,7 +16,7 @@ import torch
 import probe
 from sequences import TEACHER, predict
 
-HORIZON, FUTURES = 30, 16
+HORIZON, FUTURES, TRACKED = 30, 16, 5
 
 
 @torch.no_grad()
@@ -124,3 +124,32 @@ def best_of(futures, real, base):
     errors = (futures - real).square().mean(2)  # [16, B]
     return dict(best_of_16_mse_ratio=float(errors.min(0).values.mean()) / base,
                 one_mse_ratio=float(errors[0].mean()) / base, frechet=frechet(futures[0], real))
+
+
+def through_zero(real, other):
+    """The least-squares slope of `other` on `real` through the origin: 1 where moves match."""
+    scale = float((real * real).sum())
+    return float((real * other).sum()) / scale if scale > 0 else None
+
+
+@torch.no_grad()
+def road_tracking(model, data, codes, actions, decode, recon_frames):
+    """The road's centre (probe.centre) after TRACKED recorded steps from windows every other
+    frame, in the recorded frames, their reconstructions `recon_frames` (uint8) and the mean
+    rollout: the recorded frames' mean absolute move (px), and the slopes of the reconstructions'
+    and the rollout's moves on it."""
+    starts = data.windows(TEACHER + TRACKED)[::2]
+    if not len(starts):
+        return None
+    idx = torch.as_tensor(starts)[:, None] + torch.arange(TEACHER + TRACKED)
+    dreamt = decode(predict(model.transition, codes[idx], actions[idx[:, :-1]], TEACHER)[:, -1])
+    first, last = starts + TEACHER - 1, starts + TEACHER - 1 + TRACKED
+    # The recorded frames' and the reconstructions' centres at the first and the last frame,
+    # and the mean rollout's at the last.
+    centres = [[probe.centre(f) for f in frames[i]] for frames in (data.frames, recon_frames) for i in (first, last)]
+    centres.append([probe.centre(f) for f in dreamt])
+    moves = torch.tensor([(r1 - r0, c1 - c0, d - c0) for r0, r1, c0, c1, d in zip(*centres)
+                          if None not in (r0, r1, c0, c1, d)], dtype=torch.float64).reshape(-1, 3)
+    real, recon, dream = moves.T
+    return dict(steps=TRACKED, windows=len(moves), real_move_px=float(real.abs().mean()) if len(moves) else None,
+                reconstruction_slope=through_zero(real, recon), dream_slope=through_zero(real, dream))

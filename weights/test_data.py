@@ -412,36 +412,3 @@ def test_mirror_images_flip_the_frames_and_negate_the_steering():
     assert np.array_equal(both.actions[n:, 0], data.actions[:, 0])
     assert np.array_equal(both.actions[n:, 1], -data.actions[:, 1])
     assert np.array_equal(both.with_mirror_images().frames[3 * n:], data.frames)  # twice: the original
-
-
-def test_frechet_distance_of_gaussians():
-    torch = pytest.importorskip("torch")
-    from futures import frechet
-
-    g = torch.Generator().manual_seed(0)
-    a = torch.randn(4000, 3, generator=g, dtype=torch.float64)
-    a -= a.mean(0)
-    assert frechet(a, a) == pytest.approx(0.0, abs=1e-6)
-    # Shifted by d: |d|^2. Scaled by 2: tr(ca) + tr(4 ca) - 2 tr(2 ca) = tr(ca).
-    assert frechet(a + torch.tensor([1.0, 2.0, 0.0], dtype=torch.float64), a) == pytest.approx(5.0, rel=1e-6)
-    assert frechet(2 * a, a) == pytest.approx(float(torch.cov(a.T).trace()), rel=1e-6)
-
-
-def test_real_futures_find_the_window_itself_in_a_reference_that_holds_it():
-    torch = pytest.importorskip("torch")
-    from futures import FUTURES, real_futures
-
-    g = torch.Generator().manual_seed(0)
-    ref_z, ref_c = torch.randn(200, 35, 6, generator=g), torch.randn(200, 34, 2, generator=g)
-    ref_codes = ref_z.flatten(0, 1)
-    held_z, held_c = ref_z[:20].clone(), ref_c[:20].clone()
-    base = float((ref_codes.mean(0) - held_z[:, -1]).square().mean())
-    out = real_futures(held_z, held_c, base, ref_codes, ref_z, ref_c)
-    # Each held-out window is its own nearest reference window: one of the 16 is its real future.
-    assert out["nearest_windows"]["best_of_16_mse_ratio"] == pytest.approx(0.0, abs=1e-6)
-    assert out["nearest_windows"]["one_mse_ratio"] == pytest.approx(0.0, abs=1e-6)
-    # Independent random codes: one is about twice the mean code's error, the best of 16 well below one.
-    random = out["random_codes"]
-    assert 1.5 < random["one_mse_ratio"] < 2.5 and random["best_of_16_mse_ratio"] < 0.9 * random["one_mse_ratio"]
-    assert out["reference_windows"] == 200 and FUTURES == 16
-    assert real_futures(held_z, held_c, base, ref_codes, ref_z[:15], ref_c[:15]) is None  # fewer than 16

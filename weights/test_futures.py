@@ -1,0 +1,82 @@
+"""Tests of the dream's measures against held-out episodes (futures.py, issue 31)."""
+
+import numpy as np
+import pytest
+
+import episodes
+
+torch = pytest.importorskip("torch")
+
+
+def test_frechet_distance_of_gaussians():
+    from futures import frechet
+
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(4000, 3, generator=g, dtype=torch.float64)
+    a -= a.mean(0)
+    assert frechet(a, a) == pytest.approx(0.0, abs=1e-6)
+    # Shifted by d: |d|^2. Scaled by 2: tr(ca) + tr(4 ca) - 2 tr(2 ca) = tr(ca).
+    assert frechet(a + torch.tensor([1.0, 2.0, 0.0], dtype=torch.float64), a) == pytest.approx(5.0, rel=1e-6)
+    assert frechet(2 * a, a) == pytest.approx(float(torch.cov(a.T).trace()), rel=1e-6)
+
+
+def test_real_futures_find_the_window_itself_in_a_reference_that_holds_it():
+    from futures import FUTURES, real_futures
+
+    g = torch.Generator().manual_seed(0)
+    ref_z, ref_c = torch.randn(200, 35, 6, generator=g), torch.randn(200, 34, 2, generator=g)
+    ref_codes = ref_z.flatten(0, 1)
+    held_z, held_c = ref_z[:20].clone(), ref_c[:20].clone()
+    base = float((ref_codes.mean(0) - held_z[:, -1]).square().mean())
+    out = real_futures(held_z, held_c, base, ref_codes, ref_z, ref_c)
+    # Each held-out window is its own nearest reference window: one of the 16 is its real future.
+    assert out["nearest_windows"]["best_of_16_mse_ratio"] == pytest.approx(0.0, abs=1e-6)
+    assert out["nearest_windows"]["one_mse_ratio"] == pytest.approx(0.0, abs=1e-6)
+    # Independent random codes: one is about twice the mean code's error, the best of 16 well below one.
+    random = out["random_codes"]
+    assert 1.5 < random["one_mse_ratio"] < 2.5 and random["best_of_16_mse_ratio"] < 0.9 * random["one_mse_ratio"]
+    assert out["reference_windows"] == 200 and FUTURES == 16
+    assert real_futures(held_z, held_c, base, ref_codes, ref_z[:15], ref_c[:15]) is None  # fewer than 16
+
+
+class FrameStepper(torch.nn.Module):
+    """A transition whose codes are frame indices: each step moves `frames` frames on."""
+
+    def __init__(self, frames):
+        super().__init__()
+        self.W, self.frames = torch.zeros(1, 1), frames
+
+    def forward(self, z, h, c):
+        return z + self.frames, h
+
+
+class Dream:
+    def __init__(self, frames):
+        self.transition = FrameStepper(frames)
+
+
+def test_road_tracking_compares_each_road_move_with_the_recorded_one():
+    from futures import road_tracking
+
+    n = 30
+    frames = np.zeros((n, 80, 160, 3), np.uint8)
+    frames[..., 1] = 200  # grass
+    for t in range(n):
+        frames[t, :, 40 + 2 * t:60 + 2 * t] = 105  # a road moving 2 px right per frame
+    data = episodes.Episodes(frames, np.zeros((n, 2), np.float32), np.array([0]))
+    codes = torch.arange(n, dtype=torch.float32)[:, None]
+    actions = torch.zeros(n, 2)
+    decode = lambda z: frames[z[:, 0].round().long().clamp(0, n - 1).numpy()]  # noqa: E731
+
+    def track(frames_per_step, recon):
+        return road_tracking(Dream(frames_per_step), data, codes, actions, decode, recon)
+
+    faithful = track(1.0, frames)
+    assert faithful["windows"] == len(data.windows(10)[::2]) > 0
+    assert faithful["real_move_px"] == pytest.approx(10.0)  # 5 frames of 2 px
+    assert faithful["reconstruction_slope"] == pytest.approx(1.0) and faithful["dream_slope"] == pytest.approx(1.0)
+    assert track(0.6, frames)["dream_slope"] == pytest.approx(0.6)  # 3 frames on in 5 steps
+    assert track(0.0, frames)["dream_slope"] == pytest.approx(0.0)  # a still road
+    grass = frames.copy()
+    grass[:, :, :, :] = frames[0, 0, 0]
+    assert track(1.0, grass)["windows"] == 0  # no reconstruction shows road
