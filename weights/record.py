@@ -20,7 +20,7 @@ A scripted driver follows the track centre line with pure pursuit; `--driver` pi
   (open-loop steps, as a system-identification experiment).
 - `holds` (the same experiment at full strength): hold after hold, each followed by a
   recovery of 0.4 to 1.2 s and until the car is back within half a half-road of the centre
-  line, so that holds start on the road and make about a fifth of the frames, where
+  line, so that holds start on the road and make about a quarter of the frames, where
   `varied-holds` has one in 25; the steering gain stays `steady`'s and the speeds are 15 to 45,
   so that the car comes back to the road after each hold.
 - `hard` (a second style, held out for evaluation): 1.4 times the steering gain, 1.5 times the
