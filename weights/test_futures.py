@@ -51,6 +51,8 @@ class FrameStepper(torch.nn.Module):
 
 
 class Dream:
+    """What `road_tracking` reads of a model: its transition."""
+
     def __init__(self, frames):
         self.transition = FrameStepper(frames)
 
@@ -77,6 +79,5 @@ def test_road_tracking_compares_each_road_move_with_the_recorded_one():
     assert faithful["reconstruction_slope"] == pytest.approx(1.0) and faithful["dream_slope"] == pytest.approx(1.0)
     assert track(0.6, frames)["dream_slope"] == pytest.approx(0.6)  # 3 frames on in 5 steps
     assert track(0.0, frames)["dream_slope"] == pytest.approx(0.0)  # a still road
-    grass = frames.copy()
-    grass[:, :, :, :] = frames[0, 0, 0]
+    grass = np.broadcast_to(frames[0, 0, 0], frames.shape)  # every pixel the grass's
     assert track(1.0, grass)["windows"] == 0  # no reconstruction shows road

@@ -79,7 +79,7 @@ pub(super) unsafe fn weight_grad<S: Simd, const NC: usize, const NV: usize>(
                     // The rows a few items ahead, one cache line at a time: rows `cols` floats
                     // apart, read once each (from L3 or memory), would otherwise wait in turn.
                     let ahead = x.as_ptr().wrapping_add((k + PREFETCH_ITEMS) * cols + columns.start);
-                    for line in (0..width).step_by(16) {
+                    for line in (0..width).step_by(LINE_FLOATS) {
                         S::prefetch(ahead.wrapping_add(line).cast());
                     }
                     packed[n * width..][..width].copy_from_slice(&x[k * cols + columns.start..][..width]);
@@ -105,6 +105,9 @@ const PANEL_COLS: usize = 96;
 
 /// Items ahead of the one copied into a [`Panel`] whose inputs are prefetched.
 const PREFETCH_ITEMS: usize = 4;
+
+/// Floats in a 64-byte cache line: the step between the prefetched addresses of a row.
+const LINE_FLOATS: usize = 64 / core::mem::size_of::<f32>();
 
 /// The inputs of a chunk's items for the `columns`, item after item.
 #[derive(Clone)]
