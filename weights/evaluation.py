@@ -10,7 +10,7 @@ from PIL import Image
 import episodes
 import probe
 from model import load_drivesim
-from futures import road_tracking, sampled_futures, steering_probe
+from futures import road_tracking, sampled_futures, steering_probe, texture
 from sequences import SEQ, TEACHER, encode, predict
 from vae_gan import psnr, to_image, to_input
 
@@ -153,7 +153,8 @@ def evaluate(args):
         reference = (ref, encode(model, torch.from_numpy(ref.frames), 256), torch.from_numpy(ref.actions))
     result["futures"] = dict(steering_probe=steering_probe(model, data, codes, actions, decode),
                              at_30_steps=sampled_futures(model, data, codes, actions, reference=reference),
-                             road_tracking=road_tracking(model, data, codes, actions, decode, to_image(recon)))
+                             road_tracking=road_tracking(model, data, codes, actions, decode, to_image(recon)),
+                             texture=texture(model, data, codes, actions, decode))
 
     # Steering response: same seed frames, constant actions, 30 steps.
     s0, _ = data.bounds()[0]

@@ -9,14 +9,20 @@ episodes (`train eval` reports them under `futures` in eval.json; docs/fidelity.
   16 at the 30th step against predicting the held-out codes' mean; the 30th sampled codes' norm
   against real codes'; the Fréchet distance (a Gaussian fit to each set, as FID does on
   features) between the 30th predicted codes and the real codes there, for the mean rollout and
-  the sampled one."""
+  the sampled one;
+- texture: how much of CarRacing's grass patches and kerbs the dream keeps under the recorded
+  actions, step by step (held-out episodes in the default colours)."""
 
+import numpy as np
 import torch
 
 import probe
 from sequences import TEACHER, predict
 
 HORIZON, FUTURES, TRACKED = 30, 16, 5
+# Texture: the fed-back steps read; CarRacing's grass (102, 204, 102) and its patches'
+# (102, 230, 102), told apart halfway; a kerb's red (255, 0, 0) as it survives the downscaling.
+TEXTURE_STEPS, PATCH_GREEN, GRASS_MARGIN, KERB_MARGIN = (1, 5, 10, HORIZON), 217, 50, 80
 
 
 @torch.no_grad()
@@ -153,3 +159,43 @@ def road_tracking(model, data, codes, actions, decode, recon_frames):
     real, recon, dream = moves.T
     return dict(steps=TRACKED, windows=len(moves), real_move_px=float(real.abs().mean()) if len(moves) else None,
                 reconstruction_slope=through_zero(real, recon), dream_slope=through_zero(real, dream))
+
+
+def texture_figures(frames):
+    """The texture of uint8 frames [N,H,W,3] in their top probe.PROBE_ROWS rows (no car): the
+    share of grass pixels (green above red and blue by GRASS_MARGIN) in the patches' lighter
+    green, over the frames with grass; and red pixels (red above green and blue by KERB_MARGIN),
+    the kerbs, per thousand pixels."""
+    f = frames[:, :probe.PROBE_ROWS].astype(np.int16)
+    red, green, blue = f[..., 0], f[..., 1], f[..., 2]
+    grass = green - np.maximum(red, blue) > GRASS_MARGIN
+    patch = grass & (green >= PATCH_GREEN)
+    with_grass = grass.any((1, 2))
+    share = patch.sum((1, 2))[with_grass] / grass.sum((1, 2))[with_grass]
+    kerbs = red - np.maximum(green, blue) > KERB_MARGIN
+    return dict(patch_share=float(share.mean()) if len(share) else None, kerb_per_mille=1e3 * float(kerbs.mean()))
+
+
+@torch.no_grad()
+def texture(model, data, codes, actions, decode, seed=0):
+    """Texture kept under the recorded actions: windows every 10 frames, 5 seed codes, then
+    after each of TEXTURE_STEPS fed-back steps, `texture_figures` of the recorded frames, their
+    reconstructions, the mean rollout's and (with the spread head) one rollout's sampled at
+    temperature 1. {source: {figure: [one per step]}}."""
+    z, c = futures_windows(data, codes, actions, 10)
+    if not len(z):
+        return None
+    starts = data.windows(TEACHER + HORIZON)[::10]
+    rollouts = dict(mean=predict(model.transition, z, c, TEACHER))
+    if model.transition.spread:
+        g = torch.Generator().manual_seed(seed)
+        rollouts["sampled"] = predict(model.transition, z, c, TEACHER, temperature=1.0, generator=g)
+    # After k fed-back steps: frame TEACHER - 1 + k of a window, prediction TEACHER - 2 + k.
+    sources = dict(recorded=lambda k: data.frames[starts + TEACHER - 1 + k],
+                   reconstruction=lambda k: decode(z[:, TEACHER - 1 + k]),
+                   **{name: (lambda k, p=p: decode(p[:, TEACHER - 2 + k])) for name, p in rollouts.items()})
+    out = dict(steps=list(TEXTURE_STEPS), windows=len(z))
+    for name, frames in sources.items():
+        readings = [texture_figures(frames(k)) for k in TEXTURE_STEPS]
+        out[name] = {key: [r[key] for r in readings] for key in readings[0]}
+    return out

@@ -44,14 +44,14 @@ class FrameStepper(torch.nn.Module):
 
     def __init__(self, frames):
         super().__init__()
-        self.W, self.frames = torch.zeros(1, 1), frames
+        self.W, self.frames, self.spread = torch.zeros(1, 1), frames, False
 
     def forward(self, z, h, c):
         return z + self.frames, h
 
 
 class Dream:
-    """What `road_tracking` reads of a model: its transition."""
+    """What `road_tracking` and `texture` read of a model: its transition."""
 
     def __init__(self, frames):
         self.transition = FrameStepper(frames)
@@ -81,3 +81,45 @@ def test_road_tracking_compares_each_road_move_with_the_recorded_one():
     assert track(0.0, frames)["dream_slope"] == pytest.approx(0.0)  # a still road
     grass = np.broadcast_to(frames[0, 0, 0], frames.shape)  # every pixel the grass's
     assert track(1.0, grass)["windows"] == 0  # no reconstruction shows road
+
+
+def carracing_frames(n):
+    """n frames of CarRacing's colours: grass, a road, and from frame 5 on a patch of the lighter
+    grass 30 pixels wide, one row taller each frame, and a kerb of 32 red pixels."""
+    frames = np.zeros((n, 80, 160, 3), np.uint8)
+    frames[:] = (102, 204, 102)
+    frames[:, :, 70:90] = (102, 102, 102)
+    for t in range(5, n):
+        frames[t, :t - 4, :30] = (102, 230, 102)
+        frames[t, 20:36, 90:92] = (255, 0, 0)
+    return frames
+
+
+def test_texture_figures_count_patch_and_kerb_pixels():
+    from futures import texture_figures
+
+    frames = carracing_frames(12)
+    grass = 60 * 140 - 32  # the top 60 rows but the road and the kerb
+    figures = texture_figures(frames[[0, 11]])
+    assert figures["patch_share"] == pytest.approx((0 / (60 * 140) + 7 * 30 / grass) / 2)
+    assert figures["kerb_per_mille"] == pytest.approx(1e3 * 32 / (2 * 60 * 160))
+    figures = texture_figures(np.full((1, 80, 160, 3), 102, np.uint8))  # all road
+    assert figures == dict(patch_share=None, kerb_per_mille=0.0)
+
+
+def test_texture_follows_the_dream_against_the_recording():
+    from futures import TEXTURE_STEPS, texture
+
+    n = 80
+    frames = carracing_frames(n)
+    data = episodes.Episodes(frames, np.zeros((n, 2), np.float32), np.array([0]))
+    codes = torch.arange(n, dtype=torch.float32)[:, None]
+    decode = lambda z: frames[z[:, 0].round().long().clamp(0, n - 1).numpy()]  # noqa: E731
+    faithful = texture(Dream(1.0), data, codes, torch.zeros(n, 2), decode)
+    assert faithful["steps"] == list(TEXTURE_STEPS) and faithful["windows"] == len(data.windows(35)[::10])
+    assert faithful["mean"] == faithful["recorded"] == faithful["reconstruction"] and "sampled" not in faithful
+    assert faithful["recorded"]["kerb_per_mille"][-1] > 0  # every window's 30th frame has the kerb
+    still = texture(Dream(0.0), data, codes, torch.zeros(n, 2), decode)  # the last seed frame, again
+    # The first window's last seed frame (4) has no kerb, its next frame has.
+    assert still["mean"]["kerb_per_mille"][0] < faithful["mean"]["kerb_per_mille"][0]
+    assert still["mean"]["patch_share"][-1] < faithful["mean"]["patch_share"][-1]  # the patch grows
