@@ -154,7 +154,7 @@ def evaluate(args):
     result["futures"] = dict(steering_probe=steering_probe(model, data, codes, actions, decode),
                              at_30_steps=sampled_futures(model, data, codes, actions, reference=reference),
                              road_tracking=road_tracking(model, data, codes, actions, decode, to_image(recon)),
-                             texture=texture(model, data, codes, actions, decode))
+                             texture=texture(model, data, codes, actions, decode, reference=reference))
 
     # Steering response: same seed frames, constant actions, 30 steps.
     s0, _ = data.bounds()[0]

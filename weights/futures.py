@@ -177,11 +177,13 @@ def texture_figures(frames):
 
 
 @torch.no_grad()
-def texture(model, data, codes, actions, decode, seed=0):
+def texture(model, data, codes, actions, decode, seed=0, reference=None):
     """Texture kept under the recorded actions: windows every 10 frames, 5 seed codes, then
     after each of TEXTURE_STEPS fed-back steps, `texture_figures` of the recorded frames, their
     reconstructions, the mean rollout's and (with the spread head) one rollout's sampled at
-    temperature 1. {source: {figure: [one per step]}}."""
+    temperature 1; with `reference` (episodes, codes, actions) also two baselines: `linear`, a
+    least-squares predictor fitted on the reference (`linear_predictor`), and `copy`, the last
+    seed code again. {source: {figure: [one per step]}}."""
     z, c = futures_windows(data, codes, actions, 10)
     if not len(z):
         return None
@@ -190,6 +192,9 @@ def texture(model, data, codes, actions, decode, seed=0):
     if model.transition.spread:
         g = torch.Generator().manual_seed(seed)
         rollouts["sampled"] = predict(model.transition, z, c, TEACHER, temperature=1.0, generator=g)
+    if reference is not None:
+        rollouts["linear"] = linear_rollout(linear_predictor(*reference), z, c)
+        rollouts["copy"] = z[:, TEACHER - 1:TEACHER].expand(-1, z.shape[1] - 1, -1)
     # After k fed-back steps: frame TEACHER - 1 + k of a window, prediction TEACHER - 2 + k.
     sources = dict(recorded=lambda k: data.frames[starts + TEACHER - 1 + k],
                    reconstruction=lambda k: decode(z[:, TEACHER - 1 + k]),
@@ -199,3 +204,27 @@ def texture(model, data, codes, actions, decode, seed=0):
         readings = [texture_figures(frames(k)) for k in TEXTURE_STEPS]
         out[name] = {key: [r[key] for r in readings] for key in readings[0]}
     return out
+
+
+def linear_predictor(data, codes, actions, ridge=1e-2):
+    """The least-squares linear predictor of the next code, `z' = [z, z_prev, c, 1] M`, fitted
+    (float64, a ridge of `ridge` per window) on every window of 3 frames of the episodes: a
+    predictor of the mean next code that keeps a code by a near-identity map as easily as it
+    moves it."""
+    t = torch.as_tensor(data.windows(3)) + 1
+    z, a = codes.double(), actions.double()
+    x = torch.cat([z[t], z[t - 1], a[t], z.new_ones(len(t), 1)], 1)
+    gram = x.T @ x + ridge * len(t) * torch.eye(x.shape[1], dtype=torch.float64)
+    return torch.linalg.solve(gram, x.T @ z[t + 1])
+
+
+def linear_rollout(m, z, c):
+    """`predict`'s outputs for the predictor `m` (linear_predictor): windows z [B,T,z], c [B,T-1,a],
+    the first TEACHER codes given, then fed back (its outputs before them are the given codes)."""
+    z, c = z.double(), c.double()
+    out = [z[:, t + 1] for t in range(TEACHER - 1)]
+    prev, cur = z[:, TEACHER - 2], z[:, TEACHER - 1]
+    for t in range(TEACHER - 1, z.shape[1] - 1):
+        prev, cur = cur, torch.cat([cur, prev, c[:, t], z.new_ones(len(z), 1)], 1) @ m
+        out.append(cur)
+    return torch.stack(out, 1).float()

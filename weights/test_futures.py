@@ -123,3 +123,25 @@ def test_texture_follows_the_dream_against_the_recording():
     # The first window's last seed frame (4) has no kerb, its next frame has.
     assert still["mean"]["kerb_per_mille"][0] < faithful["mean"]["kerb_per_mille"][0]
     assert still["mean"]["patch_share"][-1] < faithful["mean"]["patch_share"][-1]  # the patch grows
+
+
+def test_texture_baselines_fit_a_linear_dream_and_copy_the_last_seed():
+    from futures import TEACHER, futures_windows, linear_predictor, linear_rollout, texture
+
+    n = 80
+    frames = carracing_frames(n)
+    data = episodes.Episodes(frames, np.zeros((n, 2), np.float32), np.array([0]))
+    codes, actions = torch.arange(n, dtype=torch.float32)[:, None], torch.zeros(n, 2)
+    decode = lambda z: frames[z[:, 0].round().long().clamp(0, n - 1).numpy()]  # noqa: E731
+    # Codes one apart: the next code is the last plus one, a linear map the fit finds (all but
+    # exactly without a ridge).
+    z, c = futures_windows(data, codes, actions, 10)
+    rolled = linear_rollout(linear_predictor(data, codes, actions, ridge=1e-9), z, c)
+    assert rolled.shape == (len(z), z.shape[1] - 1, 1)
+    assert torch.allclose(rolled, z[:, 1:], atol=1e-3)
+    out = texture(Dream(1.0), data, codes, actions, decode, reference=(data, codes, actions))
+    # With the ridge the fitted step falls short by under a frame after 30 steps (0.76 for the
+    # first window): the first step's frames are the recorded ones.
+    assert [v[0] for v in out["linear"].values()] == [v[0] for v in out["recorded"].values()]
+    still = texture(Dream(0.0), data, codes, actions, decode)  # the mean rollout holds the last seed
+    assert out["copy"] == still["mean"] != out["recorded"]
