@@ -192,8 +192,9 @@ def texture(model, data, codes, actions, decode, seed=0, reference=None):
     if model.transition.spread:
         g = torch.Generator().manual_seed(seed)
         rollouts["sampled"] = predict(model.transition, z, c, TEACHER, temperature=1.0, generator=g)
-    if reference is not None:
-        rollouts["linear"] = linear_rollout(linear_predictor(*reference), z, c)
+    fitted = linear_predictor(*reference) if reference is not None else None
+    if fitted is not None:
+        rollouts["linear"] = linear_rollout(fitted, z, c)
         rollouts["copy"] = z[:, TEACHER - 1:TEACHER].expand(-1, z.shape[1] - 1, -1)
     # After k fed-back steps: frame TEACHER - 1 + k of a window, prediction TEACHER - 2 + k.
     sources = dict(recorded=lambda k: data.frames[starts + TEACHER - 1 + k],
@@ -210,8 +211,10 @@ def linear_predictor(data, codes, actions, ridge=1e-2):
     """The least-squares linear predictor of the next code, `z' = [z, z_prev, c, 1] M`, fitted
     (float64, a ridge of `ridge` per window) on every window of 3 frames of the episodes: a
     predictor of the mean next code that keeps a code by a near-identity map as easily as it
-    moves it."""
+    moves it. None if the episodes have no such window."""
     t = torch.as_tensor(data.windows(3)) + 1
+    if not len(t):
+        return None
     z, a = codes.double(), actions.double()
     x = torch.cat([z[t], z[t - 1], a[t], z.new_ones(len(t), 1)], 1)
     gram = x.T @ x + ridge * len(t) * torch.eye(x.shape[1], dtype=torch.float64)

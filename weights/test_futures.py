@@ -145,3 +145,6 @@ def test_texture_baselines_fit_a_linear_dream_and_copy_the_last_seed():
     assert [v[0] for v in out["linear"].values()] == [v[0] for v in out["recorded"].values()]
     still = texture(Dream(0.0), data, codes, actions, decode)  # the mean rollout holds the last seed
     assert out["copy"] == still["mean"] != out["recorded"]
+    short = episodes.Episodes(frames[:2], np.zeros((2, 2), np.float32), np.array([0]))  # no window of 3
+    assert linear_predictor(short, codes[:2], actions[:2]) is None
+    assert "linear" not in texture(Dream(1.0), data, codes, actions, decode, reference=(short, codes[:2], actions[:2]))
