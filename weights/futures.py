@@ -92,9 +92,13 @@ def sampled_futures(model, data, codes, actions, seed=0, reference=None):
 
 def futures_windows(data, codes, actions, every):
     """Windows of 5 seed codes and 30 more, `every` frames apart: codes [B,35,z], actions [B,34,a]."""
-    starts = data.windows(TEACHER + HORIZON)[::every]
-    idx = torch.as_tensor(starts)[:, None] + torch.arange(TEACHER + HORIZON)
+    idx = torch.as_tensor(window_starts(data, every))[:, None] + torch.arange(TEACHER + HORIZON)
     return codes[idx], actions[idx[:, :-1]]
+
+
+def window_starts(data, every):
+    """The first frames of `futures_windows`' windows."""
+    return data.windows(TEACHER + HORIZON)[::every]
 
 
 @torch.no_grad()
@@ -187,7 +191,7 @@ def texture(model, data, codes, actions, decode, seed=0, reference=None):
     z, c = futures_windows(data, codes, actions, 10)
     if not len(z):
         return None
-    starts = data.windows(TEACHER + HORIZON)[::10]
+    starts = window_starts(data, 10)
     rollouts = dict(mean=predict(model.transition, z, c, TEACHER))
     if model.transition.spread:
         g = torch.Generator().manual_seed(seed)
