@@ -151,10 +151,11 @@ def evaluate(args):
     if args.reference:
         ref = episodes.read(args.reference)
         reference = (ref, encode(model, torch.from_numpy(ref.frames), 256), torch.from_numpy(ref.actions))
+    recon_frames = to_image(recon)
     result["futures"] = dict(steering_probe=steering_probe(model, data, codes, actions, decode),
                              at_30_steps=sampled_futures(model, data, codes, actions, reference=reference),
-                             road_tracking=road_tracking(model, data, codes, actions, decode, to_image(recon)),
-                             texture=texture(model, data, codes, actions, decode, reference=reference))
+                             road_tracking=road_tracking(model, data, codes, actions, decode, recon_frames),
+                             texture=texture(model, data, codes, actions, decode, recon_frames, reference=reference))
 
     # Steering response: same seed frames, constant actions, 30 steps.
     s0, _ = data.bounds()[0]

@@ -181,10 +181,10 @@ def texture_figures(frames):
 
 
 @torch.no_grad()
-def texture(model, data, codes, actions, decode, seed=0, reference=None):
+def texture(model, data, codes, actions, decode, recon_frames, seed=0, reference=None):
     """Texture kept under the recorded actions: windows every 10 frames, 5 seed codes, then
     after each of TEXTURE_STEPS fed-back steps, `texture_figures` of the recorded frames, their
-    reconstructions, the mean rollout's and (with the spread head) one rollout's sampled at
+    reconstructions `recon_frames` (uint8), the mean rollout's and (with the spread head) one rollout's sampled at
     temperature 1; with `reference` (episodes, codes, actions) also two baselines: `linear`, a
     least-squares predictor fitted on the reference (`linear_predictor`), and `copy`, the last
     seed code again. {source: {figure: [one per step]}}."""
@@ -202,7 +202,7 @@ def texture(model, data, codes, actions, decode, seed=0, reference=None):
         rollouts["copy"] = z[:, TEACHER - 1:TEACHER].expand(-1, z.shape[1] - 1, -1)
     # After k fed-back steps: frame TEACHER - 1 + k of a window, prediction TEACHER - 2 + k.
     sources = dict(recorded=lambda k: data.frames[starts + TEACHER - 1 + k],
-                   reconstruction=lambda k: decode(z[:, TEACHER - 1 + k]),
+                   reconstruction=lambda k: recon_frames[starts + TEACHER - 1 + k],
                    **{name: (lambda k, p=p: decode(p[:, TEACHER - 2 + k])) for name, p in rollouts.items()})
     out = dict(steps=list(TEXTURE_STEPS), windows=len(z))
     for name, frames in sources.items():

@@ -115,11 +115,11 @@ def test_texture_follows_the_dream_against_the_recording():
     data = episodes.Episodes(frames, np.zeros((n, 2), np.float32), np.array([0]))
     codes = torch.arange(n, dtype=torch.float32)[:, None]
     decode = lambda z: frames[z[:, 0].round().long().clamp(0, n - 1).numpy()]  # noqa: E731
-    faithful = texture(Dream(1.0), data, codes, torch.zeros(n, 2), decode)
+    faithful = texture(Dream(1.0), data, codes, torch.zeros(n, 2), decode, frames)
     assert faithful["steps"] == list(TEXTURE_STEPS) and faithful["windows"] == len(data.windows(35)[::10])
     assert faithful["mean"] == faithful["recorded"] == faithful["reconstruction"] and "sampled" not in faithful
     assert faithful["recorded"]["kerb_per_mille"][-1] > 0  # every window's 30th frame has the kerb
-    still = texture(Dream(0.0), data, codes, torch.zeros(n, 2), decode)  # the last seed frame, again
+    still = texture(Dream(0.0), data, codes, torch.zeros(n, 2), decode, frames)  # the last seed frame, again
     # The first window's last seed frame (4) has no kerb, its next frame has.
     assert still["mean"]["kerb_per_mille"][0] < faithful["mean"]["kerb_per_mille"][0]
     assert still["mean"]["patch_share"][-1] < faithful["mean"]["patch_share"][-1]  # the patch grows
@@ -139,12 +139,12 @@ def test_texture_baselines_fit_a_linear_dream_and_copy_the_last_seed():
     rolled = linear_rollout(linear_predictor(data, codes, actions, ridge=1e-9), z, c)
     assert rolled.shape == (len(z), z.shape[1] - 1, 1)
     assert torch.allclose(rolled, z[:, 1:], atol=1e-3)
-    out = texture(Dream(1.0), data, codes, actions, decode, reference=(data, codes, actions))
+    out = texture(Dream(1.0), data, codes, actions, decode, frames, reference=(data, codes, actions))
     # With the ridge the fitted step falls short by under a frame after 30 steps (0.76 for the
     # first window): the first step's frames are the recorded ones.
     assert [v[0] for v in out["linear"].values()] == [v[0] for v in out["recorded"].values()]
-    still = texture(Dream(0.0), data, codes, actions, decode)  # the mean rollout holds the last seed
+    still = texture(Dream(0.0), data, codes, actions, decode, frames)  # the mean rollout holds the last seed
     assert out["copy"] == still["mean"] != out["recorded"]
     short = episodes.Episodes(frames[:2], np.zeros((2, 2), np.float32), np.array([0]))  # no window of 3
     assert linear_predictor(short, codes[:2], actions[:2]) is None
-    assert "linear" not in texture(Dream(1.0), data, codes, actions, decode, reference=(short, codes[:2], actions[:2]))
+    assert "linear" not in texture(Dream(1.0), data, codes, actions, decode, frames, reference=(short, codes[:2], actions[:2]))
