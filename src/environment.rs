@@ -185,6 +185,13 @@ impl<M: Borrow<Model>> Environment<M> {
         Ok(())
     }
 
+    /// Whether a reset gave the drives a state (false before the first and after a failed
+    /// one): until then [`Environment::step`] and [`Environment::frames`] are
+    /// [`Error::NotSeeded`], and [`Environment::codes`] and [`Environment::hidden`] are zeros.
+    pub fn is_seeded(&self) -> bool {
+        self.seeded
+    }
+
     /// The current code of every drive, `[drive][z_dim]`.
     pub fn codes(&self) -> &[f32] {
         &self.codes

@@ -79,6 +79,7 @@ pub use error::{Error, Result};
 pub use frames::{frames_from_rgb, frames_to_rgb, PixelLayout};
 pub use model::Model;
 pub use plan::Plan;
+pub use pool::MAX_THREADS;
 pub use simulator::Simulator;
 pub use weights::WeightDtype;
 

@@ -16,6 +16,8 @@ use drivesim_kernels::{ConvShape, Winograd};
 /// assert!(plan.bytes() < 64 << 20);
 /// // Sizes that overflow or that no machine could allocate are errors, not aborts.
 /// assert!(Plan::new(&Config::COMMA, usize::MAX, 1).is_err());
+/// // So are more threads than any machine has cores, before anything is allocated or started.
+/// assert!(Plan::new(&Config::COMMA, 1, drivesim::MAX_THREADS + 1).is_err());
 /// # Ok::<(), drivesim::Error>(())
 /// ```
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -95,10 +97,11 @@ impl StackPlan {
 
 impl Plan {
     /// The buffers of a simulator for `config` taking up to `max_batch` (at least 1) frames or
-    /// codes per call with `threads` threads (the caller's included; 0 counts as 1).
+    /// codes per call with `threads` threads (the caller's included; 0 counts as 1, more than
+    /// [`crate::MAX_THREADS`] is [`Error::Config`]).
     pub fn new(config: &Config, max_batch: usize, threads: usize) -> Result<Plan> {
         config.validate()?;
-        let (max_batch, threads) = (max_batch.max(1), threads.max(1));
+        let (max_batch, threads) = (max_batch.max(1), crate::pool::check_threads(threads)?);
         // Threads take whole items of a batch on planes of their own.
         let sets = if max_batch > 1 { threads } else { 1 };
         let c = config;

@@ -7,6 +7,24 @@ use core::ops::Range;
 use core::sync::atomic::{AtomicUsize, Ordering};
 use drivesim_kernels::Isa;
 
+/// The most threads one simulator or trainer shares its work among, the caller's included.
+/// More is a [`crate::Error::Config`] from planning, before any buffer is allocated or any
+/// thread started: a count that large is a mistake (no machine has the cores to use it), and
+/// the pool's bookkeeping for it alone could exhaust memory.
+pub const MAX_THREADS: usize = 1024;
+
+/// `threads` (0 counts as 1) when at most [`MAX_THREADS`], else [`crate::Error::Config`].
+pub(crate) fn check_threads(threads: usize) -> crate::Result<usize> {
+    match threads {
+        0..=MAX_THREADS => Ok(threads.max(1)),
+        found => Err(crate::Error::Config {
+            field: "threads",
+            expected: "at most 1024 (drivesim::MAX_THREADS), the caller's included",
+            found,
+        }),
+    }
+}
+
 /// How a network runs: the kernels' instruction set and, optionally, threads to share it.
 #[derive(Clone, Copy)]
 pub(crate) struct Exec<'a> {
@@ -48,6 +66,7 @@ impl Pool {
 
 #[cfg(feature = "std")]
 mod workers {
+    use crate::{Error, Result};
     use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
     use std::sync::{Arc, Condvar, Mutex, MutexGuard};
     use std::thread::JoinHandle;
@@ -119,9 +138,12 @@ mod workers {
     }
 
     impl Pool {
-        /// A pool in which `threads` threads (the caller included) share each task. If a thread
-        /// cannot be started, those that were are stopped and joined before the error returns.
-        pub fn new(threads: usize) -> std::io::Result<Pool> {
+        /// A pool in which `threads` threads (the caller included) share each task, planned before
+        /// anything is allocated: more than [`super::MAX_THREADS`] is [`Error::Config`], memory
+        /// for the workers' handles that cannot be reserved [`Error::OutOfMemory`], and a thread
+        /// the system will not start [`Error::Threads`] (those that were are stopped and joined
+        /// before the error returns).
+        pub fn new(threads: usize) -> Result<Pool> {
             Pool::start(threads, |index, work| {
                 std::thread::Builder::new()
                     .name(format!("drivesim-{index}"))
@@ -130,10 +152,13 @@ mod workers {
         }
 
         /// [`Pool::new`] with the worker threads started by `spawn`.
-        fn start(
-            threads: usize,
-            spawn: impl Fn(usize, Work) -> std::io::Result<JoinHandle<()>>,
-        ) -> std::io::Result<Pool> {
+        fn start(threads: usize, spawn: impl Fn(usize, Work) -> std::io::Result<JoinHandle<()>>) -> Result<Pool> {
+            let threads = super::check_threads(threads)?;
+            let mut workers = Vec::new();
+            workers.try_reserve_exact(threads - 1).map_err(|_| Error::OutOfMemory {
+                what: "the thread pool",
+                bytes: (threads - 1).checked_mul(core::mem::size_of::<JoinHandle<()>>()),
+            })?;
             let shared = Arc::new(Shared {
                 generation: AtomicU64::new(0),
                 running: AtomicUsize::new(0),
@@ -147,14 +172,15 @@ mod workers {
                 posted: Condvar::new(),
                 finished: Condvar::new(),
             });
-            let mut pool = Pool {
-                shared,
-                workers: Vec::with_capacity(threads.saturating_sub(1)),
-            };
-            for index in 1..threads.max(1) {
+            let mut pool = Pool { shared, workers };
+            for index in 1..threads {
                 let shared = Arc::clone(&pool.shared);
                 // On failure, dropping `pool` shuts down and joins the workers started so far.
-                pool.workers.push(spawn(index, Box::new(move || worker(&shared)))?);
+                let handle = spawn(index, Box::new(move || worker(&shared))).map_err(|source| Error::Threads {
+                    requested: threads,
+                    source,
+                })?;
+                pool.workers.push(handle);
             }
             // Wait until every worker is parked: a thread's start-up allocates, and it must not
             // do so during the simulator's first call.
@@ -292,8 +318,31 @@ mod workers {
                     exited.fetch_add(1, Ordering::SeqCst);
                 })
             });
-            assert!(result.is_err());
+            assert!(matches!(result, Err(Error::Threads { requested: 5, .. })));
             assert_eq!(exited.load(Ordering::SeqCst), 2, "workers left running");
+        }
+
+        /// Too many threads is an error before any memory is reserved or any thread started
+        /// (issue 46: 2**32 threads aborted the process in `Vec::with_capacity`).
+        #[test]
+        fn too_many_threads_fail_before_anything_starts() {
+            let spawned = AtomicUsize::new(0);
+            for threads in [super::super::MAX_THREADS + 1, 1 << 32, usize::MAX] {
+                let result = Pool::start(threads, |_, _| {
+                    spawned.fetch_add(1, Ordering::SeqCst);
+                    Err(std::io::Error::other("must not be called"))
+                });
+                match result {
+                    Err(Error::Config {
+                        field: "threads",
+                        found,
+                        ..
+                    }) => assert_eq!(found, threads),
+                    other => panic!("{threads} threads: {:?}", other.map(|p| p.threads())),
+                }
+            }
+            assert_eq!(spawned.load(Ordering::SeqCst), 0);
+            assert_eq!(Pool::new(0).map(|p| p.threads()).ok(), Some(1));
         }
     }
 }

@@ -11,7 +11,7 @@ use crate::plan::{zeros, Plan, StackBuffers};
 use crate::pool::Pool;
 use crate::sampling::Sampling;
 use crate::transition::TransitionBuffers;
-#[cfg(feature = "std")]
+#[cfg(doc)]
 use crate::Error;
 use crate::{Config, Model, Result};
 use alloc::vec::Vec;
@@ -126,14 +126,15 @@ impl<M: Borrow<Model>> Simulator<M> {
     /// least `threads` items (of transition steps, 8 per thread) is shared item by item
     /// instead, each thread running every layer of its items, so this plans again, with a set
     /// of activation planes per thread when the planned batch is above 1 (see
-    /// [`Simulator::buffer_bytes`]). If the threads cannot be started, those that were are
-    /// stopped and joined before the error returns.
+    /// [`Simulator::buffer_bytes`]). More than [`crate::MAX_THREADS`] is an [`Error::Config`]
+    /// from planning, before anything is allocated or started; if the threads cannot be
+    /// started, those that were are stopped and joined before the error returns.
     #[cfg(feature = "std")]
     pub fn with_threads(self, threads: usize) -> Result<Self> {
         let plan = Plan::new(self.config(), self.plan.max_batch(), threads)?;
         let pool = match plan.threads() {
             1 => None,
-            n => Some(Pool::new(n).map_err(|source| Error::Threads { requested: n, source })?),
+            n => Some(Pool::new(n)?),
         };
         // The old buffers go before the new ones are allocated.
         let Simulator {

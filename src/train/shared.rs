@@ -9,9 +9,7 @@ pub(super) fn start_pool(threads: usize) -> Result<Option<Pool>> {
     match threads {
         0 | 1 => Ok(None),
         #[cfg(feature = "std")]
-        n => Pool::new(n)
-            .map(Some)
-            .map_err(|source| Error::Threads { requested: n, source }),
+        n => Pool::new(n).map(Some),
         #[cfg(not(feature = "std"))]
         n => Err(Error::Config {
             field: "threads",
