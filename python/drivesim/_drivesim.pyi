@@ -21,7 +21,8 @@ class Model:
         Raises OSError for a file that cannot be read, ValueError for a bad weight file."""
     @staticmethod
     def from_bytes(data: bytes) -> Model:
-        """A model from a weight file's bytes."""
+        """A model from a weight file's bytes (TypeError for what is not bytes, ValueError for
+        a bad weight file)."""
     @property
     def config(self) -> dict[str, int]:
         """``height``, ``width``, ``channels``, ``base_channels``, ``layers``, ``kernel``,
@@ -54,10 +55,24 @@ class Simulator:
     """Encodes frames, steps the transition, generates frames, rolls out dreams.
 
     Frames: ``(N, H, W, 3)`` or ``(H, W, 3)``, uint8 (0-255) or float32 (in [-1, 1]); codes,
-    hidden states and actions: float32, one row per item. Raises ValueError for a wrong dtype,
-    shape or value, MemoryError when the plan cannot be allocated."""
+    hidden states and actions: float32, finite, one row per item, N at most ``batch`` (a
+    rollout's steps and ``rollout_candidates``' T are not limited). Inputs must be numpy
+    arrays of exactly that dtype, C-ordered (``np.ascontiguousarray``); they are borrowed for
+    the call, not copied, and another thread cannot resize them meanwhile (its ``resize``
+    raises ValueError).
 
-    def __init__(self, model: Model, batch: int = 1, threads: int = 1) -> None: ...
+    Every method raises ValueError for a wrong type, dtype, shape, order or value of an
+    argument (NaN, an infinity, a frame outside [-1, 1]), or a result that would overflow
+    float32; MemoryError when a result (or the plan, at construction) cannot be allocated;
+    RuntimeError when another thread is using this simulator. Results are new arrays, always
+    finite; a call that raised leaves the simulator as it was, usable."""
+
+    def __init__(self, model: Model, batch: int = 1, threads: int = 1) -> None:
+        """``batch``: the most frames or codes one call takes, an integer >= 1; ``threads``:
+        threads that share each call, the caller's included, 1 to 1024. ValueError for a
+        value out of range (a negative one included), TypeError for a non-integer,
+        MemoryError when the plan cannot be allocated, RuntimeError when the system will not
+        start the threads."""
     @property
     def batch(self) -> int:
         """The most frames or codes one call takes."""
@@ -79,7 +94,8 @@ class Simulator:
     def set_sampling(self, temperature: float, seed: int) -> None:
         """Samples every later rollout: each predicted code ``mean + temperature * sigma *
         noise``, the noise from ``seed``, the step and the item alone. Temperature 0: the mean.
-        ValueError below 0, or above 0 for a model that cannot sample."""
+        ValueError for a temperature below 0 or not finite, or above 0 for a model that cannot
+        sample, and for a seed outside 0 to 2**64 - 1; TypeError for a non-integer seed."""
     @property
     def sampling(self) -> tuple[float, int]:
         """``(temperature, seed)``; temperature 0: off."""
@@ -94,12 +110,19 @@ class Simulator:
         self, h: F32, actions: F32, z: Optional[F32] = None, frames: bool = False, dtype: DType = ...
     ) -> Any:
         """``actions`` ``(T, N, 2)`` from one state (``h`` ``(hidden_dim,)`` or
-        ``(N, hidden_dim)``): codes ``(T, N, z_dim)``, or ``(codes, frames)``."""
+        ``(N, hidden_dim)``; ``z`` ``(z_dim,)``, ``(N, z_dim)`` or None): codes
+        ``(T, N, z_dim)``, or ``(codes, frames)`` with frames ``(T, N, H, W, 3)``. ValueError
+        names the shapes that disagree; MemoryError when T is too long to allocate."""
 
 class Environment:
-    """``drives`` dreamed drives stepping together in one batch."""
+    """``drives`` dreamed drives stepping together in one batch. Arrays and errors as
+    ``Simulator``'s; before a successful reset (and after a failed one) ``step``, ``frames``,
+    ``codes``, ``hidden`` and ``rollout_candidates`` raise ValueError."""
 
-    def __init__(self, model: Model, drives: int = 1, candidates: int = 64, threads: int = 1) -> None: ...
+    def __init__(self, model: Model, drives: int = 1, candidates: int = 64, threads: int = 1) -> None:
+        """``drives`` and ``candidates`` (the most sequences one ``rollout_candidates`` takes)
+        integers >= 1, ``threads`` 1 to 1024: ValueError otherwise, TypeError for a
+        non-integer, MemoryError when the plan cannot be allocated."""
     @property
     def drives(self) -> int: ...
     def reset(self, frames: Frames, actions: F32) -> None:
@@ -120,7 +143,8 @@ class Environment:
     def frames(self, dtype: DType = ...) -> Frames:
         """``(drives, H, W, 3)``, uint8 by default."""
     def rollout_candidates(self, drive: int, actions: F32, frames: bool = False, dtype: DType = ...) -> Any:
-        """``actions`` ``(T, N, 2)`` from drive ``drive``'s state: codes ``(T, N, z_dim)``."""
+        """``actions`` ``(T, N, 2)`` from drive ``drive``'s state (``0 <= drive < drives``,
+        ValueError otherwise): codes ``(T, N, z_dim)``, or ``(codes, frames)``."""
 
 def load_episodes(
     path: Optional[Union[str, os.PathLike[str]]] = None,

@@ -1,12 +1,16 @@
-//! numpy arrays in and out: each input checked for dtype, C order and shape with a
-//! `ValueError` that names it, borrowed as a slice (no copy); 8-bit frames converted to and
-//! from the model's [-1, 1] floats.
+//! numpy arrays in: each input checked for dtype, C order and shape with a `ValueError` that
+//! names it, borrowed as a slice (no copy), and pinned for the call (see [`Borrowed`]); 8-bit
+//! frames converted to the model's [-1, 1] floats. The arrays out are in `outputs`.
 
+use crate::outputs::{grow, FrameType};
 use crate::to_py;
-use drivesim::{frames_from_rgb, frames_to_rgb, Config, PixelLayout};
-use numpy::{Element, PyArray, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use drivesim::{frames_from_rgb, Config, PixelLayout};
+use numpy::npyffi::{self, NpyTypes, PY_ARRAY_API};
+use numpy::{Element, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArray, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use pyo3::types::PyWeakrefReference;
+use std::ops::Deref;
 
 /// A `ValueError` with this message.
 pub fn value_error(message: String) -> PyErr {
@@ -21,25 +25,68 @@ fn describe(obj: &Bound<'_, PyAny>) -> String {
     }
 }
 
-/// `obj` as a C-ordered array of `T`, borrowed.
-pub fn array<'py, T: Element>(
-    obj: &Bound<'py, PyAny>,
-    what: &str,
-    dtype: &str,
-) -> PyResult<PyReadonlyArrayDyn<'py, T>> {
-    let array = obj.cast::<PyArrayDyn<T>>().map_err(|_| {
+/// An input array borrowed for one call, safe against what another Python thread may do to
+/// it while the call runs with the interpreter released:
+///
+/// - the numpy crate's borrow is of a private view made here (same memory, a new array object
+///   no one else holds), so changing the caller's array's shape, strides or dtype in place
+///   cannot change the borrow's key (which made its release panic, and the panic aborted);
+/// - a weak reference to the array that owns the memory makes numpy refuse to reallocate it
+///   (`resize(..., refcheck=False)` raises `ValueError` in that thread), so the slice stays
+///   valid (issue 46: the resize freed the memory under the call, and the release aborted).
+pub struct Borrowed<'py, T: Element> {
+    // Declared first: the borrow is released before the pin goes.
+    array: PyReadonlyArrayDyn<'py, T>,
+    _pin: Bound<'py, PyWeakrefReference>,
+}
+
+impl<'py, T: Element> Deref for Borrowed<'py, T> {
+    type Target = PyReadonlyArrayDyn<'py, T>;
+    fn deref(&self) -> &Self::Target {
+        &self.array
+    }
+}
+
+/// The array at the end of `array`'s chain of bases: the one whose memory the others view.
+fn owner<'py>(array: &Bound<'py, PyUntypedArray>) -> Bound<'py, PyAny> {
+    let py = array.py();
+    let mut current = array.as_array_ptr();
+    loop {
+        // SAFETY: `current` is a live array (the chain holds a reference to each base).
+        let base = unsafe { (*npyffi::_PyArray_GET_ITEM_DATA(current)).base };
+        // SAFETY: `base` is a live object or null.
+        if base.is_null() || unsafe { npyffi::PyArray_Check(py, base) } == 0 {
+            // SAFETY: a live array, borrowed from the chain.
+            return unsafe { Bound::from_borrowed_ptr(py, current.cast()) };
+        }
+        current = base.cast();
+    }
+}
+
+/// `obj` as a C-ordered array of `T`, borrowed and pinned ([`Borrowed`]).
+pub fn array<'py, T: Element>(obj: &Bound<'py, PyAny>, what: &str, dtype: &str) -> PyResult<Borrowed<'py, T>> {
+    let given = obj.cast::<PyArrayDyn<T>>().map_err(|_| {
         value_error(format!(
             "{what}: expected a numpy array of {dtype}, got {} (convert with np.asarray(x, dtype=np.{dtype}))",
             describe(obj)
         ))
     })?;
-    let array = array.try_readonly().map_err(|e| value_error(format!("{what}: {e}")))?;
-    if !array.is_c_contiguous() {
+    if !given.is_c_contiguous() {
         return Err(value_error(format!(
             "{what}: expected a C-ordered (contiguous) array; use np.ascontiguousarray(x)"
         )));
     }
-    Ok(array)
+    let py = obj.py();
+    let pin = PyWeakrefReference::new(&owner(given.as_untyped()))?;
+    // SAFETY: a plain ndarray view of a live array, with its dtype (no Python code runs: the
+    // base type has no `__array_finalize__`); the result is checked for null.
+    let view = unsafe {
+        let array_type = npyffi::get_type_object(py, NpyTypes::PyArray_Type);
+        let view = PY_ARRAY_API.PyArray_View(py, given.as_array_ptr(), std::ptr::null_mut(), array_type);
+        Bound::from_owned_ptr_or_err(py, view)?.cast_into_unchecked::<PyArrayDyn<T>>()
+    };
+    let array = view.try_readonly().map_err(|e| value_error(format!("{what}: {e}")))?;
+    Ok(Borrowed { array, _pin: pin })
 }
 
 /// A float32 array whose shape is `lead` dimensions (any sizes, as many as `leads` allows)
@@ -49,10 +96,21 @@ pub fn f32_items<'py>(
     what: &str,
     leads: &[usize],
     tail: &[usize],
-) -> PyResult<(PyReadonlyArrayDyn<'py, f32>, Vec<usize>)> {
+) -> PyResult<(Borrowed<'py, f32>, Vec<usize>)> {
     let a = array::<f32>(obj, what, "float32")?;
     let lead = leading(a.shape(), what, leads, tail)?;
     Ok((a, lead))
+}
+
+/// A shape as Python writes it: `(3, 2)`, `(3,)`, `()`.
+pub fn shape_str(shape: &[usize]) -> String {
+    match shape {
+        [one] => format!("({one},)"),
+        dims => format!(
+            "({})",
+            dims.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")
+        ),
+    }
 }
 
 /// The leading dimensions of `shape` when it ends in `tail` and has one of `leads` more.
@@ -75,21 +133,22 @@ pub fn leading(shape: &[usize], what: &str, leads: &[usize], tail: &[usize]) -> 
             })
             .collect();
         return Err(value_error(format!(
-            "{what}: expected shape {}, got {shape:?}",
-            forms.join(" or ")
+            "{what}: expected shape {}, got {}",
+            forms.join(" or "),
+            shape_str(shape)
         )));
     }
     let lead = shape[..shape.len() - tail.len()].to_vec();
     if lead.contains(&0) {
-        return Err(value_error(format!("{what}: empty (shape {shape:?})")));
+        return Err(value_error(format!("{what}: empty (shape {})", shape_str(shape))));
     }
     Ok(lead)
 }
 
 /// Frames given as `uint8` (0-255) or `float32` (in [-1, 1]), HWC.
 pub enum Frames<'py> {
-    U8(PyReadonlyArrayDyn<'py, u8>),
-    F32(PyReadonlyArrayDyn<'py, f32>),
+    U8(Borrowed<'py, u8>),
+    F32(Borrowed<'py, f32>),
 }
 
 impl<'py> Frames<'py> {
@@ -116,28 +175,18 @@ impl<'py> Frames<'py> {
     }
 
     /// The frames as the model's floats: borrowed when given as float32, else converted into
-    /// `scratch` (grown to fit: the one copy an 8-bit frame needs).
+    /// `scratch` (grown to fit, or `MemoryError`: the one copy an 8-bit frame needs).
     pub fn floats<'a>(&'a self, config: &Config, scratch: &'a mut Vec<f32>) -> PyResult<&'a [f32]> {
         match self {
             Frames::F32(a) => Ok(a.as_slice().expect("checked C-ordered")),
             Frames::U8(a) => {
                 let rgb = a.as_slice().expect("checked C-ordered");
-                if scratch.len() < rgb.len() {
-                    scratch.resize(rgb.len(), 0.0);
-                }
-                let out = &mut scratch[..rgb.len()];
+                let out = grow(scratch, rgb.len())?;
                 frames_from_rgb(rgb, PixelLayout::Hwc, config, out).map_err(to_py)?;
                 Ok(out)
             }
         }
     }
-}
-
-/// Which frames a call returns: 8-bit (the default) or the model's floats.
-#[derive(Clone, Copy, PartialEq, Eq)]
-pub enum FrameType {
-    U8,
-    F32,
 }
 
 impl FrameType {
@@ -156,85 +205,4 @@ impl FrameType {
             other => Err(value_error(format!("dtype: frames are uint8 or float32, not {other}"))),
         }
     }
-}
-
-/// A new C-ordered array of `shape`, zeroed.
-pub fn new_array<'py, T: Element>(py: Python<'py>, shape: &[usize]) -> Bound<'py, PyArrayDyn<T>> {
-    PyArray::zeros(py, shape.to_vec(), false)
-}
-
-/// Frames the crate writes, returned as the requested type in a new array of `shape`: `fill`
-/// writes the model's floats straight into a float32 result, or into `scratch` (grown to fit)
-/// for an 8-bit one, converted then. `fill` runs with the interpreter released.
-pub fn frames_out<'py, F>(
-    py: Python<'py>,
-    kind: FrameType,
-    config: &Config,
-    shape: &[usize],
-    scratch: &mut Vec<f32>,
-    fill: F,
-) -> PyResult<Bound<'py, PyAny>>
-where
-    F: FnOnce(&mut [f32]) -> drivesim::Result<()> + Send,
-{
-    match kind {
-        FrameType::F32 => {
-            let out = new_array::<f32>(py, shape);
-            // SAFETY: the array was just created here and no other reference to it exists.
-            let floats = unsafe { out.as_slice_mut() }.expect("a new array is contiguous");
-            py.detach(|| fill(floats)).map_err(to_py)?;
-            Ok(out.into_any())
-        }
-        FrameType::U8 => {
-            let out = new_array::<u8>(py, shape);
-            // SAFETY: as above.
-            let rgb = unsafe { out.as_slice_mut() }.expect("a new array is contiguous");
-            if scratch.len() < rgb.len() {
-                scratch.resize(rgb.len(), 0.0);
-            }
-            let floats = &mut scratch[..rgb.len()];
-            py.detach(|| {
-                fill(floats)?;
-                frames_to_rgb(floats, PixelLayout::Hwc, config, rgb)
-            })
-            .map_err(to_py)?;
-            Ok(out.into_any())
-        }
-    }
-}
-
-/// The codes `run` writes into a new array of `codes_shape`, and when `frames_shape` is given
-/// the frames it writes too (as `frames_out` returns them): the codes alone, or
-/// `(codes, frames)`. `run` runs with the interpreter released.
-pub fn codes_and_frames<'py, F>(
-    py: Python<'py>,
-    kind: FrameType,
-    config: &Config,
-    codes_shape: &[usize],
-    frames_shape: Option<&[usize]>,
-    scratch: &mut Vec<f32>,
-    run: F,
-) -> PyResult<Bound<'py, PyAny>>
-where
-    F: FnOnce(&mut [f32], Option<&mut [f32]>) -> drivesim::Result<()> + Send,
-{
-    let codes = new_array::<f32>(py, codes_shape);
-    // SAFETY: the array was just created here and no other reference to it exists.
-    let codes_out = unsafe { codes.as_slice_mut() }.expect("a new array is contiguous");
-    let Some(shape) = frames_shape else {
-        py.detach(|| run(codes_out, None)).map_err(to_py)?;
-        return Ok(codes.into_any());
-    };
-    let frames = frames_out(py, kind, config, shape, scratch, |f| run(codes_out, Some(f)))?;
-    Ok((codes, frames).into_pyobject(py)?.into_any())
-}
-
-/// A copy of `data`, `rows` rows of equal length, as a new `(rows, len / rows)` array.
-pub fn rows_copy<'py>(py: Python<'py>, data: &[f32], rows: usize) -> Bound<'py, PyArrayDyn<f32>> {
-    let out = new_array::<f32>(py, &[rows, data.len() / rows]);
-    // SAFETY: the array was just created here and no other reference to it exists.
-    unsafe { out.as_slice_mut() }
-        .expect("a new array is contiguous")
-        .copy_from_slice(data);
-    out
 }

@@ -1,11 +1,12 @@
 //! `Environment`: N dreamed drives that a controller steps, on numpy arrays.
 
-use crate::arrays::{codes_and_frames, f32_items, frames_out, rows_copy, value_error, Frames};
+use crate::arrays::{f32_items, shape_str, value_error, Frames};
 use crate::model::PyModel;
-use crate::simulator::{frame_type, slice};
-use crate::to_py;
+use crate::outputs::{codes_and_frames, frames_out, rows_copy};
+use crate::simulator::{frame_type, slice, temperature_f32};
+use crate::{count, size, to_py};
 use drivesim::{Environment, Model};
-use numpy::PyArrayDyn;
+use numpy::{PyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -17,6 +18,9 @@ struct State {
 /// `drives` dreamed drives stepping together in one batch: reset from real frames (or codes),
 /// then each `step` applies one action per drive and moves every drive to its next predicted
 /// code. `candidates` is the most action sequences one `rollout_candidates` call takes.
+/// `drives`, `candidates` and `threads` are integers >= 1 (threads at most 1024): ValueError
+/// otherwise, MemoryError when the plan cannot be allocated. Before a successful reset,
+/// `step`, `frames`, `codes`, `hidden` and `rollout_candidates` raise ValueError.
 ///
 /// >>> import numpy as np, drivesim
 /// >>> env = drivesim.Environment(drivesim.Model.load(), drives=2)
@@ -39,8 +43,20 @@ fn lock(state: &Mutex<State>) -> PyResult<MutexGuard<'_, State>> {
 #[pymethods]
 impl PyEnvironment {
     #[new]
-    #[pyo3(signature = (model, drives=1, candidates=64, threads=1))]
-    fn new(py: Python<'_>, model: &PyModel, drives: usize, candidates: usize, threads: usize) -> PyResult<Self> {
+    #[pyo3(
+        signature = (model, drives=None, candidates=None, threads=None),
+        text_signature = "(model, drives=1, candidates=64, threads=1)"
+    )]
+    fn new(
+        py: Python<'_>,
+        model: &PyModel,
+        drives: Option<&Bound<'_, PyAny>>,
+        candidates: Option<&Bound<'_, PyAny>>,
+        threads: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
+        let drives = drives.map_or(Ok(1), |d| size(d, "drives", 1))?;
+        let candidates = candidates.map_or(Ok(64), |c| size(c, "candidates", 1))?;
+        let threads = threads.map_or(Ok(1), |t| size(t, "threads", 1))?;
         let model = Arc::clone(&model.inner);
         let env = py
             .detach(|| Environment::new(model, drives, candidates)?.with_threads(threads))
@@ -90,7 +106,8 @@ impl PyEnvironment {
     /// of the steps since the last reset and the drive, so a reset and the same actions give
     /// the same drive again. Temperature 0 (the default): the mean. ValueError for a
     /// temperature below 0, or above 0 where the model cannot sample (`Model.samples`).
-    fn set_sampling(&self, temperature: f32, seed: u64) -> PyResult<()> {
+    fn set_sampling(&self, temperature: f64, seed: &Bound<'_, PyAny>) -> PyResult<()> {
+        let (temperature, seed) = (temperature_f32(temperature)?, count(seed, "seed", 0, u64::MAX)?);
         lock(&self.state)?.env.set_sampling(temperature, seed).map_err(to_py)
     }
 
@@ -105,16 +122,18 @@ impl PyEnvironment {
         py.detach(|| env.step(actions)).map_err(to_py)
     }
 
-    /// Each drive's current code, `(drives, z_dim)` (a copy).
+    /// Each drive's current code, `(drives, z_dim)` (a copy); ValueError before a reset.
     #[getter]
     fn codes<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        Ok(rows_copy(py, lock(&self.state)?.env.codes(), self.drives))
+        let guard = seeded(lock(&self.state)?)?;
+        rows_copy(py, guard.env.codes(), self.drives, "the codes")
     }
 
-    /// Each drive's hidden state, `(drives, hidden_dim)` (a copy).
+    /// Each drive's hidden state, `(drives, hidden_dim)` (a copy); ValueError before a reset.
     #[getter]
     fn hidden<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        Ok(rows_copy(py, lock(&self.state)?.env.hidden(), self.drives))
+        let guard = seeded(lock(&self.state)?)?;
+        rows_copy(py, guard.env.hidden(), self.drives, "the hidden states")
     }
 
     /// Each drive's current frame, generated: `(drives, height, width, 3)`, uint8 (the
@@ -135,11 +154,12 @@ impl PyEnvironment {
     fn rollout_candidates<'py>(
         &self,
         py: Python<'py>,
-        drive: usize,
+        drive: &Bound<'py, PyAny>,
         actions: &Bound<'py, PyAny>,
         frames: bool,
         dtype: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyAny>> {
+        let drive = size(drive, "drive", 0)?;
         let kind = frame_type(py, dtype)?;
         let mut guard = lock(&self.state)?;
         let State { env, scratch } = &mut *guard;
@@ -157,6 +177,14 @@ impl PyEnvironment {
             scratch,
             |codes, f| env.rollout_candidates(drive, n, actions, codes, f),
         )
+    }
+}
+
+/// The state when a reset gave the drives one, else the crate's `NotSeeded` (ValueError).
+fn seeded(guard: MutexGuard<'_, State>) -> PyResult<MutexGuard<'_, State>> {
+    match guard.env.is_seeded() {
+        true => Ok(guard),
+        false => Err(to_py(drivesim::Error::NotSeeded)),
     }
 }
 
@@ -182,11 +210,11 @@ impl PyEnvironment {
         };
         if a.1 != [seeds - 1, self.drives] {
             return Err(value_error(format!(
-                "actions: expected shape ({}, {}, {}) for {seeds} seeds, got {:?}",
+                "actions: expected shape ({}, {}, {}) for {seeds} seeds, got {}",
                 seeds - 1,
                 self.drives,
                 c.action_dim,
-                a.1
+                shape_str(a.0.shape())
             )));
         }
         Ok(slice(&a.0).to_vec())

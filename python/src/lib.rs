@@ -9,10 +9,12 @@
 mod arrays;
 mod environment;
 mod model;
+mod outputs;
 mod simulator;
 
 use pyo3::exceptions::{
-    PyFileNotFoundError, PyMemoryError, PyOSError, PyPermissionError, PyRuntimeError, PyValueError,
+    PyFileNotFoundError, PyMemoryError, PyOSError, PyOverflowError, PyPermissionError, PyRuntimeError, PyTypeError,
+    PyValueError,
 };
 use pyo3::prelude::*;
 
@@ -36,6 +38,28 @@ pub(crate) fn to_py(e: drivesim::Error) -> PyErr {
         drivesim::Error::Threads { .. } => PyRuntimeError::new_err(message),
         _ => PyValueError::new_err(message),
     }
+}
+
+/// A count argument (`batch`, `threads`, `drives`, a seed, an index): an integer (anything
+/// with `__index__`, e.g. `np.int64`) from `min` to `max`, else `TypeError` (not an integer) or
+/// `ValueError` (out of range), naming `what`.
+pub(crate) fn count(obj: &Bound<'_, PyAny>, what: &str, min: u64, max: u64) -> PyResult<u64> {
+    let out_of_range = || PyValueError::new_err(format!("{what}: expected an integer from {min} to {max}, got {obj}"));
+    match obj.extract::<u64>() {
+        Ok(v) if (min..=max).contains(&v) => Ok(v),
+        Ok(_) => Err(out_of_range()),
+        // Below 0 or beyond 2**64 - 1.
+        Err(e) if e.is_instance_of::<PyOverflowError>(obj.py()) => Err(out_of_range()),
+        Err(_) => Err(PyTypeError::new_err(format!(
+            "{what}: expected an integer, got {}",
+            obj.get_type().name().map_or("a value".into(), |n| n.to_string())
+        ))),
+    }
+}
+
+/// A count argument that fits `usize` ([`count`]), at least `min`.
+pub(crate) fn size(obj: &Bound<'_, PyAny>, what: &str, min: usize) -> PyResult<usize> {
+    Ok(count(obj, what, min as u64, usize::MAX as u64)? as usize)
 }
 
 /// Locks a simulator or an environment (`what`) for one call. A second thread's call on the

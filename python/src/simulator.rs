@@ -1,10 +1,11 @@
 //! `Simulator`: encode, generate, transition steps and rollouts on numpy arrays.
 
-use crate::arrays::{codes_and_frames, f32_items, frames_out, new_array, value_error, FrameType, Frames};
+use crate::arrays::{f32_items, shape_str, value_error, Borrowed, Frames};
 use crate::model::PyModel;
-use crate::to_py;
+use crate::outputs::{codes_and_frames, frames_out, new_array, FrameType};
+use crate::{count, size, to_py};
 use drivesim::{Model, Simulator};
-use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn};
+use numpy::{PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -24,7 +25,9 @@ fn lock(state: &Mutex<State>) -> PyResult<MutexGuard<'_, State>> {
 /// Runs the model: encodes frames, steps the transition, generates frames, rolls out dreams.
 ///
 /// `Simulator(model, batch=1, threads=1)` plans and allocates every buffer once, for up to
-/// `batch` frames or codes per call; `threads` share each network's layers. Frames are numpy
+/// `batch` frames or codes per call (an integer >= 1; ValueError otherwise, MemoryError when
+/// the plan cannot be allocated); `threads` (1 to 1024; ValueError otherwise, RuntimeError
+/// when the system will not start them) share each network's layers. Frames are numpy
 /// arrays of shape `(N, height, width, 3)` (or one frame, `(height, width, 3)`), `uint8`
 /// (0-255) or `float32` (in [-1, 1]); codes, hidden states and actions are `float32`, one row
 /// per item. Results are new arrays; the interpreter is released while the crate computes.
@@ -56,8 +59,15 @@ fn shape_of(lead: &[usize], tail: &[usize]) -> Vec<usize> {
 #[pymethods]
 impl PySimulator {
     #[new]
-    #[pyo3(signature = (model, batch=1, threads=1))]
-    fn new(py: Python<'_>, model: &PyModel, batch: usize, threads: usize) -> PyResult<Self> {
+    #[pyo3(signature = (model, batch=None, threads=None), text_signature = "(model, batch=1, threads=1)")]
+    fn new(
+        py: Python<'_>,
+        model: &PyModel,
+        batch: Option<&Bound<'_, PyAny>>,
+        threads: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
+        let batch = batch.map_or(Ok(1), |b| size(b, "batch", 1))?;
+        let threads = threads.map_or(Ok(1), |t| size(t, "threads", 1))?;
         let model = Arc::clone(&model.inner);
         let sim = py
             .detach(|| Simulator::with_batch(model, batch)?.with_threads(threads))
@@ -101,8 +111,8 @@ impl PySimulator {
         let State { sim, scratch } = &mut *guard;
         let c = *sim.config();
         let (frames, lead) = Frames::new(frames, "frames", &c, &[0, 1])?;
+        let out = new_array::<f32>(py, &shape_of(&lead, &[c.z_dim]), "the codes")?;
         let floats = frames.floats(&c, scratch)?;
-        let out = new_array::<f32>(py, &shape_of(&lead, &[c.z_dim]));
         // SAFETY: the array was just created here and no other reference to it exists.
         let z = unsafe { out.as_slice_mut() }.expect("a new array is contiguous");
         py.detach(|| sim.encode(floats, z)).map_err(to_py)?;
@@ -164,7 +174,8 @@ impl PySimulator {
     /// `seed`, the step and the item alone (the same seed, the same dream, whatever the
     /// threads or batch). Temperature 0 is the mean, as without. ValueError for a temperature
     /// below 0, or above 0 where the model cannot sample.
-    fn set_sampling(&self, temperature: f32, seed: u64) -> PyResult<()> {
+    fn set_sampling(&self, temperature: f64, seed: &Bound<'_, PyAny>) -> PyResult<()> {
+        let (temperature, seed) = (temperature_f32(temperature)?, count(seed, "seed", 0, u64::MAX)?);
         lock(&self.state)?.sim.set_sampling(temperature, seed).map_err(to_py)
     }
 
@@ -196,7 +207,7 @@ impl PySimulator {
                 "z and h must have the same leading dimensions: {lead:?} and {h_lead:?}"
             )));
         }
-        let actions = new_array::<f32>(py, &shape_of(&lead, &[c.action_dim]));
+        let actions = new_array::<f32>(py, &shape_of(&lead, &[c.action_dim]), "the actions")?;
         // SAFETY: the array was just created here and no other reference to it exists.
         let out = unsafe { actions.as_slice_mut() }.expect("new");
         let (z, h) = (slice(&z), slice(&h));
@@ -268,11 +279,13 @@ impl PySimulator {
         let c = *sim.config();
         let (actions, lead) = f32_items(actions, "actions", &[2], &[c.action_dim])?;
         let (steps, n) = (lead[0], lead[1]);
-        let h = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?.0;
-        let z = z
-            .map(|z| f32_items(z, "z", &[0, 1], &[c.z_dim]))
-            .transpose()?
-            .map(|z| z.0);
+        let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
+        one_or_each(&h, &h_lead, n, "h", c.hidden_dim)?;
+        let z = z.map(|z| f32_items(z, "z", &[0, 1], &[c.z_dim])).transpose()?;
+        if let Some((z, z_lead)) = &z {
+            one_or_each(z, z_lead, n, "z", c.z_dim)?;
+        }
+        let z = z.map(|z| z.0);
         let (h, z, actions) = (slice(&h), z.as_ref().map(slice), slice(&actions));
         let shape = [steps, n, c.height, c.width, c.channels];
         codes_and_frames(
@@ -321,8 +334,8 @@ impl PySimulator {
                 "z, h and action must have the same leading dimensions: {lead:?}, {h_lead:?} and {a_lead:?}"
             )));
         }
-        let h_next = new_array::<f32>(py, &shape_of(lead, &[c.hidden_dim]));
-        let z_next = new_array::<f32>(py, &shape_of(lead, &[c.z_dim]));
+        let h_next = new_array::<f32>(py, &shape_of(lead, &[c.hidden_dim]), "the hidden states")?;
+        let z_next = new_array::<f32>(py, &shape_of(lead, &[c.z_dim]), "the codes")?;
         // SAFETY: both arrays were just created here and no other reference to them exists.
         let (h_out, z_out) = unsafe { (h_next.as_slice_mut(), z_next.as_slice_mut()) };
         let (h_out, z_out) = (h_out.expect("new"), z_out.expect("new"));
@@ -338,8 +351,32 @@ impl PySimulator {
 }
 
 /// A checked array's values.
-pub fn slice<'a>(a: &'a PyReadonlyArrayDyn<'_, f32>) -> &'a [f32] {
+pub fn slice<'a>(a: &'a Borrowed<'_, f32>) -> &'a [f32] {
     a.as_slice().expect("checked C-ordered")
+}
+
+/// `h` or `z` of a candidate rollout: one `(dim,)` for all `n` candidates, or one each
+/// `(n, dim)`; a ValueError with the shapes otherwise.
+fn one_or_each(a: &Borrowed<'_, f32>, lead: &[usize], n: usize, what: &str, dim: usize) -> PyResult<()> {
+    match lead {
+        [] => Ok(()),
+        [rows] if *rows == n => Ok(()),
+        _ => Err(value_error(format!(
+            "{what}: expected shape ({dim},) or ({n}, {dim}) for the {n} candidates of actions, got {}",
+            shape_str(a.shape())
+        ))),
+    }
+}
+
+/// A temperature argument as the crate's f32: a finite value that does not overflow f32
+/// (ValueError otherwise; the crate rejects what is below 0).
+pub fn temperature_f32(t: f64) -> PyResult<f32> {
+    match t.is_finite() && t.abs() <= f32::MAX as f64 {
+        true => Ok(t as f32),
+        false => Err(value_error(format!(
+            "temperature is {t}: expected a finite number >= 0"
+        ))),
+    }
 }
 
 /// The frame type a `dtype` argument asks for (uint8 when None).
