@@ -23,6 +23,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.vector.utils import batch_space
 
+from . import _checks
 from ._drivesim import Environment, Model, load_episodes
 from .road import RoadCost
 
@@ -43,9 +44,8 @@ class _Dream:
 
     def _setup(self, model: ModelLike, episodes, seeds: int, max_steps: int, cost: Optional[RoadCost]):
         default = model is None
+        seeds, max_steps = _checks.integer("seeds", seeds, 1), _checks.integer("max_steps", max_steps, 1)
         self.model = model if isinstance(model, Model) else Model.load(model)
-        if seeds < 1 or max_steps < 1:
-            raise ValueError(f"seeds and max_steps must be at least 1, got {seeds} and {max_steps}")
         self.seeds, self.max_steps = seeds, max_steps
         if episodes is None or isinstance(episodes, (str, os.PathLike)):
             episodes = load_episodes(episodes)
@@ -67,24 +67,38 @@ class _Dream:
         """Seed frames ``(S, H, W, 3)`` and the actions between them ``(S - 1, 2)``: from
         ``options`` (``frames`` and ``actions``, or ``episode`` and ``start``), else a random
         episode and start drawn from ``rng``."""
-        options = options or {}
+        options = _options(options)
         if "frames" in options:
-            frames = np.asarray(options["frames"])
-            actions = np.asarray(options.get("actions", np.zeros((len(frames) - 1, 2))), np.float32)
-            return frames, actions
+            return self._given(options, ())
         e = options.get("episode")
-        e = int(rng.integers(len(self.episodes))) if e is None else int(e)
+        e = int(rng.integers(len(self.episodes))) if e is None else _checks.integer("episode", e, 0)
         if not 0 <= e < len(self.episodes):
             raise ValueError(f"episode {e}: there are {len(self.episodes)}")
         frames, actions = self.episodes[e]
         start = options.get("start")
-        start = int(rng.integers(len(frames) - self.seeds + 1)) if start is None else int(start)
+        start = int(rng.integers(len(frames) - self.seeds + 1)) if start is None else _checks.integer("start", start, 0)
         if not 0 <= start <= len(frames) - self.seeds:
             raise ValueError(f"start {start}: episode {e} has {len(frames)} frames, {self.seeds} seeds")
         return frames[start : start + self.seeds], actions[start : start + self.seeds - 1]
 
+    def _given(self, options: dict, drives: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """``options["frames"]`` ``(S, *drives, H, W, 3)`` (uint8, or float32 in [-1, 1]) and
+        ``options["actions"]`` ``(S - 1, *drives, 2)`` (zeros when not given), checked."""
+        frames = np.asarray(options["frames"])
+        h, w, c = self.frame_space.shape
+        form = ", ".join(["S", *("N" for _ in drives), str(h), str(w), str(c)])
+        if frames.dtype not in (np.uint8, np.float32) or frames.shape[1:] != (*drives, h, w, c) or len(frames) < 1:
+            raise ValueError(f"options['frames']: expected uint8 or float32 frames ({form}) with S >= 1, got {frames.dtype} {frames.shape}")
+        between = (len(frames) - 1, *drives, 2)
+        with np.errstate(all="ignore"):
+            actions = np.asarray(options.get("actions", np.zeros(between)), np.float32)
+        if actions.shape != between:
+            raise ValueError(f"options['actions']: expected shape {between} for {len(frames)} seed frames, got {actions.shape}")
+        return frames, actions
+
     def _clip(self, actions: np.ndarray, shape: tuple) -> np.ndarray:
-        a = np.asarray(actions, np.float32)
+        with np.errstate(all="ignore"):
+            a = np.asarray(actions, np.float32)
         if a.shape != shape:
             raise ValueError(f"action: expected shape {shape}, got {a.shape}")
         if not np.all(np.isfinite(a)):
@@ -141,8 +155,12 @@ class DreamEnv(_Dream, gymnasium.Env):
         self._t = 0
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
-        super().reset(seed=seed)
+        """``seed``: None or an integer >= 0 (``np.int64`` too); ``options``: see the class.
+        ValueError for a seed, an option or seed frames out of range, TypeError for the wrong
+        kind of value."""
+        super().reset(seed=_checks.seed(seed))
         frames, actions = self._seed_clip(self.np_random, options)
+        self._frame = None  # until the reset succeeds: `step` then raises ResetNeeded
         self._env.reset(np.ascontiguousarray(frames[:, None]), np.ascontiguousarray(actions[:, None], np.float32))
         self._frame = self._env.frames()[0]
         self._t = 0
@@ -200,8 +218,7 @@ class DreamVectorEnv(_Dream, gymnasium.vector.VectorEnv):
         threads: int = 1,
         cost: Optional[RoadCost] = None,
     ):
-        if num_envs < 1:
-            raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+        num_envs = _checks.integer("num_envs", num_envs, 1)
         self._setup(model, episodes, seeds, max_steps, cost)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode {render_mode!r}: only 'rgb_array'")
@@ -218,18 +235,25 @@ class DreamVectorEnv(_Dream, gymnasium.vector.VectorEnv):
         self._needs_reset = False
 
     def reset(self, *, seed: Optional[Union[int, Sequence[int]]] = None, options: Optional[dict] = None):
+        """``seed``: None, an integer >= 0 (``np.int64`` too), or a non-empty sequence of them
+        (one per drive, as gymnasium's vector environments take; the first seeds the draw of
+        every drive's start). ValueError for a seed out of range or an empty sequence,
+        TypeError for the wrong kind of value; ``options`` as ``DreamEnv.reset``'s, per drive."""
         if seed is not None:
-            seed = seed if isinstance(seed, int) else int(seed[0])
+            if not isinstance(seed, (str, bytes)) and isinstance(seed, (Sequence, np.ndarray)):
+                if len(seed) == 0:
+                    raise ValueError("seed: an empty sequence (give an integer, or one per drive)")
+                seed = seed[0]
+            seed = _checks.seed(seed)
             self._np_random, self._np_random_seed = gymnasium.utils.seeding.np_random(seed)
-        options = options or {}
+        options = _options(options)
         if "frames" in options:
-            frames = np.asarray(options["frames"])
-            between = (max(len(frames) - 1, 0), self.num_envs, 2)
-            actions = np.asarray(options.get("actions", np.zeros(between)), np.float32)
+            frames, actions = self._given(options, (self.num_envs,))
         else:
             clips = [self._seed_clip(self.np_random, None) for _ in range(self.num_envs)]
             frames = np.stack([f for f, _ in clips], axis=1)
             actions = np.stack([a for _, a in clips], axis=1)
+        self._frames = None  # until the reset succeeds: `step` then raises ResetNeeded
         self._env.reset(np.ascontiguousarray(frames), np.ascontiguousarray(actions, np.float32))
         self._frames = self._env.frames()
         self._t, self._needs_reset = 0, False
@@ -256,3 +280,12 @@ class DreamVectorEnv(_Dream, gymnasium.vector.VectorEnv):
         if self.render_mode != "rgb_array" or self._frames is None:
             return None
         return self._frames.copy()
+
+
+def _options(options: Any) -> dict:
+    """A reset's ``options``: None or a dict (TypeError otherwise)."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise TypeError(f"options: expected a dict, got {type(options).__name__}")
+    return options

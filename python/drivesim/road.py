@@ -46,6 +46,9 @@ def measure(frames: np.ndarray) -> np.ndarray:
     if frames.ndim != 4 or frames.shape[-1] != 3 or frames.dtype != np.uint8:
         raise ValueError(f"frames: expected uint8 (N, H, W, 3), got {frames.dtype} {frames.shape}")
     n, h, w, _ = frames.shape
+    if h < 10 or w < 8:
+        # Fewer and the rows under the car (scaled from 80) would be none: no share to give.
+        raise ValueError(f"frames: expected at least 10 rows and 8 columns, got {frames.shape}")
     mask = road_mask(frames)
     cols = np.arange(w, dtype=np.float32) - w / 2
     out = np.zeros((n, 4), np.float32)
@@ -68,6 +71,7 @@ def measure(frames: np.ndarray) -> np.ndarray:
 class RoadCost:
     """A linear map from latent codes to the road figures of ``measure``: ``predict(z)`` gives
     ``(..., 4)`` (near, middle, far offsets in pixels; the share of road under the car).
+    ``weight`` ``(z_dim, k)`` and ``bias`` ``(k,)`` must be finite (ValueError otherwise).
 
     ``RoadCost.default()`` is the one fitted for the built-in default model (shipped with the
     package); ``RoadCost.fit(codes, figures)`` fits one for any model, e.g. on the codes and
@@ -79,19 +83,30 @@ class RoadCost:
         self.bias = np.ascontiguousarray(bias, dtype=np.float32)  # (4,)
         if self.weight.ndim != 2 or self.bias.shape != (self.weight.shape[1],):
             raise ValueError(f"RoadCost: weight (z_dim, k) and bias (k,), got {self.weight.shape} and {self.bias.shape}")
+        if not (np.isfinite(self.weight).all() and np.isfinite(self.bias).all()):
+            raise ValueError("RoadCost: weight and bias must be finite")
 
     @classmethod
     def fit(cls, codes: np.ndarray, figures: np.ndarray, ridge: float = 1e-2) -> "RoadCost":
-        """Ridge least squares from ``codes`` ``(N, z_dim)`` to ``figures`` ``(N, k)``."""
+        """Ridge least squares from ``codes`` ``(N, z_dim)`` to ``figures`` ``(N, k)``, finite,
+        with ``ridge`` finite and > 0 (ValueError otherwise, or where the fit overflows)."""
         x = np.asarray(codes, np.float64)
         y = np.asarray(figures, np.float64)
         if x.ndim != 2 or y.ndim != 2 or len(x) != len(y) or len(x) < 2:
             raise ValueError(f"fit: codes (N, z_dim) and figures (N, k) with N >= 2, got {x.shape} and {y.shape}")
+        if not (np.isfinite(x).all() and np.isfinite(y).all()):
+            raise ValueError("fit: codes and figures must be finite")
+        if not (np.isfinite(ridge) and ridge > 0):
+            raise ValueError(f"fit: ridge is {ridge}: expected a finite number > 0")
         mean_x, mean_y = x.mean(axis=0), y.mean(axis=0)
         xc, yc = x - mean_x, y - mean_y
         gram = xc.T @ xc + ridge * len(x) * np.eye(x.shape[1])
-        weight = np.linalg.solve(gram, xc.T @ yc)
-        return cls(weight, mean_y - mean_x @ weight)
+        with np.errstate(all="ignore"):
+            weight = np.linalg.solve(gram, xc.T @ yc)
+            bias = mean_y - mean_x @ weight
+            if not (np.isfinite(weight.astype(np.float32)).all() and np.isfinite(bias.astype(np.float32)).all()):
+                raise ValueError("fit: the fitted weights overflow float32 (scale the codes or figures down)")
+        return cls(weight, bias)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "RoadCost":
@@ -115,9 +130,19 @@ class RoadCost:
     def predict(self, codes: np.ndarray) -> np.ndarray:
         """The road figures of codes ``(..., z_dim)``: ``(..., 4)`` float32. Each code's figures
         are summed in one order whatever the batch (no BLAS), so that a drive gets the same
-        bits in a vector environment as alone."""
-        codes = np.asarray(codes, np.float32)
-        return (codes[..., :, None] * self.weight).sum(axis=-2) + self.bias
+        bits in a vector environment as alone. ValueError for codes of another shape, not
+        finite, or so large that the figures overflow float32 (no result is ever NaN or
+        infinite)."""
+        with np.errstate(all="ignore"):
+            codes = np.asarray(codes, np.float32)
+            if codes.ndim < 1 or codes.shape[-1] != self.weight.shape[0]:
+                raise ValueError(f"codes: expected shape (..., {self.weight.shape[0]}), got {codes.shape}")
+            out = (codes[..., :, None] * self.weight).sum(axis=-2) + self.bias
+        if not np.isfinite(out).all():
+            if not np.isfinite(codes).all():
+                raise ValueError("codes: not finite (NaN or infinite)")
+            raise ValueError("codes: too large: their road figures overflow float32")
+        return out
 
 
 def samples(sim, episodes, dream_steps: int = 8, every: int = 4, seeds: int = 5, rng=None):

@@ -17,6 +17,11 @@ the speed to drive at (through the same speed controller).
 
 ``ReactiveAgent`` ("reactive") is the baseline without the models: the proportional steering
 and the speed controller alone.
+
+Every agent checks its options when it is made and its inputs at every ``act``, the warm-up
+decisions included: ``frame`` must be the models' view, a uint8 array ``(80, 160, 3)``
+(ValueError otherwise), and ``speed`` the speedometer, a finite number from 0 to
+``SPEED_MAX`` (TypeError for what is not a number, ValueError otherwise). Actions are finite.
 """
 
 from __future__ import annotations
@@ -26,12 +31,25 @@ from typing import Optional
 
 import numpy as np
 
+from .. import _checks
 from .._drivesim import Model, Simulator
 from ..road import RoadCost, measure
 
+#: The models' view: what ``observe(env)`` returns and every agent's ``act`` takes.
+FRAME_SHAPE = (80, 160, 3)
+#: The largest speed an agent takes (Box2D units/s; CarRacing's car tops out near 100).
+SPEED_MAX = 1000.0
+
+
+def check_inputs(frame: np.ndarray, speed: float, shape: tuple = FRAME_SHAPE) -> tuple[np.ndarray, float]:
+    """``act``'s arguments checked: the frame (C-ordered) and the speed as a float."""
+    return _checks.frame(frame, shape), _checks.number("speed", speed, 0.0, SPEED_MAX)
+
 
 def speed_control(speed: float, target: float) -> tuple[float, float]:
-    """``(gas, brake)`` that bring ``speed`` to ``target`` (Box2D units/s)."""
+    """``(gas, brake)`` that bring ``speed`` to ``target`` (Box2D units/s; finite numbers,
+    ValueError otherwise)."""
+    speed, target = _checks.number("speed", speed), _checks.number("target", target)
     gas = float(np.clip(0.06 * (target - speed), 0.0, 0.6))
     brake = float(np.clip(0.06 * (speed - target - 4.0), 0.0, 0.8))
     return gas, brake
@@ -48,14 +66,25 @@ def warmup_action(agent, speed: float) -> Optional[np.ndarray]:
     return np.array([0.0, gas, brake], np.float32)
 
 
+def _road(road: np.ndarray) -> np.ndarray:
+    road = np.asarray(road, np.float64)
+    if road.shape != (4,) or not np.isfinite(road).all():
+        raise ValueError(f"road: expected 4 finite figures (road.measure's), got {road}")
+    return road
+
+
 def proportional_steering(road: np.ndarray) -> float:
     """Steering toward the road's centre as measured in the near and middle bands (pixels;
-    positive: road to the right, so steer right)."""
+    positive: road to the right, so steer right). ``road``: one row of ``road.measure``."""
+    road = _road(road)
     return float(np.clip(0.02 * road[0] + 0.03 * road[1], -1.0, 1.0))
 
 
 def target_speed(road: np.ndarray, max_speed: float, half_width: float) -> float:
     """Slower as the road ahead bends: the far band's offset from the near band's."""
+    road = _road(road)
+    max_speed = _checks.number("max_speed", max_speed, 0.0, above=True)
+    half_width = _checks.number("half_width", half_width, 0.0, above=True)
     bend = abs(float(road[2] - road[0])) / half_width
     return float(np.clip(max_speed / (1.0 + 4.0 * bend), 20.0, max_speed))
 
@@ -67,13 +96,14 @@ class RandomAgent:
     frame_skip = 4
 
     def __init__(self, seed: int = 0):
-        self.seed = seed
+        self.seed = _checks.integer("seed", seed, 0)
         self.reset()
 
     def reset(self) -> None:
         self.rng = np.random.default_rng(self.seed)
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
+        check_inputs(frame, speed)
         return np.array([self.rng.uniform(-1, 1), self.rng.uniform(0, 1), self.rng.uniform(0, 1)], np.float32)
 
 
@@ -86,13 +116,14 @@ class ReactiveAgent:
     warmup = 12
 
     def __init__(self, max_speed: float = 52.0):
-        self.max_speed = max_speed
+        self.max_speed = _checks.number("max_speed", max_speed, 0.0, SPEED_MAX, above=True)
         self.reset()
 
     def reset(self) -> None:
         self.decisions = 0
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
+        frame, speed = check_inputs(frame, speed)
         warming_up = warmup_action(self, speed)
         if warming_up is not None:
             return warming_up
@@ -117,7 +148,7 @@ class ClonedAgent:
         self.model = model if model is not None else Model.load()
         if self.model.policy_width is None:
             raise ValueError("the model has no policy (policy.* tensors): train one with `train policy`")
-        self.sim = Simulator(self.model, batch=1, threads=threads)
+        self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 
     def reset(self) -> None:
@@ -128,6 +159,7 @@ class ClonedAgent:
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
         """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
+        frame, speed = check_inputs(frame, speed, self.model.frame_shape)
         warming_up = warmup_action(self, speed)
         if warming_up is not None:
             return warming_up
@@ -142,7 +174,8 @@ class ClonedAgent:
     def imagine(self, steps: int = 8) -> Optional[np.ndarray]:
         """The policy driving on in the dream from the last decision, ``steps`` steps:
         ``(steps, 80, 160, 3)`` uint8 frames (for pictures, not for driving; the dream's speed
-        is the speed the policy asks for)."""
+        is the speed the policy asks for). ``steps``: an integer >= 1."""
+        steps = _checks.integer("steps", steps, 1)
         if self.last_state is None:
             return None
         z, h, speed = self.last_state
@@ -162,6 +195,13 @@ class MPCAgent:
 
     Deterministic: the candidates are a fixed grid around the proportional steering, and the
     simulator is bit-identical whatever the thread count.
+
+    Options (ValueError outside these, TypeError for the wrong kind): ``candidates`` an integer
+    >= 4 (the grid is ``rows`` first steerings by ``candidates // rows`` ramps, ``rows =
+    max(2, candidates // 4)``: 64 is 16 by 4, and a count that fills no grid uses the largest
+    that fits); ``horizon`` and ``iterations`` integers >= 1; ``context`` >= 0; ``skip`` from 0
+    to ``horizon - 1``; ``threads`` >= 1; ``max_speed``, ``road_scale`` and ``search`` finite
+    and > 0; the weights ``w_*`` and ``correct`` finite and >= 0.
     """
 
     #: Env frames per decision: the models step at 12.5 Hz, CarRacing at 50.
@@ -190,10 +230,20 @@ class MPCAgent:
         search: float = 0.3,
         skip: int = 3,
     ):
+        count, number = _checks.integer, _checks.number
+        candidates, horizon = count("candidates", candidates, 4), count("horizon", horizon, 1)
+        iterations, context = count("iterations", iterations, 1), count("context", context, 0)
+        skip, threads = count("skip", skip, 0, horizon - 1), count("threads", threads, 1)
+        max_speed = number("max_speed", max_speed, 0.0, SPEED_MAX, above=True)
+        road_scale, search = number("road_scale", road_scale, 0.0, above=True), number("search", search, 0.0, above=True)
+        w_middle, w_off, w_smooth = (number(n, v, 0.0) for n, v in (("w_middle", w_middle), ("w_off", w_off), ("w_smooth", w_smooth)))
+        correct, w_effort, w_prior = (number(n, v, 0.0) for n, v in (("correct", correct), ("w_effort", w_effort), ("w_prior", w_prior)))
         self.model = model if model is not None else Model.load()
         self.cost = cost if cost is not None else RoadCost.default()
         self.sim = Simulator(self.model, batch=candidates, threads=threads)
         self.candidates, self.horizon, self.iterations = candidates, horizon, iterations
+        rows = max(2, candidates // 4)
+        self.grid = (rows, candidates // rows)  # first steerings by ramps: at most `candidates`
         self.context, self.max_speed = context, max_speed
         # The cost: offsets in units of `road_scale` pixels (about a half-road), weights of the
         # middle band, of road missing under the car and of steering changes.
@@ -223,12 +273,12 @@ class MPCAgent:
 
     def plan(self, h: np.ndarray, z: np.ndarray, speed: float, correction: np.ndarray) -> np.ndarray:
         """The chosen steering sequence ``(horizon,)``: ramps from a first steering ``a`` to a
-        last ``a + b``, searched on a grid of ``candidates`` (``a`` by ``b``) in ``iterations``
-        rounds, each finer and centred on the last round's best. Few degrees of freedom keep
-        the plans smooth, so the planner cannot exploit the dream's step-to-step errors."""
-        n, t = self.candidates, self.horizon
-        rows = max(2, n // 4)
-        actions = np.empty((t, n, 2), np.float32)
+        last ``a + b``, searched on a grid of ``rows`` by ``cols`` (``self.grid``, at most
+        ``candidates``) in ``iterations`` rounds, each finer and centred on the last round's
+        best. Few degrees of freedom keep the plans smooth, so the planner cannot exploit the
+        dream's step-to-step errors."""
+        (rows, cols), t = self.grid, self.horizon
+        actions = np.empty((t, rows * cols, 2), np.float32)
         actions[..., 0] = np.float32(np.clip(speed, *self._speed_range()))
         ramp = np.linspace(0.0, 1.0, t, dtype=np.float32)
         weights = np.linspace(0.5, 1.0, t, dtype=np.float32)[:, None]
@@ -239,7 +289,7 @@ class MPCAgent:
         width = np.float32([self.search, 1.0])
         for _ in range(self.iterations):
             a = np.clip(centre[0] + width[0] * np.linspace(-1, 1, rows), -1, 1)
-            b = centre[1] + width[1] * np.linspace(-1, 1, n // rows)
+            b = centre[1] + width[1] * np.linspace(-1, 1, cols)
             a, b = (g.ravel().astype(np.float32) for g in np.meshgrid(a, b))
             steer = np.clip(a[:, None] + b[:, None] * ramp, -1.0, 1.0)  # (n, t)
             actions[..., 1] = steer.T
@@ -261,6 +311,7 @@ class MPCAgent:
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
         """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
+        frame, speed = check_inputs(frame, speed, self.model.frame_shape)
         warming_up = warmup_action(self, speed)
         if warming_up is not None:
             return warming_up
@@ -300,7 +351,8 @@ def make_agent(name: str, weights: Optional[str] = None, threads: int = 1, **opt
     """An agent by name: ``"mpc"`` (planning in the simulator), ``"cloned"`` (the policy in the
     weight file), or the baselines without the models, ``"reactive"`` and ``"random"``.
     ``weights``: a weight file (the built-in default model when None; for ``"mpc"``, another
-    model also needs ``cost=RoadCost...``)."""
+    model also needs ``cost=RoadCost...``). ``options`` are the agent's (``MPCAgent`` says
+    which it takes); ValueError or TypeError for an option out of range or of the wrong kind."""
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}: one of {', '.join(sorted(AGENTS))}")
     if name not in ("mpc", "cloned"):
