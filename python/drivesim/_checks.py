@@ -23,6 +23,8 @@ def number(name: str, value: Any, low: Optional[float] = None, high: Optional[fl
         v = float(value)
     except (TypeError, ValueError):
         raise TypeError(f"{name}: expected a number, got {_kind(value)}") from None
+    except OverflowError:  # an integer beyond any float
+        raise ValueError(f"{name}: {value} is beyond any float") from None
     below = low is not None and (v <= low if above else v < low)
     if not math.isfinite(v) or below or (high is not None and v > high):
         span = f"{'>' if above else '>='} {low}" if low is not None else "finite"
@@ -44,6 +46,19 @@ def integer(name: str, value: Any, low: int = 0, high: Optional[int] = None) -> 
         span = f"from {low}" + (f" to {high}" if high is not None else "")
         raise ValueError(f"{name} is {v}: expected an integer {span}")
     return v
+
+
+def floats(name: str, value: Any, dtype: Any = np.float64) -> np.ndarray:
+    """``value`` as an array of ``dtype`` (real numbers: ValueError for complex or text,
+    TypeError for objects that are not numbers; values beyond ``dtype`` become infinities, for
+    the caller's finiteness check)."""
+    if np.iscomplexobj(value):
+        raise ValueError(f"{name}: expected real numbers, got complex ones")
+    try:
+        with np.errstate(all="ignore"):
+            return np.asarray(value, dtype)
+    except OverflowError:  # an integer beyond any float
+        raise ValueError(f"{name}: a value beyond any float") from None
 
 
 def frame(value: Any, shape: tuple[int, ...], name: str = "frame") -> np.ndarray:

@@ -90,15 +90,13 @@ class _Dream:
         if frames.dtype not in (np.uint8, np.float32) or frames.shape[1:] != (*drives, h, w, c) or len(frames) < 1:
             raise ValueError(f"options['frames']: expected uint8 or float32 frames ({form}) with S >= 1, got {frames.dtype} {frames.shape}")
         between = (len(frames) - 1, *drives, 2)
-        with np.errstate(all="ignore"):
-            actions = np.asarray(options.get("actions", np.zeros(between)), np.float32)
+        actions = _checks.floats("options['actions']", options.get("actions", np.zeros(between)), np.float32)
         if actions.shape != between:
             raise ValueError(f"options['actions']: expected shape {between} for {len(frames)} seed frames, got {actions.shape}")
         return frames, actions
 
     def _clip(self, actions: np.ndarray, shape: tuple) -> np.ndarray:
-        with np.errstate(all="ignore"):
-            a = np.asarray(actions, np.float32)
+        a = _checks.floats("action", actions, np.float32)
         if a.shape != shape:
             raise ValueError(f"action: expected shape {shape}, got {a.shape}")
         if not np.all(np.isfinite(a)):

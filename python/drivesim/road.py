@@ -15,6 +15,8 @@ import os
 
 import numpy as np
 
+from . import _checks
+
 # Rows of each band in an 80-row frame (near to far) and the car's column.
 BANDS = ((50, 60), (36, 46), (22, 32))
 CAR_ROWS = (62, 70)
@@ -90,13 +92,13 @@ class RoadCost:
     def fit(cls, codes: np.ndarray, figures: np.ndarray, ridge: float = 1e-2) -> "RoadCost":
         """Ridge least squares from ``codes`` ``(N, z_dim)`` to ``figures`` ``(N, k)``, finite,
         with ``ridge`` finite and > 0 (ValueError otherwise, or where the fit overflows)."""
-        x = np.asarray(codes, np.float64)
-        y = np.asarray(figures, np.float64)
+        x, y = _checks.floats("codes", codes), _checks.floats("figures", figures)
         if x.ndim != 2 or y.ndim != 2 or len(x) != len(y) or len(x) < 2:
             raise ValueError(f"fit: codes (N, z_dim) and figures (N, k) with N >= 2, got {x.shape} and {y.shape}")
         if not (np.isfinite(x).all() and np.isfinite(y).all()):
             raise ValueError("fit: codes and figures must be finite")
-        if not (np.isfinite(ridge) and ridge > 0):
+        ridge = _checks.number("ridge", ridge)
+        if not ridge > 0:
             raise ValueError(f"fit: ridge is {ridge}: expected a finite number > 0")
         mean_x, mean_y = x.mean(axis=0), y.mean(axis=0)
         xc, yc = x - mean_x, y - mean_y
@@ -133,8 +135,8 @@ class RoadCost:
         bits in a vector environment as alone. ValueError for codes of another shape, not
         finite, or so large that the figures overflow float32 (no result is ever NaN or
         infinite)."""
+        codes = _checks.floats("codes", codes, np.float32)
         with np.errstate(all="ignore"):
-            codes = np.asarray(codes, np.float32)
             if codes.ndim < 1 or codes.shape[-1] != self.weight.shape[0]:
                 raise ValueError(f"codes: expected shape (..., {self.weight.shape[0]}), got {codes.shape}")
             out = (codes[..., :, None] * self.weight).sum(axis=-2) + self.bias

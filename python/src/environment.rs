@@ -106,7 +106,7 @@ impl PyEnvironment {
     /// of the steps since the last reset and the drive, so a reset and the same actions give
     /// the same drive again. Temperature 0 (the default): the mean. ValueError for a
     /// temperature below 0, or above 0 where the model cannot sample (`Model.samples`).
-    fn set_sampling(&self, temperature: f64, seed: &Bound<'_, PyAny>) -> PyResult<()> {
+    fn set_sampling(&self, temperature: &Bound<'_, PyAny>, seed: &Bound<'_, PyAny>) -> PyResult<()> {
         let (temperature, seed) = (temperature_f32(temperature)?, count(seed, "seed", 0, u64::MAX)?);
         lock(&self.state)?.env.set_sampling(temperature, seed).map_err(to_py)
     }

@@ -6,6 +6,7 @@ use crate::outputs::{codes_and_frames, frames_out, new_array, FrameType};
 use crate::{count, size, to_py};
 use drivesim::{Model, Simulator};
 use numpy::{PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
+use pyo3::exceptions::PyOverflowError;
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -174,7 +175,7 @@ impl PySimulator {
     /// `seed`, the step and the item alone (the same seed, the same dream, whatever the
     /// threads or batch). Temperature 0 is the mean, as without. ValueError for a temperature
     /// below 0, or above 0 where the model cannot sample.
-    fn set_sampling(&self, temperature: f64, seed: &Bound<'_, PyAny>) -> PyResult<()> {
+    fn set_sampling(&self, temperature: &Bound<'_, PyAny>, seed: &Bound<'_, PyAny>) -> PyResult<()> {
         let (temperature, seed) = (temperature_f32(temperature)?, count(seed, "seed", 0, u64::MAX)?);
         lock(&self.state)?.sim.set_sampling(temperature, seed).map_err(to_py)
     }
@@ -368,14 +369,19 @@ fn one_or_each(a: &Borrowed<'_, f32>, lead: &[usize], n: usize, what: &str, dim:
     }
 }
 
-/// A temperature argument as the crate's f32: a finite value that does not overflow f32
-/// (ValueError otherwise; the crate rejects what is below 0).
-pub fn temperature_f32(t: f64) -> PyResult<f32> {
-    match t.is_finite() && t.abs() <= f32::MAX as f64 {
-        true => Ok(t as f32),
-        false => Err(value_error(format!(
-            "temperature is {t}: expected a finite number >= 0"
-        ))),
+/// A temperature argument as the crate's f32: a number (TypeError otherwise) that is finite
+/// and does not overflow f32 (ValueError otherwise; the crate rejects what is below 0).
+pub fn temperature_f32(t: &Bound<'_, PyAny>) -> PyResult<f32> {
+    let out_of_range = || value_error(format!("temperature is {t}: expected a finite number >= 0"));
+    let value = t
+        .extract::<f64>()
+        .map_err(|e| match e.is_instance_of::<PyOverflowError>(t.py()) {
+            true => out_of_range(), // an integer beyond any float
+            false => e,
+        })?;
+    match value.is_finite() && value.abs() <= f32::MAX as f64 {
+        true => Ok(value as f32),
+        false => Err(out_of_range()),
     }
 }
 

@@ -67,7 +67,7 @@ def warmup_action(agent, speed: float) -> Optional[np.ndarray]:
 
 
 def _road(road: np.ndarray) -> np.ndarray:
-    road = np.asarray(road, np.float64)
+    road = _checks.floats("road", road)
     if road.shape != (4,) or not np.isfinite(road).all():
         raise ValueError(f"road: expected 4 finite figures (road.measure's), got {road}")
     return road
@@ -197,11 +197,12 @@ class MPCAgent:
     simulator is bit-identical whatever the thread count.
 
     Options (ValueError outside these, TypeError for the wrong kind): ``candidates`` an integer
-    >= 4 (the grid is ``rows`` first steerings by ``candidates // rows`` ramps, ``rows =
-    max(2, candidates // 4)``: 64 is 16 by 4, and a count that fills no grid uses the largest
-    that fits); ``horizon`` and ``iterations`` integers >= 1; ``context`` >= 0; ``skip`` from 0
-    to ``horizon - 1``; ``threads`` >= 1; ``max_speed``, ``road_scale`` and ``search`` finite
-    and > 0; the weights ``w_*`` and ``correct`` finite and >= 0.
+    from 4 to 4096 (the grid is ``rows`` first steerings by ``candidates // rows`` ramps, ``rows
+    = max(2, candidates // 4)``: 64 is 16 by 4, and a count that fills no grid uses the largest
+    that fits); ``horizon`` 1 to 1000; ``iterations`` 1 to 100; ``context`` 0 to 1000; ``skip``
+    0 to ``horizon - 1``; ``threads`` 1 to 1024; ``max_speed`` (at most ``SPEED_MAX``),
+    ``road_scale`` and ``search`` finite and > 0; the weights ``w_*`` and ``correct`` finite
+    and >= 0.
     """
 
     #: Env frames per decision: the models step at 12.5 Hz, CarRacing at 50.
@@ -231,8 +232,8 @@ class MPCAgent:
         skip: int = 3,
     ):
         count, number = _checks.integer, _checks.number
-        candidates, horizon = count("candidates", candidates, 4), count("horizon", horizon, 1)
-        iterations, context = count("iterations", iterations, 1), count("context", context, 0)
+        candidates, horizon = count("candidates", candidates, 4, 4096), count("horizon", horizon, 1, 1000)
+        iterations, context = count("iterations", iterations, 1, 100), count("context", context, 0, 1000)
         skip, threads = count("skip", skip, 0, horizon - 1), count("threads", threads, 1)
         max_speed = number("max_speed", max_speed, 0.0, SPEED_MAX, above=True)
         road_scale, search = number("road_scale", road_scale, 0.0, above=True), number("search", search, 0.0, above=True)
