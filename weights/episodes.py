@@ -4,12 +4,17 @@ Tensors (see the "Episodes format" section of weights/README.md):
   frames          uint8   [N, H, W, 3]  RGB frames, episodes back to back
   actions         float32 [N, 2]        (speed, steering) in effect at frame i
   episode_starts  int64   [E]           index of each episode's first frame; starts at 0, increasing
+Optional, all three or none (recorded CarRacing, per decision: what a reward model learns from):
+  reward          float32 [N]           the env's reward over the frames from frame i to frame i+1
+  tiles           int32   [N]           track tiles first visited over those frames
+  on_road         uint8   [N]           1 if a wheel touched the road at frame i, else 0
 """
 
 import gzip
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 from safetensors.numpy import load, save
@@ -23,17 +28,23 @@ class EpisodesError(ValueError):
     """An episodes file or array set that breaks the format."""
 
 
+REWARDS = {"reward": np.float32, "tiles": np.int32, "on_road": np.uint8}  # the optional tensors
+
+
 @dataclass
 class Episodes:
     frames: np.ndarray
     actions: np.ndarray
     episode_starts: np.ndarray
+    rewards: Optional[dict] = None  # {name: [N] array} for every name of REWARDS, or None
 
     def __post_init__(self):
         self.frames = as_array(self.frames, np.uint8, "frames")
         self.actions = as_array(self.actions, np.float32, "actions")
         self.episode_starts = as_array(self.episode_starts, np.int64, "episode_starts")
         validate(self.frames, self.actions, self.episode_starts)
+        if self.rewards is not None:
+            self.rewards = validate_rewards(self.rewards, len(self.frames))
 
     def __len__(self):
         return len(self.episode_starts)
@@ -54,9 +65,11 @@ class Episodes:
         (the Rust trainers' `--no-mirror` default, examples/common.rs `encode_view`)."""
         actions = self.actions.copy()
         actions[:, 1] *= -1
+        rewards = None if self.rewards is None else {k: np.concatenate([v, v]) for k, v in self.rewards.items()}
         return Episodes(np.concatenate([self.frames, self.frames[:, :, ::-1]]),
                         np.concatenate([self.actions, actions]),
-                        np.concatenate([self.episode_starts, self.episode_starts + len(self.frames)]))
+                        np.concatenate([self.episode_starts, self.episode_starts + len(self.frames)]),
+                        rewards)
 
     def episode(self, i):
         s, e = self.bounds()[i]
@@ -64,14 +77,19 @@ class Episodes:
 
     @staticmethod
     def concat(parts):
-        """Join episode sets into one, shifting each part's starts."""
+        """Join episode sets into one, shifting each part's starts. The rewards are kept only
+        if every part has them."""
         if not parts:
             raise EpisodesError("nothing to concatenate")
         offsets = np.cumsum([0] + [len(p.frames) for p in parts[:-1]])
+        rewards = None
+        if all(p.rewards is not None for p in parts):
+            rewards = {k: np.concatenate([p.rewards[k] for p in parts]) for k in REWARDS}
         return Episodes(
             np.concatenate([p.frames for p in parts]),
             np.concatenate([p.actions for p in parts]),
             np.concatenate([p.episode_starts + o for p, o in zip(parts, offsets)]),
+            rewards,
         )
 
 
@@ -111,6 +129,24 @@ def validate(frames, actions, starts):
     need(starts[-1] < len(frames), "an episode starts past the last frame")
 
 
+def validate_rewards(rewards, n):
+    """The optional per-decision tensors, checked and in their dtypes: all of REWARDS, each [n]."""
+    if not isinstance(rewards, dict) or set(rewards) != set(REWARDS):
+        got = sorted(rewards) if isinstance(rewards, dict) else type(rewards).__name__
+        raise EpisodesError(f"rewards must hold exactly {sorted(REWARDS)}, got {got}")
+    out = {}
+    for name, dtype in REWARDS.items():
+        a = as_array(rewards[name], dtype, name)
+        if a.dtype != dtype or a.shape != (n,):
+            raise EpisodesError(f"{name} must be {np.dtype(dtype).name} [{n}], got {a.dtype} {list(a.shape)}")
+        if name == "reward" and not np.isfinite(a).all():
+            raise EpisodesError("reward holds NaN or inf")
+        if name != "reward" and (a < 0).any():
+            raise EpisodesError(f"{name} must not be negative")
+        out[name] = a
+    return out
+
+
 def sort_metadata(blob: bytes) -> bytes:
     """A safetensors file's bytes with its header's `__metadata__` in key order. safetensors
     writes it in a hash map's order, which changes from one save to the next: sorted, the same
@@ -129,14 +165,13 @@ def write(path, episodes, metadata=None):
     """Save episodes; a path ending in .gz is gzipped. metadata: optional str->str header dict.
     Atomic: a temporary file beside `path`, flushed to disk and renamed over it, so a crash or a
     full disk leaves the old file whole (the package's `atomic_write`)."""
-    blob = save(
-        {
-            "frames": np.ascontiguousarray(episodes.frames),
-            "actions": np.ascontiguousarray(episodes.actions),
-            "episode_starts": np.ascontiguousarray(episodes.episode_starts),
-        },
-        metadata=metadata,
-    )
+    tensors = {
+        "frames": np.ascontiguousarray(episodes.frames),
+        "actions": np.ascontiguousarray(episodes.actions),
+        "episode_starts": np.ascontiguousarray(episodes.episode_starts),
+    }
+    tensors.update({k: np.ascontiguousarray(v) for k, v in (episodes.rewards or {}).items()})
+    blob = save(tensors, metadata=metadata)
     blob = sort_metadata(blob)
     path = Path(path)
     if path.suffix == ".gz":
@@ -183,7 +218,11 @@ def read(path):
     missing = {"frames", "actions", "episode_starts"} - tensors.keys()
     if missing:
         raise EpisodesError(f"{path}: missing tensors {sorted(missing)}")
+    present = [k for k in REWARDS if k in tensors]
+    if present and len(present) != len(REWARDS):
+        raise EpisodesError(f"{path}: has {present} of the optional {list(REWARDS)}: all or none")
+    rewards = {k: tensors[k] for k in present} or None
     try:
-        return Episodes(tensors["frames"], tensors["actions"], tensors["episode_starts"])
+        return Episodes(tensors["frames"], tensors["actions"], tensors["episode_starts"], rewards)
     except EpisodesError as e:
         raise EpisodesError(f"{path}: {e}") from e

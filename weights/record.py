@@ -204,23 +204,36 @@ def off_playfield(car):
 
 
 def record_episode(seed, frames, frame_skip, style="steady", random_colours=False):
-    """One episode from a seed: (frames [M,H,W,3], actions [M,2], fraction of frames on the road)."""
+    """One episode from a seed: (frames [M,H,W,3], actions [M,2], fraction of frames on the road,
+    rewards: episodes.REWARDS' per-decision arrays: the env's reward over each decision's
+    frames, the tiles it first visited, whether a wheel touched the road)."""
     env = car_racing.CarRacing(domain_randomize=random_colours)
     env.reset(seed=seed)
     driver = Driver(env.track, np.random.default_rng(seed), style)
     for _ in range(WARMUP_STEPS):
         env.step(np.array([0.0, 0.3, 0.0], dtype=np.float32))
     out_frames, out_actions, on_road = [], [], 0
+    rewards = {"reward": [], "tiles": [], "on_road": []}
     while len(out_frames) < frames and not off_playfield(env.car):
         action, speed, off_centre = driver.act(env.car, frame_skip / car_racing.FPS)
         out_frames.append(view.observe(env))
         out_actions.append((speed, action[0]))
         on_road += off_centre < HALF_ROAD
+        rewards["on_road"].append(wheel_on_road(env.car))
+        tiles, total = env.tile_visited_count, 0.0
         for _ in range(frame_skip):
-            env.step(action)  # its `terminated` also fires on a finished lap: keep driving
+            total += env.step(action)[1]  # its `terminated` also fires on a finished lap: keep driving
+        rewards["reward"].append(total)
+        rewards["tiles"].append(env.tile_visited_count - tiles)
     env.close()
     n = len(out_frames)
-    return np.stack(out_frames), np.array(out_actions, dtype=np.float32), on_road / n
+    rewards = {k: np.array(v, dtype=episodes.REWARDS[k]) for k, v in rewards.items()}
+    return np.stack(out_frames), np.array(out_actions, dtype=np.float32), on_road / n, rewards
+
+
+def wheel_on_road(car):
+    """1 if any wheel touches a road tile (the env's friction test), else 0."""
+    return int(any(len(w.tiles) > 0 for w in car.wheels))
 
 
 def score_episode(seed, style="steady", frame_skip=4, limit=1000):
@@ -229,6 +242,9 @@ def score_episode(seed, style="steady", frame_skip=4, limit=1000):
     episode ending early when the env says so (a lap done, or off the playfield)."""
     env = car_racing.CarRacing()
     env.reset(seed=seed)
+    # The env draws its 96x96 state on every step, and the score reads none of it: drawing
+    # changes nothing in the physics (checked: the same scores) and takes most of the time.
+    env._render = lambda *args, **kwargs: None
     driver = Driver(env.track, np.random.default_rng(seed), style)
     total, frames = 0.0, 0
     while frames < limit:
@@ -250,12 +266,12 @@ def _score(job):
 
 def _record(job):
     seed, frames, frame_skip, style, random_colours = job
-    f, a, on_road = record_episode(seed, frames, frame_skip, style, random_colours)
+    f, a, on_road, rewards = record_episode(seed, frames, frame_skip, style, random_colours)
     colours = ", random colours" if random_colours else ""
     print(f"seed {seed}{colours}: {len(f)} frames, {on_road:.0%} on the road, "
           f"speed {a[:, 0].mean():.1f}±{a[:, 0].std():.1f}, steering ±{np.abs(a[:, 1]).mean():.2f}",
           flush=True)
-    return episodes.Episodes(f, a, np.zeros(1, dtype=np.int64))
+    return episodes.Episodes(f, a, np.zeros(1, dtype=np.int64), rewards)
 
 
 def main(argv=None):
