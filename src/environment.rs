@@ -1,7 +1,7 @@
 //! Drives inside the simulator that a controller steps: the hidden state and the current code
 //! of each kept inside, as a gym-style environment keeps its state.
 
-use crate::error::expect_len;
+use crate::error::{expect_finite, expect_len};
 use crate::{Error, Model, Result, Simulator};
 use alloc::vec::Vec;
 use core::borrow::Borrow;
@@ -95,6 +95,8 @@ impl<M: Borrow<Model>> Environment<M> {
     pub fn reset_from_codes(&mut self, codes: &[f32], actions: &[f32]) -> Result<()> {
         let c = *self.sim.config();
         let seeds = self.seed_count("codes", codes, c.z_dim, actions)?;
+        // The last seed becomes the current code without a transition step to check it.
+        expect_finite("codes", codes)?;
         self.hidden.fill(0.0);
         (self.seeded, self.steps) = (false, 0);
         let per_seed = self.codes.len();

@@ -211,6 +211,11 @@ def test_messages_name_shapes_and_state(model, clip):
         sim.rollout_candidates(np.zeros((3, 256), np.float32), plans)
     with pytest.raises(ValueError, match=r"z: .* got \(2, 128\)"):
         sim.rollout_candidates(np.zeros(256, np.float32), plans, z=np.zeros((2, 128), np.float32))
+    # Found by the fuzz: one seed code was taken as the current code unchecked (NaN state).
+    env.reset_from_codes(np.zeros((1, 2, 128), np.float32), np.zeros((0, 2, 2), np.float32))
+    with pytest.raises(ValueError, match="NaN"):
+        env.reset_from_codes(np.full((1, 2, 128), np.nan, np.float32), np.zeros((0, 2, 2), np.float32))
+    assert np.isfinite(env.codes).all()  # the rejected reset kept the last state
     dream = drivesim.DreamEnv()
     with pytest.raises(ValueError, match="S >= 1"):
         dream.reset(options={"frames": np.zeros((0, 80, 160, 3), np.uint8)})
