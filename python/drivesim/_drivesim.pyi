@@ -151,3 +151,10 @@ def load_episodes(
 ) -> list[tuple[npt.NDArray[np.uint8], F32]]:
     """``(frames (T, H, W, 3) uint8, actions (T, 2) float32)`` per episode of an episodes file,
     or of the built-in seed clip when ``path`` is None."""
+
+def box_shrink(image: npt.NDArray[np.uint8], height: int, width: int, channels: list[int]) -> npt.NDArray[np.uint8]:
+    """``image`` (uint8, C-ordered, ``(H, W, C)``) shrunk to ``(height, width, len(channels))``
+    byte for byte as Pillow's ``Image.resize((width, height), Image.BOX)`` shrinks it (RGB,
+    not premultiplied), keeping the channels ``channels`` (1 to 4 indices below C) in that
+    order. ``ValueError`` for another dtype, shape or layout, a size of zero or larger than the
+    image's, or channels out of range. ``carracing.observe``'s fast path."""

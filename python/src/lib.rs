@@ -11,6 +11,7 @@ mod environment;
 mod model;
 mod outputs;
 mod simulator;
+mod view;
 
 use pyo3::exceptions::{
     PyFileNotFoundError, PyMemoryError, PyOSError, PyOverflowError, PyPermissionError, PyRuntimeError, PyTypeError,
@@ -82,6 +83,7 @@ fn _drivesim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<simulator::PySimulator>()?;
     m.add_class::<environment::PyEnvironment>()?;
     m.add_function(wrap_pyfunction!(model::load_episodes, m)?)?;
+    m.add_function(wrap_pyfunction!(view::box_shrink, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

@@ -2,7 +2,9 @@
 for the recorder (``weights/record.py`` loads this file by path) and the agents.
 
 This module needs only numpy, pygame and Pillow (no drivesim): the recorder runs it without
-the package installed.
+the package installed. With the package, ``observe`` reads the env's surface in place and
+shrinks it in the extension (``box_shrink``, Pillow's box filter byte for byte): about 0.2 ms
+where copying the surface to Pillow takes 10-15 ms; without it, Pillow, the reference.
 """
 
 import argparse
@@ -16,16 +18,36 @@ HEIGHT, WIDTH = 80, 160
 CROP = (0, 150, 1000, 650)
 
 
+try:
+    from drivesim._drivesim import box_shrink
+except ImportError:  # the recorder, run without the package: Pillow alone
+    box_shrink = None
+
+
 def observe(env) -> np.ndarray:
     """The frame the models see: the env's full-resolution surface from its last step, cropped
     and shrunk to ``(80, 160, 3)`` uint8 (exactly as the training data was recorded). ``env``
     is a CarRacing environment (wrapped or not) that has stepped at least once."""
-    import pygame
-    from PIL import Image
-
     surf = getattr(env.unwrapped, "surf", None)
     if surf is None:
         raise ValueError("observe: the env has not drawn a frame yet: call reset() and step() first")
+    x0, y0, x1, y1 = CROP
+    width, height = surf.get_size()
+    if box_shrink is not None and surf.get_pitch() == 4 * width and (x0, x1) == (0, width):
+        # The surface's rows in place (whole rows: a contiguous block), 4 bytes a pixel; its
+        # byte order from the channels' shifts (little-endian).
+        pixels = np.frombuffer(surf.get_buffer(), np.uint8).reshape(height, width, 4)
+        channels = [shift // 8 for shift in surf.get_shifts()[:3]]
+        return box_shrink(pixels[y0:y1], HEIGHT, WIDTH, channels)
+    return observe_reference(surf)
+
+
+def observe_reference(surf) -> np.ndarray:
+    """``observe``'s frame by Pillow from a copy of the surface: the reference the fast path is
+    tested against (and the path without the package)."""
+    import pygame
+    from PIL import Image
+
     rgb = pygame.surfarray.array3d(surf).transpose(1, 0, 2)  # surfarray is (x, y)
     img = Image.fromarray(rgb).crop(CROP).resize((WIDTH, HEIGHT), Image.BOX)
     return np.asarray(img, dtype=np.uint8)
