@@ -30,6 +30,8 @@ pub struct Encoded {
     pub codes: Vec<f32>,
     /// `[frames, 2]`: (speed, steering) after each frame.
     pub actions: Vec<f32>,
+    /// `[frames, 2]`, where the episodes have them: a teacher's (speed, steering) for each frame.
+    pub labels: Option<Vec<f32>>,
 }
 
 /// Encodes every frame of every episode in `episodes` (batches of 32, `threads` threads).
@@ -84,14 +86,17 @@ pub fn encode_view(
             progress.inc(n as u64);
         }
         let mut actions = episode.actions.to_vec();
+        let mut labels = episode.labels.map(<[f32]>::to_vec);
         if mirrored {
-            actions
-                .iter_mut()
-                .skip(1)
-                .step_by(2)
-                .for_each(|steering| *steering = -*steering);
+            for pairs in core::iter::once(&mut actions).chain(labels.as_mut()) {
+                pairs
+                    .iter_mut()
+                    .skip(1)
+                    .step_by(2)
+                    .for_each(|steering| *steering = -*steering);
+            }
         }
-        out.push(Encoded { codes, actions });
+        out.push(Encoded { codes, actions, labels });
     }
     progress.finish_and_clear();
     Ok(out)

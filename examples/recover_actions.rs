@@ -91,7 +91,7 @@ fn run(args: &Args) -> Result<(), String> {
     let (z, window) = (c.z_dim, args.window as usize);
     let (mut all_found, mut all_want) = ([Vec::new(), Vec::new()], [Vec::new(), Vec::new()]);
     println!("episode  frames   speed: corr  mean error   steering: corr  mean error");
-    for (e, Encoded { codes, actions }) in data.iter().enumerate() {
+    for (e, Encoded { codes, actions, .. }) in data.iter().enumerate() {
         let frames = codes.len() / z;
         let windows = frames.saturating_sub(1) / (window - 1);
         if windows == 0 {

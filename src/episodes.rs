@@ -19,6 +19,8 @@ pub struct Episodes {
     frames: Vec<u8>,
     /// `[N, 2]`: (speed, steering) at frame i.
     actions: Vec<f32>,
+    /// `[N, 2]`, optional: (speed to drive at, steering) a teacher gave for frame i.
+    labels: Option<Vec<f32>>,
     /// First frame of each episode, increasing from 0.
     starts: Vec<usize>,
     /// Frames per second, from the file's `frame_hz` metadata.
@@ -36,6 +38,10 @@ pub struct Episode<'a> {
     pub frames: &'a [u8],
     /// `len() * 2` values: (speed, steering) in effect at each frame.
     pub actions: &'a [f32],
+    /// `len() * 2` values, where the file has them: (speed to drive at, steering) that a
+    /// teacher gave for each frame (DAgger's labels, `weights/README.md`), which a policy
+    /// learns instead of the driver's own.
+    pub labels: Option<&'a [f32]>,
 }
 
 impl Episode<'_> {
@@ -171,6 +177,27 @@ impl Episodes {
             .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
             .collect();
         crate::error::expect_finite("actions", &actions)?;
+        let labels = match file.tensor("labels") {
+            Err(_) => None,
+            Ok(_) => {
+                let view = get("labels", Dtype::F32, 2)?;
+                if view.shape() != [n, Episodes::ACTION_DIM] {
+                    let expected = alloc::vec![n, Episodes::ACTION_DIM];
+                    return Err(Error::Shape {
+                        name: "labels".into(),
+                        expected,
+                        found: view.shape().to_vec(),
+                    });
+                }
+                let labels: Vec<f32> = view
+                    .data()
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
+                    .collect();
+                crate::error::expect_finite("labels", &labels)?;
+                Some(labels)
+            }
+        };
         let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| Error::Malformed {
             what: "episodes file",
             reason: format!("{e:?}"),
@@ -184,6 +211,7 @@ impl Episodes {
             width,
             frames: frames.data().to_vec(),
             actions,
+            labels,
             starts: starts.into_iter().map(|s| s as usize).collect(),
             frame_hz,
         })
@@ -255,6 +283,10 @@ impl Episodes {
             width: self.width,
             frames: &self.frames[start * frame_len..end * frame_len],
             actions: &self.actions[start * Episodes::ACTION_DIM..end * Episodes::ACTION_DIM],
+            labels: self
+                .labels
+                .as_ref()
+                .map(|l| &l[start * Episodes::ACTION_DIM..end * Episodes::ACTION_DIM]),
         })
     }
 }

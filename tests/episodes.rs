@@ -152,3 +152,36 @@ fn frame_rate_is_read_from_the_metadata() {
         assert!(matches!(with(Some(bad)), Err(Error::Metadata { .. })), "{bad}");
     }
 }
+
+/// DAgger's optional `labels` `[N, 2]`: read where present, sliced by episode, checked.
+#[test]
+fn labels_are_optional_and_checked() {
+    let floats = |values: Vec<f32>| values.into_iter().flat_map(f32::to_le_bytes).collect::<Vec<u8>>();
+    let labelled = |labels: Tensor| {
+        move |t: &mut Vec<(&str, Tensor)>| {
+            t.push(("labels", labels));
+        }
+    };
+    let plain = Episodes::from_bytes(&file(5, &[0, 2], |_| {})).unwrap();
+    assert_eq!(plain.episode(1).unwrap().labels, None);
+    let good = Tensor::new(
+        Dtype::F32,
+        vec![5, 2],
+        floats((0..10).map(|i| i as f32 * 0.5).collect()),
+    );
+    let episodes = Episodes::from_bytes(&file(5, &[0, 2], labelled(good))).unwrap();
+    assert_eq!(
+        episodes.episode(1).unwrap().labels,
+        Some(&[2.0, 2.5, 3.0, 3.5, 4.0, 4.5][..])
+    );
+    let err =
+        |labels: Tensor| Episodes::from_bytes(&file(5, &[0, 2], labelled(labels))).expect_err("bad labels accepted");
+    let e = err(Tensor::new(Dtype::F32, vec![4, 2], floats(vec![0.0; 8])));
+    assert!(matches!(&e, Error::Shape { name, .. } if name == "labels"), "{e}");
+    let e = err(Tensor::new(Dtype::F64, vec![5, 2], vec![0; 80]));
+    assert!(matches!(&e, Error::Dtype { name, .. } if name == "labels"), "{e}");
+    let mut nan = vec![0.0; 10];
+    nan[7] = f32::NAN;
+    let e = err(Tensor::new(Dtype::F32, vec![5, 2], floats(nan)));
+    assert!(e.to_string().contains("labels"), "{e}");
+}

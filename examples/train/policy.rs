@@ -1,7 +1,7 @@
 //! `train policy`: behavioural cloning of the recorded driver. Encodes the episodes (and their
 //! mirror images), steps the transition along each drive for the hidden state the policy reads,
 //! trains the policy to give the driver's steering and the speed it reached `--lead` frames
-//! later, reports the held-out error before and after, and writes the weights with the policy.
+//! later (or, where the episodes carry them, a teacher's `labels`: DAgger's), reports the held-out error before and after, and writes the weights with the policy.
 
 use crate::args::{data_help, Data};
 use crate::checkpoint::Checkpointing;
@@ -64,7 +64,8 @@ impl PolicyArgs {
     }
 }
 
-/// The policy's examples: inputs `[z | h]` and actions (speed `lead` frames later, steering).
+/// The policy's examples: inputs `[z | h]` and actions (speed `lead` frames later, steering),
+/// or the episodes' labels where they have them.
 struct Examples {
     inputs: Vec<f32>,
     actions: Vec<f32>,
@@ -83,7 +84,12 @@ fn examples(model: &Model, drives: &[Encoded], lead: usize) -> Result<Examples, 
         let frames = drive.codes.len() / z;
         for t in 0..frames {
             let code = &drive.codes[t * z..][..z];
-            if t + lead < frames {
+            // A teacher's label where the episodes have one (DAgger), else what the driver did.
+            if let Some(labels) = &drive.labels {
+                inputs.extend_from_slice(code);
+                inputs.extend_from_slice(&h);
+                actions.extend_from_slice(&labels[t * 2..][..2]);
+            } else if t + lead < frames {
                 inputs.extend_from_slice(code);
                 inputs.extend_from_slice(&h);
                 actions.extend_from_slice(&[drive.actions[(t + lead) * 2], drive.actions[t * 2 + 1]]);
