@@ -8,6 +8,8 @@ Optional, all three or none (recorded CarRacing, per decision: what a reward mod
   reward          float32 [N]           the env's reward over the frames from frame i to frame i+1
   tiles           int32   [N]           track tiles first visited over those frames
   on_road         uint8   [N]           1 if a wheel touched the road at frame i, else 0
+Optional (DAgger):
+  labels          float32 [N, 2]        a teacher's (speed to drive at, steering) for frame i
 """
 
 import gzip
@@ -37,6 +39,7 @@ class Episodes:
     actions: np.ndarray
     episode_starts: np.ndarray
     rewards: Optional[dict] = None  # {name: [N] array} for every name of REWARDS, or None
+    labels: Optional[np.ndarray] = None  # [N, 2] float32, or None
 
     def __post_init__(self):
         self.frames = as_array(self.frames, np.uint8, "frames")
@@ -45,6 +48,25 @@ class Episodes:
         validate(self.frames, self.actions, self.episode_starts)
         if self.rewards is not None:
             self.rewards = validate_rewards(self.rewards, len(self.frames))
+        if self.labels is not None:
+            self.labels = as_array(self.labels, np.float32, "labels")
+            if self.labels.dtype != np.float32 or self.labels.shape != (len(self.frames), 2):
+                raise EpisodesError(f"labels must be float32 [{len(self.frames)},2], got "
+                                    f"{self.labels.dtype} {list(self.labels.shape)}")
+            if not np.isfinite(self.labels).all():
+                raise EpisodesError("labels hold NaN or inf")
+
+    def labelled(self, lead=1):
+        """These episodes with labels: their own where they have them, else what `train
+        policy` fits without labels, the speed `lead` frames later (the episode's last speed
+        past its end) and the steering applied."""
+        if self.labels is not None:
+            return self
+        labels = self.actions.copy()
+        for s, e in self.bounds():
+            later = np.minimum(np.arange(s, e) + lead, e - 1)
+            labels[s:e, 0] = self.actions[later, 0]
+        return Episodes(self.frames, self.actions, self.episode_starts, self.rewards, labels)
 
     def __len__(self):
         return len(self.episode_starts)
@@ -66,10 +88,15 @@ class Episodes:
         actions = self.actions.copy()
         actions[:, 1] *= -1
         rewards = None if self.rewards is None else {k: np.concatenate([v, v]) for k, v in self.rewards.items()}
+        labels = None
+        if self.labels is not None:
+            labels = self.labels.copy()
+            labels[:, 1] *= -1
+            labels = np.concatenate([self.labels, labels])
         return Episodes(np.concatenate([self.frames, self.frames[:, :, ::-1]]),
                         np.concatenate([self.actions, actions]),
                         np.concatenate([self.episode_starts, self.episode_starts + len(self.frames)]),
-                        rewards)
+                        rewards, labels)
 
     def episode(self, i):
         s, e = self.bounds()[i]
@@ -78,18 +105,22 @@ class Episodes:
     @staticmethod
     def concat(parts):
         """Join episode sets into one, shifting each part's starts. The rewards are kept only
-        if every part has them."""
+        if every part has them; labels if any part has them (the others' `labelled()`)."""
         if not parts:
             raise EpisodesError("nothing to concatenate")
         offsets = np.cumsum([0] + [len(p.frames) for p in parts[:-1]])
         rewards = None
         if all(p.rewards is not None for p in parts):
             rewards = {k: np.concatenate([p.rewards[k] for p in parts]) for k in REWARDS}
+        labels = None
+        if any(p.labels is not None for p in parts):
+            labels = np.concatenate([p.labelled().labels for p in parts])
         return Episodes(
             np.concatenate([p.frames for p in parts]),
             np.concatenate([p.actions for p in parts]),
             np.concatenate([p.episode_starts + o for p, o in zip(parts, offsets)]),
             rewards,
+            labels,
         )
 
 
@@ -171,6 +202,8 @@ def write(path, episodes, metadata=None):
         "episode_starts": np.ascontiguousarray(episodes.episode_starts),
     }
     tensors.update({k: np.ascontiguousarray(v) for k, v in (episodes.rewards or {}).items()})
+    if episodes.labels is not None:
+        tensors["labels"] = np.ascontiguousarray(episodes.labels)
     blob = save(tensors, metadata=metadata)
     blob = sort_metadata(blob)
     path = Path(path)
@@ -223,6 +256,7 @@ def read(path):
         raise EpisodesError(f"{path}: has {present} of the optional {list(REWARDS)}: all or none")
     rewards = {k: tensors[k] for k in present} or None
     try:
-        return Episodes(tensors["frames"], tensors["actions"], tensors["episode_starts"], rewards)
+        return Episodes(tensors["frames"], tensors["actions"], tensors["episode_starts"], rewards,
+                        tensors.get("labels"))
     except EpisodesError as e:
         raise EpisodesError(f"{path}: {e}") from e

@@ -133,3 +133,24 @@ def test_a_file_with_some_of_the_reward_tensors_is_rejected(tmp_path):
                "reward": np.zeros(6, np.float32)}, str(path))
     with pytest.raises(episodes.EpisodesError, match="all or none"):
         episodes.read(path)
+
+
+def test_labels_round_trip_mirror_and_fill_in(tmp_path):
+    e = make()
+    labels = np.stack([np.full(6, 50.0), np.linspace(-0.5, 0.5, 6)], 1).astype(np.float32)
+    taught = episodes.Episodes(e.frames, e.actions, e.episode_starts, e.rewards, labels)
+    path = tmp_path / "l.safetensors"
+    episodes.write(path, taught)
+    np.testing.assert_array_equal(episodes.read(path).labels, labels)
+    np.testing.assert_array_equal(taught.with_mirror_images().labels[6:, 1], -labels[:, 1])
+    # Joined with unlabelled episodes: theirs are what `train policy` fits (speed 1 frame later).
+    plain = make(rewards=False)
+    joined = episodes.Episodes.concat([taught, plain])
+    np.testing.assert_array_equal(joined.labels[:6], labels)
+    np.testing.assert_array_equal(joined.labels[6:, 1], plain.actions[:, 1])
+    np.testing.assert_array_equal(joined.labels[6:9, 0], plain.actions[1:4, 0])
+    assert joined.labels[9, 0] == plain.actions[3, 0]  # the first episode's last frame: its own
+    with pytest.raises(episodes.EpisodesError, match="labels hold NaN"):
+        episodes.Episodes(e.frames, e.actions, e.episode_starts, None, np.full((6, 2), np.nan, np.float32))
+    with pytest.raises(episodes.EpisodesError, match=r"labels must be float32 \[6,2\]"):
+        episodes.Episodes(e.frames, e.actions, e.episode_starts, None, np.zeros((6, 3), np.float32))
