@@ -47,7 +47,7 @@ class Expert:
         self.curvature = _curvature(heading, self.seg_len)
         self.profile = _speed_profile(self.curvature, self.seg_len)
         self.style, self.i = style, None
-        self.off_centre = 0.0
+        self.off_centre, self.target = 0.0, 0.0
 
     def nearest(self, pos):
         """The centre-line point nearest the car, searched near the last one so that laps and
@@ -81,6 +81,7 @@ class Expert:
         reach = self.ahead(i, speed * frame_seconds * 2.0 + 2.0)
         span = (np.arange(i, i + (reach - i) % len(self.centre) + 1)) % len(self.centre)
         target = float(self.profile[span].min())
+        self.target = target  # the speed it drives to now: DAgger's speed label
 
         # Steering: pure pursuit on the centre line. (Aiming at the inside of bends was measured
         # slower: the wheels leave tiles behind, or the car runs wide on the way out.)

@@ -206,7 +206,8 @@ def off_playfield(car):
 def record_episode(seed, frames, frame_skip, style="steady", random_colours=False):
     """One episode from a seed: (frames [M,H,W,3], actions [M,2], fraction of frames on the road,
     rewards: episodes.REWARDS' per-decision arrays: the env's reward over each decision's
-    frames, the tiles it first visited, whether a wheel touched the road)."""
+    frames, the tiles it first visited, whether a wheel touched the road; labels [M,2] for the
+    expert: the speed it drove to and its steering, as DAgger labels, else None)."""
     env = car_racing.CarRacing(domain_randomize=random_colours)
     env.reset(seed=seed)
     driver = Driver(env.track, np.random.default_rng(seed), style)
@@ -214,8 +215,11 @@ def record_episode(seed, frames, frame_skip, style="steady", random_colours=Fals
         env.step(np.array([0.0, 0.3, 0.0], dtype=np.float32))
     out_frames, out_actions, on_road = [], [], 0
     rewards = {"reward": [], "tiles": [], "on_road": []}
+    labels = [] if style == "expert" else None
     while len(out_frames) < frames and not off_playfield(env.car):
         action, speed, off_centre = driver.act(env.car, frame_skip / car_racing.FPS)
+        if labels is not None:
+            labels.append((driver.target, action[0]))
         out_frames.append(view.observe(env))
         out_actions.append((speed, action[0]))
         on_road += off_centre < HALF_ROAD
@@ -228,7 +232,8 @@ def record_episode(seed, frames, frame_skip, style="steady", random_colours=Fals
     env.close()
     n = len(out_frames)
     rewards = {k: np.array(v, dtype=episodes.REWARDS[k]) for k, v in rewards.items()}
-    return np.stack(out_frames), np.array(out_actions, dtype=np.float32), on_road / n, rewards
+    labels = None if labels is None else np.array(labels, dtype=np.float32)
+    return np.stack(out_frames), np.array(out_actions, dtype=np.float32), on_road / n, rewards, labels
 
 
 def wheel_on_road(car):
@@ -266,12 +271,12 @@ def _score(job):
 
 def _record(job):
     seed, frames, frame_skip, style, random_colours = job
-    f, a, on_road, rewards = record_episode(seed, frames, frame_skip, style, random_colours)
+    f, a, on_road, rewards, labels = record_episode(seed, frames, frame_skip, style, random_colours)
     colours = ", random colours" if random_colours else ""
     print(f"seed {seed}{colours}: {len(f)} frames, {on_road:.0%} on the road, "
           f"speed {a[:, 0].mean():.1f}±{a[:, 0].std():.1f}, steering ±{np.abs(a[:, 1]).mean():.2f}",
           flush=True)
-    return episodes.Episodes(f, a, np.zeros(1, dtype=np.int64), rewards)
+    return episodes.Episodes(f, a, np.zeros(1, dtype=np.int64), rewards, labels)
 
 
 def main(argv=None):

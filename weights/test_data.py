@@ -196,7 +196,7 @@ def test_comma_errors(tmp_path):
 
 def test_record_short_episode():
     record = pytest.importorskip("record")
-    frames, actions, on_road, _ = record.record_episode(seed=3, frames=5, frame_skip=2)
+    frames, actions, on_road, _, _ = record.record_episode(seed=3, frames=5, frame_skip=2)
     assert frames.shape == (5, 80, 160, 3) and frames.dtype == np.uint8
     assert actions.shape == (5, 2) and np.all(np.abs(actions[:, 1]) <= 1)
     assert 0 <= on_road <= 1
@@ -206,16 +206,16 @@ def test_record_short_episode():
 @pytest.mark.parametrize("style", ["varied", "varied-noise", "varied-holds", "holds", "hard", "jerky"])
 def test_record_driver_styles(style):
     record = pytest.importorskip("record")
-    frames, actions, _, _ = record.record_episode(seed=4, frames=40, frame_skip=2, style=style, random_colours=True)
+    frames, actions, _, _, _ = record.record_episode(seed=4, frames=40, frame_skip=2, style=style, random_colours=True)
     assert frames.shape == (40, 80, 160, 3) and np.all(np.abs(actions[:, 1]) <= 1)
-    steady, _, _, _ = record.record_episode(seed=4, frames=1, frame_skip=2)
+    steady, _, _, _, _ = record.record_episode(seed=4, frames=1, frame_skip=2)
     # Random colours: the first frame (the car still at the start line) differs from the env's colours.
     assert np.abs(frames[0].astype(int) - steady[0]).mean() > 10
 
 
 def test_jerky_driver_holds_its_steering_between_looks():
     record = pytest.importorskip("record")
-    _, actions, _, _ = record.record_episode(seed=5, frames=60, frame_skip=2, style="jerky")
+    _, actions, _, _, _ = record.record_episode(seed=5, frames=60, frame_skip=2, style="jerky")
     steering = actions[:, 1]
     held = steering[1:] == steering[:-1]
     # Looks every 0.12-0.3 s, frames 0.04 s apart: each steering value lasts 3 to 8 frames.
@@ -250,7 +250,7 @@ def test_varied_holds_driver_holds_constant_steering_open_loop():
     # A hold: 0.2-0.8 s of one steering of 0.1-0.7, whatever the road: 3 to 10 frames of 0.08 s
     # (11 when the seconds left round just above zero).
     def holds(style):
-        _, actions, _, _ = record.record_episode(seed=7, frames=400, frame_skip=4, style=style)
+        _, actions, _, _, _ = record.record_episode(seed=7, frames=400, frame_skip=4, style=style)
         return [n for n, s in runs_of(actions[:, 1]) if n >= 3 and 0.1 <= abs(s) <= 0.7]
 
     held = holds("varied-holds")

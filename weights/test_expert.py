@@ -70,7 +70,7 @@ def test_expert_finishes_a_lap_at_racing_pace():
 
 def test_recorded_episodes_carry_rewards(tmp_path):
     record = pytest.importorskip("record")
-    frames, actions, _, rewards = record.record_episode(seed=3, frames=30, frame_skip=4, style="expert")
+    frames, actions, _, rewards, labels = record.record_episode(seed=3, frames=30, frame_skip=4, style="expert")
     assert {k: (v.dtype, v.shape) for k, v in rewards.items()} == {
         "reward": (np.float32, (30,)), "tiles": (np.int32, (30,)), "on_road": (np.uint8, (30,))}
     assert rewards["on_road"].all() and rewards["tiles"].sum() > 10
@@ -79,9 +79,15 @@ def test_recorded_episodes_carry_rewards(tmp_path):
     per_tile = (rewards["reward"][new] + 0.4) / rewards["tiles"][new]
     assert np.ptp(per_tile) < 1e-2 and 2 < per_tile.mean() < 4  # 1000 / N, N about 300
     np.testing.assert_allclose(rewards["reward"][~new], -0.4, atol=1e-4)
+    # The expert's labels: the speed it drove to (at least the speed it had, leaving the start)
+    # and the steering it applied.
+    assert labels.shape == (30, 2) and labels.dtype == np.float32
+    np.testing.assert_array_equal(labels[:, 1], actions[:, 1])
+    assert labels[0, 0] > actions[0, 0]
     path = tmp_path / "e.safetensors.gz"
-    episodes.write(path, episodes.Episodes(frames, actions, np.array([0]), rewards))
+    episodes.write(path, episodes.Episodes(frames, actions, np.array([0]), rewards, labels))
     back = episodes.read(path)
+    np.testing.assert_array_equal(back.labels, labels)
     for k in episodes.REWARDS:
         np.testing.assert_array_equal(back.rewards[k], rewards[k])
 

@@ -1,0 +1,181 @@
+"""DAgger: recovery data for the cloned driver, labelled by the expert (Ross et al., 2011).
+
+Round 0 clones the policy on the expert's own episodes (``--data``, recorded by
+``weights/tool record --driver expert``). Each later round k:
+
+1. the round k-1 policy drives real CarRacing through ``make_agent("cloned", weights=...)``
+   and ``observe``, on tracks of its own (``--per-round`` tracks from ``--tracks``);
+2. at every decision the expert labels the state the car is in with what it would do there
+   (the speed it would drive to and its steering: ``expert.Expert``, which reads the env, not
+   the agent), while the agent's own action is the one applied;
+3. those frames, with the agent's actions (what its transition was stepped with), the labels
+   and the rewards, join the expert's episodes and every earlier round's (mirror images are
+   ``train policy``'s own, by default);
+4. the policy is cloned again from the base model (``train policy --restart``, fitting labels).
+
+After each round the policy is scored on ``--heldout`` tracks, never driven in a round
+(``python -m drivesim.carracing --agent cloned``), and a line goes to ``DIR/log.jsonl``.
+Everything a round makes is written atomically under ``DIR/round_K/``, and a step whose file
+exists is not done again: a killed run started again with the same arguments goes on where it
+stopped (the evaluation resumes per track). Needs the ``drivesim`` package with CarRacing
+(``pip install "./python[carracing]"``) and the trainer (``cargo build --release -p
+drivesim-examples --features train --example train``).
+
+  weights/tool dagger --data data/expert.safetensors.gz --rounds 4 --tracks 4000-4099 \\
+      --per-round 16 --heldout 5000-5019 --dir runs/dagger --workers 2
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from multiprocessing import Pool
+from pathlib import Path
+
+import numpy as np
+
+import episodes
+import package
+import record
+
+_files = package.load("_files.py")
+HERE = Path(__file__).resolve().parent
+
+
+def drive_labelled(job):
+    """One track driven by the cloned agent of `weights`, labelled by the expert at every
+    decision after the agent's warm-up: an `episodes.Episodes` of one episode (None if the
+    drive has no decision past the warm-up) and the env's reward over the drive."""
+    weights, seed, frames = job
+    import gymnasium
+    from drivesim import carracing
+
+    agent = carracing.make_agent("cloned", weights=str(weights))
+    env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
+    env.reset(seed=seed)
+    car_env = env.unwrapped
+    teacher = record.Driver(car_env.track, None, "expert")
+    seconds = agent.frame_skip / record.car_racing.FPS
+    out = {"frames": [], "actions": [], "labels": [], "reward": [], "tiles": [], "on_road": []}
+    total, done = 0.0, False
+    while not done:
+        view, speed = carracing.observe(env), carracing.speed(env)
+        label, _, _ = teacher.act(car_env.car, seconds)  # keeps its place on the track, too
+        action = agent.act(view, speed)
+        learn = agent.decisions > agent.warmup  # the warm-up's zoom frames are no example
+        if learn:
+            out["frames"].append(view)
+            out["actions"].append((speed, action[0]))
+            out["labels"].append((teacher.target, label[0]))
+            out["on_road"].append(record.wheel_on_road(car_env.car))
+        tiles, reward = car_env.tile_visited_count, 0.0
+        for _ in range(agent.frame_skip):
+            _, r, terminated, truncated, _ = env.step(action)
+            reward += float(r)
+            if terminated or truncated:
+                done = True
+                break
+        total += reward
+        if learn:
+            out["reward"].append(reward)
+            out["tiles"].append(car_env.tile_visited_count - tiles)
+    env.close()
+    if not out["frames"]:
+        return None, total
+    rewards = {k: np.array(out[k], dtype=episodes.REWARDS[k]) for k in episodes.REWARDS}
+    data = episodes.Episodes(np.stack(out["frames"]), np.array(out["actions"], np.float32),
+                             np.zeros(1, np.int64), rewards, np.array(out["labels"], np.float32))
+    return data, total
+
+
+def train(args, data_files, out):
+    """The policy cloned from `--base` on `data_files` joined (labels where they have them)."""
+    joined = out.with_name("joined.safetensors")
+    episodes.write(joined, episodes.Episodes.concat([episodes.read(f) for f in data_files]),
+                   {"source": "dagger: the expert's episodes and the labelled rounds", "frame_hz": "12.5"})
+    cmd = [str(args.trainer), "policy", "--weights", str(args.base), "--episodes", str(joined),
+           "--holdout", str(args.holdout), "--restart", "--threads", str(args.workers), "--steps", str(args.steps),
+           "--out", str(out)]
+    subprocess.run(cmd, check=True)
+    joined.unlink()
+
+
+def evaluate(args, weights, out_dir):
+    """The held-out tracks' figures of the cloned agent of `weights` (resumable per track)."""
+    cmd = [sys.executable, "-m", "drivesim.carracing", "--agent", "cloned", "--weights", str(weights),
+           "--seeds", args.heldout_text, "--workers", str(args.workers), "--frames", str(args.frames),
+           "--out", str(out_dir)]
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    runs = [json.loads((out_dir / f"track_{s}.json").read_text()) for s in args.heldout]
+    return [r["reward"] for r in runs], float(np.mean([r["on_road"] for r in runs]))
+
+
+def run_round(args, k):
+    """Round k's data (k >= 1), policy and score, each skipped where it exists."""
+    here = args.dir / f"round_{k}"
+    here.mkdir(parents=True, exist_ok=True)
+    policy, data = here / "policy.safetensors", here / "data.safetensors.gz"
+    started = time.time()
+    if k >= 1 and not data.exists():
+        driver = args.dir / f"round_{k - 1}" / "policy.safetensors"
+        seeds = args.tracks[(k - 1) * args.per_round:k * args.per_round]
+        if len(seeds) < args.per_round:
+            raise SystemExit(f"--tracks has too few tracks for round {k} ({args.per_round} a round)")
+        with Pool(args.workers) as pool:
+            parts = pool.map(drive_labelled, [(driver, s, args.frames) for s in seeds], chunksize=1)
+        drives = [p for p, _ in parts if p is not None]
+        episodes.write(data, episodes.Episodes.concat(drives),
+                       {"source": f"dagger round {k}: the round {k - 1} policy driving, the expert labelling",
+                        "seeds": ",".join(map(str, seeds)), "frame_hz": "12.5"})
+        print(f"round {k}: {sum(len(d.frames) for d in drives)} labelled frames; the round {k - 1} policy "
+              f"scored {np.mean([r for _, r in parts]):.1f} on them", flush=True)
+    if not policy.exists():
+        files = [args.data] + [args.dir / f"round_{j}" / "data.safetensors.gz" for j in range(1, k + 1)]
+        train(args, files, policy)
+    scores, on_road = evaluate(args, policy, here / "heldout")
+    line = {"round": k, "mean": round(float(np.mean(scores)), 1), "sd": round(float(np.std(scores)), 1),
+            "min": round(float(np.min(scores)), 1), "on_road": round(on_road, 4), "tracks": len(scores),
+            "seconds": round(time.time() - started, 1)}
+    logged = [json.loads(t) for t in (args.dir / "log.jsonl").read_text().splitlines()] \
+        if (args.dir / "log.jsonl").exists() else []
+    if all(entry["round"] != k for entry in logged):
+        with _files.atomic_write(args.dir / "log.jsonl") as f:
+            f.write("".join(json.dumps(e) + "\n" for e in logged + [line]).encode())
+    print(json.dumps(line), flush=True)
+    return line
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, required=True, help="the expert's episodes (record --driver expert)")
+    p.add_argument("--base", type=Path, default=HERE / "default.safetensors",
+                   help="the model whose encoder and transition the policy reads")
+    p.add_argument("--rounds", type=int, default=4, help="rounds after round 0 (the expert's data alone)")
+    p.add_argument("--tracks", type=record.parse_seeds, required=True, help="tracks the rounds drive")
+    p.add_argument("--per-round", type=int, default=16, help="tracks a round drives")
+    p.add_argument("--heldout", required=True, help="tracks each round's policy is scored on")
+    p.add_argument("--frames", type=int, default=1000, help="env frames a drive lasts at most")
+    p.add_argument("--holdout", type=int, default=2, help="episodes train policy holds out")
+    p.add_argument("--steps", type=int, default=4000, help="train policy's steps")
+    p.add_argument("--workers", type=int, default=os.cpu_count(), help="processes (and trainer threads)")
+    p.add_argument("--trainer", type=Path, default=HERE.parent / "target/release/examples/train")
+    p.add_argument("--dir", type=Path, required=True, help="where rounds are written (resumable)")
+    args = p.parse_args(argv)
+    args.heldout_text, args.heldout = args.heldout, record.parse_seeds(args.heldout)
+    if set(args.heldout) & set(args.tracks):
+        p.error("--heldout tracks must not be driven in the rounds")
+    if min(args.rounds + 1, args.per_round, args.frames, args.workers, args.steps) < 1:
+        p.error("--rounds must be >= 0, and --per-round, --frames, --workers and --steps positive")
+    for path in (args.data, args.base, args.trainer):
+        if not path.exists():
+            p.error(f"{path}: no such file")
+    args.dir.mkdir(parents=True, exist_ok=True)
+    for k in range(args.rounds + 1):
+        run_round(args, k)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
