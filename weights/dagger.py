@@ -26,6 +26,7 @@ drivesim-examples --features train --example train``).
 """
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -71,8 +72,9 @@ def drive_labelled(job):
             out["labels"].append((teacher.target, label[0]))
             out["on_road"].append(record.wheel_on_road(car_env.car))
         tiles, reward = car_env.tile_visited_count, 0.0
-        for _ in range(agent.frame_skip):
-            _, r, terminated, truncated, _ = env.step(action)
+        for i in range(agent.frame_skip):  # only the last step's frame is seen (drawn)
+            with carracing.view.unseen(env) if i + 1 < agent.frame_skip else contextlib.nullcontext():
+                _, r, terminated, truncated, _ = env.step(action)
             reward += float(r)
             if terminated or truncated:
                 done = True

@@ -61,3 +61,30 @@ def test_observe_is_byte_identical_to_the_pillow_reference():
 def test_box_shrink_rejects_bad_input(args, message):
     with pytest.raises(ValueError, match=message):
         box_shrink(*args)
+
+
+def test_steps_unseen_draw_nothing_and_change_nothing():
+    pytest.importorskip("Box2D")
+    import contextlib
+
+    import gymnasium
+
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+    runs = []
+    for skip_drawing in (False, True):
+        env = gymnasium.make("CarRacing-v3")
+        env.reset(seed=5)
+        frames, rewards = [], []
+        for i in range(160):
+            unseen = view.unseen(env) if skip_drawing and i % 4 != 3 else contextlib.nullcontext()
+            with unseen:
+                _, reward, _, _, _ = env.step(np.float32([0.4 * np.sin(i / 11), 0.6, 0.0]))
+            rewards.append(reward)
+            if i % 4 == 3:
+                frames.append(view.observe(env))
+        drawn = env.unwrapped._render
+        env.close()
+        runs.append((np.array(frames), np.array(rewards)))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])  # every seen frame, byte for byte
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
+    assert drawn.__name__ == "_render"  # the env's own drawing is back after the block

@@ -28,7 +28,7 @@ import numpy as np
 
 from .._files import atomic_write
 from .agents import AGENTS, make_agent
-from .view import observe, parse_seeds, speed
+from .view import observe, parse_seeds, speed, unseen
 
 
 def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple[dict, list]:
@@ -50,8 +50,11 @@ def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple
         on_road += any(len(w.tiles) > 0 for w in car.car.wheels)
         if pictures:
             rows.append(picture_row(agent, view))
-        for _ in range(agent.frame_skip):
-            _, reward, terminated, truncated, _ = env.step(action)
+        for i in range(agent.frame_skip):
+            # Only the last step's frame is seen (observe, at the next decision): the others
+            # are not drawn.
+            with unseen(env) if i + 1 < agent.frame_skip else contextlib.nullcontext():
+                _, reward, terminated, truncated, _ = env.step(action)
             total += float(reward)
             steps += 1
             if terminated or truncated:
