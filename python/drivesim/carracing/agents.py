@@ -10,8 +10,9 @@ the grid once around the best, and applies the best plan's first steering. The s
 target that falls as the road ahead bends, through a proportional speed controller (target
 speed to gas and brake).
 
-``ClonedAgent`` ("cloned") drives as the recorder's driver did: behavioural cloning, the policy
-in the weight file (``Simulator.act``, trained by ``train policy``) reading the code of the frame
+``ClonedAgent`` ("cloned") drives as its teacher did: behavioural cloning (the default's policy:
+the privileged expert and three DAgger rounds, ``weights/dagger.py``), the policy in the weight
+file (``Simulator.act``, trained by ``train policy``) reading the code of the frame
 seen now and the transition's hidden state stepped along the drive, and giving the steering and
 the speed to drive at (through the same speed controller).
 
