@@ -75,6 +75,14 @@ impl Episode<'_> {
     }
 }
 
+/// A tensor's little-endian f32 bytes as values.
+fn f32_values(bytes: &[u8]) -> Vec<f32> {
+    bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
+        .collect()
+}
+
 /// The first two bytes of a gzip stream.
 const GZIP_MAGIC: [u8; 2] = [0x1f, 0x8b];
 
@@ -139,7 +147,6 @@ impl Episodes {
             Ok(view)
         };
         let frames = get("frames", Dtype::U8, 4)?;
-        let actions = get("actions", Dtype::F32, 2)?;
         let starts = get("episode_starts", Dtype::I64, 1)?;
         let &[n, height, width, channels] = frames.shape() else {
             unreachable!("rank checked")
@@ -152,14 +159,21 @@ impl Episodes {
                 found: frames.shape().to_vec(),
             });
         }
-        if actions.shape() != [n, Episodes::ACTION_DIM] {
-            let expected = alloc::vec![n, Episodes::ACTION_DIM];
-            return Err(Error::Shape {
-                name: "actions".into(),
-                expected,
-                found: actions.shape().to_vec(),
-            });
-        }
+        // `[n, 2]` finite f32 values: the actions, and the labels where the file has them.
+        let pairs = |name: &'static str| -> Result<Vec<f32>> {
+            let view = get(name, Dtype::F32, 2)?;
+            if view.shape() != [n, Episodes::ACTION_DIM] {
+                return Err(Error::Shape {
+                    name: name.into(),
+                    expected: alloc::vec![n, Episodes::ACTION_DIM],
+                    found: view.shape().to_vec(),
+                });
+            }
+            let values = f32_values(view.data());
+            crate::error::expect_finite(name, &values)?;
+            Ok(values)
+        };
+        let actions = pairs("actions")?;
         let starts: Vec<i64> = starts
             .data()
             .chunks_exact(8)
@@ -171,32 +185,9 @@ impl Episodes {
                 reason: format!("episode_starts must start at 0 and increase below {n} frames, found {starts:?}"),
             });
         }
-        let actions: Vec<f32> = actions
-            .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
-            .collect();
-        crate::error::expect_finite("actions", &actions)?;
         let labels = match file.tensor("labels") {
             Err(_) => None,
-            Ok(_) => {
-                let view = get("labels", Dtype::F32, 2)?;
-                if view.shape() != [n, Episodes::ACTION_DIM] {
-                    let expected = alloc::vec![n, Episodes::ACTION_DIM];
-                    return Err(Error::Shape {
-                        name: "labels".into(),
-                        expected,
-                        found: view.shape().to_vec(),
-                    });
-                }
-                let labels: Vec<f32> = view
-                    .data()
-                    .chunks_exact(4)
-                    .map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes")))
-                    .collect();
-                crate::error::expect_finite("labels", &labels)?;
-                Some(labels)
-            }
+            Ok(_) => Some(pairs("labels")?),
         };
         let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| Error::Malformed {
             what: "episodes file",

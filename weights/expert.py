@@ -34,20 +34,18 @@ SLIDE = 0.3  # radians of slip at which the gas is cut to the minimum
 TURN_GAS = 0.5  # the share of gas taken off at full lock
 
 
-class Expert:
-    """Pure pursuit on the centre line with a speed profile planned from its curvature."""
+class CentreLine:
+    """The track's centre line as the privileged drivers read it (record.Driver's styles and
+    the expert): points, segment lengths, left normals, headings, and where the car is on it."""
 
-    def __init__(self, track, rng=None, style="expert"):
+    def __init__(self, track):
         self.centre = np.array([(x, y) for _, _, x, y in track], dtype=np.float64)
         seg = np.roll(self.centre, -1, axis=0) - self.centre
         self.seg_len = np.linalg.norm(seg, axis=1)
         tangent = seg / self.seg_len[:, None]
         self.left = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-        heading = np.unwrap(np.arctan2(tangent[:, 1], tangent[:, 0]))
-        self.curvature = _curvature(heading, self.seg_len)
-        self.profile = _speed_profile(self.curvature, self.seg_len)
-        self.style, self.i = style, None
-        self.off_centre, self.target = 0.0, 0.0
+        self.heading = np.unwrap(np.arctan2(tangent[:, 1], tangent[:, 0]))
+        self.i = None
 
     def nearest(self, pos):
         """The centre-line point nearest the car, searched near the last one so that laps and
@@ -67,6 +65,17 @@ class Expert:
             run += self.seg_len[j % n]
             j += 1
         return j % n
+
+
+class Expert(CentreLine):
+    """Pure pursuit on the centre line with a speed profile planned from its curvature."""
+
+    def __init__(self, track, rng=None, style="expert"):
+        super().__init__(track)
+        self.curvature = _curvature(self.heading, self.seg_len)
+        self.profile = _speed_profile(self.curvature, self.seg_len)
+        self.style = style
+        self.off_centre, self.target = 0.0, 0.0
 
     def act(self, car, frame_seconds):
         """``([steer, gas, brake] float32, speed, distance from the centre line)``."""

@@ -82,7 +82,7 @@ DRIVERS = ("steady", "varied", "varied-noise", "varied-holds", "holds", "hard", 
 COLOURS = ("default", "random", "mixed")
 
 
-class Driver:
+class Driver(expert.CentreLine):
     """Pure pursuit on a point ahead of the car, shifted sideways, in one of `DRIVERS`' styles;
     `Driver(track, rng, "expert")` is the racing-pace teacher of expert.py, with the same `act`."""
 
@@ -92,12 +92,7 @@ class Driver:
         return super().__new__(cls)
 
     def __init__(self, track, rng, style="steady"):
-        self.centre = np.array([(x, y) for _, _, x, y in track])
-        seg = np.roll(self.centre, -1, axis=0) - self.centre
-        self.seg_len = np.linalg.norm(seg, axis=1)
-        tangent = seg / self.seg_len[:, None]
-        self.left = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-        self.heading = np.unwrap(np.arctan2(tangent[:, 1], tangent[:, 0]))
+        super().__init__(track)
         self.rng, self.style = rng, style
         self.offset = OU(rng, theta=0.02, sigma=0.08)
         self.steer_noise = OU(rng, theta=0.15, sigma={"hard": 0.09, "jerky": 0.0}.get(style, 0.06))
@@ -114,24 +109,6 @@ class Driver:
         # `varied-holds` and `holds`: the steering of the current hold and the seconds it has left.
         self.hold_steer, self.hold_left = 0.0, 0.0
         self.off_centre = 0.0  # half-roads from the centre line, as `act` last measured it
-        self.i = None
-
-    def nearest(self, pos):
-        d = np.linalg.norm(self.centre - pos, axis=1)
-        if self.i is not None:  # search near the last index so laps do not confuse it
-            n = len(self.centre)
-            window = (self.i + np.arange(-10, 40)) % n
-            self.i = int(window[np.argmin(d[window])])
-        else:
-            self.i = int(np.argmin(d))
-        return self.i, d[self.i]
-
-    def ahead(self, i, distance):
-        n, j, run = len(self.centre), i, 0.0
-        while run < distance:
-            run += self.seg_len[j % n]
-            j += 1
-        return j % n
 
     def lateral(self, frame_seconds):
         """Where across the road to aim, in half-roads (positive: left of the centre line)."""
