@@ -14,6 +14,7 @@ use numpy::{PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
 const PRECISION_BITS: u32 = 32 - 8 - 2;
+const MAX_SIDE: usize = 1 << 22;
 
 /// One output pixel's window: `count` input pixels from `first`, each weighted `weight`.
 /// (The box filter weighs every pixel of its window alike, so Pillow's sum of pixel times
@@ -147,6 +148,12 @@ pub fn box_shrink<'py>(
             image.shape()
         )));
     };
+    // A window's sum of 255s times its weight stays within i32 (as in Pillow) up to 2^22 pixels.
+    if h.max(w) > MAX_SIDE {
+        return Err(value_error(format!(
+            "image: at most {MAX_SIDE} pixels a side, got ({h}, {w})"
+        )));
+    }
     if height == 0 || width == 0 || height > h || width > w {
         return Err(value_error(format!(
             "box_shrink: the size ({height}, {width}) must be positive and at most the image's ({h}, {w})"

@@ -57,6 +57,7 @@ def test_observe_is_byte_identical_to_the_pillow_reference():
     ((np.zeros((10, 10, 4), np.uint8), 5, 5, [4]), "channels"),
     ((np.zeros((10, 10, 4), np.uint8), 5, 5, []), "channels"),
     ((np.zeros((10, 10, 4), np.uint8)[:, ::2], 5, 5, [0]), "C-ordered"),
+    ((np.zeros((1, (1 << 22) + 1, 1), np.uint8), 1, 1, [0]), "at most 4194304 pixels a side"),
 ])
 def test_box_shrink_rejects_bad_input(args, message):
     with pytest.raises(ValueError, match=message):
