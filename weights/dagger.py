@@ -26,7 +26,6 @@ drivesim-examples --features train --example train``).
 """
 
 import argparse
-import contextlib
 import json
 import os
 import subprocess
@@ -72,9 +71,7 @@ def drive_labelled(job):
             out["labels"].append((teacher.target, label[0]))
             out["on_road"].append(record.wheel_on_road(car_env.car))
         tiles, reward = car_env.tile_visited_count, 0.0
-        for i in range(agent.frame_skip):  # only the last step's frame is seen (drawn)
-            with carracing.view.unseen(env) if i + 1 < agent.frame_skip else contextlib.nullcontext():
-                _, r, terminated, truncated, _ = env.step(action)
+        for _, r, terminated, truncated, _ in carracing.view.decision_steps(env, action, agent.frame_skip):
             reward += float(r)
             if terminated or truncated:
                 done = True

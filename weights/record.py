@@ -39,7 +39,6 @@ A scripted driver follows the track centre line with pure pursuit; `--driver` pi
 """
 
 import argparse
-import contextlib
 import math
 import os
 import sys
@@ -203,9 +202,8 @@ def record_episode(seed, frames, frame_skip, style="steady", random_colours=Fals
         on_road += off_centre < HALF_ROAD
         rewards["on_road"].append(wheel_on_road(env.car))
         tiles, total = env.tile_visited_count, 0.0
-        for i in range(frame_skip):  # only the last step's frame is recorded: the others go undrawn
-            with view.unseen(env) if i + 1 < frame_skip else contextlib.nullcontext():
-                total += env.step(action)[1]  # `terminated` also fires on a finished lap: keep driving
+        # `terminated` also fires on a finished lap: keep driving.
+        total += sum(float(step[1]) for step in view.decision_steps(env, action, frame_skip))
         rewards["reward"].append(total)
         rewards["tiles"].append(env.tile_visited_count - tiles)
     env.close()

@@ -28,7 +28,7 @@ import numpy as np
 
 from .._files import atomic_write
 from .agents import AGENTS, make_agent
-from .view import observe, parse_seeds, speed, unseen
+from .view import decision_steps, observe, parse_seeds, speed
 
 
 def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple[dict, list]:
@@ -50,11 +50,7 @@ def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple
         on_road += any(len(w.tiles) > 0 for w in car.car.wheels)
         if pictures:
             rows.append(picture_row(agent, view))
-        for i in range(agent.frame_skip):
-            # Only the last step's frame is seen (observe, at the next decision): the others
-            # are not drawn.
-            with unseen(env) if i + 1 < agent.frame_skip else contextlib.nullcontext():
-                _, reward, terminated, truncated, _ = env.step(action)
+        for _, reward, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
             total += float(reward)
             steps += 1
             if terminated or truncated:

@@ -60,6 +60,16 @@ def unseen(env):
         car_racing._render = draw
 
 
+def decision_steps(env, action, frame_skip):
+    """The env stepped ``frame_skip`` times with ``action``, one decision's steps: each step's
+    result in turn, only the last step's frame drawn (the one ``observe`` reads next; the
+    others ``unseen``). Stop iterating to stop stepping (a finished episode)."""
+    for i in range(frame_skip):
+        with unseen(env) if i + 1 < frame_skip else contextlib.nullcontext():
+            result = env.step(action)
+        yield result
+
+
 def observe_reference(surf) -> np.ndarray:
     """``observe``'s frame by Pillow from a copy of the surface: the reference the fast path is
     tested against (and the path without the package)."""
