@@ -128,6 +128,12 @@ impl Model {
         self.transition.samples()
     }
 
+    /// Whether the sampled noise is correlated across the code's dimensions (`transition.L`,
+    /// [`crate::train::fit_noise_factor`]); without it each dimension's noise is independent.
+    pub fn samples_correlated(&self) -> bool {
+        self.transition.correlates()
+    }
+
     /// The architecture the weights were built for.
     pub fn config(&self) -> &Config {
         &self.config

@@ -34,6 +34,8 @@ pub struct Plan {
     pub(crate) transition_concat: usize,
     /// Floats of the code an f16 model's fed-back step recomputes from `h` for a batch.
     pub(crate) transition_code: usize,
+    /// Floats of a sampled step's noise for a batch, drawn and correlated (`crate::sampling`).
+    pub(crate) sampling_noise: usize,
     /// Floats of a rollout's hidden states (a batch of candidates) and codes (a batch, and one).
     pub(crate) rollout: usize,
     bytes: usize,
@@ -114,6 +116,7 @@ impl Plan {
             generator_flat: mul(max_batch, c.flat_len())?,
             transition_concat: mul(max_batch, c.hidden_dim + c.z_dim + c.action_dim)?,
             transition_code: mul(max_batch, c.z_dim)?,
+            sampling_noise: mul(max_batch, mul(2, c.z_dim)?)?,
             rollout: add(mul(max_batch, c.hidden_dim + c.z_dim)?, c.z_dim)?,
             bytes: 0,
         };
@@ -124,6 +127,7 @@ impl Plan {
             plan.generator_flat,
             plan.transition_concat,
             plan.transition_code,
+            plan.sampling_noise,
             plan.rollout,
         ]
         .into_iter()

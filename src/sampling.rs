@@ -4,7 +4,10 @@
 //! ([`crate::Simulator::set_sampling`]) draws each predicted code as
 //! `mean + temperature * exp(S h' + s) * noise`, the noise standard normal from a counter-based
 //! generator: each value depends only on the seed, the step, the item and the dimension, so the
-//! samples are the same bits whatever the thread count, the batch or what ran before.
+//! samples are the same bits whatever the thread count, the batch or what ran before. A model
+//! with `transition.L` correlates the noise across dimensions: `L ε` for the standard normal
+//! `ε`, `L` the Cholesky factor of the correlation of the one-step errors scaled by the spread
+//! (fitted by [`crate::train::fit_noise_factor`]), so each dimension's spread stays the head's.
 
 use drivesim_kernels::math;
 
@@ -25,14 +28,21 @@ impl Sampling {
         self.temperature > 0.0
     }
 
-    /// Adds the spread to the mean codes of the items (`[item][z]`, numbered from 0) at `step`:
-    /// `code += temperature * exp(log_sigma) * noise(seed, step, item, dim)`.
-    pub fn perturb(&self, codes: &mut [f32], log_sigma: &[f32], z: usize, step: u64) {
-        for (n, (item, spread)) in codes.chunks_exact_mut(z).zip(log_sigma.chunks_exact(z)).enumerate() {
+    /// Fills `noise` (`[item][z]`, items numbered from 0) with the standard normal draws of
+    /// rollout step `step`: each value from the seed, the step, the item and the dimension.
+    pub fn draw(&self, noise: &mut [f32], z: usize, step: u64) {
+        for (n, item) in noise.chunks_exact_mut(z).enumerate() {
             let key = stream_key(self.seed, step, n as u64);
-            for (d, (code, &log_sigma)) in item.iter_mut().zip(spread).enumerate() {
-                *code += self.temperature * sigma(log_sigma) * standard_normal(key, d as u64);
+            for (d, value) in item.iter_mut().enumerate() {
+                *value = standard_normal(key, d as u64);
             }
+        }
+    }
+
+    /// `code += temperature * exp(log_sigma) * noise`, value by value.
+    pub fn add_spread(&self, codes: &mut [f32], log_sigma: &[f32], noise: &[f32]) {
+        for ((code, &log_sigma), &noise) in codes.iter_mut().zip(log_sigma).zip(noise) {
+            *code += self.temperature * sigma(log_sigma) * noise;
         }
     }
 }

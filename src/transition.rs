@@ -3,6 +3,7 @@
 use crate::layers::DenseLayer;
 use crate::plan::{zeros, Plan};
 use crate::pool::{Exec, ItemParts};
+use crate::sampling::Sampling;
 use crate::weights::{Init, TensorSource};
 use crate::{Config, Result};
 use alloc::vec::Vec;
@@ -27,14 +28,20 @@ pub(crate) struct Transition {
     /// `S` and `s`, where the model has them: the log standard deviation of each dimension of
     /// the next code, `S h' + s` (sampled futures, `crate::sampling`).
     spread: Option<DenseLayer>,
+    /// `L`, where the model has it: the lower-triangular Cholesky factor of the correlation of
+    /// the spread's noise across dimensions (the noise drawn is `L ε`, `ε` standard normal).
+    noise_factor: Option<DenseLayer>,
 }
 
 /// Per-simulator scratch of the transition, as planned.
 pub(crate) struct TransitionBuffers {
     /// Each batch element's input, `[h | z]` or `h`.
     concat: Vec<f32>,
-    /// The code `A h + a` that a fed-back step of an unfolded (f16) model recomputes.
+    /// The code `A h + a` that a fed-back step of an unfolded (f16) model recomputes; when
+    /// sampling, the log standard deviation of each item's code.
     code: Vec<f32>,
+    /// When sampling: the standard normal noise of each item's code, then its correlated image.
+    noise: Vec<f32>,
 }
 
 impl TransitionBuffers {
@@ -42,6 +49,7 @@ impl TransitionBuffers {
         Ok(TransitionBuffers {
             concat: zeros(plan.transition_concat, plan.bytes())?,
             code: zeros(plan.transition_code, plan.bytes())?,
+            noise: zeros(plan.sampling_noise, plan.bytes())?,
         })
     }
 
@@ -72,6 +80,22 @@ impl Transition {
             )),
             false => None,
         };
+        let noise_factor = match src.contains(NOISE_FACTOR) {
+            // The factor correlates the spread's noise: it means nothing without the spread.
+            true if spread.is_none() => {
+                return Err(crate::Error::MissingTensor {
+                    name: SPREAD_WEIGHT.into(),
+                })
+            }
+            true => Some(DenseLayer::new(
+                src.tensor(NOISE_FACTOR, &[z, z], Init::FanIn(z))?,
+                alloc::vec![0.0; z],
+                z,
+                z,
+                Activation::Identity,
+            )),
+            false => None,
+        };
         let (input, fed_back) = match (w, v) {
             // Both in f16: keep f16, the kernel widens it.
             (Tensor::F16(w), Tensor::F16(v)) => (Tensor::F16(concat_cols(&[(&w, hd), (&v, z)])), None),
@@ -88,6 +112,7 @@ impl Transition {
             action: DenseLayer::new(u, alloc::vec![0.0; hd], hd, a, Activation::Tanh),
             output: DenseLayer::new(big_a, small_a, z, hd, Activation::Identity),
             spread,
+            noise_factor,
         })
     }
 
@@ -96,13 +121,42 @@ impl Transition {
         self.spread.is_some()
     }
 
-    /// The log standard deviation `S h + s` of the next code of each hidden state `h` (after a
-    /// step), into the buffers' scratch; `None` for a model without the spread head.
-    pub fn log_sigma<'b>(&self, exec: Exec<'_>, buf: &'b mut TransitionBuffers, h: &[f32]) -> Option<&'b [f32]> {
-        let spread = self.spread.as_ref()?;
-        let out = &mut buf.code[..h.len() / spread.cols * spread.rows];
-        spread.run(exec, h, out);
-        Some(out)
+    /// Whether the model correlates its sampled noise across dimensions (`transition.L`).
+    pub fn correlates(&self) -> bool {
+        self.noise_factor.is_some()
+    }
+
+    /// Turns the mean codes `codes` that a step predicted from the hidden states `h` it left
+    /// into the samples of rollout step `step`: `code += temperature * exp(S h + s) * (L ε)`,
+    /// `ε` drawn by `sampling` (without `L`: `ε` itself). Nothing changes for a model without
+    /// the spread head. The products run on the dense kernel, bit-identical for any threads.
+    pub fn sample(
+        &self,
+        exec: Exec<'_>,
+        buf: &mut TransitionBuffers,
+        sampling: &Sampling,
+        h: &[f32],
+        step: u64,
+        codes: &mut [f32],
+    ) {
+        let Some(spread) = &self.spread else {
+            return;
+        };
+        let n = codes.len();
+        let log_sigma = &mut buf.code[..n];
+        spread.run(exec, h, log_sigma);
+        let half = buf.noise.len() / 2;
+        let (noise, correlated) = buf.noise.split_at_mut(half);
+        let (noise, correlated) = (&mut noise[..n], &mut correlated[..n]);
+        sampling.draw(noise, spread.rows, step);
+        let noise = match &self.noise_factor {
+            Some(factor) => {
+                factor.run(exec, noise, correlated);
+                &*correlated
+            }
+            None => &*noise,
+        };
+        sampling.add_spread(codes, log_sigma, noise);
     }
 
     /// The step's weights as a trainer holds them (its start): `[W | V | U]` packed
@@ -124,6 +178,12 @@ impl Transition {
     #[cfg(feature = "train")]
     pub fn spread_layer(&self) -> Option<&DenseLayer> {
         self.spread.as_ref()
+    }
+
+    /// The output layer `A`, `a` and the spread head, where the model has one (the noise's fit).
+    #[cfg(feature = "train")]
+    pub fn heads(&self) -> (&DenseLayer, Option<&DenseLayer>) {
+        (&self.output, self.spread.as_ref())
     }
 
     /// Whether steps fed their own prediction run on `[W + V A | U]` (f32 weights).
@@ -258,6 +318,8 @@ const ITEMS_PER_THREAD: usize = 8;
 /// The spread head's tensors: `S` `[z_dim, hidden_dim]` and `s` `[z_dim]` (optional).
 pub(crate) const SPREAD_WEIGHT: &str = "transition.S";
 pub(crate) const SPREAD_BIAS: &str = "transition.s";
+/// The noise's correlation factor `L` `[z_dim, z_dim]` (optional; only with the spread head).
+pub(crate) const NOISE_FACTOR: &str = "transition.L";
 
 /// Writes each batch item's `[h | z]` (or `h` without `z`) to `concat`, the input of the step's
 /// first product.

@@ -20,8 +20,15 @@ fn sampling_allocates_nothing() {
     let spread = [
         ("transition.S", vec![z, hd], values(1, z * hd, 0.05)),
         ("transition.s", vec![z], values(2, z, 0.1)),
+        // A noise factor: the correlated path's product allocates nothing either.
+        (
+            "transition.L",
+            vec![z, z],
+            (0..z * z).map(|i| (i % (z + 1) == 0) as u8 as f32).collect(),
+        ),
     ];
     let model = Model::from_bytes(&with_f32_tensors(&file, &spread)).unwrap();
+    assert!(model.samples_correlated());
     let mut sim = Simulator::with_batch(&model, 6).unwrap().with_threads(2).unwrap();
     let mut env = Environment::new(&model, 2, 6).unwrap();
     let (h, code) = (values(3, hd, 0.5), values(4, z, 1.0));

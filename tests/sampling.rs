@@ -1,6 +1,7 @@
 //! Sampled futures (`Simulator::set_sampling`): temperature 0 is the mean bit for bit, a seed
 //! gives the same bits at any thread count and in any batch, seeds differ, the noise is
-//! standard normal scaled by the model's spread, and bad settings are typed errors. (The weight
+//! standard normal scaled by the model's spread (correlated by `transition.L` where the model has
+//! it), and bad settings are typed errors. (The weight
 //! files are the trainer's `random_weight_file`s: `--features train`.)
 #![cfg(feature = "train")]
 
@@ -13,6 +14,12 @@ use drivesim::{Environment, Error, Model, Simulator};
 /// log standard deviation is `S h + s` (`S` small, `s` = ln 0.5 on average).
 fn models() -> (Model, Model) {
     let file = drivesim::train::random_weight_file(&SMALL, 3).unwrap();
+    let sampled = spread_file(&file);
+    (Model::from_bytes(&file).unwrap(), Model::from_bytes(&sampled).unwrap())
+}
+
+/// `file` with models()'s spread head.
+fn spread_file(file: &[u8]) -> Vec<u8> {
     let (z, hd) = (SMALL.z_dim, SMALL.hidden_dim);
     let spread = [
         ("transition.S", vec![z, hd], values(1, z * hd, 0.05)),
@@ -22,8 +29,27 @@ fn models() -> (Model, Model) {
             values(2, z, 0.1).iter().map(|v| v + 0.5f32.ln()).collect(),
         ),
     ];
-    let sampled = Model::from_bytes(&with_f32_tensors(&file, &spread)).unwrap();
-    (Model::from_bytes(&file).unwrap(), sampled)
+    with_f32_tensors(file, &spread)
+}
+
+/// A lower-triangular noise factor (positive diagonal, rows of unit norm: a correlation's).
+fn noise_factor() -> Vec<f32> {
+    let z = SMALL.z_dim;
+    let mut l = values(8, z * z, 1.0);
+    for (i, row) in l.chunks_exact_mut(z).enumerate() {
+        row[i] = row[i].abs() + 0.5;
+        row[i + 1..].fill(0.0);
+        let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt();
+        row.iter_mut().for_each(|v| *v /= norm);
+    }
+    l
+}
+
+/// models()'s spread head with `factor` as `transition.L`.
+fn correlated(factor: Vec<f32>) -> Model {
+    let file = spread_file(&drivesim::train::random_weight_file(&SMALL, 3).unwrap());
+    let z = SMALL.z_dim;
+    Model::from_bytes(&with_f32_tensors(&file, &[("transition.L", vec![z, z], factor)])).unwrap()
 }
 
 /// `n` candidates of `steps` steps from one state, candidate `k` steering `0.05 k - 0.5`.
@@ -54,8 +80,13 @@ fn temperature_zero_is_the_mean_bit_for_bit() {
 #[test]
 fn a_seed_gives_the_same_bits_at_any_thread_count_and_in_any_batch() {
     let (_, sampled) = models();
+    same_bits_at_any_thread_count_and_in_any_batch(&sampled);
+    same_bits_at_any_thread_count_and_in_any_batch(&correlated(noise_factor()));
+}
+
+fn same_bits_at_any_thread_count_and_in_any_batch(sampled: &Model) {
     let run = |threads: usize, batch: usize, seed: u64| {
-        let mut sim = Simulator::with_batch(&sampled, batch)
+        let mut sim = Simulator::with_batch(sampled, batch)
             .unwrap()
             .with_threads(threads)
             .unwrap();
@@ -76,7 +107,7 @@ fn a_seed_gives_the_same_bits_at_any_thread_count_and_in_any_batch() {
     assert_ne!(run(1, 4, 12), one, "another seed, another future");
 
     // A rollout is item 0: candidate 0 from the same state is the same dream.
-    let mut sim = Simulator::new(&sampled).unwrap();
+    let mut sim = Simulator::new(sampled).unwrap();
     sim.set_sampling(1.0, 11).unwrap();
     let seed = values(4, SMALL.z_dim, 1.0);
     let actions: Vec<f32> = (0..5).flat_map(|_| [20.0, -0.5]).collect();
@@ -138,6 +169,59 @@ fn the_noise_is_standard_normal_scaled_by_the_spread() {
 }
 
 #[test]
+fn correlated_noise_is_the_factor_times_the_independent_noise() {
+    let (_, sampled) = models();
+    let n = 16;
+    let draw = |model: &Model, temperature: f32| {
+        let mut sim = Simulator::with_batch(model, n).unwrap();
+        sim.set_sampling(temperature, 5).unwrap();
+        candidates(&mut sim, n, 1)
+    };
+    let (mean, independent) = (draw(&sampled, 0.0), draw(&sampled, 1.5));
+    // The identity factor is the independent noise, bit for bit.
+    let z = SMALL.z_dim;
+    let identity: Vec<f32> = (0..z * z).map(|i| (i % (z + 1) == 0) as u8 as f32).collect();
+    assert_eq!(draw(&correlated(identity), 1.5), independent);
+    // Any other: per item, (sample - mean) / spread is L times the independent one's.
+    let factor = noise_factor();
+    let model = correlated(factor.clone());
+    assert!(model.samples_correlated() && !sampled.samples_correlated());
+    let drawn = draw(&model, 1.5);
+    assert_eq!(draw(&model, 0.0), mean, "temperature 0 stays the mean");
+    let spread: Vec<f64> = log_sigma_of_first_step(n).iter().map(|l| 1.5 * l.exp()).collect();
+    for item in 0..n {
+        let at = |codes: &[f32], d: usize| (codes[item * z + d] - mean[item * z + d]) as f64 / spread[item * z + d];
+        for d in 0..z {
+            let expected: f64 = (0..z).map(|j| factor[d * z + j] as f64 * at(&independent, j)).sum();
+            assert!((at(&drawn, d) - expected).abs() < 1e-3, "item {item}, dimension {d}");
+        }
+    }
+}
+
+/// The spread head's `S h' + s` (models()'s) of the first step of `candidates(_, n, 1)`.
+fn log_sigma_of_first_step(n: usize) -> Vec<f64> {
+    let (plain, _) = models();
+    let (hd, z) = (SMALL.hidden_dim, SMALL.z_dim);
+    let (h0, z0) = (values(3, hd, 0.5), values(4, z, 1.0));
+    let mut h: Vec<f32> = (0..n).flat_map(|_| h0.clone()).collect();
+    let codes: Vec<f32> = (0..n).flat_map(|_| z0.clone()).collect();
+    let actions: Vec<f32> = (0..n).flat_map(|i| [20.0, i as f32 * 0.05 - 0.5]).collect();
+    let mut next = vec![0.0; n * z];
+    Simulator::with_batch(&plain, n)
+        .unwrap()
+        .transition(&codes, &mut h, &actions, &mut next)
+        .unwrap();
+    let (s, big_s) = (values(2, z, 0.1), values(1, z * hd, 0.05));
+    let dot = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>();
+    (0..n * z)
+        .map(|i| {
+            let (item, d) = (i / z, i % z);
+            s[d] as f64 + 0.5f64.ln() + dot(&big_s[d * hd..][..hd], &h[item * hd..][..hd])
+        })
+        .collect()
+}
+
+#[test]
 fn bad_settings_are_typed_errors() {
     let (plain, sampled) = models();
     let mut sim = Simulator::new(&plain).unwrap();
@@ -154,6 +238,15 @@ fn bad_settings_are_typed_errors() {
     assert!(Model::from_bytes(&wrong).is_err());
     let half = with_f32_tensors(&file, &[("transition.s", vec![SMALL.z_dim], vec![0.0; SMALL.z_dim])]);
     assert!(Model::from_bytes(&half).is_err());
+    // A noise factor without the spread head, or of the wrong shape, does not either.
+    let z = SMALL.z_dim;
+    let alone = with_f32_tensors(&file, &[("transition.L", vec![z, z], vec![0.0; z * z])]);
+    assert!(matches!(Model::from_bytes(&alone), Err(Error::MissingTensor { name }) if name == "transition.S"));
+    let square = with_f32_tensors(
+        &spread_file(&file),
+        &[("transition.L", vec![z, z + 1], vec![0.0; z * (z + 1)])],
+    );
+    assert!(matches!(Model::from_bytes(&square), Err(Error::Shape { .. })));
 }
 
 #[test]

@@ -7,7 +7,9 @@
 mod common;
 
 use common::{fixture_path, relative_error, Io, Rng, FIXTURES};
-use drivesim::train::{cosine_lr, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer};
+use drivesim::train::{
+    cosine_lr, fit_noise_factor, with_noise_factor, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer,
+};
 use drivesim::{Config, Error, Isa, Model, WeightDtype};
 
 /// Max |found - expected| / max |expected| allowed against PyTorch (the 1e-4).
@@ -93,6 +95,45 @@ fn one_step_matches_pytorch() {
             }
         }
     }
+}
+
+#[test]
+fn noise_factor_matches_pytorch() {
+    let f = fixture("spread_f32");
+    let (z, a) = (f.model.config().z_dim, f.model.config().action_dim);
+    let drives: Vec<(&[f32], &[f32])> = f
+        .codes
+        .chunks_exact(f.window * z)
+        .zip(f.actions.chunks_exact((f.window - 1) * a))
+        .collect();
+    let factor = fit_noise_factor(&f.model, &drives).unwrap();
+    check("noise factor", &factor, &f.io.values("noise_factor"));
+    // The same drives with the unused last action of each: the same factor.
+    let longer: Vec<Vec<f32>> = drives.iter().map(|(_, c)| [c, &c[..a]].concat()).collect();
+    let drives_t: Vec<(&[f32], &[f32])> = drives.iter().zip(&longer).map(|((z, _), c)| (*z, &c[..])).collect();
+    assert_eq!(fit_noise_factor(&f.model, &drives_t).unwrap(), factor);
+    // Written into the file, it loads and samples correlated.
+    let file = std::fs::read(common::fixture_path("spread_f32.safetensors")).unwrap();
+    let model = Model::from_bytes(&with_noise_factor(&file, &factor).unwrap()).unwrap();
+    assert!(model.samples_correlated() && !f.model.samples_correlated());
+    // Too few steps for the code's dimensions, a model without the spread head, a bad drive.
+    assert!(matches!(
+        fit_noise_factor(&f.model, &drives[..0]),
+        Err(Error::Episodes { .. })
+    ));
+    let plain = Model::random(f.model.config(), 1, WeightDtype::F32).unwrap();
+    assert!(matches!(fit_noise_factor(&plain, &drives), Err(Error::NoSampling)));
+    let short = [(drives[0].0, &drives[0].1[1..])];
+    assert!(matches!(
+        fit_noise_factor(&f.model, &short),
+        Err(Error::BufferLength { .. })
+    ));
+    let mut nan = drives[0].1.to_vec();
+    nan[3] = f32::NAN;
+    assert!(matches!(
+        fit_noise_factor(&f.model, &[(drives[0].0, &nan[..])]),
+        Err(Error::NonFinite { .. })
+    ));
 }
 
 #[test]

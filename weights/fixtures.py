@@ -26,7 +26,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from model import CONFIG_KEY, Config, DriveSim, load_discriminator, load_drivesim, save_drivesim
-from sequences import transition_step
+from sequences import noise_factor, transition_step
 from vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
 
 OUT = Path(__file__).resolve().parent.parent / "tests" / "fixtures"
@@ -159,6 +159,8 @@ def reference_train(model: DriveSim, cfg: Config, name: str, seed: int) -> tuple
     actions = torch.randn(TRAIN_BATCH, window - 1, cfg.action_dim, generator=g) * 0.5
     actions[..., 0] = 20 + 5 * torch.randn(TRAIN_BATCH, window - 1, generator=g)
     io = {"codes": codes, "actions": actions}
+    if model.transition.spread:  # the noise's correlation from the windows' one-step errors, at the start
+        io["noise_factor"] = noise_factor(model.transition, list(zip(codes, actions)))
     start = {k: p.detach().clone() for k, p in model.transition.named_parameters()}
 
     def run(steps, detach):

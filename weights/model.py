@@ -171,6 +171,21 @@ class Transition(nn.Module):
     def spread(self) -> bool:
         return hasattr(self, "S")
 
+    @property
+    def correlated(self) -> bool:
+        """Whether sampled noise is correlated across dimensions (`transition.L`)."""
+        return hasattr(self, "L")
+
+    def set_noise_factor(self, factor: torch.Tensor) -> None:
+        """`transition.L` [z, z]: the Cholesky factor of the noise's correlation
+        (sequences.noise_factor); sampled noise is then `L @ eps`."""
+        if not self.spread:
+            raise ValueError("a noise factor needs the spread head (transition.S, transition.s)")
+        if hasattr(self, "L"):
+            self.L.copy_(factor)
+        else:
+            self.register_buffer("L", factor.detach().clone().float())
+
     def log_sigma(self, h: torch.Tensor) -> torch.Tensor:
         """The log standard deviation of the next code, `S h' + s`, of the hidden state h' a step left."""
         return h @ self.S.T + self.s
@@ -293,6 +308,8 @@ def from_state_dict(cfg: Config, tensors: dict[str, torch.Tensor]) -> DriveSim:
     spread head and the policy where the tensors hold them)."""
     policy = tensors.get("policy.hidden.weight")
     model = DriveSim(cfg, spread="transition.S" in tensors, policy_width=None if policy is None else policy.shape[0])
+    if "transition.L" in tensors:
+        model.transition.set_noise_factor(torch.zeros(cfg.z_dim, cfg.z_dim))
     # Shape mismatches raise here; missing/unexpected names are checked below.
     res = model.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=False)
     missing = [k for k in res.missing_keys if not k.endswith("num_batches_tracked")]

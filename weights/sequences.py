@@ -27,7 +27,8 @@ def predict(transition, z, c, teacher, detach=True, hidden=False, temperature=0.
     back-propagation through time). Returns codes 1..T-1 (and, with `hidden`, the hidden
     state each step left, [B,T-1,hd]). With a temperature above 0 (a transition with the spread
     head), each output is a sample, `mean + temperature * exp(S h' + s) * noise`, as the crate's
-    sampled rollouts draw them (the noise from `generator`, not the crate's)."""
+    sampled rollouts draw them (the noise from `generator`, not the crate's; correlated by
+    `transition.L` where the transition has it)."""
     h = z.new_zeros(len(z), transition.W.shape[0])
     out, hs = [], []
     for t in range(z.shape[1] - 1):
@@ -36,12 +37,50 @@ def predict(transition, z, c, teacher, detach=True, hidden=False, temperature=0.
         zin, h = transition(zin, h, c[:, t])
         if temperature > 0:
             noise = torch.randn(zin.shape, generator=generator, dtype=zin.dtype, device=zin.device)
+            if transition.correlated:
+                noise = noise @ transition.L.T
             zin = zin + temperature * transition.log_sigma(h).clamp(-20, 20).exp() * noise
         out.append(zin)
         hs.append(h)
         if detach:
             zin = zin.detach()  # no gradient through fed-back outputs
     return (torch.stack(out, 1), torch.stack(hs, 1)) if hidden else torch.stack(out, 1)
+
+
+@torch.no_grad()
+def noise_factor(transition, drives):
+    """`transition.L`: the lower-triangular Cholesky factor of the correlation of the
+    transition's standardised one-step errors on `drives` (pairs of codes [T, z] and actions
+    [T-1 or T, a], raw), as the crate's `train::fit_noise_factor` fits it: along each drive
+    from a zero state on the true codes, each error divided by the spread the head predicts,
+    `(z - mean) / exp(S h' + s)`; their population covariance in float64, scaled to unit
+    diagonal (a dimension without variance uncorrelated)."""
+    zd = transition.A.shape[0]
+    sums = torch.zeros(zd, dtype=torch.float64)
+    products = torch.zeros(zd, zd, dtype=torch.float64)
+    steps = 0
+    for codes, actions in drives:
+        codes, actions = codes.float().cpu(), actions.float().cpu()
+        h = codes.new_zeros(transition.W.shape[0])
+        errors = []
+        for t in range(len(codes) - 1):
+            mean, h = transition(codes[t], h, actions[t])
+            errors.append((codes[t + 1] - mean) / transition.log_sigma(h).clamp(-20, 20).exp())
+        if errors:
+            e = torch.stack(errors).double()
+            sums += e.sum(0)
+            products += e.T @ e
+            steps += len(e)
+    if steps <= zd:
+        raise ValueError(f"the noise's correlation needs more one-step errors than the code's {zd} dimensions: "
+                         f"the drives hold {steps}")
+    mean = sums / steps
+    cov = products / steps - torch.outer(mean, mean)
+    std = cov.diagonal().clamp_min(0).sqrt()
+    scale = torch.outer(std, std)
+    corr = torch.where(scale > 1e-12, cov / scale.clamp_min(1e-300), torch.zeros_like(cov))
+    corr.fill_diagonal_(1.0)
+    return torch.linalg.cholesky(corr).float()
 
 
 def spread_loss(transition, hidden, pred, target, teacher):

@@ -47,7 +47,7 @@ from distributed import globalise_batch_norms, start_distributed, world
 from evaluation import evaluate
 from model import Config, DriveSim, save_drivesim
 from reference_step import step
-from sequences import SEQ, TEACHER, encode, train_transition
+from sequences import SEQ, TEACHER, encode, noise_factor, train_transition
 from vae_gan import ADAM_VAE_GAN, LOSS_WEIGHTS, Discriminator, train_vae_gan
 
 _files = package.load("_files.py")
@@ -92,6 +92,10 @@ def fit(args):
     codes = encode(model, frames)
     actions = torch.from_numpy(data.actions).to(dev)
     norm = train_transition(model, dis, codes, actions, data.windows(SEQ), args, log, checkpoints, state)
+    if args.spread:  # the correlation of the sampled noise, from the training drives' one-step errors
+        model.transition.set_noise_factor(noise_factor(model.transition.cpu(), [
+            (codes[a:b], actions[a:b]) for a, b in data.bounds()]).to(dev))
+        model.transition.to(dev)
     t2 = time.time()
     log.append(dict(vae_gan_seconds=round(t1 - t0, 1), transition_seconds=round(t2 - t1, 1), **norm))
     if rank:  # every process holds the same weights: the first writes them

@@ -99,6 +99,7 @@ pub fn fit(args: &FitArgs) -> Result<(), String> {
         full_bptt: false,
         restart: args.from_scratch,
         spread: args.spread,
+        independent_noise: false,
         dtype: args.dtype,
         seed: args.seed,
         checkpointing: stage(&args.checkpointing, "transition"),

@@ -7,7 +7,9 @@ use crate::common::{bar, Encoded};
 use crate::drives::{split, Drives};
 use crate::files::read;
 use clap::Parser;
-use drivesim::train::{cosine_lr, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer};
+use drivesim::train::{
+    cosine_lr, fit_noise_factor, with_noise_factor, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer,
+};
 use drivesim::{ActionSpec, Episodes, Model, WeightDtype};
 use std::time::Instant;
 
@@ -49,6 +51,10 @@ pub struct TransitionArgs {
     /// from: `Simulator::set_sampling`); a file that has one trains its own
     #[arg(long)]
     pub spread: bool,
+    /// Leave the spread head's noise independent across the code's dimensions: without it, the
+    /// correlation of the one-step errors on the training drives is fitted (`transition.L`)
+    #[arg(long)]
+    pub independent_noise: bool,
     /// Dtype of the written file (default: the input file's)
     #[arg(long)]
     pub dtype: Option<DtypeArg>,
@@ -339,7 +345,19 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
             },
         )
         .map_err(|e| e.to_string())?;
-    Model::from_bytes(&bytes).map_err(|e| format!("the written file does not load: {e}"))?;
+    let written = Model::from_bytes(&bytes).map_err(|e| format!("the written file does not load: {e}"))?;
+    let bytes = match written.samples() && !args.independent_noise {
+        true => {
+            let drives: Vec<(&[f32], &[f32])> = train.iter().map(|e| (&e.codes[..], &e.actions[..])).collect();
+            let factor = fit_noise_factor(&written, &drives).map_err(|e| format!("the noise's correlation: {e}"))?;
+            println!(
+                "fitted the noise's correlation (transition.L) on {} training drives",
+                drives.len()
+            );
+            with_noise_factor(&bytes, &factor).map_err(|e| e.to_string())?
+        }
+        false => bytes,
+    };
     crate::files::write_atomically(&args.data.out, &bytes)?;
     println!("wrote {}", args.data.out.display());
     Ok(())

@@ -50,6 +50,10 @@ class Model:
     def samples(self) -> bool:
         """Whether the transition predicts its codes' spread, so that rollouts can be sampled
         (``Simulator.set_sampling``)."""
+    @property
+    def samples_correlated(self) -> bool:
+        """Whether sampled noise is correlated across the code's dimensions (the weight file's
+        ``transition.L``, fitted by ``train transition``); otherwise each dimension draws alone."""
 
 class Simulator:
     """Encodes frames, steps the transition, generates frames, rolls out dreams.

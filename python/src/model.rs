@@ -116,6 +116,13 @@ impl PyModel {
         self.inner.samples()
     }
 
+    /// Whether sampled noise is correlated across the code's dimensions (`transition.L`, fitted
+    /// by `train transition` from the one-step errors); otherwise each dimension draws alone.
+    #[getter]
+    fn samples_correlated(&self) -> bool {
+        self.inner.samples_correlated()
+    }
+
     /// What each action means and the range it was trained on (the file's `drivesim.actions`):
     /// a list of dicts with `name`, `unit`, `mean`, `std`, `min`, `max`, or None.
     #[getter]

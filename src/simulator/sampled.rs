@@ -78,8 +78,6 @@ pub(super) fn sample_codes(
     codes: &mut [f32],
 ) {
     if sampling.is_on() {
-        if let Some(log_sigma) = model.transition.log_sigma(exec, buffers, h) {
-            sampling.perturb(codes, log_sigma, model.config().z_dim, step);
-        }
+        model.transition.sample(exec, buffers, sampling, h, step, codes);
     }
 }

@@ -7,6 +7,8 @@
 //! - [`VaeGanTrainer`] trains the encoder and generator with a discriminator; its
 //!   [`VaeGanPlan`] is measured by building the trainer without allocating (as ggml's
 //!   allocator measures a graph), then exactly that is allocated.
+//! - [`fit_noise_factor`] fits the correlation of sampled futures' noise (`transition.L`) once
+//!   a transition with the spread head is trained.
 //! - [`PolicyTrainer`] trains the policy, the cloned driver of [`crate::Simulator::act`], by
 //!   behavioural cloning on the caller's examples.
 //!
@@ -23,6 +25,7 @@
 
 mod adam;
 mod arena;
+mod noise;
 mod policy;
 mod shared;
 mod state;
@@ -30,6 +33,9 @@ mod transition;
 mod vae_gan;
 
 pub use adam::Adam;
+pub use noise::fit_noise_factor;
+#[cfg(feature = "std")]
+pub use noise::with_noise_factor;
 pub use policy::{PolicySettings, PolicyTrainer};
 pub use transition::{TransitionPlan, TransitionSettings, TransitionTrainer};
 #[cfg(feature = "std")]
