@@ -9,6 +9,7 @@ from PIL import Image
 
 import episodes
 import probe
+import probe_real
 from model import load_drivesim
 from futures import road_tracking, sampled_futures, steering_probe, texture
 from sequences import SEQ, TEACHER, encode, predict
@@ -156,6 +157,11 @@ def evaluate(args):
                              at_30_steps=sampled_futures(model, data, codes, actions, reference=reference),
                              road_tracking=road_tracking(model, data, codes, actions, decode, recon_frames),
                              texture=texture(model, data, codes, actions, decode, recon_frames, reference=reference))
+    if args.probe_real:  # the real car's probe on the same starts (cached beside the data), and the gaps
+        real = probe_real.cached(args.data, args.workers)
+        result["futures"]["steering_probe_real"] = real
+        result["futures"]["steering_against_real"] = probe.against_real(
+            result["futures"]["steering_probe"], {k: real[k] for k in map(str, probe.READINGS)})
 
     # Steering response: same seed frames, constant actions, 30 steps.
     s0, _ = data.bounds()[0]
@@ -204,3 +210,8 @@ def evaluate(args):
         episodes.write(args.seed_clip, clip, {"source": f"first 8 frames of {args.data}"})
     (figs / "eval.json").write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1))
+    for steps, by_steer in result["futures"].get("steering_against_real", {}).items():
+        for x, g in by_steer.items():
+            moves = [f"{m:.2f}" if m is not None else "-" for m in (g["moves_left_steering"], g["moves_right_steering"])]
+            print(f"against the real car, {steps} steps at ±{x}: right way {g['right_way_gap_points']:+.0f} points, "
+                  f"symmetry {g['symmetry']} (real {g['symmetry_real']}), moves {moves[0]} / {moves[1]} of the real ones")

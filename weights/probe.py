@@ -40,3 +40,24 @@ def symmetry(left, straight, right):
     return dict(right_way=float(right_way), symmetry=moved_right / moved_left if seen and moved_left else None,
                 road_moves_px_right_steering=moved_right, road_moves_px_left_steering=moved_left,
                 starts_with_road=len(seen))
+
+
+def against_real(dream, real):
+    """The dream's probe (futures.steering_probe) against the real car's on the same starts
+    (probe_real): for each number of steps and steering, the right-way share's gap in points
+    (dream - real), both symmetries, and the road's moves in the dream as a multiple of the
+    real ones, for left and right steering (None where either side saw no road)."""
+    def ratio(a, b):
+        return a / b if a is not None and b else None
+
+    out = {}
+    for steps, by_steer in dream.items():
+        out[steps] = {}
+        for x, d in by_steer.items():
+            r = real[steps][x]
+            out[steps][x] = dict(
+                right_way_gap_points=100 * (d["right_way"] - r["right_way"]),
+                symmetry=d["symmetry"], symmetry_real=r["symmetry"],
+                moves_left_steering=ratio(d["road_moves_px_left_steering"], r["road_moves_px_left_steering"]),
+                moves_right_steering=ratio(d["road_moves_px_right_steering"], r["road_moves_px_right_steering"]))
+    return out

@@ -148,3 +148,36 @@ def test_texture_baselines_fit_a_linear_dream_and_copy_the_last_seed():
     short = episodes.Episodes(frames[:2], np.zeros((2, 2), np.float32), np.array([0]))  # no window of 3
     assert linear_predictor(short, codes[:2], actions[:2]) is None
     assert "linear" not in texture(Dream(1.0), data, codes, actions, decode, frames, reference=(short, codes[:2], actions[:2]))
+
+
+def test_the_probe_against_the_real_car_gives_gaps_and_ratios():
+    import probe
+
+    def figures(right_way, left, right):
+        return dict(right_way=right_way, symmetry=right / left if left and right else None,
+                    road_moves_px_left_steering=left, road_moves_px_right_steering=right, starts_with_road=9)
+
+    dream = {"5": {"0.3": figures(0.9, 20.0, 15.0)}, "10": {"0.3": figures(0.5, None, None)}}
+    real = {"5": {"0.3": figures(0.96, 25.0, 30.0)}, "10": {"0.3": figures(0.44, 10.0, 12.0)}}
+    gaps = probe.against_real(dream, real)
+    five = gaps["5"]["0.3"]
+    assert five["right_way_gap_points"] == pytest.approx(-6.0)
+    assert five["moves_left_steering"] == pytest.approx(0.8) and five["moves_right_steering"] == pytest.approx(0.5)
+    assert five["symmetry"] == pytest.approx(0.75) and five["symmetry_real"] == pytest.approx(1.2)
+    ten = gaps["10"]["0.3"]
+    assert ten["right_way_gap_points"] == pytest.approx(6.0) and ten["moves_left_steering"] is None
+
+
+def test_the_real_probe_is_computed_once_per_data_file(tmp_path, monkeypatch):
+    """`probe_real.cached` reuses `DATA.probe-real.json` for the same bytes, and computes again
+    when the file changes."""
+    probe_real = pytest.importorskip("probe_real")  # needs gymnasium's CarRacing
+    runs = []
+    monkeypatch.setattr(probe_real, "real_probe", lambda path, workers: runs.append(path) or {"5": len(runs)})
+    data = tmp_path / "held_out.safetensors.gz"
+    data.write_bytes(b"one recording")
+    assert probe_real.cached(data, 1, log=lambda *_: None) == {"5": 1}
+    assert probe_real.cached(data, 1, log=lambda *_: None) == {"5": 1} and len(runs) == 1
+    data.write_bytes(b"another recording")
+    assert probe_real.cached(data, 1, log=lambda *_: None) == {"5": 2} and len(runs) == 2
+    assert (tmp_path / "held_out.safetensors.gz.probe-real.json").exists()

@@ -124,3 +124,39 @@ def test_the_optional_networks_load_and_round_trip(tmp_path):
     save_drivesim(DriveSim(CFG).eval(), CFG, path)
     plain, _ = load_drivesim(path)
     assert not plain.transition.spread and not hasattr(plain, "policy")
+
+
+def test_the_noise_factor_round_trips_and_correlates_the_samples(tmp_path):
+    """`transition.L` (sequences.noise_factor) is saved and loaded with the spread head, and a
+    sampled prediction draws `L @ eps`: with L's rows swapped, the same draws land swapped."""
+    from sequences import noise_factor, predict
+
+    torch.manual_seed(4)
+    model = DriveSim(CFG, spread=True).eval()
+    with torch.no_grad():
+        model.transition.S.normal_(std=0.1)
+    drives = [(torch.randn(12, CFG.z_dim), torch.randn(11, CFG.action_dim)) for _ in range(3)]
+    factor = noise_factor(model.transition, drives)
+    assert torch.allclose(factor, factor.tril()) and (factor.diagonal() > 0).all()
+    assert torch.allclose((factor @ factor.T).diagonal(), torch.ones(CFG.z_dim), atol=1e-5)
+    model.transition.set_noise_factor(factor)
+    path = tmp_path / "correlated.safetensors"
+    save_drivesim(model, CFG, path)
+    loaded, _ = load_drivesim(path)
+    assert loaded.transition.correlated and torch.equal(loaded.transition.L, factor)
+    z, c = torch.randn(2, 4, CFG.z_dim), torch.randn(2, 3, CFG.action_dim)
+
+    def sample(factor):
+        loaded.transition.set_noise_factor(factor)
+        return predict(loaded.transition, z, c, 1, temperature=1.0, generator=torch.Generator().manual_seed(7))
+
+    mean = predict(loaded.transition, z, c, 4)  # teacher-forced throughout: the means of every step
+    swap = torch.eye(CFG.z_dim)[[1, 0, 2, 3, 4]]
+    first, swapped = sample(torch.eye(CFG.z_dim))[:, 0], sample(swap)[:, 0]
+    _, hidden = predict(loaded.transition, z, c, 4, hidden=True)
+    sigma = loaded.transition.log_sigma(hidden[:, 0]).clamp(-20, 20).exp()
+    eps = (first - mean[:, 0]) / sigma
+    assert torch.allclose((swapped - mean[:, 0]) / sigma, eps @ swap.T, atol=1e-5)
+    assert not torch.allclose(eps @ swap.T, eps)
+    with pytest.raises(ValueError, match="spread head"):
+        DriveSim(CFG).transition.set_noise_factor(factor)

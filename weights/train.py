@@ -156,6 +156,9 @@ def main(argv=None):
     e.add_argument("--seed-clip", help="also write the first 8 frames of the first episode here")
     e.add_argument("--reference", help="episodes the model trained on: futures made of their real codes "
                    "as a baseline for the sampled futures (futures.real_futures)")
+    e.add_argument("--probe-real", action="store_true", help="also the steering probe of the real car on the same "
+                   "starts (probe_real.py; computed once per --data, cached beside it) and the dream's gaps to it")
+    e.add_argument("--workers", type=int, default=os.cpu_count(), help="processes for --probe-real's first run")
     s = sub.add_parser("step", help="one training step on a batch file (the Rust step's reference)")
     s.add_argument("--stage", required=True, choices=["transition", "vae-gan"])
     s.add_argument("--weights", required=True, help="drivesim weight file (f16/bf16 train on f32 copies)")
