@@ -212,6 +212,7 @@ def evaluate(args):
     print(json.dumps(result, indent=1))
     for steps, by_steer in result["futures"].get("steering_against_real", {}).items():
         for x, g in by_steer.items():
-            moves = [f"{m:.2f}" if m is not None else "-" for m in (g["moves_left_steering"], g["moves_right_steering"])]
+            f = [f"{v:.2f}" if v is not None else "-" for v in (g["symmetry"], g["symmetry_real"],
+                                                                 g["moves_left_steering"], g["moves_right_steering"])]
             print(f"against the real car, {steps} steps at ±{x}: right way {g['right_way_gap_points']:+.0f} points, "
-                  f"symmetry {g['symmetry']} (real {g['symmetry_real']}), moves {moves[0]} / {moves[1]} of the real ones")
+                  f"symmetry {f[0]} (real {f[1]}), moves {f[2]} (left) and {f[3]} (right) of the real ones")
