@@ -241,3 +241,34 @@ def test_sampled_futures(model):
         sim.set_sampling(-1.0, 3)
     env = drivesim.Environment(spread, drives=1, candidates=5)
     env.set_sampling(1.0, 4)
+
+
+def test_correlated_sampled_futures(tmp_path):
+    """A file with the noise factor (`transition.L`, here the spread_f32 fixture's, which PyTorch
+    fitted) samples correlated noise: the same seed gives the same bits at any thread count,
+    other bits than the independent noise, and temperature 0 is still the mean."""
+    from safetensors import safe_open
+    from safetensors.numpy import load_file, save_file
+
+    path = fixture("spread_f32.safetensors")
+    with safe_open(path, "numpy") as f:
+        metadata = f.metadata()
+    tensors = load_file(path)
+    tensors["transition.L"] = load_file(fixture("spread_f32.train.safetensors"))["noise_factor"]
+    save_file(tensors, str(tmp_path / "correlated.safetensors"), metadata=metadata)
+    independent, correlated = drivesim.Model.load(path), drivesim.Model.load(tmp_path / "correlated.safetensors")
+    assert correlated.samples_correlated and not independent.samples_correlated
+    rng = np.random.default_rng(1)
+    h = (rng.standard_normal(correlated.hidden_dim) * 0.5).astype(np.float32)
+    z = rng.standard_normal(correlated.z_dim).astype(np.float32)
+    plans = np.zeros((4, 3, 2), np.float32)
+
+    def futures(model, threads, temperature):
+        s = drivesim.Simulator(model, batch=3, threads=threads)
+        s.set_sampling(temperature, 5)
+        return s.rollout_candidates(h, plans, z=z)
+
+    drawn = futures(correlated, 1, 1.0)
+    np.testing.assert_array_equal(futures(correlated, 2, 1.0), drawn)
+    assert not np.allclose(drawn, futures(independent, 1, 1.0))
+    np.testing.assert_array_equal(futures(correlated, 1, 0.0), futures(independent, 1, 0.0))
