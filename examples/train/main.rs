@@ -13,6 +13,8 @@
 //! cargo run --release --features train --example train -- policy --weights W --episodes DATA \
 //!     --out model.safetensors [--steps 4000] [--batch 256] [--lr 1e-3] [--width 64] [--lead 1]
 //!     (transition, vae-gan, fit, policy: [--no-mirror] [--checkpoint CKPT [--checkpoint-every 500] [--resume]])
+//! cargo run --release --features train --example train -- noise --weights W --episodes DATA \
+//!     --out model.safetensors [--holdout 1] [--threads 2]
 //! cargo run --release --features train --example train -- step --stage transition|vae-gan \
 //!     --weights W.safetensors --batch B.safetensors --out O.safetensors [--lr ...] [--teacher 5] [--clip 1.0]
 //! ```
@@ -27,6 +29,9 @@
 //! updated tensors (the file formats are in `weights/README.md`), as `weights/tool train step`
 //! does in PyTorch.
 //!
+//! `noise` fits the correlation of sampled futures' noise (`transition.L`) for a file with the
+//! spread head, training nothing (`transition --spread` fits it after training).
+//!
 //! `policy` clones the recorded driver (see `policy.rs`): the policy that `Simulator::act` runs.
 //!
 //! Every training command learns from the episodes and their mirror images (each frame flipped
@@ -34,7 +39,7 @@
 //! the other) unless `--no-mirror`.
 //!
 //! This file parses the command line and dispatches; each command is a module of its own
-//! (`transition.rs`, `vae_gan.rs`, `fit.rs`, `policy.rs`, `step.rs`), the flags they share are in `args.rs`,
+//! (`transition.rs`, `vae_gan.rs`, `fit.rs`, `noise.rs`, `policy.rs`, `step.rs`), the flags they share are in `args.rs`,
 //! the drives they encode in `drives.rs` and the file helpers in `files.rs`.
 
 mod args;
@@ -44,6 +49,7 @@ mod common;
 mod drives;
 mod files;
 mod fit;
+mod noise;
 mod policy;
 mod step;
 mod transition;
@@ -67,6 +73,8 @@ enum Command {
     VaeGan(vae_gan::VaeGanArgs),
     /// Both stages, as `weights/tool train fit`: the VAE-GAN, then the transition on its codes
     Fit(fit::FitArgs),
+    /// Fit the correlation of sampled futures' noise (transition.L) on episodes, training nothing
+    Noise(noise::NoiseArgs),
     /// Behavioural cloning: train the policy (the cloned driver) on a driver's episodes
     Policy(policy::PolicyArgs),
     /// One step on a batch file; write the loss, gradients and updated tensors
@@ -78,6 +86,7 @@ fn main() -> ExitCode {
         Command::Transition(args) => transition::transition(&args),
         Command::VaeGan(args) => vae_gan::vae_gan(&args),
         Command::Fit(args) => fit::fit(&args),
+        Command::Noise(args) => noise::noise(&args),
         Command::Policy(args) => policy::policy(&args),
         Command::Step(args) => step::step(&args),
     })
