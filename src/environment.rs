@@ -164,9 +164,22 @@ impl<M: Borrow<Model>> Environment<M> {
 
     /// One step of every drive: `actions` holds one action per drive (`[drive][action_dim]`);
     /// each drive's current code becomes its predicted next one (a sample of it with sampling
-    /// on, [`Environment::set_sampling`]).
+    /// on, [`Environment::set_sampling`]). Bad actions are refused before anything changes; a
+    /// step that fails after that (a prediction that is not finite) leaves the drives needing
+    /// a reset ([`Error::NotSeeded`] until then), never half a step.
     pub fn step(&mut self, actions: &[f32]) -> Result<()> {
         self.expect_seeded()?;
+        expect_len("actions", actions, self.drives * self.sim.config().action_dim)?;
+        expect_finite("actions", actions)?;
+        let stepped = self.advance(actions);
+        if stepped.is_err() {
+            self.seeded = false;
+        }
+        stepped
+    }
+
+    /// [`Environment::step`] of checked actions.
+    fn advance(&mut self, actions: &[f32]) -> Result<()> {
         if self.sim.sampling().0 > 0.0 {
             // A sample is not what the hidden state predicts: step from it.
             self.sim

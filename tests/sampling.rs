@@ -269,3 +269,35 @@ fn an_environment_samples_its_steps_and_repeats_after_a_reset() {
     assert_ne!(first, mean);
     assert_eq!(drive(&mut env), first, "a reset and the same actions: the same drive");
 }
+
+#[test]
+fn a_failed_step_leaves_the_environment_to_be_reset_not_half_stepped() {
+    // A transition whose next code overflows: every step's prediction is infinite.
+    let file = spread_file(&drivesim::train::random_weight_file(&SMALL, 3).unwrap());
+    let (z, hd) = (SMALL.z_dim, SMALL.hidden_dim);
+    let huge = [
+        ("transition.A", vec![z, hd], vec![3e38; z * hd]),
+        ("transition.a", vec![z], vec![3e38; z]),
+    ];
+    let model = Model::from_bytes(&with_f32_tensors(&file, &huge)).unwrap();
+    let mut env = Environment::new(&model, 2, 4).unwrap();
+    env.reset_from_codes(&values(7, 2 * z, 1.0), &[]).unwrap();
+    // Bad actions are refused before anything changes: the drives stay as they were.
+    let codes = env.codes().to_vec();
+    assert!(matches!(env.step(&[20.0, 0.1, 20.0]), Err(Error::BufferLength { .. })));
+    assert!(matches!(
+        env.step(&[20.0, f32::NAN, 20.0, 0.1]),
+        Err(Error::NonFinite { .. })
+    ));
+    assert!(env.is_seeded() && env.codes() == codes);
+    // A step that fails on its way (here, a prediction that is not finite) is never half a
+    // step: the drives must be reset.
+    assert!(matches!(
+        env.step(&[20.0, 0.1, 20.0, 0.1]),
+        Err(Error::NonFiniteOutput { .. })
+    ));
+    assert!(!env.is_seeded());
+    assert!(matches!(env.step(&[20.0, 0.1, 20.0, 0.1]), Err(Error::NotSeeded)));
+    env.reset_from_codes(&values(7, 2 * z, 1.0), &[]).unwrap();
+    assert!(env.is_seeded());
+}

@@ -137,7 +137,10 @@ class Environment:
         """Samples every later step and rollout (``Simulator.set_sampling``); a step's noise is
         that of the steps since the reset and the drive."""
     def step(self, actions: F32) -> None:
-        """``actions`` ``(drives, 2)``: (speed, steering) each."""
+        """``actions`` ``(drives, 2)``: (speed, steering) each. Bad actions raise ``ValueError``
+        and change nothing; a step that fails after that (a prediction that is not finite)
+        raises ``ValueError`` too and leaves the drives to be reset (``ValueError`` until then), never half
+        a step."""
     @property
     def codes(self) -> F32:
         """``(drives, z_dim)``, a copy."""
