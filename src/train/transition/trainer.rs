@@ -347,7 +347,9 @@ impl<'a> TransitionTrainer<'a> {
     /// file's own dtype; f16 files are trained on f32 master weights and rounded here), and
     /// what it was trained on in its metadata ([`TrainedOn`](crate::train::TrainedOn): what the
     /// actions mean and their range, the frame rate; the original's where not given).
-    /// [`Model::from_bytes`] reads it.
+    /// [`Model::from_bytes`] reads it. The original's noise factor (`transition.L`) is not
+    /// kept: it was fitted for the transition it came with ([`crate::train::fit_noise_factor`]
+    /// and [`crate::train::with_noise_factor`] fit and add one for this one).
     #[cfg(feature = "std")]
     pub fn weight_file(
         &self,
