@@ -174,16 +174,10 @@ impl Transition {
         output.1.copy_from_slice(&self.output.bias);
     }
 
-    /// The spread head `S` with `s`, where the model has one (a trainer's start).
+    /// The spread head `S` with `s`, where the model has one (a trainer's start, the noise's fit).
     #[cfg(feature = "train")]
     pub fn spread_layer(&self) -> Option<&DenseLayer> {
         self.spread.as_ref()
-    }
-
-    /// The output layer `A`, `a` and the spread head, where the model has one (the noise's fit).
-    #[cfg(feature = "train")]
-    pub fn heads(&self) -> (&DenseLayer, Option<&DenseLayer>) {
-        (&self.output, self.spread.as_ref())
     }
 
     /// Whether steps fed their own prediction run on `[W + V A | U]` (f32 weights).

@@ -31,10 +31,9 @@ use drivesim_kernels::Isa;
 pub fn fit_noise_factor(model: &Model, drives: &[(&[f32], &[f32])]) -> Result<Vec<f32>> {
     let c = model.config();
     let (z, hd, a) = (c.z_dim, c.hidden_dim, c.action_dim);
-    let (output, Some(spread)) = model.transition.heads() else {
+    let Some(spread) = model.transition.spread_layer() else {
         return Err(Error::NoSampling);
     };
-    debug_assert_eq!(output.rows, z);
     let plan = Plan::new(c, 1, 1)?;
     let mut buffers = TransitionBuffers::new(&plan)?;
     let exec = Exec {
