@@ -7,9 +7,7 @@ use crate::common::{bar, Encoded};
 use crate::drives::{split, Drives};
 use crate::files::read;
 use clap::Parser;
-use drivesim::train::{
-    cosine_lr, fit_noise_factor, with_noise_factor, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer,
-};
+use drivesim::train::{cosine_lr, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer};
 use drivesim::{ActionSpec, Episodes, Model, WeightDtype};
 use std::time::Instant;
 
@@ -347,15 +345,11 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
         .map_err(|e| e.to_string())?;
     let written = Model::from_bytes(&bytes).map_err(|e| format!("the written file does not load: {e}"))?;
     let bytes = match written.samples() && !args.independent_noise {
-        true => {
-            let drives: Vec<(&[f32], &[f32])> = train.iter().map(|e| (&e.codes[..], &e.actions[..])).collect();
-            let factor = fit_noise_factor(&written, &drives).map_err(|e| format!("the noise's correlation: {e}"))?;
-            println!(
-                "fitted the noise's correlation (transition.L) on {} training drives",
-                drives.len()
-            );
-            with_noise_factor(&bytes, &factor).map_err(|e| e.to_string())?
-        }
+        // Too few steps for the correlation must not cost the training: the file goes without.
+        true => crate::noise::with_fitted_noise(&bytes, &written, &train).unwrap_or_else(|e| {
+            eprintln!("warning: written without transition.L (independent sampled noise): {e}");
+            bytes
+        }),
         false => bytes,
     };
     crate::files::write_atomically(&args.data.out, &bytes)?;
