@@ -32,6 +32,9 @@ pub struct Encoded {
     pub actions: Vec<f32>,
     /// `[frames, 2]`, where the episodes have them: a teacher's (speed, steering) for each frame.
     pub labels: Option<Vec<f32>>,
+    /// `[frames]` each, where the episodes have them: the env's reward for each frame's
+    /// decision, and 1 where a wheel was on the road (the same in a mirror).
+    pub outcomes: Option<(Vec<f32>, Vec<u8>)>,
 }
 
 /// Encodes every frame of every episode in `episodes` (batches of 32, `threads` threads).
@@ -96,7 +99,16 @@ pub fn encode_view(
                     .for_each(|steering| *steering = -*steering);
             }
         }
-        out.push(Encoded { codes, actions, labels });
+        let outcomes = episode
+            .rewards
+            .zip(episode.on_road)
+            .map(|(r, o)| (r.to_vec(), o.to_vec()));
+        out.push(Encoded {
+            codes,
+            actions,
+            labels,
+            outcomes,
+        });
     }
     progress.finish_and_clear();
     Ok(out)

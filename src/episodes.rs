@@ -21,6 +21,9 @@ pub struct Episodes {
     actions: Vec<f32>,
     /// `[N, 2]`, optional: (speed to drive at, steering) a teacher gave for frame i.
     labels: Option<Vec<f32>>,
+    /// `[N]` each, optional: the env's reward for the decision at frame i, and 1 where a wheel
+    /// touched the road at frame i.
+    outcomes: Option<(Vec<f32>, Vec<u8>)>,
     /// First frame of each episode, increasing from 0.
     starts: Vec<usize>,
     /// Frames per second, from the file's `frame_hz` metadata.
@@ -42,6 +45,11 @@ pub struct Episode<'a> {
     /// teacher gave for each frame (DAgger's labels, `weights/README.md`), which a policy
     /// learns instead of the driver's own.
     pub labels: Option<&'a [f32]>,
+    /// `len()` values, where the file has them: the env's reward for the decision taken at
+    /// each frame (summed over the frames to the next), what a reward head learns.
+    pub rewards: Option<&'a [f32]>,
+    /// `len()` values with the rewards: 1 where a wheel touched the road at the frame, else 0.
+    pub on_road: Option<&'a [u8]>,
 }
 
 impl Episode<'_> {
@@ -189,6 +197,7 @@ impl Episodes {
             Err(_) => None,
             Ok(_) => Some(pairs("labels")?),
         };
+        let outcomes = Episodes::outcomes(&file, n)?;
         let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| Error::Malformed {
             what: "episodes file",
             reason: format!("{e:?}"),
@@ -203,9 +212,38 @@ impl Episodes {
             frames: frames.data().to_vec(),
             actions,
             labels,
+            outcomes,
             starts: starts.into_iter().map(|s| s as usize).collect(),
             frame_hz,
         })
+    }
+
+    /// The optional `reward` (f32, finite) and `on_road` (u8, 0 or 1), `[n]` each: both or
+    /// neither (`weights/README.md`).
+    fn outcomes(file: &SafeTensors<'_>, n: usize) -> Result<Option<(Vec<f32>, Vec<u8>)>> {
+        let bad = |reason: String| Error::Episodes { reason };
+        let (reward, on_road) = match (file.tensor("reward"), file.tensor("on_road")) {
+            (Err(_), Err(_)) => return Ok(None),
+            (Ok(r), Ok(o)) => (r, o),
+            _ => return Err(bad("`reward` and `on_road` come together or not at all".into())),
+        };
+        if reward.dtype() != Dtype::F32 || on_road.dtype() != Dtype::U8 {
+            return Err(bad("`reward` must be F32 and `on_road` U8".into()));
+        }
+        if reward.shape() != [n] || on_road.shape() != [n] {
+            return Err(bad(format!(
+                "`reward` and `on_road` must have one value per frame ({n}), found {:?} and {:?}",
+                reward.shape(),
+                on_road.shape()
+            )));
+        }
+        let rewards = f32_values(reward.data());
+        crate::error::expect_finite("reward", &rewards)?;
+        let on_road = on_road.data().to_vec();
+        if on_road.iter().any(|&v| v > 1) {
+            return Err(bad("`on_road` values must be 0 or 1".into()));
+        }
+        Ok(Some((rewards, on_road)))
     }
 
     #[cfg(feature = "std")]
@@ -278,6 +316,8 @@ impl Episodes {
                 .labels
                 .as_ref()
                 .map(|l| &l[start * Episodes::ACTION_DIM..end * Episodes::ACTION_DIM]),
+            rewards: self.outcomes.as_ref().map(|(r, _)| &r[start..end]),
+            on_road: self.outcomes.as_ref().map(|(_, o)| &o[start..end]),
         })
     }
 }

@@ -163,6 +163,12 @@ pub enum Error {
     /// [`crate::Simulator::act`] on a model whose weight file has no policy (`policy.*`
     /// tensors; `train policy` adds them).
     NoPolicy,
+    /// A call that reads the reward or value head on a model whose weight file has none
+    /// (`reward.*`, `value.*` tensors; `train heads` adds them).
+    NoHead {
+        /// The head's name: `reward` or `value`.
+        head: &'static str,
+    },
     /// Sampling asked of a model whose transition has no spread head (`transition.S` and
     /// `transition.s`): it predicts its mean only.
     NoSampling,
@@ -297,6 +303,10 @@ impl fmt::Display for Error {
             Error::NoPolicy => write!(
                 f,
                 "the model has no policy (no `policy.*` tensors in its weight file): train one with `train policy`"
+            ),
+            Error::NoHead { head } => write!(
+                f,
+                "the model has no {head} head (no `{head}.*` tensors in its weight file): train one with `train heads`"
             ),
             Error::NoGradients => write!(
                 f,

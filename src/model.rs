@@ -3,7 +3,7 @@
 use crate::actions::ActionSpec;
 use crate::encoder::Encoder;
 use crate::generator::Generator;
-use crate::policy::Policy;
+use crate::heads::{Head, HeadKind};
 use crate::transition::Transition;
 use crate::weights::{Described, RandomSource, SafetensorsSource, TensorSource, WeightDtype};
 use crate::{Config, Result};
@@ -12,18 +12,22 @@ use alloc::vec::Vec;
 /// The encoder, transition and generator of "Learning a Driving Simulator", ready to run.
 ///
 /// Loading validates every tensor against the config (shape, one dtype for the file, no
-/// tensor the config does not use (but the optional policy's, `policy.*`), every value finite, BatchNorm variances non-negative), folds BatchNorm (PyTorch eval semantics:
+/// tensor the config does not use (but the optional heads', `policy.*`, `reward.*`, `value.*`), every value finite, BatchNorm variances non-negative), folds BatchNorm (PyTorch eval semantics:
 /// running statistics, eps 1e-5) into the neighbouring layers and repacks weights into the
 /// kernels' layouts, once. A `Model` is immutable; run it through a [`crate::Simulator`].
 pub struct Model {
     config: Config,
     actions: Option<Vec<ActionSpec>>,
     frame_hz: Option<f32>,
+    discount: Option<f32>,
     pub(crate) encoder: Encoder,
     pub(crate) generator: Generator,
     pub(crate) transition: Transition,
     /// The cloned driver, where the file has one (`policy.*` tensors).
-    pub(crate) policy: Option<Policy>,
+    pub(crate) policy: Option<Head>,
+    /// The reward and value heads, where the file has them (`reward.*`, `value.*`).
+    pub(crate) reward: Option<Head>,
+    pub(crate) value: Option<Head>,
 }
 
 impl Model {
@@ -63,10 +67,13 @@ impl Model {
         let model = Model {
             actions: described.actions,
             frame_hz: described.frame_hz,
+            discount: described.discount,
             encoder: Encoder::load(&config, src)?,
             generator: Generator::load(&config, src)?,
             transition: Transition::load(&config, src)?,
-            policy: Policy::load(&config, src)?,
+            policy: Head::load(&config, src, HeadKind::Policy)?,
+            reward: Head::load(&config, src, HeadKind::Reward)?,
+            value: Head::load(&config, src, HeadKind::Value)?,
             config,
         };
         src.finish()?;
@@ -119,7 +126,34 @@ impl Model {
     /// # Ok::<(), drivesim::Error>(())
     /// ```
     pub fn policy_width(&self) -> Option<usize> {
-        self.policy.as_ref().map(Policy::width)
+        self.head_width(HeadKind::Policy)
+    }
+
+    /// Units of the hidden layer of one of the model's heads, or `None` where the file has no
+    /// tensors under its prefix.
+    ///
+    /// ```
+    /// use drivesim::HeadKind;
+    /// let model = drivesim::Model::load("weights/default.safetensors")?;
+    /// assert_eq!(model.head_width(HeadKind::Policy), model.policy_width());
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
+    pub fn head_width(&self, kind: HeadKind) -> Option<usize> {
+        self.head(kind).map(Head::width)
+    }
+
+    pub(crate) fn head(&self, kind: HeadKind) -> Option<&Head> {
+        match kind {
+            HeadKind::Policy => self.policy.as_ref(),
+            HeadKind::Reward => self.reward.as_ref(),
+            HeadKind::Value => self.value.as_ref(),
+        }
+    }
+
+    /// The discount per decision (transition step) that the value head's returns were
+    /// discounted with, from the file's `drivesim.discount` metadata; `None` without it.
+    pub fn discount(&self) -> Option<f32> {
+        self.discount
     }
 
     /// Whether the transition predicts its codes' spread (`transition.S`, `transition.s`), so
@@ -147,6 +181,8 @@ impl core::fmt::Debug for Model {
             .field("actions", &self.actions)
             .field("folds_fed_back_steps", &self.transition.folds())
             .field("policy_width", &self.policy_width())
+            .field("reward_width", &self.head_width(HeadKind::Reward))
+            .field("value_width", &self.head_width(HeadKind::Value))
             .finish_non_exhaustive()
     }
 }

@@ -38,6 +38,8 @@ pub struct Plan {
     pub(crate) sampling_noise: usize,
     /// Floats of a rollout's hidden states (a batch of candidates) and codes (a batch, and one).
     pub(crate) rollout: usize,
+    /// Floats of a head's hidden layer for a batch (a head is at most `hidden_dim` wide).
+    pub(crate) heads: usize,
     bytes: usize,
 }
 
@@ -118,6 +120,7 @@ impl Plan {
             transition_code: mul(max_batch, c.z_dim)?,
             sampling_noise: mul(max_batch, mul(2, c.z_dim)?)?,
             rollout: add(mul(max_batch, c.hidden_dim + c.z_dim)?, c.z_dim)?,
+            heads: mul(max_batch, c.hidden_dim)?,
             bytes: 0,
         };
         let floats = [
@@ -129,6 +132,7 @@ impl Plan {
             plan.transition_code,
             plan.sampling_noise,
             plan.rollout,
+            plan.heads,
         ]
         .into_iter()
         .try_fold(0, add)?;

@@ -109,6 +109,7 @@ impl<'a> SafetensorsSource<'a> {
             frame_hz: key(FRAME_HZ_KEY)
                 .map(|text| parse_frame_hz(FRAME_HZ_KEY, text))
                 .transpose()?,
+            discount: key(DISCOUNT_KEY).map(|text| parse_discount(text)).transpose()?,
         };
         let file = SafeTensors::deserialize(bytes).map_err(malformed)?;
         // One supported dtype per file (`weights/README.md`): name the first tensor, in name
@@ -139,12 +140,28 @@ impl<'a> SafetensorsSource<'a> {
 /// second (`"12.5"`), as the episodes files' `frame_hz`.
 pub(crate) const FRAME_HZ_KEY: &str = "drivesim.frame_hz";
 
+/// The metadata key of the discount per decision of a value head's returns: a decimal number
+/// above 0 and below 1 (`"0.98"`).
+pub(crate) const DISCOUNT_KEY: &str = "drivesim.discount";
+
 /// What a weight file says about its inputs beyond the config: what the actions mean
-/// (`drivesim.actions`) and how far apart its frames are (`drivesim.frame_hz`).
+/// (`drivesim.actions`), how far apart its frames are (`drivesim.frame_hz`) and the value
+/// head's discount (`drivesim.discount`).
 #[derive(Default)]
 pub(crate) struct Described {
     pub actions: Option<Vec<ActionSpec>>,
     pub frame_hz: Option<f32>,
+    pub discount: Option<f32>,
+}
+
+/// A discount in metadata: a finite number above 0 and below 1.
+pub(crate) fn parse_discount(text: &str) -> Result<f32> {
+    match text.trim().parse::<f32>() {
+        Ok(d) if d > 0.0 && d < 1.0 => Ok(d),
+        _ => Err(Error::Metadata {
+            reason: format!("`{DISCOUNT_KEY}`: expected a number above 0 and below 1, found {text:?}"),
+        }),
+    }
 }
 
 /// A frame rate in metadata (`key`: a weight file's `drivesim.frame_hz`, an episodes file's
@@ -308,7 +325,7 @@ pub(crate) fn read_batch_norm(src: &mut dyn TensorSource, name: &str, channels: 
 /// The weight file `bytes` with the tensors of `replace` (name, shape, PyTorch-layout values)
 /// put in place of the stored ones or, where the file has no such tensor, added; every tensor
 /// written in `dtype` (or the file's own dtype), the metadata kept but for what `trained_on`
-/// gives (`drivesim.actions`, `drivesim.frame_hz`): how a trainer saves what it trained. The
+/// gives (`drivesim.actions`, `drivesim.frame_hz`, `drivesim.discount`): how a trainer saves what it trained. The
 /// file is validated as
 /// [`SafetensorsSource::parse`] does, and each replacement must have its tensor's shape, but
 /// under `group` (a prefix such as the policy's): the file's tensors there are left out, and the
@@ -333,6 +350,11 @@ pub(crate) fn rewrite(
         let text = format!("{hz}");
         parse_frame_hz(FRAME_HZ_KEY, &text)?; // what is written must read back
         metadata.insert(FRAME_HZ_KEY.to_string(), text);
+    }
+    if let Some(discount) = trained_on.discount {
+        let text = format!("{discount}");
+        parse_discount(&text)?; // what is written must read back
+        metadata.insert(DISCOUNT_KEY.to_string(), text);
     }
     let in_group = |name: &str| group.is_some_and(|prefix| name.starts_with(prefix));
     let mut names: Vec<String> = src

@@ -185,3 +185,61 @@ fn labels_are_optional_and_checked() {
     let e = err(Tensor::new(Dtype::F32, vec![5, 2], floats(nan)));
     assert!(e.to_string().contains("labels"), "{e}");
 }
+
+#[test]
+fn rewards_are_optional_come_with_on_road_and_are_checked() {
+    let rewards = |n: usize| {
+        Tensor::new(
+            Dtype::F32,
+            vec![n],
+            (0..n).flat_map(|i| (i as f32 - 1.5).to_le_bytes()).collect(),
+        )
+    };
+    let on_road = |values: Vec<u8>| Tensor::new(Dtype::U8, vec![values.len()], values);
+    let both = file(4, &[0, 3], |t| {
+        t.push(("reward", rewards(4)));
+        t.push(("on_road", on_road(vec![1, 0, 1, 1])));
+    });
+    let episodes = Episodes::from_bytes(&both).unwrap();
+    let (first, second) = (episodes.episode(0).unwrap(), episodes.episode(1).unwrap());
+    assert_eq!(first.rewards, Some(&[-1.5, -0.5, 0.5][..]));
+    assert_eq!(first.on_road, Some(&[1, 0, 1][..]));
+    assert_eq!((second.rewards, second.on_road), (Some(&[1.5][..]), Some(&[1][..])));
+    let none = Episodes::from_bytes(&file(4, &[0], |_| {})).unwrap();
+    assert_eq!(
+        (none.episode(0).unwrap().rewards, none.episode(0).unwrap().on_road),
+        (None, None)
+    );
+    let bad = [
+        file(4, &[0], |t| t.push(("reward", rewards(4)))),
+        file(4, &[0], |t| t.push(("on_road", on_road(vec![1; 4])))),
+        file(4, &[0], |t| {
+            t.push(("reward", rewards(3)));
+            t.push(("on_road", on_road(vec![1; 4])));
+        }),
+        file(4, &[0], |t| {
+            t.push(("reward", rewards(4)));
+            t.push(("on_road", on_road(vec![1, 2, 0, 1])));
+        }),
+        file(4, &[0], |t| {
+            t.push(("reward", rewards(4)));
+            t.push(("on_road", Tensor::new(Dtype::F32, vec![4], vec![0; 16])));
+        }),
+    ];
+    for (i, bytes) in bad.iter().enumerate() {
+        let result = Episodes::from_bytes(bytes);
+        assert!(matches!(result, Err(Error::Episodes { .. })), "file {i}: {result:?}");
+    }
+    let nan = file(2, &[0], |t| {
+        t.push((
+            "reward",
+            Tensor::new(
+                Dtype::F32,
+                vec![2],
+                [f32::NAN, 0.0].iter().flat_map(|v| v.to_le_bytes()).collect(),
+            ),
+        ));
+        t.push(("on_road", on_road(vec![1, 1])));
+    });
+    assert!(matches!(Episodes::from_bytes(&nan), Err(Error::NonFinite { .. })));
+}

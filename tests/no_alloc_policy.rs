@@ -14,7 +14,7 @@ static GLOBAL: Counting = Counting;
 /// A model with a policy needs the trainer to write one.
 #[test]
 fn the_policy_allocates_nothing() {
-    use drivesim::train::{random_weight_file, PolicySettings, PolicyTrainer};
+    use drivesim::train::{random_weight_file, HeadSettings, HeadTrainer};
     let config = Config {
         height: 16,
         width: 32,
@@ -24,13 +24,18 @@ fn the_policy_allocates_nothing() {
         ..Config::COMMA
     };
     let original = random_weight_file(&config, 1).unwrap();
-    let settings = PolicySettings {
+    let settings = HeadSettings {
         width: 18,
         batch: 5,
         restart: Some(2),
-        ..PolicySettings::default()
+        ..HeadSettings::default()
     };
-    let mut trainer = PolicyTrainer::new(&Model::from_bytes(&original).unwrap(), settings).unwrap();
+    let mut trainer = HeadTrainer::new(
+        &Model::from_bytes(&original).unwrap(),
+        drivesim::HeadKind::Policy,
+        settings,
+    )
+    .unwrap();
     let cols = config.z_dim + config.hidden_dim;
     let inputs: Vec<f32> = (0..5 * cols).map(|i| (i as f32 * 0.37).sin()).collect();
     let actions: Vec<f32> = (0..10).map(|i| (i as f32 * 0.7).cos()).collect();
@@ -41,7 +46,7 @@ fn the_policy_allocates_nothing() {
         trainer.loss(&inputs[..2 * cols], &actions[..4]).unwrap();
     });
     assert_eq!(n, 0, "{n} allocations in the trainer's steps");
-    let model = Model::from_bytes(&trainer.weight_file(&original).unwrap()).unwrap();
+    let model = Model::from_bytes(&trainer.weight_file(&original, Default::default()).unwrap()).unwrap();
     let mut sim = Simulator::with_batch(&model, 5).unwrap().with_threads(2).unwrap();
     let (z, h): (Vec<f32>, Vec<f32>) = (
         inputs[..5 * config.z_dim].to_vec(),

@@ -6,7 +6,7 @@
 mod common;
 
 use common::{relative_error, values, Tensor, SMALL};
-use drivesim::train::{random_weight_file, NamedTensor, PolicySettings, PolicyTrainer};
+use drivesim::train::{random_weight_file, HeadSettings, HeadTrainer, NamedTensor};
 use drivesim::{Error, Model, Simulator};
 use safetensors::{Dtype, SafeTensors};
 
@@ -18,14 +18,14 @@ fn small_file() -> Vec<u8> {
     random_weight_file(&SMALL, 5).unwrap()
 }
 
-fn trainer(model: &Model, batch: usize) -> PolicyTrainer {
-    let settings = PolicySettings {
+fn trainer(model: &Model, batch: usize) -> HeadTrainer {
+    let settings = HeadSettings {
         width: WIDTH,
         batch,
         restart: Some(3),
-        ..PolicySettings::default()
+        ..HeadSettings::default()
     };
-    PolicyTrainer::new(model, settings).unwrap()
+    HeadTrainer::new(model, drivesim::HeadKind::Policy, settings).unwrap()
 }
 
 fn tensor<'a>(tensors: &'a [NamedTensor], name: &str) -> &'a [f32] {
@@ -153,7 +153,7 @@ fn written_file_acts_as_trained_whatever_the_batch_or_threads() {
             .step(&values(step, 16 * COLS, 1.0), &values(50 + step, 32, 1.0), 0.01)
             .unwrap();
     }
-    let trained = Model::from_bytes(&trainer.weight_file(&original).unwrap()).unwrap();
+    let trained = Model::from_bytes(&trainer.weight_file(&original, Default::default()).unwrap()).unwrap();
     assert_eq!(trained.policy_width(), Some(WIDTH));
     let reference = Reference::new(&trainer.tensors());
     let inputs = values(99, 5 * COLS, 1.0);
@@ -213,13 +213,14 @@ fn actions_stay_in_the_trained_ranges() {
     let bytes = std::fs::read("weights/default.safetensors").unwrap();
     let model = Model::from_bytes(&bytes).unwrap();
     let c = *model.config();
-    let mut trainer = PolicyTrainer::new(
+    let mut trainer = HeadTrainer::new(
         &model,
-        PolicySettings {
+        drivesim::HeadKind::Policy,
+        HeadSettings {
             width: 8,
             batch: 4,
             restart: Some(1),
-            ..PolicySettings::default()
+            ..HeadSettings::default()
         },
     )
     .unwrap();
@@ -229,7 +230,7 @@ fn actions_stay_in_the_trained_ranges() {
         trainer.step(&inputs, &actions, 0.05).unwrap();
     }
     // The default model's own policy (64 wide) is replaced, not mixed with this one.
-    let trained = Model::from_bytes(&trainer.weight_file(&bytes).unwrap()).unwrap();
+    let trained = Model::from_bytes(&trainer.weight_file(&bytes, Default::default()).unwrap()).unwrap();
     assert_eq!((model.policy_width(), trained.policy_width()), (Some(64), Some(8)));
     let mut sim = Simulator::new(&trained).unwrap();
     let mut action = [0.0; 2];
@@ -269,7 +270,7 @@ fn bad_policies_and_inputs_are_typed_errors() {
     let no_policy = Simulator::new(&model).unwrap().act(&z, &h, &mut out);
     assert!(matches!(no_policy, Err(Error::NoPolicy)), "{no_policy:?}");
 
-    let file = trainer(&model, 4).weight_file(&original).unwrap();
+    let file = trainer(&model, 4).weight_file(&original, Default::default()).unwrap();
     let trained = Model::from_bytes(&file).unwrap();
     let mut sim = Simulator::new(&trained).unwrap();
     assert!(matches!(
@@ -331,7 +332,7 @@ fn bad_policies_and_inputs_are_typed_errors() {
     ));
     assert!(matches!(
         t.step(&inputs, &actions[1..], 0.1),
-        Err(Error::BufferLength { buffer: "actions", .. })
+        Err(Error::BufferLength { buffer: "targets", .. })
     ));
     let more = [inputs.clone(), inputs.clone()].concat();
     assert!(matches!(
@@ -343,32 +344,35 @@ fn bad_policies_and_inputs_are_typed_errors() {
     assert!(matches!(
         t.step(&inputs, &bad, 0.1),
         Err(Error::NonFinite {
-            buffer: "actions",
+            buffer: "targets",
             index: 5,
             ..
         })
     ));
     assert_eq!(t.steps(), 0, "a refused step changes nothing");
     for width in [0, SMALL.hidden_dim + 1] {
-        let settings = PolicySettings {
+        let settings = HeadSettings {
             width,
             restart: Some(0),
-            ..PolicySettings::default()
+            ..HeadSettings::default()
         };
         assert!(matches!(
-            PolicyTrainer::new(&model, settings),
+            HeadTrainer::new(&model, drivesim::HeadKind::Policy, settings),
             Err(Error::Config { .. })
         ));
     }
-    let settings = PolicySettings {
+    let settings = HeadSettings {
         batch: 0,
         restart: Some(0),
-        ..PolicySettings::default()
+        ..HeadSettings::default()
     };
     assert!(matches!(
-        PolicyTrainer::new(&model, settings),
+        HeadTrainer::new(&model, drivesim::HeadKind::Policy, settings),
         Err(Error::Config { .. })
     ));
     let other = random_weight_file(&drivesim::Config { z_dim: 16, ..SMALL }, 1).unwrap();
-    assert!(matches!(t.weight_file(&other), Err(Error::Metadata { .. })));
+    assert!(matches!(
+        t.weight_file(&other, Default::default()),
+        Err(Error::Metadata { .. })
+    ));
 }

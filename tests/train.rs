@@ -352,6 +352,7 @@ fn weight_file_holds_the_trained_tensors() {
         let trained_on = TrainedOn {
             actions: Some(&specs),
             frame_hz: Some(12.5),
+            discount: None,
         };
         let file = trainer.weight_file(&original, dtype, trained_on).unwrap();
         let loaded = Model::from_bytes(&file).unwrap();

@@ -82,7 +82,7 @@ macro_rules! resumable {
 }
 resumable!(TransitionTrainer<'_>);
 resumable!(drivesim::train::VaeGanTrainer);
-resumable!(drivesim::train::PolicyTrainer);
+resumable!(drivesim::train::HeadTrainer);
 
 fn bits(t: &impl Resumable) -> Vec<u32> {
     t.bits()
@@ -201,6 +201,7 @@ fn the_written_file_is_the_same_bytes_every_time() {
     let trained_on = drivesim::train::TrainedOn {
         actions: Some(specs),
         frame_hz: Some(12.5),
+        discount: None,
     };
     let first = t.weight_file(&original, None, trained_on).unwrap();
     for _ in 0..8 {
@@ -273,20 +274,20 @@ mod vae_gan {
 
 mod policy {
     use super::{bits, resumes_bit_for_bit, values, CONFIG};
-    use drivesim::train::{PolicySettings, PolicyTrainer};
+    use drivesim::train::{HeadSettings, HeadTrainer};
     use drivesim::{Config, Error, Model, WeightDtype};
 
-    fn trainer(model: &Model, width: usize, batch: usize) -> PolicyTrainer {
-        let settings = PolicySettings {
+    fn trainer(model: &Model, width: usize, batch: usize) -> HeadTrainer {
+        let settings = HeadSettings {
             width,
             batch,
             restart: Some(2),
-            ..PolicySettings::default()
+            ..HeadSettings::default()
         };
-        PolicyTrainer::new(model, settings).unwrap()
+        HeadTrainer::new(model, drivesim::HeadKind::Policy, settings).unwrap()
     }
 
-    fn run(t: &mut PolicyTrainer, steps: std::ops::Range<u64>) {
+    fn run(t: &mut HeadTrainer, steps: std::ops::Range<u64>) {
         let cols = CONFIG.z_dim + CONFIG.hidden_dim;
         for step in steps {
             let (inputs, actions) = (values(600 + step, 3 * cols, 1.0), values(700 + step, 6, 2.0));

@@ -10,7 +10,8 @@ the first step's loss, gradients and updated tensors, and the tensors after ten
 steps, from reference_step.py's); for some, NAME.gan.safetensors (the weights with a
 discriminator) and NAME.gan.io.safetensors (a VAE-GAN batch, the first step's
 losses, gradients and updated tensors, and the tensors after five steps). See
-weights/README.md for the tensor names.
+weights/README.md for the tensor names. heads_f32.train.safetensors holds a reward head's
+steps (heads.py's HeadTrainer) and a drive's λ-returns, for tests/heads_parity.rs.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from model import CONFIG_KEY, Config, DriveSim, load_discriminator, load_drivesim, save_drivesim
+from heads import HeadTrainer, lambda_returns
+from model import CONFIG_KEY, Config, DriveSim, Head, load_discriminator, load_drivesim, save_drivesim
 from sequences import noise_factor, transition_step
 from vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
 
@@ -74,6 +76,13 @@ FIXTURES = {
     "spread_f32": (Config(32, 64, 3, 4, z_dim=10, hidden_dim=14, action_dim=2), "f32", 6),
 }
 SPREAD = {"spread_f32"}
+
+# The head trainer's fixture: the Rust tests' SMALL config, a reward head of HEAD_WIDTH units
+# trained in HEAD_UNITS for HEAD_STEPS Adam steps of HEAD_BATCH examples; one drive's λ-returns.
+HEAD_CONFIG = Config(16, 32, 3, 3, z_dim=12, hidden_dim=40, action_dim=2)
+HEAD_WIDTH, HEAD_BATCH, HEAD_STEPS, HEAD_LR = 20, 7, 3, 0.01
+HEAD_UNITS = [(1.5, 2.0), (0.3, 0.45)]
+RETURNS_T, RETURNS_DISCOUNT, RETURNS_LAMBDA = 9, 0.9, 0.8
 
 
 def randomize(model: torch.nn.Module) -> None:
@@ -241,6 +250,42 @@ def reference_vae_gan(model: DriveSim, cfg: Config, dtype: str, name: str, seed:
     return {k: v.float().contiguous() for k, v in io.items()}
 
 
+def reference_heads(out: Path) -> None:
+    """Writes heads_f32.train.safetensors: a reward head's tensors (`initial.reward.*`, PyTorch's
+    default draw), each step's batch (`step{i}.inputs` [batch, z+h], `.targets` [batch, 2]: a
+    reward about the units' and an off-road flag of 0 or 1), the losses before each step, the
+    tensors after them (`final.reward.*`), the units [2, 2]; and `returns.rewards`,
+    `returns.next_values`, `returns.expected` of one drive."""
+    cfg = HEAD_CONFIG
+    g = torch.Generator().manual_seed(4000)
+    torch.manual_seed(4000)
+    head = Head(cfg, HEAD_WIDTH, "reward")
+    trainer = HeadTrainer(head, HEAD_UNITS)
+    io = {f"initial.reward.{k}": v.detach().clone() for k, v in head.state_dict().items()}
+    io["units"] = torch.tensor(HEAD_UNITS)
+    losses = []
+    for i in range(HEAD_STEPS):
+        z = torch.randn(HEAD_BATCH, cfg.z_dim, generator=g)
+        h = torch.rand(HEAD_BATCH, cfg.hidden_dim, generator=g) * 2 - 1
+        reward = 1.5 + 2.0 * torch.randn(HEAD_BATCH, generator=g)
+        off = (torch.rand(HEAD_BATCH, generator=g) < 0.3).float()
+        io[f"step{i}.inputs"] = inputs = torch.cat([z, h], 1)
+        io[f"step{i}.targets"] = targets = torch.stack([reward, off], 1)
+        losses.append(trainer.step(inputs, targets, HEAD_LR))
+    io["losses"] = torch.tensor(losses)
+    io.update({f"final.{k}": v for k, v in trainer.tensors().items()})
+    rewards = torch.randn(RETURNS_T, generator=g)
+    next_values = 3 * torch.randn(RETURNS_T, generator=g)
+    io["returns.rewards"], io["returns.next_values"] = rewards, next_values
+    io["returns.expected"] = lambda_returns(rewards, next_values, RETURNS_DISCOUNT, RETURNS_LAMBDA)
+    print("heads_f32: losses " + ", ".join(f"{v:.4f}" for v in losses))
+    meta = {CONFIG_KEY: cfg.to_json(), "kind": "reward", "width": str(HEAD_WIDTH), "batch": str(HEAD_BATCH),
+            "steps": str(HEAD_STEPS), "lr": str(HEAD_LR), "discount": str(RETURNS_DISCOUNT),
+            "lambda": str(RETURNS_LAMBDA)}
+    save_file({k: v.float().contiguous() for k, v in io.items()}, str(out / "heads_f32.train.safetensors"),
+              metadata=meta)
+
+
 def generate(out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name, (cfg, dtype, seed) in FIXTURES.items():
@@ -262,6 +307,7 @@ def generate(out: Path) -> None:
             gan_io = reference_vae_gan(model, cfg, dtype, name, seed, out)
             meta = {"lr": str(ADAM_VAE_GAN["lr"]), "steps": str(GAN_STEPS), "steps_lr": str(GAN_STEPS_LR)}
             save_file(gan_io, str(out / f"{name}.gan.io.safetensors"), metadata=meta)
+    reference_heads(out)
 
 
 def compare(committed: Path, fresh: Path) -> list[str]:

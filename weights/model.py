@@ -196,24 +196,76 @@ class Transition(nn.Module):
         return h @ self.A.T + self.a, h
 
 
-class Policy(nn.Module):
-    """The cloned driver (the crate's `Simulator::act`, trained by `train policy`): one tanh layer
-    on `[z | h]`, then the action (before the crate clips it to the trained ranges)."""
+# The optional heads on `[z | h]` (the crate's `HeadKind`), in the order a weight file is read:
+# name -> outputs (None: the config's action_dim).
+HEADS = {"policy": None, "reward": 2, "value": 1}
+# The discount per decision of a value head's returns: a decimal string above 0 and below 1.
+DISCOUNT_KEY = "drivesim.discount"
 
-    def __init__(self, cfg: Config, width: int):
+
+def head_outputs(cfg: Config, kind: str) -> int:
+    """Outputs of the head `kind` ("policy", "reward" or "value")."""
+    if kind not in HEADS:
+        raise ValueError(f"unknown head {kind!r}; expected one of {sorted(HEADS)}")
+    return cfg.action_dim if HEADS[kind] is None else HEADS[kind]
+
+
+def check_discount(discount: float) -> float:
+    """A value head's discount: a number above 0 and below 1 (the crate reads no other)."""
+    d = float(discount)
+    if not 0.0 < d < 1.0:
+        raise ValueError(f"discount must be above 0 and below 1, got {discount!r}")
+    return d
+
+
+class Head(nn.Module):
+    """One of the heads on `[z | h]` (the crate's `heads.rs`): one tanh layer of `width` units,
+    then a linear output. Its tensors are `{kind}.hidden.weight [width, z+h]`, `.hidden.bias`,
+    `{kind}.output.weight [outputs, width]`, `.output.bias`:
+    - "policy": the cloned driver (`Simulator::act`, `train policy`), the action (before the
+      crate clips it to the trained ranges);
+    - "reward": the env's reward for the decision that led to the state, and the chance that
+      the car is off the road there (the crate reads it clamped to [0, 1]);
+    - "value": the discounted return from the state (the discount in `drivesim.discount`)."""
+
+    def __init__(self, cfg: Config, width: int, kind: str = "policy"):
         super().__init__()
+        self.kind = kind
         self.hidden = nn.Linear(cfg.z_dim + cfg.hidden_dim, width)
-        self.output = nn.Linear(width, cfg.action_dim)
+        self.output = nn.Linear(width, head_outputs(cfg, kind))
+
+    @property
+    def prefix(self) -> str:
+        """Its tensors' prefix in a weight file: "policy.", "reward." or "value."."""
+        return self.kind + "."
+
+    @property
+    def width(self) -> int:
+        return self.hidden.out_features
+
+    @property
+    def outputs(self) -> int:
+        return self.output.out_features
 
     def forward(self, z: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
         return self.output(torch.tanh(self.hidden(torch.cat([z, h], -1))))
 
 
-class DriveSim(nn.Module):
-    """The three networks; with `spread`, the transition's spread head; with `policy_width`, the
-    cloned driver's policy (both optional in a weight file)."""
+class Policy(Head):
+    """The cloned driver: the head "policy" (`action_dim` outputs)."""
 
-    def __init__(self, cfg: Config, spread: bool = False, policy_width: int | None = None):
+    def __init__(self, cfg: Config, width: int):
+        super().__init__(cfg, width, "policy")
+
+
+class DriveSim(nn.Module):
+    """The three networks; with `spread`, the transition's spread head; with `policy_width`,
+    `reward_width`, `value_width`, the heads of those widths (all optional in a weight file);
+    `discount` the value head's (metadata `drivesim.discount`, kept by a load and a save)."""
+
+    def __init__(self, cfg: Config, spread: bool = False, policy_width: int | None = None,
+                 reward_width: int | None = None, value_width: int | None = None,
+                 discount: float | None = None):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg)
@@ -221,6 +273,14 @@ class DriveSim(nn.Module):
         self.transition = Transition(cfg, spread)
         if policy_width is not None:
             self.policy = Policy(cfg, policy_width)
+        for kind, width in (("reward", reward_width), ("value", value_width)):
+            if width is not None:
+                setattr(self, kind, Head(cfg, width, kind))
+        self.discount = None if discount is None else check_discount(discount)
+
+    def heads(self) -> dict[str, Head]:
+        """The heads the model has, by kind, in file order."""
+        return {k: getattr(self, k) for k in HEADS if isinstance(getattr(self, k, None), Head)}
 
     def rollout(self, seed_frames: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         """Predict codes from S seed frames [S,C,H,W] and S-1+T actions [S-1+T,action].
@@ -258,10 +318,11 @@ def state_tensors(model: nn.Module, dtype: str | torch.dtype = "f32") -> dict[st
 
 def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | torch.dtype = "f32",
                   actions: list[dict] | None = None, discriminator: nn.Module | None = None,
-                  frame_hz: float | None = None) -> None:
+                  frame_hz: float | None = None, discount: float | None = None) -> None:
     """Write the drivesim safetensors file; dtype is "f32", "f16", "bf16" or a torch dtype;
     `actions`, if given, becomes the `drivesim.actions` metadata (one dict per action);
     `frame_hz`, if given, the `drivesim.frame_hz` metadata (the training data's frame rate);
+    `discount` (default: the model's `discount`, if any) the `drivesim.discount` metadata;
     `discriminator`, if given, is stored under the prefix `discriminator.`."""
     if DTYPES.get(dtype, dtype) not in DTYPES.values():
         raise ValueError(f"unsupported dtype {dtype!r}")
@@ -274,6 +335,10 @@ def save_drivesim(model: DriveSim, cfg: Config, path: str | Path, dtype: str | t
         if not (math.isfinite(frame_hz) and frame_hz > 0):
             raise ValueError(f"frame_hz must be a number above zero, got {frame_hz!r}")
         metadata[FRAME_HZ_KEY] = repr(float(frame_hz))
+    if discount is None:
+        discount = getattr(model, "discount", None)
+    if discount is not None:
+        metadata[DISCOUNT_KEY] = repr(check_discount(discount))
     tensors = state_tensors(model, dtype)
     if discriminator is not None:
         tensors.update({DISCRIMINATOR + k: v for k, v in state_tensors(discriminator, dtype).items()})
@@ -295,7 +360,10 @@ def load_drivesim(path: str | Path) -> tuple[DriveSim, Config]:
     if len(dtypes) != 1 or not dtypes <= set(DTYPES.values()):
         raise ValueError(f"{path}: tensors must all share one of f32/f16/bf16, got {dtypes}")
     tensors = {k: v for k, v in tensors.items() if not k.startswith(DISCRIMINATOR)}
-    return from_state_dict(cfg, tensors), cfg
+    model = from_state_dict(cfg, tensors)
+    if DISCOUNT_KEY in meta:
+        model.discount = check_discount(meta[DISCOUNT_KEY])
+    return model, cfg
 
 
 def load_discriminator(path: str | Path) -> dict[str, torch.Tensor]:
@@ -305,9 +373,15 @@ def load_discriminator(path: str | Path) -> dict[str, torch.Tensor]:
 
 def from_state_dict(cfg: Config, tensors: dict[str, torch.Tensor]) -> DriveSim:
     """Float32 model in eval mode; every tensor must be present except num_batches_tracked (the
-    spread head and the policy where the tensors hold them)."""
-    policy = tensors.get("policy.hidden.weight")
-    model = DriveSim(cfg, spread="transition.S" in tensors, policy_width=None if policy is None else policy.shape[0])
+    spread head and the heads where the tensors hold them; a head's width is its hidden layer's)."""
+    widths = {}
+    for kind in HEADS:
+        if any(k.startswith(kind + ".") for k in tensors):
+            bias = tensors.get(f"{kind}.hidden.bias")
+            if bias is None or bias.dim() != 1:
+                raise ValueError(f"the {kind} head's tensors lack a 1-D {kind}.hidden.bias")
+            widths[f"{kind}_width"] = bias.shape[0]
+    model = DriveSim(cfg, spread="transition.S" in tensors, **widths)
     if "transition.L" in tensors:
         model.transition.set_noise_factor(torch.zeros(cfg.z_dim, cfg.z_dim))
     # Shape mismatches raise here; missing/unexpected names are checked below.

@@ -49,8 +49,10 @@ mod common;
 mod drives;
 mod files;
 mod fit;
+mod heads;
 mod noise;
 mod policy;
+mod regression;
 mod step;
 mod transition;
 mod vae_gan;
@@ -77,6 +79,8 @@ enum Command {
     Noise(noise::NoiseArgs),
     /// Behavioural cloning: train the policy (the cloned driver) on a driver's episodes
     Policy(policy::PolicyArgs),
+    /// The reward head or the value head (TD(λ)) on episodes with the env's rewards
+    Heads(heads::HeadsArgs),
     /// One step on a batch file; write the loss, gradients and updated tensors
     Step(step::StepArgs),
 }
@@ -88,6 +92,7 @@ fn main() -> ExitCode {
         Command::Fit(args) => fit::fit(&args),
         Command::Noise(args) => noise::noise(&args),
         Command::Policy(args) => policy::policy(&args),
+        Command::Heads(args) => heads::heads(&args),
         Command::Step(args) => step::step(&args),
     })
 }

@@ -5,11 +5,13 @@
 
 use crate::args::{data_help, Data};
 use crate::checkpoint::Checkpointing;
-use crate::common::{bar, Encoded};
+use crate::common::Encoded;
 use crate::drives::split;
 use crate::files::read;
+use crate::regression::{fit, rms_errors, Examples, Run};
 use clap::Parser;
-use drivesim::train::{cosine_lr, PolicySettings, PolicyTrainer};
+use drivesim::train::{HeadSettings, HeadTrainer, TrainedOn};
+use drivesim::HeadKind;
 use drivesim::{Model, Simulator};
 use std::time::Instant;
 
@@ -64,20 +66,14 @@ impl PolicyArgs {
     }
 }
 
-/// The policy's examples: inputs `[z | h]` and actions (speed `lead` frames later, steering),
-/// or the episodes' labels where they have them.
-struct Examples {
-    inputs: Vec<f32>,
-    actions: Vec<f32>,
-}
-
 /// The examples of encoded drives: the transition stepped along each from zeros, as the
 /// policy's user steps it (`Simulator::act`'s documentation).
 fn examples(model: &Model, drives: &[Encoded], lead: usize) -> Result<Examples, String> {
     let c = model.config();
     let (z, hd) = (c.z_dim, c.hidden_dim);
     let mut sim = Simulator::new(model).map_err(|e| e.to_string())?;
-    let (mut inputs, mut actions) = (Vec::new(), Vec::new());
+    let mut examples = Examples::new(2);
+    let (inputs, actions) = (&mut examples.inputs, &mut examples.targets);
     let (mut h, mut next) = (vec![0.0; hd], vec![0.0; z]);
     for drive in drives {
         h.fill(0.0);
@@ -99,80 +95,7 @@ fn examples(model: &Model, drives: &[Encoded], lead: usize) -> Result<Examples, 
                 .map_err(|e| e.to_string())?;
         }
     }
-    Ok(Examples { inputs, actions })
-}
-
-/// Root mean squared error of each action of the policy on `examples`, in the actions' units.
-fn errors(model: &Model, examples: &Examples) -> Result<[f64; 2], String> {
-    let c = model.config();
-    let cols = c.z_dim + c.hidden_dim;
-    const BATCH: usize = 256;
-    let mut sim = Simulator::with_batch(model, BATCH).map_err(|e| e.to_string())?;
-    let (mut sums, mut out) = ([0.0f64; 2], vec![0.0; BATCH * 2]);
-    for (inputs, wanted) in examples
-        .inputs
-        .chunks(BATCH * cols)
-        .zip(examples.actions.chunks(BATCH * 2))
-    {
-        let n = inputs.len() / cols;
-        let (z, h): (Vec<f32>, Vec<f32>) = (
-            inputs.chunks_exact(cols).flat_map(|r| r[..c.z_dim].to_vec()).collect(),
-            inputs.chunks_exact(cols).flat_map(|r| r[c.z_dim..].to_vec()).collect(),
-        );
-        sim.act(&z, &h, &mut out[..n * 2]).map_err(|e| e.to_string())?;
-        for (i, (o, w)) in out[..n * 2].iter().zip(wanted).enumerate() {
-            sums[i % 2] += ((o - w) as f64).powi(2);
-        }
-    }
-    let n = (examples.actions.len() / 2).max(1) as f64;
-    Ok([(sums[0] / n).sqrt(), (sums[1] / n).sqrt()])
-}
-
-/// The order the examples are drawn in: each pass over them a new shuffle, from a seeded
-/// generator (SplitMix64).
-struct Order {
-    order: Vec<usize>,
-    next: usize,
-    state: u64,
-}
-
-impl Order {
-    /// The order after `drawn` examples of `count` were drawn, from `seed`: the shuffles of the
-    /// passes begun replayed, so that a resumed run draws what the run never stopped would.
-    fn after(count: usize, seed: u64, drawn: usize) -> Order {
-        let mut order = Order {
-            order: (0..count).collect(),
-            next: count,
-            state: seed,
-        };
-        let passes = drawn.div_ceil(count);
-        for _ in 0..passes {
-            order.shuffle();
-        }
-        if passes > 0 {
-            order.next = drawn - (passes - 1) * count;
-        }
-        order
-    }
-
-    fn shuffle(&mut self) {
-        for i in (1..self.order.len()).rev() {
-            self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut x = self.state;
-            x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            self.order.swap(i, ((x ^ (x >> 31)) % (i as u64 + 1)) as usize);
-        }
-    }
-
-    fn draw(&mut self) -> usize {
-        if self.next == self.order.len() {
-            self.shuffle();
-            self.next = 0;
-        }
-        self.next += 1;
-        self.order[self.next - 1]
-    }
+    Ok(examples)
 }
 
 pub fn policy(args: &PolicyArgs) -> Result<(), String> {
@@ -184,16 +107,15 @@ pub fn policy(args: &PolicyArgs) -> Result<(), String> {
         examples(&model, &train, args.lead)?,
         examples(&model, &heldout, args.lead)?,
     );
-    let settings = PolicySettings {
+    let settings = HeadSettings {
         width: args.width,
         batch: args.batch as usize,
         restart: (args.restart || model.policy_width().is_none()).then_some(args.seed),
-        ..PolicySettings::default()
+        ..HeadSettings::default()
     };
-    let mut trainer = PolicyTrainer::new(&model, settings).map_err(|e| e.to_string())?;
-    let c = model.config();
-    let cols = c.z_dim + c.hidden_dim;
-    let count = train.actions.len() / 2;
+    let mut trainer = HeadTrainer::new(&model, HeadKind::Policy, settings).map_err(|e| e.to_string())?;
+    let mut train = train;
+    let count = train.len();
     if count == 0 {
         return Err(format!(
             "no examples: every episode is at most --lead {} frames long",
@@ -202,59 +124,34 @@ pub fn policy(args: &PolicyArgs) -> Result<(), String> {
     }
     println!(
         "{count} examples ({} held out), policy width {}, {} steps of {}",
-        heldout.actions.len() / 2,
+        heldout.len(),
         trainer.width(),
         args.steps,
         args.batch
     );
     let report = |model: &Model, when: &str| -> Result<(), String> {
-        if model.policy_width().is_some() && !heldout.actions.is_empty() {
-            let [speed, steering] = errors(model, &heldout)?;
+        if model.policy_width().is_some() && heldout.len() > 0 {
+            let rms = rms_errors(model, HeadKind::Policy, &heldout)?;
+            let (speed, steering) = (rms[0], rms[1]);
             println!("held out, {when}: RMS error speed {speed:.2}, steering {steering:.3}");
         }
         Ok(())
     };
     report(&model, "before")?;
-    let batch = (args.batch as usize).min(count);
-    let (checkpoints, arguments) = (&args.checkpointing, args.run_arguments());
-    let mut first_step = 0;
-    if let Some((step, draw)) = checkpoints.restore("policy", &arguments, |s| trainer.load_state(s))? {
-        first_step = step;
-        if Order::after(count, args.seed, step * batch).state != draw {
-            return Err("the checkpoint's order of the examples is not this data's: other episodes?".into());
-        }
-    }
-    let mut order = Order::after(count, args.seed, first_step * batch);
-    let mut state = checkpoints.buffer(trainer.state_len());
-    let (mut inputs, mut actions) = (Vec::new(), Vec::new());
-    let (mut loss_sum, start) = (0.0, Instant::now());
-    let progress = bar(
-        args.steps as u64,
-        "training: {pos}/{len} steps ({per_sec}, {eta} left) {msg}",
-    );
-    progress.set_position(first_step as u64);
-    for step in first_step..args.steps {
-        inputs.clear();
-        actions.clear();
-        for _ in 0..batch {
-            let i = order.draw();
-            inputs.extend_from_slice(&train.inputs[i * cols..][..cols]);
-            actions.extend_from_slice(&train.actions[i * 2..][..2]);
-        }
-        let lr = cosine_lr(args.lr, step, args.steps);
-        loss_sum += trainer.step(&inputs, &actions, lr).map_err(|e| e.to_string())?;
-        if (step + 1) % 500 == 0 {
-            progress.set_message(format!("loss {:.4}", loss_sum / 500.0));
-            loss_sum = 0.0;
-        }
-        progress.inc(1);
-        if checkpoints.due(step + 1, args.steps) {
-            trainer.save_state(&mut state).map_err(|e| e.to_string())?;
-            checkpoints.save("policy", &arguments, step + 1, order.state, &state)?;
-        }
-    }
-    progress.finish_and_clear();
-    let written = trainer.weight_file(&bytes).map_err(|e| e.to_string())?;
+    let run = Run {
+        steps: args.steps,
+        batch: args.batch as usize,
+        lr: args.lr,
+        seed: args.seed,
+        checkpoints: &args.checkpointing,
+        command: "policy",
+        arguments: args.run_arguments(),
+    };
+    let start = Instant::now();
+    fit(&mut trainer, &mut train, &run, None)?;
+    let written = trainer
+        .weight_file(&bytes, TrainedOn::default())
+        .map_err(|e| e.to_string())?;
     let trained = Model::from_bytes(&written).map_err(|e| e.to_string())?;
     println!("trained in {:.1} s", start.elapsed().as_secs_f64());
     report(&trained, "after")?;

@@ -340,6 +340,7 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
             TrainedOn {
                 actions: Some(&specs),
                 frame_hz,
+                discount: None,
             },
         )
         .map_err(|e| e.to_string())?;

@@ -186,6 +186,7 @@ pub fn vae_gan(args: &VaeGanArgs) -> Result<(), String> {
     let trained_on = TrainedOn {
         actions: None,
         frame_hz: all.frame_hz(),
+        discount: None,
     };
     let (train, heldout) = match &args.data.heldout {
         Some(path) => (

@@ -47,6 +47,15 @@ class Model:
         """Units of the policy's hidden layer (the cloned driver ``Simulator.act`` runs), or
         None where the weight file has no policy."""
     @property
+    def reward_width(self) -> Optional[int]:
+        """Units of the reward head's hidden layer (``Simulator.reward``), or None."""
+    @property
+    def value_width(self) -> Optional[int]:
+        """Units of the value head's hidden layer (``Simulator.value``), or None."""
+    @property
+    def discount(self) -> Optional[float]:
+        """The value head's discount per decision (``drivesim.discount``), or None."""
+    @property
     def samples(self) -> bool:
         """Whether the transition predicts its codes' spread, so that rollouts can be sampled
         (``Simulator.set_sampling``)."""
@@ -107,6 +116,12 @@ class Simulator:
         """The cloned driver's actions ``(N, 2)`` (speed to drive at, steering) for the codes
         ``z`` of the frames seen now and the hidden states ``h`` after the drive so far; ValueError
         for a model without a policy."""
+    def reward(self, z: F32, h: F32) -> F32:
+        """The reward head on states a decision led to: ``(N, 2)`` (reward, off-road chance in
+        [0, 1]); ValueError for a model without the head."""
+    def value(self, z: F32, h: F32) -> F32:
+        """The value head's discounted returns ``(N, 1)`` from states ``z``, ``h``; ValueError
+        for a model without the head."""
     def rollout(self, seed_frames: Frames, actions: F32, frames: bool = False, dtype: DType = ...) -> Any:
         """``(S, H, W, 3)`` seeds and ``(S - 1 + T, 2)`` actions: codes ``(T, z_dim)``, or
         ``(codes, frames)`` with ``frames=True``."""
@@ -117,6 +132,11 @@ class Simulator:
         ``(N, hidden_dim)``; ``z`` ``(z_dim,)``, ``(N, z_dim)`` or None): codes
         ``(T, N, z_dim)``, or ``(codes, frames)`` with frames ``(T, N, H, W, 3)``. ValueError
         names the shapes that disagree; MemoryError when T is too long to allocate."""
+    def rollout_candidates_scored(
+        self, h: F32, actions: F32, z: Optional[F32] = None
+    ) -> tuple[F32, F32, F32]:
+        """``rollout_candidates`` with the heads read after every step: ``(codes (T, N, z_dim),
+        rewards (T, N, 2), values (T, N))``; ValueError for a model without both heads."""
 
 class Environment:
     """``drives`` dreamed drives stepping together in one batch. Arrays and errors as

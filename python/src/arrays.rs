@@ -206,3 +206,42 @@ impl FrameType {
         }
     }
 }
+
+/// A candidate rollout's checked arguments: `h`, `z` (each one for all candidates or one
+/// each), the step-major actions `(T, N, action_dim)`, `T` and `N`.
+#[allow(clippy::type_complexity)]
+pub fn candidates<'py>(
+    c: &drivesim::Config,
+    h: &Bound<'py, PyAny>,
+    actions: &Bound<'py, PyAny>,
+    z: Option<&Bound<'py, PyAny>>,
+) -> PyResult<(
+    Borrowed<'py, f32>,
+    Option<Borrowed<'py, f32>>,
+    Borrowed<'py, f32>,
+    usize,
+    usize,
+)> {
+    let (actions, lead) = f32_items(actions, "actions", &[2], &[c.action_dim])?;
+    let (steps, n) = (lead[0], lead[1]);
+    let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
+    one_or_each(&h, &h_lead, n, "h", c.hidden_dim)?;
+    let z = z.map(|z| f32_items(z, "z", &[0, 1], &[c.z_dim])).transpose()?;
+    if let Some((z, z_lead)) = &z {
+        one_or_each(z, z_lead, n, "z", c.z_dim)?;
+    }
+    Ok((h, z.map(|z| z.0), actions, steps, n))
+}
+
+/// `h` or `z` of a candidate rollout: one `(dim,)` for all `n` candidates, or one each
+/// `(n, dim)`; a ValueError with the shapes otherwise.
+fn one_or_each(a: &Borrowed<'_, f32>, lead: &[usize], n: usize, what: &str, dim: usize) -> PyResult<()> {
+    match lead {
+        [] => Ok(()),
+        [rows] if *rows == n => Ok(()),
+        _ => Err(value_error(format!(
+            "{what}: expected shape ({dim},) or ({n}, {dim}) for the {n} candidates of actions, got {}",
+            shape_str(a.shape())
+        ))),
+    }
+}

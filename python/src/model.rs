@@ -109,6 +109,26 @@ impl PyModel {
         self.inner.policy_width()
     }
 
+    /// Units of the hidden layer of the reward head (`Simulator.reward`,
+    /// `Simulator.rollout_candidates_scored`), or None where the weight file has none.
+    #[getter]
+    fn reward_width(&self) -> Option<usize> {
+        self.inner.head_width(drivesim::HeadKind::Reward)
+    }
+
+    /// Units of the hidden layer of the value head (`Simulator.value`), or None.
+    #[getter]
+    fn value_width(&self) -> Option<usize> {
+        self.inner.head_width(drivesim::HeadKind::Value)
+    }
+
+    /// The discount per decision of the value head's returns (the file's `drivesim.discount`),
+    /// or None when the file does not say.
+    #[getter]
+    fn discount(&self) -> Option<f32> {
+        self.inner.discount()
+    }
+
     /// Whether the transition predicts its codes' spread (`transition.S`, `transition.s`), so
     /// that simulators can sample futures (`Simulator.set_sampling`).
     #[getter]

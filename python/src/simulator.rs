@@ -1,17 +1,23 @@
 //! `Simulator`: encode, generate, transition steps and rollouts on numpy arrays.
 
-use crate::arrays::{f32_items, shape_str, value_error, Borrowed, Frames};
+use crate::arrays::{candidates, f32_items, value_error, Borrowed, Frames};
 use crate::model::PyModel;
 use crate::outputs::{codes_and_frames, frames_out, new_array, FrameType};
 use crate::{count, size, to_py};
-use drivesim::{Model, Simulator};
-use numpy::{PyArrayDyn, PyArrayMethods, PyUntypedArrayMethods};
+use drivesim::{HeadKind, Model, Simulator};
+use numpy::{PyArrayDyn, PyArrayMethods};
 use pyo3::exceptions::PyOverflowError;
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 /// A transition step's result: the next codes and the next hidden states.
 type Step<'py> = (Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>);
+/// A scored candidate rollout's result: codes, rewards and values.
+type Scored<'py> = (
+    Bound<'py, PyArrayDyn<f32>>,
+    Bound<'py, PyArrayDyn<f32>>,
+    Bound<'py, PyArrayDyn<f32>>,
+);
 
 /// A simulator and the scratch its 8-bit frames convert through.
 pub struct State {
@@ -198,22 +204,33 @@ impl PySimulator {
         z: &Bound<'py, PyAny>,
         h: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        let mut guard = lock(&self.state)?;
-        let sim = &mut guard.sim;
-        let c = *sim.config();
-        let (z, lead) = f32_items(z, "z", &[0, 1], &[c.z_dim])?;
-        let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
-        if h_lead != lead {
-            return Err(value_error(format!(
-                "z and h must have the same leading dimensions: {lead:?} and {h_lead:?}"
-            )));
-        }
-        let actions = new_array::<f32>(py, &shape_of(&lead, &[c.action_dim]), "the actions")?;
-        // SAFETY: the array was just created here and no other reference to it exists.
-        let out = unsafe { actions.as_slice_mut() }.expect("new");
-        let (z, h) = (slice(&z), slice(&h));
-        py.detach(|| sim.act(z, h, out)).map_err(to_py)?;
-        Ok(actions)
+        self.head(py, HeadKind::Policy, z, h)
+    }
+
+    /// The reward head on states a decision led to (`Model.reward_width` is None without one,
+    /// and then this raises ValueError): `z` `(N, z_dim)`, the code after the step, and `h`
+    /// `(N, hidden_dim)`, the hidden state the step left, give `(N, 2)` float32: the env's
+    /// reward expected for the decision and the chance that the car is off the road (in
+    /// [0, 1]); one of each without the leading N gives `(2,)`.
+    fn reward<'py>(
+        &self,
+        py: Python<'py>,
+        z: &Bound<'py, PyAny>,
+        h: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        self.head(py, HeadKind::Reward, z, h)
+    }
+
+    /// The value head (`Model.value_width`; ValueError without one): the discounted return
+    /// (discount `Model.discount` per decision) from each state `z` `(N, z_dim)`, `h`
+    /// `(N, hidden_dim)`, as `(N, 1)` float32; one state without the leading N gives `(1,)`.
+    fn value<'py>(
+        &self,
+        py: Python<'py>,
+        z: &Bound<'py, PyAny>,
+        h: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        self.head(py, HeadKind::Value, z, h)
     }
 
     /// A dream from seed frames: `seed_frames` `(S, height, width, 3)` and `actions`
@@ -278,15 +295,7 @@ impl PySimulator {
         let mut guard = lock(&self.state)?;
         let State { sim, scratch } = &mut *guard;
         let c = *sim.config();
-        let (actions, lead) = f32_items(actions, "actions", &[2], &[c.action_dim])?;
-        let (steps, n) = (lead[0], lead[1]);
-        let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
-        one_or_each(&h, &h_lead, n, "h", c.hidden_dim)?;
-        let z = z.map(|z| f32_items(z, "z", &[0, 1], &[c.z_dim])).transpose()?;
-        if let Some((z, z_lead)) = &z {
-            one_or_each(z, z_lead, n, "z", c.z_dim)?;
-        }
-        let z = z.map(|z| z.0);
+        let (h, z, actions, steps, n) = candidates(&c, h, actions, z)?;
         let (h, z, actions) = (slice(&h), z.as_ref().map(slice), slice(&actions));
         let shape = [steps, n, c.height, c.width, c.channels];
         codes_and_frames(
@@ -298,6 +307,35 @@ impl PySimulator {
             scratch,
             |codes, f| sim.rollout_candidates(h, z, n, actions, codes, f),
         )
+    }
+
+    /// `rollout_candidates` (codes only) with the reward and value heads read after every step
+    /// in the same batch: the planner's scores. Returns `(codes, rewards, values)`: codes
+    /// `(T, N, z_dim)`, rewards `(T, N, 2)` (each step's reward and off-road chance, as
+    /// `reward` reads the state the step reached) and values `(T, N)` (`value` of that state).
+    /// ValueError for a model without both heads.
+    #[pyo3(signature = (h, actions, z=None))]
+    fn rollout_candidates_scored<'py>(
+        &self,
+        py: Python<'py>,
+        h: &Bound<'py, PyAny>,
+        actions: &Bound<'py, PyAny>,
+        z: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Scored<'py>> {
+        let mut guard = lock(&self.state)?;
+        let sim = &mut guard.sim;
+        let c = *sim.config();
+        let (h, z, actions, steps, n) = candidates(&c, h, actions, z)?;
+        let codes = new_array::<f32>(py, &[steps, n, c.z_dim], "the codes")?;
+        let rewards = new_array::<f32>(py, &[steps, n, 2], "the rewards")?;
+        let values = new_array::<f32>(py, &[steps, n], "the values")?;
+        // SAFETY: the arrays were just created here and no other reference to them exists.
+        let outs = unsafe { (codes.as_slice_mut(), rewards.as_slice_mut(), values.as_slice_mut()) };
+        let (codes_out, rewards_out, values_out) = (outs.0.expect("new"), outs.1.expect("new"), outs.2.expect("new"));
+        let (h, z, actions) = (slice(&h), z.as_ref().map(slice), slice(&actions));
+        py.detach(|| sim.rollout_candidates_scored(h, z, n, actions, codes_out, rewards_out, values_out))
+            .map_err(to_py)?;
+        Ok((codes, rewards, values))
     }
 
     fn __repr__(&self) -> PyResult<String> {
@@ -316,6 +354,37 @@ impl PySimulator {
 }
 
 impl PySimulator {
+    /// A head's outputs for states `z`, `h` (one, or `(N, ...)` each).
+    fn head<'py>(
+        &self,
+        py: Python<'py>,
+        kind: HeadKind,
+        z: &Bound<'py, PyAny>,
+        h: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let mut guard = lock(&self.state)?;
+        let sim = &mut guard.sim;
+        let c = *sim.config();
+        let (z, lead) = f32_items(z, "z", &[0, 1], &[c.z_dim])?;
+        let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
+        if h_lead != lead {
+            return Err(value_error(format!(
+                "z and h must have the same leading dimensions: {lead:?} and {h_lead:?}"
+            )));
+        }
+        let out = new_array::<f32>(py, &shape_of(&lead, &[kind.outputs(&c)]), "the outputs")?;
+        // SAFETY: the array was just created here and no other reference to it exists.
+        let slice_out = unsafe { out.as_slice_mut() }.expect("new");
+        let (z, h) = (slice(&z), slice(&h));
+        py.detach(|| match kind {
+            HeadKind::Policy => sim.act(z, h, slice_out),
+            HeadKind::Reward => sim.reward(z, h, slice_out),
+            HeadKind::Value => sim.value(z, h, slice_out),
+        })
+        .map_err(to_py)?;
+        Ok(out)
+    }
+
     /// A transition step from `z` (or from `h`'s own prediction when None).
     fn step<'py>(
         &self,
@@ -354,19 +423,6 @@ impl PySimulator {
 /// A checked array's values.
 pub fn slice<'a>(a: &'a Borrowed<'_, f32>) -> &'a [f32] {
     a.as_slice().expect("checked C-ordered")
-}
-
-/// `h` or `z` of a candidate rollout: one `(dim,)` for all `n` candidates, or one each
-/// `(n, dim)`; a ValueError with the shapes otherwise.
-fn one_or_each(a: &Borrowed<'_, f32>, lead: &[usize], n: usize, what: &str, dim: usize) -> PyResult<()> {
-    match lead {
-        [] => Ok(()),
-        [rows] if *rows == n => Ok(()),
-        _ => Err(value_error(format!(
-            "{what}: expected shape ({dim},) or ({n}, {dim}) for the {n} candidates of actions, got {}",
-            shape_str(a.shape())
-        ))),
-    }
 }
 
 /// A temperature argument as the crate's f32: a number (TypeError otherwise) that is finite

@@ -1,5 +1,6 @@
 """The bridge to the real CarRacing: the models' view, and the agents."""
 
+import json
 import os
 
 import numpy as np
@@ -9,11 +10,12 @@ import drivesim
 from drivesim import carracing
 
 
-def test_mpc_agent_is_deterministic(clip):
+@pytest.mark.parametrize("name", ["mpc", "mpc-road"])
+def test_planners_are_deterministic(name, clip):
     frames, actions = clip
     runs = []
     for _ in range(2):
-        agent = carracing.make_agent("mpc")
+        agent = carracing.make_agent(name)
         agent.warmup = 0
         runs.append([agent.act(f, float(a[0])) for f, a in zip(frames, actions)])
     np.testing.assert_array_equal(np.array(runs[0]), np.array(runs[1]))
@@ -58,6 +60,10 @@ def test_evaluation_command(tmp_path, capsys):
     main(["--agent", "mpc", "--seeds", "7", "--frames", "80", "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert "mpc:" in out and (tmp_path / "track_7.json").exists() and (tmp_path / "track_7.gif").exists()
+    # What planning adds: the departures from the policy and the policy alone on the same track.
+    figures = json.loads((tmp_path / "track_7.json").read_text())
+    assert 0 <= figures["departed"] <= 1 and np.isfinite(figures["policy_alone"])
+    assert "the policy alone:" in out and "mpc - policy" in out
     # Resumable: a second run reads the track's figures instead of driving it again.
     main(["--agent", "mpc", "--seeds", "7", "--frames", "80", "--out", str(tmp_path)])
     assert capsys.readouterr().out.splitlines()[-2] == out.splitlines()[-2]

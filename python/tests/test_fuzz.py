@@ -199,7 +199,9 @@ def test_road_and_helpers(codes, frames, figures, ridge, road_figures, speed, ta
 
 
 AGENT_OPTIONS = {
-    "mpc": ["candidates", "horizon", "iterations", "context", "skip", "max_speed", "road_scale", "search", "w_off",
+    "mpc": ["candidates", "horizon", "futures", "temperature", "steer_noise", "speed_noise", "smooth", "w_off",
+            "spread", "seed"],
+    "mpc-road": ["candidates", "horizon", "iterations", "context", "skip", "max_speed", "road_scale", "search", "w_off",
             "w_prior", "correct"],
     "cloned": ["threads"],
     "reactive": ["max_speed"],
@@ -214,7 +216,7 @@ def agent_options(draw):
     chosen = draw(st.lists(st.sampled_from(AGENT_OPTIONS[name]), max_size=3, unique=True))
     options = {}
     for key in chosen:
-        integer = key in ("candidates", "horizon", "iterations", "context", "skip", "threads", "seed")
+        integer = key in ("candidates", "horizon", "iterations", "context", "skip", "threads", "seed", "futures")
         options[key] = draw(small_counts if integer else numbers | st.floats(0.1, 60))
     return name, options
 
@@ -226,10 +228,11 @@ def test_agents(agent, warmup, inputs):
     """Agents from any options (ValueError or TypeError when made, never at a decision), then
     decisions on any frames and speeds; a valid decision afterwards still gives a finite action."""
     name, options = agent
-    made = {"mpc": agents.MPCAgent, "cloned": agents.ClonedAgent}.get(name)
+    made = {"mpc": agents.MPCAgent, "mpc-road": agents.RoadMPCAgent, "cloned": agents.ClonedAgent}.get(name)
     extra = {"model": MODEL} if made else {}
-    if made is agents.MPCAgent:
+    if made is agents.RoadMPCAgent:
         extra["cost"] = COST
+    if made in (agents.MPCAgent, agents.RoadMPCAgent):
         options.setdefault("candidates", 4)  # keep the planning quick
     a = call(made or agents.AGENTS[name], **extra, **options)
     if a is None:

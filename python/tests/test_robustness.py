@@ -11,7 +11,7 @@ import pytest
 
 import drivesim
 from drivesim import carracing
-from drivesim.carracing.agents import MPCAgent
+from drivesim.carracing.agents import RoadMPCAgent
 
 
 def run_alone(code):
@@ -101,7 +101,7 @@ def test_an_input_changed_by_another_thread_during_a_call():
         assert f"{how} (400, 128) True" in out, out
 
 
-@pytest.mark.parametrize("name", ["mpc", "cloned", "reactive", "random"])
+@pytest.mark.parametrize("name", ["mpc", "mpc-road", "cloned", "reactive", "random"])
 def test_agents_check_their_inputs_at_every_decision(name, clip):
     """4. During the warm-up (and always for `reactive`) a NaN speed gave a NaN action, and a
     transposed, float or batched frame was accepted."""
@@ -125,18 +125,18 @@ def test_agents_check_their_inputs_at_every_decision(name, clip):
         assert action.shape == (3,) and np.isfinite(action).all()
 
 
-def test_mpc_options_are_checked_when_the_agent_is_made(model, clip):
+def test_road_mpc_options_are_checked_when_the_agent_is_made(model, clip):
     """4. `candidates=50` (or 3, or 1), `iterations=0` and `max_speed=nan` were accepted and
     failed at the 13th decision (a broadcast error, an UnboundLocalError, a NaN action)."""
     for options in ({"candidates": 3}, {"candidates": 1}, {"iterations": 0}, {"max_speed": float("nan")},
                     {"horizon": 0}, {"skip": 8}, {"search": -0.1}, {"w_off": float("inf")}):
         with pytest.raises(ValueError):
-            MPCAgent(model=model, **options)
+            RoadMPCAgent(model=model, **options)
     with pytest.raises(TypeError):
-        MPCAgent(model=model, candidates=64.0)
+        RoadMPCAgent(model=model, candidates=64.0)
     with pytest.raises(ValueError, match="max_speed"):
         carracing.make_agent("reactive", max_speed=float("nan"))
-    agent = MPCAgent(model=model, candidates=50)  # no grid of 50: the largest that fits, 12 by 4
+    agent = RoadMPCAgent(model=model, candidates=50)  # no grid of 50: the largest that fits, 12 by 4
     assert agent.grid == (12, 4)
     frames, actions = clip
     for t in range(14):

@@ -1,8 +1,10 @@
 //! Running the networks in buffers planned once: the [`Simulator`], its constructors and
 //! accessors. Its calls are in the submodules: `networks` (encode, generate, one transition
-//! step), `rollout` (rollouts and candidate rollouts) and `checks` (their input checks).
+//! step), `heads` (the policy, reward and value heads), `rollout` (rollouts and candidate
+//! rollouts) and `checks` (their input checks).
 
 mod checks;
+mod heads;
 mod networks;
 mod rollout;
 mod sampled;
@@ -76,6 +78,8 @@ pub struct Simulator<M: Borrow<Model>> {
     /// ([`Simulator::rollout_candidates`]) in the first two.
     rollout_h: Vec<f32>,
     rollout_z: [Vec<f32>; 2],
+    /// A head's hidden layer for a batch.
+    head_hidden: Vec<f32>,
     /// Whether rollouts sample their futures ([`Simulator::set_sampling`]).
     sampling: Sampling,
 }
@@ -107,6 +111,7 @@ impl<M: Borrow<Model>> Simulator<M> {
             transition: TransitionBuffers::new(&plan)?,
             rollout_h: zeros(plan.max_batch() * c.hidden_dim, bytes)?,
             rollout_z: [zeros(plan.max_batch() * c.z_dim, bytes)?, zeros(c.z_dim, bytes)?],
+            head_hidden: zeros(plan.heads, bytes)?,
             sampling: Sampling::OFF,
             plan,
         })
@@ -146,10 +151,19 @@ impl<M: Borrow<Model>> Simulator<M> {
             transition,
             rollout_h,
             rollout_z,
+            head_hidden,
             sampling,
             plan: _,
         } = self;
-        drop((old_pool, encoder, generator, transition, rollout_h, rollout_z));
+        drop((
+            old_pool,
+            encoder,
+            generator,
+            transition,
+            rollout_h,
+            rollout_z,
+            head_hidden,
+        ));
         let mut sim = Simulator::from_plan(model, plan, pool)?.with_isa(isa);
         sim.sampling = sampling;
         Ok(sim)

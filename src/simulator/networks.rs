@@ -4,7 +4,7 @@
 use super::Simulator;
 use crate::error::{expect_finite, expect_finite_output, expect_frames, expect_len};
 use crate::pool::Exec;
-use crate::{Error, Model, Result};
+use crate::{Model, Result};
 use core::borrow::Borrow;
 
 impl<M: Borrow<Model>> Simulator<M> {
@@ -89,57 +89,6 @@ impl<M: Borrow<Model>> Simulator<M> {
         let c = *self.config();
         let n = self.batch_of("h", h, c.hidden_dim)?;
         self.step(n, h, None, action, z)
-    }
-
-    /// The cloned driver's actions (the model's policy, `policy.*` tensors): for each item, the
-    /// action a driver would take seeing the frame encoded as `z`, with the transition's hidden
-    /// state `h` after the drive's earlier codes and actions (from zeros at its first frame,
-    /// as [`Simulator::transition`] leaves it). Each action is clipped to the range the model
-    /// was trained on (`drivesim.actions`), so it passes [`Model::check_actions`]. A model
-    /// without a policy is [`Error::NoPolicy`].
-    ///
-    /// ```
-    /// let model = drivesim::Model::load("weights/default.safetensors")?;
-    /// let mut sim = drivesim::Simulator::new(&model)?;
-    /// let (z, h, mut action) = (vec![0.0; 128], vec![0.0; 256], [0.0; 2]);
-    /// sim.act(&z, &h, &mut action)?; // (speed to drive at, steering)
-    /// model.check_actions(&action)?;
-    /// # Ok::<(), drivesim::Error>(())
-    /// ```
-    pub fn act(&mut self, z: &[f32], h: &[f32], actions: &mut [f32]) -> Result<()> {
-        let model = self.model.borrow();
-        let c = *model.config();
-        let policy = model.policy.as_ref().ok_or(Error::NoPolicy)?;
-        let n = self.batch_of("z", z, c.z_dim)?;
-        expect_len("h", h, n * c.hidden_dim)?;
-        expect_len("actions", actions, n * c.action_dim)?;
-        expect_finite("z", z)?;
-        expect_finite("h", h)?;
-        let cols = c.z_dim + c.hidden_dim;
-        let inputs = &mut self.transition.concat()[..n * cols];
-        for (row, (z, h)) in inputs
-            .chunks_exact_mut(cols)
-            .zip(z.chunks_exact(c.z_dim).zip(h.chunks_exact(c.hidden_dim)))
-        {
-            row[..c.z_dim].copy_from_slice(z);
-            row[c.z_dim..].copy_from_slice(h);
-        }
-        let exec = Exec {
-            isa: self.isa,
-            pool: self.pool.as_ref(),
-        };
-        // The rollout's hidden states are free between calls: the policy's layer fits there.
-        let hidden = &mut self.rollout_h[..n * policy.width()];
-        policy.run(exec, inputs, hidden, actions);
-        expect_finite_output("actions", actions)?;
-        if let Some(specs) = model.actions() {
-            for item in actions.chunks_exact_mut(c.action_dim) {
-                for (value, spec) in item.iter_mut().zip(specs) {
-                    *value = value.clamp(spec.min, spec.max);
-                }
-            }
-        }
-        Ok(())
     }
 
     /// The checks and the step shared by [`Simulator::transition`] and

@@ -1,9 +1,12 @@
 //! Rollouts of a [`Simulator`]: hallucinated drives seeded with frames or codes, and
-//! [`Simulator::rollout_candidates`], many action sequences stepped in one batch.
+//! [`Simulator::rollout_candidates`], many action sequences stepped in one batch (scored by
+//! the reward and value heads in [`Simulator::rollout_candidates_scored`]).
 
+use super::heads::{bound, gather, head_of, output_name};
 use super::sampled::sample_codes;
 use super::Simulator;
-use crate::error::expect_finite_output;
+use crate::error::{expect_finite_output, expect_len};
+use crate::heads::HeadKind;
 use crate::pool::Exec;
 use crate::{Model, Result};
 use core::borrow::Borrow;
@@ -94,7 +97,64 @@ impl<M: Borrow<Model>> Simulator<M> {
         candidates: usize,
         actions: &[f32],
         codes: &mut [f32],
+        frames: Option<&mut [f32]>,
+    ) -> Result<()> {
+        self.candidates(h, z, candidates, actions, codes, frames, None)
+    }
+
+    /// [`Simulator::rollout_candidates`] with the model's reward and value heads read after
+    /// every step, in the same batch: the planner's scores. `rewards` receives
+    /// `[T][candidates][2]`, each step's `(reward, off-road chance)` ([`Simulator::reward`]
+    /// of the state the step reached), and `values` `[T][candidates]`, the value of that state
+    /// ([`Simulator::value`]). A model without both heads is [`Error::NoHead`].
+    ///
+    /// ```
+    /// # use drivesim::{Config, Model, Simulator};
+    /// # let model = drivesim::Model::load("weights/default.safetensors")?;
+    /// # if model.head_width(drivesim::HeadKind::Value).is_none() { return Ok(()); }
+    /// let c = *model.config();
+    /// let (candidates, steps) = (16, 8);
+    /// let mut sim = Simulator::with_batch(&model, candidates)?;
+    /// let (h, z) = (vec![0.0; c.hidden_dim], vec![0.0; c.z_dim]);
+    /// let actions: Vec<f32> = (0..steps * candidates).flat_map(|i| [40.0, (i % 3) as f32 * 0.2 - 0.2]).collect();
+    /// let mut codes = vec![0.0; steps * candidates * c.z_dim];
+    /// let (mut rewards, mut values) = (vec![0.0; steps * candidates * 2], vec![0.0; steps * candidates]);
+    /// sim.rollout_candidates_scored(&h, Some(&z), candidates, &actions, &mut codes, &mut rewards, &mut values)?;
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
+    #[allow(clippy::too_many_arguments)] // rollout_candidates' own, and the two outputs
+    pub fn rollout_candidates_scored(
+        &mut self,
+        h: &[f32],
+        z: Option<&[f32]>,
+        candidates: usize,
+        actions: &[f32],
+        codes: &mut [f32],
+        rewards: &mut [f32],
+        values: &mut [f32],
+    ) -> Result<()> {
+        let steps = self.check_candidates(h, z, candidates, actions, codes, None)?;
+        let model = self.model.borrow();
+        head_of(model, HeadKind::Reward)?;
+        head_of(model, HeadKind::Value)?;
+        expect_len("rewards", rewards, steps * candidates * 2)?;
+        expect_len("values", values, steps * candidates)?;
+        let scores = Some(Scores { rewards, values });
+        self.candidates(h, z, candidates, actions, codes, None, scores)
+    }
+
+    /// The rollout of [`Simulator::rollout_candidates`] and
+    /// [`Simulator::rollout_candidates_scored`].
+    #[allow(clippy::too_many_arguments)]
+    fn candidates(
+        &mut self,
+        h: &[f32],
+        z: Option<&[f32]>,
+        candidates: usize,
+        actions: &[f32],
+        codes: &mut [f32],
         mut frames: Option<&mut [f32]>,
+        mut scores: Option<Scores<'_>>,
     ) -> Result<()> {
         let c = *self.config();
         let n = candidates;
@@ -140,6 +200,20 @@ impl<M: Borrow<Model>> Simulator<M> {
             }
             sample_codes(&sampling, model, exec, &mut self.transition, hs, t as u64, out);
             expect_finite_output("codes", out)?;
+            if let Some(scores) = scores.as_mut() {
+                let inputs = &mut self.transition.concat()[..n * (c.z_dim + c.hidden_dim)];
+                gather(&c, out, hs, inputs);
+                let outputs = [
+                    (HeadKind::Reward, &mut scores.rewards[t * n * 2..][..n * 2]),
+                    (HeadKind::Value, &mut scores.values[t * n..][..n]),
+                ];
+                for (kind, out) in outputs {
+                    let head = head_of(model, kind)?;
+                    head.run(exec, inputs, &mut self.head_hidden[..n * head.width()], out);
+                    expect_finite_output(output_name(kind), out)?;
+                    bound(model, kind, out);
+                }
+            }
             if let Some(frames) = frames.as_deref_mut() {
                 let frames = &mut frames[t * n * c.frame_len()..][..n * c.frame_len()];
                 model.generator.forward(exec, &mut self.generator, out, frames);
@@ -208,6 +282,12 @@ impl<M: Borrow<Model>> Simulator<M> {
         }
         Ok(())
     }
+}
+
+/// Where a scored candidate rollout writes its heads' outputs: `[T][n][2]` and `[T][n]`.
+struct Scores<'a> {
+    rewards: &'a mut [f32],
+    values: &'a mut [f32],
 }
 
 /// What a rollout is seeded with.

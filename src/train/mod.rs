@@ -9,8 +9,9 @@
 //!   allocator measures a graph), then exactly that is allocated.
 //! - [`fit_noise_factor`] fits the correlation of sampled futures' noise (`transition.L`) once
 //!   a transition with the spread head is trained.
-//! - [`PolicyTrainer`] trains the policy, the cloned driver of [`crate::Simulator::act`], by
-//!   behavioural cloning on the caller's examples.
+//! - [`HeadTrainer`] trains a head ([`crate::HeadKind`]) by regression on the caller's
+//!   examples: the policy, the cloned driver of [`crate::Simulator::act`], by behavioural
+//!   cloning; the reward head on the env's rewards; the value head on [`lambda_returns`].
 //!
 //! Steps allocate nothing. The backward passes run on the forward kernels where the maths
 //! allows (the data gradient of a dense layer is the forward product by the transposed
@@ -25,18 +26,20 @@
 
 mod adam;
 mod arena;
+mod heads;
 mod noise;
-mod policy;
+mod returns;
 mod shared;
 mod state;
 mod transition;
 mod vae_gan;
 
 pub use adam::Adam;
+pub use heads::{HeadSettings, HeadTrainer};
 pub use noise::fit_noise_factor;
 #[cfg(feature = "std")]
 pub use noise::with_noise_factor;
-pub use policy::{PolicySettings, PolicyTrainer};
+pub use returns::lambda_returns;
 pub use transition::{TransitionPlan, TransitionSettings, TransitionTrainer};
 #[cfg(feature = "std")]
 pub use vae_gan::random_weight_file;
@@ -51,6 +54,8 @@ pub struct TrainedOn<'a> {
     pub actions: Option<&'a [crate::ActionSpec]>,
     /// The frames' rate (`drivesim.frame_hz`), e.g. [`crate::Episodes::frame_hz`].
     pub frame_hz: Option<f32>,
+    /// The value head's discount per decision (`drivesim.discount`).
+    pub discount: Option<f32>,
 }
 
 /// A named tensor in PyTorch layout: name, shape, row-major values.

@@ -4,7 +4,10 @@
 
 Per track: the env's reward over its 1000 frames (less if the lap ends), the frames driven,
 the share of the track's tiles visited, the share of decisions with a wheel on the road, and
-the milliseconds the agent took per decision; then the mean and standard deviation. With
+the milliseconds the agent took per decision; then the mean and standard deviation. For a
+planner seeded by the policy (``mpc``), also the share of decisions where the plan departed
+from the policy's own action, and the score of the policy alone (``cloned``, the same model)
+on the same track, with the paired difference and its standard error: what planning adds. With
 ``--out``, each track's figures go to ``DIR/track_SEED.json`` (a run that stops resumes: tracks
 already there are read, not driven again) and an animation ``DIR/track_SEED.gif`` of the real
 frames beside what the agent imagined at each decision, dreamed 2 and 8 steps ahead (``mpc``:
@@ -64,6 +67,8 @@ def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple
         "on_road": round(on_road / decisions, 4),
         "ms_per_decision": round(1000 * seconds / decisions, 3),
     }
+    if hasattr(agent, "departures"):  # a planner seeded by the policy
+        figures["departed"] = round(agent.departures / max(agent.planned, 1), 4)
     env.close()
     return figures, rows
 
@@ -87,6 +92,7 @@ def write_gif(path: str, rows: list, fps: float) -> None:
 
 
 _agent = None  # the agent of this process, made at its first track
+_policy = None  # the policy alone (cloned) of this process, for a planner's comparison
 
 
 def track(job) -> dict:
@@ -97,9 +103,14 @@ def track(job) -> dict:
     if path and os.path.exists(path):
         with open(path) as f:
             return json.load(f)
+    global _policy
     if _agent is None:
         _agent = make_agent(args.agent, weights=args.weights, threads=args.threads)
     r, rows = drive(_agent, seed, args.frames, pictures=bool(args.out))
+    if "departed" in r and not args.no_policy_alone:
+        if _policy is None:
+            _policy = make_agent("cloned", weights=args.weights, threads=args.threads)
+        r["policy_alone"] = drive(_policy, seed, args.frames)[0]["reward"]
     if args.out:
         write_gif(os.path.join(args.out, f"track_{seed}.gif"), rows, 12.5)
         with atomic_write(path) as f:
@@ -119,26 +130,44 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=1,
                    help="tracks driven at once, each by its own agent in its own process (the ms per decision "
                         "then include the workers' contention: measure it with 1)")
+    p.add_argument("--no-policy-alone", action="store_true",
+                   help="for a planner seeded by the policy: do not also drive the policy alone on each track")
     args = p.parse_args(argv)
-    global _agent
-    _agent = None  # a run's agent is its own, even when main is called again in one process
+    global _agent, _policy
+    _agent = _policy = None  # a run's agents are its own, even when main is called again in one process
     if args.threads < 1 or args.frames < 1 or args.workers < 1:
         p.error("--threads, --frames and --workers must be positive")
     if args.out:
         os.makedirs(args.out, exist_ok=True)
     jobs = [(args, seed) for seed in args.seeds]
-    print(f"{'track':>6} {'reward':>8} {'frames':>6} {'tiles':>6} {'on road':>7} {'ms/decision':>11}", flush=True)
+    planner = args.agent == "mpc"
+    extra = f" {'departed':>8}" + ("" if args.no_policy_alone else f" {'policy':>8}") if planner else ""
+    print(f"{'track':>6} {'reward':>8} {'frames':>6} {'tiles':>6} {'on road':>7} {'ms/decision':>11}{extra}", flush=True)
     results = []
     with multiprocessing.Pool(min(args.workers, len(jobs))) if args.workers > 1 else contextlib.nullcontext() as pool:
         for r in (pool.imap(track, jobs) if pool else map(track, jobs)):
             results.append(r)
             print(f"{r['seed']:>6} {r['reward']:>8.1f} {r['frames']:>6} {r['tiles']:>6.1%} {r['on_road']:>7.1%} "
-                  f"{r['ms_per_decision']:>11.2f}", flush=True)
+                  f"{r['ms_per_decision']:>11.2f}" + planner_columns(r), flush=True)
     rewards = np.array([r["reward"] for r in results])
     ms = np.array([r["ms_per_decision"] for r in results])
     print(f"{args.agent}: {rewards.mean():.1f} ± {rewards.std():.1f} over {len(rewards)} tracks "
           f"(min {rewards.min():.1f}, max {rewards.max():.1f}); {ms.mean():.2f} ms per decision")
+    alone = np.array([r["policy_alone"] for r in results if "policy_alone" in r])
+    if len(alone) == len(results):
+        diff = rewards - alone
+        se = diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else float("nan")
+        departed = np.mean([r["departed"] for r in results])
+        print(f"the policy alone: {alone.mean():.1f} ± {alone.std():.1f}; {args.agent} - policy = {diff.mean():+.1f} "
+              f"± {se:.1f} (standard error), ahead on {(diff > 0).sum()} of {len(diff)} tracks; "
+              f"departed from the policy at {departed:.1%} of decisions")
     return 0
+
+
+def planner_columns(r: dict) -> str:
+    """A planner's per-track columns: departures from the policy, the policy alone's score."""
+    out = f" {r['departed']:>8.1%}" if "departed" in r else ""
+    return out + (f" {r['policy_alone']:>8.1f}" if "policy_alone" in r else "")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,272 @@
+//! `train heads`: the reward head or the value head, on episodes that carry the env's rewards
+//! (`weights/tool record` and `dagger` write them). Encodes the episodes (and their mirror
+//! images), steps the transition along each drive for the states the heads read, trains the
+//! head, reports its held-out error before and after, and writes the weights with it.
+//!
+//! - `--head reward`: from the state a decision led to (the next frame's code and the hidden
+//!   state after the step), the decision's reward and whether the car is off the road there.
+//! - `--head value`: TD(λ): from each frame's state, its λ-return, recomputed with the head as
+//!   trained so far every `--refresh` steps, the discount written as `drivesim.discount`.
+
+use crate::args::{data_help, Data};
+use crate::checkpoint::Checkpointing;
+use crate::common::Encoded;
+use crate::drives::split;
+use crate::files::read;
+use crate::regression::{fit, predict, rms_errors, Examples, Refresh, Run};
+use clap::{Parser, ValueEnum};
+use drivesim::train::{lambda_returns, HeadSettings, HeadTrainer, TrainedOn};
+use drivesim::{HeadKind, Model, Simulator};
+use std::time::Instant;
+
+#[derive(Clone, Copy, PartialEq, ValueEnum)]
+pub enum HeadArg {
+    Reward,
+    Value,
+}
+
+#[derive(Parser)]
+#[command(mut_args = data_help(&[
+    ("weights", "Weight file to start from (its encoder and transition give the head's input)"),
+    ("episodes", "Episodes with rewards (`reward`, `on_road`) to learn from"),
+    ("heldout", "Episodes to evaluate on; without it, the last --holdout episodes of --episodes"),
+    ("holdout", "Episodes of --episodes held out when there is no --heldout file"),
+    ("out", "Where to write the weights with the trained head"),
+]))]
+pub struct HeadsArgs {
+    #[command(flatten)]
+    pub data: Data,
+    /// Which head to train
+    #[arg(long, value_enum)]
+    pub head: HeadArg,
+    #[arg(long, default_value_t = 4000)]
+    pub steps: usize,
+    /// Examples per step
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub batch: u32,
+    /// Peak learning rate (cosine decay to zero)
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f32,
+    /// Units of the head's hidden layer (a new head; one the file has keeps its own)
+    #[arg(long, default_value_t = 64)]
+    pub width: usize,
+    /// The value's discount per decision (0.98: a return looks about 50 decisions, 4 s, ahead)
+    #[arg(long, default_value_t = 0.98)]
+    pub discount: f32,
+    /// TD(λ)'s λ
+    #[arg(long, default_value_t = 0.95)]
+    pub lambda: f32,
+    /// Steps between recomputing the value's targets with the head as trained so far
+    #[arg(long, default_value_t = 500, value_parser = clap::value_parser!(u32).range(1..))]
+    pub refresh: u32,
+    /// Start a new head even where the file has one
+    #[arg(long)]
+    pub restart: bool,
+    /// Threads that encode the frames
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub threads: u32,
+    /// Seed of the new head's weights and of the order of the examples
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub checkpointing: Checkpointing,
+}
+
+impl HeadsArgs {
+    /// The arguments that decide the run (and so its checkpoints).
+    fn run_arguments(&self) -> String {
+        let d = &self.data;
+        format!(
+            "weights {:?} episodes {:?} heldout {:?} holdout {} head {} steps {} batch {} lr {} width {} discount {} lambda {} refresh {} no_mirror {} restart {} seed {}",
+            d.weights, d.episodes, d.heldout, d.holdout, self.kind().name(), self.steps, self.batch, self.lr,
+            self.width, self.discount, self.lambda, self.refresh, d.no_mirror, self.restart, self.seed
+        )
+    }
+
+    fn kind(&self) -> HeadKind {
+        match self.head {
+            HeadArg::Reward => HeadKind::Reward,
+            HeadArg::Value => HeadKind::Value,
+        }
+    }
+}
+
+/// The heads' examples of encoded drives. `reward`: each decision's next state, its reward and
+/// whether the car is off the road there. `value`: each decision's state, with what its
+/// λ-return needs: the decision's reward, the next state, and where each drive ends.
+struct HeadExamples {
+    reward: Examples,
+    value: Examples,
+    rewards: Vec<f32>,
+    next_states: Examples,
+    drive_ends: Vec<usize>,
+}
+
+/// Every frame's state `[z | h]` along each drive (the transition stepped from zeros, as the
+/// heads' user steps it) and the examples the heads learn from.
+fn examples(model: &Model, drives: &[Encoded], what: &str) -> Result<HeadExamples, String> {
+    let c = model.config();
+    let (z, hd) = (c.z_dim, c.hidden_dim);
+    let mut sim = Simulator::new(model).map_err(|e| e.to_string())?;
+    let mut out = HeadExamples {
+        reward: Examples::new(2),
+        value: Examples::new(1),
+        rewards: Vec::new(),
+        next_states: Examples::new(1),
+        drive_ends: Vec::new(),
+    };
+    let (mut states, mut h, mut next) = (Vec::new(), vec![0.0; hd], vec![0.0; z]);
+    for drive in drives {
+        let (rewards, on_road) = drive
+            .outcomes
+            .as_ref()
+            .ok_or_else(|| format!("{what}: an episode without rewards (`reward`, `on_road`): record it again"))?;
+        let frames = drive.codes.len() / z;
+        states.clear();
+        h.fill(0.0);
+        for t in 0..frames {
+            let code = &drive.codes[t * z..][..z];
+            states.extend_from_slice(code);
+            states.extend_from_slice(&h);
+            sim.transition(code, &mut h, &drive.actions[t * 2..][..2], &mut next)
+                .map_err(|e| e.to_string())?;
+        }
+        let state = |t: usize| &states[t * (z + hd)..][..z + hd];
+        for t in 0..frames.saturating_sub(1) {
+            out.reward.inputs.extend_from_slice(state(t + 1));
+            out.reward
+                .targets
+                .extend_from_slice(&[rewards[t], 1.0 - on_road[t + 1] as f32]);
+            out.value.inputs.extend_from_slice(state(t));
+            out.next_states.inputs.extend_from_slice(state(t + 1));
+            out.rewards.push(rewards[t]);
+        }
+        out.value.targets.resize(out.rewards.len(), 0.0);
+        out.next_states.targets.resize(out.rewards.len(), 0.0);
+        out.drive_ends.push(out.rewards.len());
+    }
+    Ok(out)
+}
+
+impl HeadExamples {
+    /// The value's targets: each drive's λ-returns with `next_values` (the value of each next
+    /// state; a drive cut off by the recording is bootstrapped from its last state's value).
+    fn returns(&mut self, next_values: &[f32], discount: f32, lambda: f32) -> Result<(), String> {
+        let mut start = 0;
+        for &end in &self.drive_ends {
+            let out = &mut self.value.targets[start..end];
+            lambda_returns(
+                &self.rewards[start..end],
+                &next_values[start..end],
+                discount,
+                lambda,
+                out,
+            )
+            .map_err(|e| e.to_string())?;
+            start = end;
+        }
+        Ok(())
+    }
+}
+
+pub fn heads(args: &HeadsArgs) -> Result<(), String> {
+    let kind = args.kind();
+    let bytes = read(&args.data.weights)?;
+    let model = Model::from_bytes(&bytes).map_err(|e| format!("{}: {e}", args.data.weights.display()))?;
+    let drives = split(&model, &args.data, args.threads as usize)?;
+    let mut train = examples(&model, &drives.train, "episodes")?;
+    let mut heldout = examples(&model, &drives.heldout, "held-out episodes")?;
+    let (discount, lambda) = (args.discount, args.lambda);
+    if kind == HeadKind::Value {
+        // The first targets, for the units: the returns with every next value 0.
+        let zeros = vec![0.0; train.rewards.len()];
+        train.returns(&zeros, discount, lambda)?;
+    }
+    let target = |e: &mut HeadExamples| -> Examples {
+        let pick = if kind == HeadKind::Reward {
+            &mut e.reward
+        } else {
+            &mut e.value
+        };
+        std::mem::replace(pick, Examples::new(kind.outputs(model.config())))
+    };
+    let mut examples = target(&mut train);
+    let units = examples.units();
+    let settings = HeadSettings {
+        width: args.width,
+        batch: args.batch as usize,
+        restart: (args.restart || model.head_width(kind).is_none()).then_some(args.seed),
+        ..HeadSettings::default()
+    };
+    let mut trainer = HeadTrainer::with_units(&model, kind, &units, settings).map_err(|e| e.to_string())?;
+    println!(
+        "{} examples ({} held out), {} head width {}, targets' mean and deviation {units:?}, {} steps of {}",
+        examples.len(),
+        heldout.rewards.len(),
+        kind.name(),
+        trainer.width(),
+        args.steps,
+        args.batch
+    );
+    let trained_on = TrainedOn {
+        discount: (kind == HeadKind::Value).then_some(discount),
+        ..TrainedOn::default()
+    };
+    let as_model = |t: &HeadTrainer| -> Result<Model, String> {
+        let file = t.weight_file(&bytes, trained_on).map_err(|e| e.to_string())?;
+        Model::from_bytes(&file).map_err(|e| e.to_string())
+    };
+    let mut report = |model: &Model, when: &str| -> Result<(), String> {
+        if model.head_width(kind).is_none() || heldout.rewards.is_empty() {
+            return Ok(());
+        }
+        if kind == HeadKind::Reward {
+            let rms = rms_errors(model, kind, &heldout.reward)?;
+            let spread = heldout.reward.units();
+            println!(
+                "held out, {when}: RMS error reward {:.3} (targets' deviation {:.3}), off the road {:.3} ({:.3})",
+                rms[0], spread[0].1, rms[1], spread[1].1
+            );
+        } else {
+            let next = predict(model, kind, &heldout.next_states)?;
+            heldout.returns(&next, discount, lambda)?;
+            let rms = rms_errors(model, kind, &heldout.value)?;
+            let spread = heldout.value.units()[0].1;
+            println!(
+                "held out, {when}: RMS error against the λ-returns {:.2} (their deviation {spread:.2})",
+                rms[0]
+            );
+        }
+        Ok(())
+    };
+    report(&model, "before")?;
+    let run = Run {
+        steps: args.steps,
+        batch: args.batch as usize,
+        lr: args.lr,
+        seed: args.seed,
+        checkpoints: &args.checkpointing,
+        command: "heads",
+        arguments: args.run_arguments(),
+    };
+    let start = Instant::now();
+    let mut refresh_targets = |t: &HeadTrainer, e: &mut Examples| -> Result<(), String> {
+        let next = predict(&as_model(t)?, HeadKind::Value, &train.next_states)?;
+        std::mem::swap(&mut train.value, e);
+        let done = train.returns(&next, discount, lambda);
+        std::mem::swap(&mut train.value, e);
+        done
+    };
+    let refresh = (kind == HeadKind::Value).then_some(Refresh {
+        every: args.refresh as usize,
+        targets: &mut refresh_targets,
+    });
+    fit(&mut trainer, &mut examples, &run, refresh)?;
+    let written = trainer.weight_file(&bytes, trained_on).map_err(|e| e.to_string())?;
+    let trained = Model::from_bytes(&written).map_err(|e| e.to_string())?;
+    println!("trained in {:.1} s", start.elapsed().as_secs_f64());
+    report(&trained, "after")?;
+    crate::files::write_atomically(&args.data.out, &written)?;
+    println!("wrote {}", args.data.out.display());
+    Ok(())
+}

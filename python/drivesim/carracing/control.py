@@ -1,0 +1,63 @@
+"""What every CarRacing agent shares: the checks of ``act``'s inputs, the warm-up while the env's
+camera zooms in, the speed controller, and the proportional steering on the road seen now."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .. import _checks
+
+#: The models' view: what ``observe(env)`` returns and every agent's ``act`` takes.
+FRAME_SHAPE = (80, 160, 3)
+#: The largest speed an agent takes (Box2D units/s; CarRacing's car tops out near 100).
+SPEED_MAX = 1000.0
+
+
+def check_inputs(frame: np.ndarray, speed: float, shape: tuple = FRAME_SHAPE) -> tuple[np.ndarray, float]:
+    """``act``'s arguments checked: the frame (C-ordered) and the speed as a float."""
+    return _checks.frame(frame, shape), _checks.number("speed", speed, 0.0, SPEED_MAX)
+
+
+def speed_control(speed: float, target: float) -> tuple[float, float]:
+    """``(gas, brake)`` that bring ``speed`` to ``target`` (Box2D units/s; finite numbers,
+    ValueError otherwise)."""
+    speed, target = _checks.number("speed", speed), _checks.number("target", target)
+    gas = float(np.clip(0.06 * (target - speed), 0.0, 0.6))
+    brake = float(np.clip(0.06 * (speed - target - 4.0), 0.0, 0.8))
+    return gas, brake
+
+
+def warmup_action(agent, speed: float) -> Optional[np.ndarray]:
+    """Counts the agent's decision; while there have been at most ``agent.warmup`` (the env's
+    first second, its camera zooming in: frames unlike anything the models saw), the action
+    that drives straight at 25 units/s, else None."""
+    agent.decisions += 1
+    if agent.decisions > agent.warmup:
+        return None
+    gas, brake = speed_control(speed, 25.0)
+    return np.array([0.0, gas, brake], np.float32)
+
+
+def _road(road: np.ndarray) -> np.ndarray:
+    road = _checks.floats("road", road)
+    if road.shape != (4,) or not np.isfinite(road).all():
+        raise ValueError(f"road: expected 4 finite figures (road.measure's), got {road}")
+    return road
+
+
+def proportional_steering(road: np.ndarray) -> float:
+    """Steering toward the road's centre as measured in the near and middle bands (pixels;
+    positive: road to the right, so steer right). ``road``: one row of ``road.measure``."""
+    road = _road(road)
+    return float(np.clip(0.02 * road[0] + 0.03 * road[1], -1.0, 1.0))
+
+
+def target_speed(road: np.ndarray, max_speed: float, half_width: float) -> float:
+    """Slower as the road ahead bends: the far band's offset from the near band's."""
+    road = _road(road)
+    max_speed = _checks.number("max_speed", max_speed, 0.0, above=True)
+    half_width = _checks.number("half_width", half_width, 0.0, above=True)
+    bend = abs(float(road[2] - road[0])) / half_width
+    return float(np.clip(max_speed / (1.0 + 4.0 * bend), 20.0, max_speed))

@@ -1,0 +1,166 @@
+"""``MPCAgent`` ("mpc"): model-predictive path integral control (MPPI) in the dream, seeded by
+the policy and scored by the learned reward and value heads.
+
+At each decision it encodes the view and keeps the transition's hidden state stepped along
+the drive, as ``ClonedAgent`` does. The policy then drives on in the dream for ``horizon``
+decisions: its plan is the prior. ``candidates - 1`` perturbed copies of it (steering and target
+speed, noise correlated in time) and the prior itself are rolled out in one batch
+(``Simulator.rollout_candidates_scored``, ``futures`` sampled futures each where ``futures >
+1``). Each is scored by the predicted rewards less ``w_off`` times the predicted off-road
+chance, discounted, plus the discounted value of the last state. The first action is the
+average of the candidates' first actions weighted by ``exp(score / (spread * sd))``. It is
+replanned at every decision. ``departures`` counts the decisions where the applied action left
+the policy's own by more than ``DEPART_STEER`` in steering or ``DEPART_SPEED`` in target speed.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .. import _checks
+from .._drivesim import Model, Simulator
+from .control import check_inputs, speed_control, warmup_action
+
+#: A decision departs from the policy when its steering differs by more than this...
+DEPART_STEER = 0.05
+#: ...or its target speed by more than this (Box2D units/s).
+DEPART_SPEED = 2.0
+
+
+class MPCAgent:
+    """MPPI seeded by the policy, scored by the reward and value heads (see the module).
+    ``act(frame, speed)`` takes the models' view (``observe(env)``, ``(80, 160, 3)`` uint8) and
+    the speedometer, and returns CarRacing's action ``[steer, gas, brake]`` (float32).
+
+    The model needs its policy, reward and value heads and a discount (ValueError otherwise).
+    Deterministic for a ``seed``: the noise is drawn from a generator seeded at every
+    ``reset()``, and the simulator gives the same bits whatever the thread count.
+
+    Options (ValueError outside these, TypeError for the wrong kind): ``candidates`` 2 to 1024;
+    ``horizon`` 1 to 100; ``futures`` 1 to 64 (sampled futures per candidate, at sampling
+    temperature ``temperature`` > 0; 1 with temperature 0 is the mean dream); ``threads`` >= 1;
+    ``seed`` >= 0; ``steer_noise``, ``speed_noise``, ``w_off``, ``temperature`` finite and >=
+    0; ``spread`` finite and > 0; ``smooth`` from 0 to 0.99 (the noise's correlation from one
+    decision to the next).
+    """
+
+    frame_skip = 4
+    warmup = 12
+
+    def __init__(
+        self,
+        model: Optional[Model] = None,
+        threads: int = 1,
+        candidates: int = 32,
+        horizon: int = 8,
+        futures: int = 1,
+        temperature: float = 0.0,
+        steer_noise: float = 0.15,
+        speed_noise: float = 6.0,
+        smooth: float = 0.7,
+        w_off: float = 5.0,
+        spread: float = 0.5,
+        seed: int = 0,
+    ):
+        count, number = _checks.integer, _checks.number
+        self.candidates, self.horizon = count("candidates", candidates, 2, 1024), count("horizon", horizon, 1, 100)
+        self.futures, self.seed = count("futures", futures, 1, 64), count("seed", seed, 0)
+        self.temperature = number("temperature", temperature, 0.0)
+        self.steer_noise, self.speed_noise = number("steer_noise", steer_noise, 0.0), number("speed_noise", speed_noise, 0.0)
+        self.smooth, self.w_off = number("smooth", smooth, 0.0, 0.99), number("w_off", w_off, 0.0)
+        self.spread = number("spread", spread, 0.0, above=True)
+        self.model = model if model is not None else Model.load()
+        missing = [n for n in ("policy", "reward", "value") if getattr(self.model, f"{n}_width") is None]
+        if missing or self.model.discount is None:
+            raise ValueError(f"mpc needs a model with its policy, reward and value heads and a discount: "
+                             f"missing {', '.join(missing) or 'drivesim.discount'} (train them with `train heads`)")
+        if self.futures > 1 and self.temperature == 0.0:
+            raise ValueError("futures > 1 needs a sampling temperature above 0 (else every future is the mean)")
+        if self.temperature > 0.0 and not self.model.samples:
+            raise ValueError("temperature > 0 needs a model that samples (Model.samples)")
+        batch = self.candidates * self.futures
+        self.sim = Simulator(self.model, batch=batch, threads=count("threads", threads, 1))
+        specs = self.model.actions
+        self.speed_range = (specs[0]["min"], specs[0]["max"]) if specs else (0.0, 100.0)
+        discount = np.float32(self.model.discount)
+        self.weights = discount ** np.arange(self.horizon, dtype=np.float32)  # per step's reward
+        self.tail = float(discount**self.horizon)  # the last state's value
+        self.reset()
+
+    def reset(self) -> None:
+        """Forgets the drive: call at every new episode."""
+        self.h = np.zeros(self.model.hidden_dim, np.float32)
+        self.decisions = self.planned = self.departures = 0
+        self.rng = np.random.default_rng(self.seed)
+        self.last_state: Optional[tuple] = None  # (z, h) the last plan started from
+        self.last_plan: Optional[np.ndarray] = None  # (horizon, 2) dream actions of the chosen plan
+
+    def prior(self, z: np.ndarray, h: np.ndarray, speed: float) -> tuple[np.ndarray, np.ndarray]:
+        """The policy driving on in the dream from ``(z, h)`` at ``speed``: its target speeds and
+        steerings, ``(horizon,)`` each. The dream's speed at each step is the last target."""
+        targets, steers = np.empty(self.horizon, np.float32), np.empty(self.horizon, np.float32)
+        for t in range(self.horizon):
+            targets[t], steers[t] = self.sim.act(z, h)
+            if t + 1 < self.horizon:
+                z, h = self.sim.transition(z, h, np.array([speed, steers[t]], np.float32))
+                speed = float(targets[t])
+        return targets, steers
+
+    def _noise(self, sd: float) -> np.ndarray:
+        """``(candidates, horizon)`` noise of deviation ``sd``, correlated ``smooth`` in time
+        (AR(1)); the first candidate's is zero (the prior itself is a candidate)."""
+        white = self.rng.standard_normal((self.candidates, self.horizon)).astype(np.float32)
+        out = np.empty_like(white)
+        out[:, 0] = white[:, 0]
+        keep = np.sqrt(1.0 - self.smooth**2)
+        for t in range(1, self.horizon):
+            out[:, t] = self.smooth * out[:, t - 1] + keep * white[:, t]
+        out[0] = 0.0
+        return sd * out
+
+    def plan(self, z: np.ndarray, h: np.ndarray, speed: float) -> tuple[float, float, np.ndarray, np.ndarray]:
+        """``(steer, target speed, dream actions (horizon, 2) of the weighted plan, the policy's
+        first (target, steer))`` for the state ``(z, h)`` at ``speed``."""
+        targets, steers = self.prior(z, h, speed)
+        steer = np.clip(steers + self._noise(self.steer_noise), -1.0, 1.0)  # (K, H)
+        target = np.clip(targets + self._noise(self.speed_noise), *self.speed_range)
+        speed_in = np.concatenate([np.full((self.candidates, 1), speed, np.float32), target[:, :-1]], axis=1)
+        actions = np.stack([speed_in, steer], axis=-1).transpose(1, 0, 2)  # (H, K, 2) step-major
+        actions = np.repeat(actions, self.futures, axis=1).astype(np.float32)  # futures side by side
+        self.sim.set_sampling(self.temperature, self.seed * 1_000_003 + self.decisions)
+        _, rewards, values = self.sim.rollout_candidates_scored(h, actions, z=z)
+        gain = rewards[..., 0] - self.w_off * rewards[..., 1]  # (H, K * F)
+        score = self.weights @ gain + self.tail * values[-1]
+        score = score.reshape(self.candidates, self.futures).mean(axis=1)
+        w = np.exp((score - score.max()) / (self.spread * score.std() + 1e-6))
+        w /= w.sum()
+        plan = np.einsum("k,hkc->hc", w, actions[:, :: self.futures])
+        return float(w @ steer[:, 0]), float(w @ target[:, 0]), plan, np.array([targets[0], steers[0]])
+
+    def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
+        """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
+        frame, speed = check_inputs(frame, speed, self.model.frame_shape)
+        warming_up = warmup_action(self, speed)
+        if warming_up is not None:
+            return warming_up
+        z = self.sim.encode(frame)
+        steer, target, plan, policy = self.plan(z, self.h, speed)
+        steer = float(np.clip(steer, -1.0, 1.0))
+        self.planned += 1
+        self.departures += bool(abs(steer - policy[1]) > DEPART_STEER or abs(target - policy[0]) > DEPART_SPEED)
+        self.last_state, self.last_plan = (z, self.h), plan
+        _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
+        gas, brake = speed_control(speed, target)
+        return np.array([steer, gas, brake], np.float32)
+
+    def imagine(self) -> Optional[np.ndarray]:
+        """The mean dream of the last weighted plan: ``(horizon, 80, 160, 3)`` uint8 frames (for
+        pictures, not for driving)."""
+        if self.last_plan is None:
+            return None
+        z, h = self.last_state
+        self.sim.set_sampling(0.0, 0)
+        _, frames = self.sim.rollout_candidates(h, self.last_plan[:, None, :].astype(np.float32), z=z, frames=True)
+        return frames[:, 0]
