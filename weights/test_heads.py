@@ -177,3 +177,184 @@ def test_the_committed_heads_fixture_is_reproduced(tmp_path):
         torch.set_num_threads(threads)
     name = "heads_f32.train.safetensors"
     assert fixtures.compare(fixtures.OUT / name, tmp_path / name) == []
+
+
+# `train.py heads` (train_heads.py): the Rust `train heads`'s twin, on tiny files.
+
+HEAD_CFG = Config(16, 32, 3, 2, z_dim=4, hidden_dim=6, action_dim=2)
+ACTIONS = [dict(name="speed", unit="m/s", mean=1.0, std=2.0, min=-3.0, max=4.0),
+           dict(name="steering", unit="as recorded", mean=0.0, std=0.5, min=-1.0, max=1.0)]
+
+
+def reward_episodes(path, lengths=(6, 8, 10), seed=0, rewards=True):
+    """Episodes of random 16x32 frames, with random rewards (or none)."""
+    import episodes
+
+    rng = np.random.default_rng(seed)
+    n = sum(lengths)
+    frames = rng.integers(0, 256, (n, 16, 32, 3), dtype=np.uint8)
+    actions = rng.normal(size=(n, 2)).astype(np.float32)
+    outcomes = dict(reward=rng.normal(size=n).astype(np.float32), tiles=rng.integers(0, 3, n).astype(np.int32),
+                    on_road=rng.integers(0, 2, n).astype(np.uint8)) if rewards else None
+    episodes.write(path, episodes.Episodes(frames, actions, np.cumsum([0, *lengths[:-1]]), outcomes))
+    return path
+
+
+@pytest.fixture
+def head_files(tmp_path):
+    """An f16 weight file with a policy, action metadata, a frame rate and a discriminator, and
+    three episodes (6, 8 and 10 frames) with rewards."""
+    from vae_gan import Discriminator
+
+    torch.manual_seed(11)
+    weights = tmp_path / "w.safetensors"
+    save_drivesim(DriveSim(HEAD_CFG, policy_width=3), HEAD_CFG, weights, "f16", actions=ACTIONS,
+                  discriminator=Discriminator(HEAD_CFG), frame_hz=12.5)
+    return weights, reward_episodes(tmp_path / "e.safetensors")
+
+
+def run_heads(capsys, weights, data, out, *more):
+    import train
+
+    train.main(["heads", "--weights", str(weights), "--episodes", str(data), "--out", str(out), "--steps", "12",
+                "--batch", "5", "--width", "3", "--refresh", "5", *more])
+    return capsys.readouterr().out
+
+
+def assert_the_rest_is_kept(original, written, head):
+    """Every tensor but the head's as it was (dtype included), the metadata the same but the
+    discount."""
+    a, b = load_file(str(original)), load_file(str(written))
+    assert {k for k in b if not k.startswith(head + ".")} == {k for k in a if not k.startswith(head + ".")}
+    for name, value in a.items():
+        if not name.startswith(head + "."):
+            assert b[name].dtype == value.dtype and torch.equal(b[name], value), name
+    with safe_open(str(original), "pt") as f, safe_open(str(written), "pt") as g:
+        before, after = f.metadata(), g.metadata()
+    if head == "value":
+        before.pop(DISCOUNT_KEY, None)
+        after.pop(DISCOUNT_KEY)
+    assert {k: json.loads(v) for k, v in after.items()} == {k: json.loads(v) for k, v in before.items()}
+
+
+def test_heads_command_trains_both_heads_into_the_file(head_files, tmp_path, capsys):
+    weights, data = head_files
+    reward, value = tmp_path / "reward.safetensors", tmp_path / "value.safetensors"
+    text = run_heads(capsys, weights, data, reward, "--head", "reward")
+    # Two episodes (5 + 7 decisions) and their mirror images train, the third's two views are held out.
+    assert "24 examples (18 held out), reward head width 3" in text and "wrote" in text
+    assert "held out, before" not in text and "held out, after: RMS error reward" in text
+    loaded, cfg = load_drivesim(reward)
+    assert cfg == HEAD_CFG and list(loaded.heads()) == ["policy", "reward"] and loaded.reward.width == 3
+    assert loaded.discount is None and load_file(str(reward))["reward.output.weight"].dtype == torch.float16
+    assert_the_rest_is_kept(weights, reward, "reward")
+    heldout = reward_episodes(tmp_path / "h.safetensors", lengths=(4, 5), seed=1)
+    text = run_heads(capsys, reward, data, value, "--head", "value", "--discount", "0.9", "--lambda", "0.8",
+                     "--heldout", str(heldout), "--no-mirror", "--width", "2")
+    assert "21 examples (7 held out), value head width 2" in text and "λ-returns" in text
+    loaded, _ = load_drivesim(value)
+    assert list(loaded.heads()) == ["policy", "reward", "value"] and loaded.discount == 0.9
+    with safe_open(str(value), "pt") as f:
+        assert f.metadata()[DISCOUNT_KEY] == "0.9"
+    assert_the_rest_is_kept(reward, value, "value")
+    # A head the file has goes on training (its own width), reported before and after; --restart
+    # draws a new one of --width.
+    again = tmp_path / "again.safetensors"
+    text = run_heads(capsys, value, data, again, "--head", "value", "--width", "5")
+    assert "value head width 2" in text and "held out, before" in text and "held out, after" in text
+    assert load_drivesim(again)[0].discount == 0.98
+    text = run_heads(capsys, value, data, again, "--head", "reward", "--width", "5", "--restart")
+    assert "reward head width 5" in text and "held out, before" in text
+    assert load_drivesim(again)[0].discount == 0.9  # the file's, kept by the reward head's run
+
+
+def test_heads_command_is_seeded(head_files, tmp_path, capsys):
+    weights, data = head_files
+    one, two, other = (tmp_path / f"{n}.safetensors" for n in ("one", "two", "other"))
+    for out in (one, two):
+        run_heads(capsys, weights, data, out, "--head", "value", "--seed", "3")
+    run_heads(capsys, weights, data, other, "--head", "value", "--seed", "4")
+    assert one.read_bytes() == two.read_bytes() != other.read_bytes()
+
+
+def test_heads_command_refuses_episodes_without_rewards(head_files, tmp_path, capsys):
+    import train
+
+    weights, data = head_files
+    bare = reward_episodes(tmp_path / "bare.safetensors", rewards=False)
+    for more in (["--episodes", str(bare)], ["--episodes", str(data), "--heldout", str(bare)]):
+        with pytest.raises(SystemExit) as exit:
+            train.main(["heads", "--weights", str(weights), "--out", str(tmp_path / "o.safetensors"),
+                        "--head", "reward", "--width", "3", *more])
+        err = capsys.readouterr().err
+        assert exit.value.code == 2 and "without rewards (`reward`, `on_road`)" in err and str(bare) in err
+    assert not (tmp_path / "o.safetensors").exists()
+    with pytest.raises(SystemExit) as exit:
+        train.main(["heads", "--weights", str(weights), "--out", str(tmp_path / "o.safetensors"),
+                    "--head", "value", "--episodes", str(data), "--holdout", "3", "--width", "3"])
+    assert exit.value.code == 2 and "--holdout 3 leaves no training episode" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit:  # the crate reads no head wider than hidden_dim
+        train.main(["heads", "--weights", str(weights), "--out", str(tmp_path / "o.safetensors"),
+                    "--head", "value", "--episodes", str(data), "--width", "7"])
+    assert exit.value.code == 2 and "from 1 to the model's hidden_dim (6)" in capsys.readouterr().err
+
+
+def test_the_examples_are_the_states_along_each_drive(head_files):
+    import episodes
+    import train_heads
+
+    weights, data = head_files
+    model, cfg = load_drivesim(weights)
+    drives = train_heads.views(model, episodes.read(data), no_mirror=False)
+    assert len(drives) == 6 and [len(d[0]) for d in drives] == [6, 8, 10] * 2
+    assert torch.equal(drives[3][1][:, 1], -drives[0][1][:, 1]) and torch.equal(drives[3][2], drives[0][2])
+    frames = torch.from_numpy(episodes.read(data).frames[:6].copy())
+    with torch.no_grad():
+        assert torch.allclose(drives[3][0], model.encoder(train_heads.to_input(frames.flip(2)))[0], atol=1e-6)
+    ex = train_heads.examples(model, cfg, drives[:2], 0.9, 0.8)
+    codes, actions, reward, on_road = drives[1]
+    h, rows = torch.zeros(cfg.hidden_dim), []
+    with torch.no_grad():
+        for t in range(8):
+            rows.append(torch.cat([codes[t], h]))
+            h = model.transition(codes[t], h, actions[t])[1]
+    s = torch.stack(rows)
+    assert ex.drive_ends == [5, 12] and len(ex.reward) == len(ex.value) == 12
+    torch.testing.assert_close(ex.value.inputs[5:], s[:-1], rtol=0, atol=1e-6)
+    torch.testing.assert_close(ex.reward.inputs[5:], s[1:], rtol=0, atol=1e-6)
+    assert torch.equal(ex.reward.targets[5:, 0], reward[:-1])
+    assert torch.equal(ex.reward.targets[5:, 1], 1.0 - on_road[1:].float())
+    assert np.array_equal(ex.value.targets[5:, 0].numpy(), lambda_returns(reward[:-1].numpy(), np.zeros(7), 0.9, 0.8))
+    next_values = torch.arange(12.0)
+    ex.returns(next_values)
+    assert np.array_equal(ex.value.targets[:5, 0].numpy(), lambda_returns(ex.rewards[:5], next_values[:5], 0.9, 0.8))
+    units = ex.reward.units()
+    t = ex.reward.targets.double()
+    assert units[0] == pytest.approx((t[:, 0].mean().item(), t[:, 0].std(unbiased=False).item()), rel=1e-6)
+
+
+def test_the_order_is_the_rust_commands():
+    """Order's draws are examples/train/regression.rs's (its SplitMix64 shuffles, written out
+    one by one here as in the Rust), across passes and batches that straddle them."""
+    import train_heads
+
+    mask = (1 << 64) - 1
+
+    def rust_order(count, seed, draws):
+        order, state, out = list(range(count)), seed, []
+        while len(out) < draws:
+            for i in range(count - 1, 0, -1):
+                state = (state + 0x9E3779B97F4A7C15) & mask
+                x = state
+                x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & mask
+                x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & mask
+                j = (x ^ (x >> 31)) % (i + 1)
+                order[i], order[j] = order[j], order[i]
+            out += order
+        return out[:draws]
+
+    for count, seed, batch in ((7, 0, 3), (10, 2**64 - 5, 4), (1, 9, 2), (33, 12345, 33)):
+        order = train_heads.Order(count, seed)
+        got = np.concatenate([order.draw(batch) for _ in range(9)]).tolist()
+        assert got == rust_order(count, seed, 9 * batch), (count, seed)
+    assert train_heads.cosine_lr(1e-3, 0, 10) == np.float32(1e-3) and train_heads.cosine_lr(1e-3, 10, 10) == 0.0

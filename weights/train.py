@@ -4,6 +4,7 @@
       [--checkpoint run.ckpt --checkpoint-every 500 --resume]
   weights/tool train eval --weights default.safetensors --data eval.safetensors.gz --figures figures/
   weights/tool train step --stage transition|vae-gan --weights W.safetensors --batch B.safetensors --out O.safetensors
+  weights/tool train heads --head reward|value --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors
 
 fit: (1) VAE-GAN (vae_gan.py): encoder, generator and a discriminator. (2) The transition RNN
 (sequences.py) on encoded 15-frame sequences: 5 frames teacher forced, then 10 with its own
@@ -20,6 +21,9 @@ step (reference_step.py): one training step of a stage on a given batch, writing
 the gradients (for the transition, before clipping) and the updated tensors: the reference of
 the Rust `train step` (weights/README.md). The VAE-GAN step reads the discriminator from the
 weight file, where `fit` stores it (`discriminator.*`), so training can go on from either side.
+
+heads (train_heads.py): the reward head or the value head (TD(λ)) on episodes with rewards,
+added to a weight file: the twin of the Rust `train heads`.
 
 eval (evaluation.py): reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
 a contact sheet of a 100-step rollout, all from frames the model never saw; and the fidelity
@@ -42,6 +46,7 @@ import torch.distributed as dist
 
 import episodes
 import package
+import train_heads
 from checkpoints import Checkpoints
 from distributed import globalise_batch_norms, start_distributed, world
 from evaluation import evaluate
@@ -169,8 +174,30 @@ def main(argv=None):
     s.add_argument("--teacher", type=int, default=TEACHER)
     s.add_argument("--clip", type=float, default=1.0)
     s.add_argument("--full-bptt", action="store_true", help="do not detach fed-back predictions")
+    h = sub.add_parser("heads", help="train the reward or the value head on episodes with rewards (the Rust "
+                       "`train heads`'s twin)")
+    h.add_argument("--weights", required=True, help="weight file to start from (its encoder and transition give "
+                   "the head's input)")
+    h.add_argument("--episodes", required=True, help="episodes with rewards (`reward`, `on_road`) to learn from")
+    h.add_argument("--heldout", help="episodes to evaluate on; without it, the last --holdout episodes of --episodes")
+    h.add_argument("--holdout", type=int, default=1, help="episodes of --episodes held out without --heldout")
+    h.add_argument("--out", required=True, help="where to write the weights with the trained head")
+    h.add_argument("--head", required=True, choices=["reward", "value"], help="which head to train")
+    h.add_argument("--steps", type=int, default=4000)
+    h.add_argument("--batch", type=int, default=256, help="examples per step")
+    h.add_argument("--lr", type=float, default=1e-3, help="peak learning rate (cosine decay to zero)")
+    h.add_argument("--width", type=int, default=64, help="units of a new head's hidden layer (a head the file "
+                   "has keeps its own)")
+    h.add_argument("--discount", type=float, default=0.98, help="the value's discount per decision")
+    h.add_argument("--lambda", dest="lam", metavar="LAMBDA", type=float, default=0.95, help="TD(λ)'s λ")
+    h.add_argument("--refresh", type=int, default=500, help="steps between recomputing the value's targets "
+                   "with the head as trained so far")
+    h.add_argument("--restart", action="store_true", help="start a new head even where the file has one")
+    h.add_argument("--seed", type=int, default=0, help="seed of a new head's weights and of the examples' order")
+    h.add_argument("--no-mirror", action="store_true", help="train on the episodes only, not also on their "
+                   "mirror images (frames flipped left to right, steering negated)")
     args = p.parse_args(argv)
-    modes = {"fit": fit, "eval": evaluate, "step": step}
+    modes = {"fit": fit, "eval": evaluate, "step": step, "heads": train_heads.heads}
     try:
         modes[args.mode](args)
     except (episodes.EpisodesError, ValueError, OSError) as err:

@@ -105,7 +105,7 @@ def track(job) -> dict:
             return json.load(f)
     global _policy
     if _agent is None:
-        _agent = make_agent(args.agent, weights=args.weights, threads=args.threads)
+        _agent = make_agent(args.agent, weights=args.weights, threads=args.threads, **dict(args.set))
     r, rows = drive(_agent, seed, args.frames, pictures=bool(args.out))
     if "departed" in r and not args.no_policy_alone:
         if _policy is None:
@@ -130,6 +130,8 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=1,
                    help="tracks driven at once, each by its own agent in its own process (the ms per decision "
                         "then include the workers' contention: measure it with 1)")
+    p.add_argument("--set", type=option, action="append", default=[], metavar="NAME=VALUE",
+                   help="an option of the agent (e.g. --set candidates=64; its class's docstring lists them)")
     p.add_argument("--no-policy-alone", action="store_true",
                    help="for a planner seeded by the policy: do not also drive the policy alone on each track")
     args = p.parse_args(argv)
@@ -162,6 +164,19 @@ def main(argv=None) -> int:
               f"± {se:.1f} (standard error), ahead on {(diff > 0).sum()} of {len(diff)} tracks; "
               f"departed from the policy at {departed:.1%} of decisions")
     return 0
+
+
+def option(text: str) -> tuple:
+    """``NAME=VALUE`` as ``(name, value)``, the value an int or a float where it reads as one."""
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+    for kind in (int, float):
+        try:
+            return name, kind(value)
+        except ValueError:
+            pass
+    return name, value
 
 
 def planner_columns(r: dict) -> str:

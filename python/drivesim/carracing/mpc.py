@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import _checks
 from .._drivesim import Model, Simulator
-from .control import check_inputs, speed_control, warmup_action
+from .control import SPEED_MAX, check_inputs, speed_control, warmup_action
 
 #: A decision departs from the policy when its steering differs by more than this...
 DEPART_STEER = 0.05
@@ -43,7 +43,9 @@ class MPCAgent:
     temperature ``temperature`` > 0; 1 with temperature 0 is the mean dream); ``threads`` >= 1;
     ``seed`` >= 0; ``steer_noise``, ``speed_noise``, ``w_off``, ``temperature`` finite and >=
     0; ``spread`` finite and > 0; ``smooth`` from 0 to 0.99 (the noise's correlation from one
-    decision to the next).
+    decision to the next); ``max_speed`` the fastest target speed planned, above the model's
+    trained minimum and at most ``SPEED_MAX`` (None: the model's trained range, where the
+    policy's own targets are clipped too).
     """
 
     frame_skip = 4
@@ -63,6 +65,7 @@ class MPCAgent:
         w_off: float = 5.0,
         spread: float = 0.5,
         seed: int = 0,
+        max_speed: Optional[float] = None,
     ):
         count, number = _checks.integer, _checks.number
         self.candidates, self.horizon = count("candidates", candidates, 2, 1024), count("horizon", horizon, 1, 100)
@@ -83,7 +86,10 @@ class MPCAgent:
         batch = self.candidates * self.futures
         self.sim = Simulator(self.model, batch=batch, threads=count("threads", threads, 1))
         specs = self.model.actions
-        self.speed_range = (specs[0]["min"], specs[0]["max"]) if specs else (0.0, 100.0)
+        low, high = (specs[0]["min"], specs[0]["max"]) if specs else (0.0, 100.0)
+        if max_speed is not None:
+            high = number("max_speed", max_speed, low, SPEED_MAX, above=True)
+        self.speed_range = (low, high)
         discount = np.float32(self.model.discount)
         self.weights = discount ** np.arange(self.horizon, dtype=np.float32)  # per step's reward
         self.tail = float(discount**self.horizon)  # the last state's value
@@ -124,10 +130,14 @@ class MPCAgent:
         """``(steer, target speed, dream actions (horizon, 2) of the weighted plan, the policy's
         first (target, steer))`` for the state ``(z, h)`` at ``speed``."""
         targets, steers = self.prior(z, h, speed)
-        steer = np.clip(steers + self._noise(self.steer_noise), -1.0, 1.0)  # (K, H)
-        target = np.clip(targets + self._noise(self.speed_noise), *self.speed_range)
+        # The candidates are left unclipped and their dream actions clipped: a candidate beyond a
+        # limit drives as one at the limit, and the weighted mean is not pulled away from a
+        # prior at the limit (the policy's target speed often is). The action applied is clipped.
+        steer = steers + self._noise(self.steer_noise)  # (K, H)
+        target = targets + self._noise(self.speed_noise)
         speed_in = np.concatenate([np.full((self.candidates, 1), speed, np.float32), target[:, :-1]], axis=1)
-        actions = np.stack([speed_in, steer], axis=-1).transpose(1, 0, 2)  # (H, K, 2) step-major
+        dream = np.stack([np.clip(speed_in, *self.speed_range), np.clip(steer, -1.0, 1.0)], axis=-1)
+        actions = dream.transpose(1, 0, 2)  # (H, K, 2) step-major
         actions = np.repeat(actions, self.futures, axis=1).astype(np.float32)  # futures side by side
         self.sim.set_sampling(self.temperature, self.seed * 1_000_003 + self.decisions)
         _, rewards, values = self.sim.rollout_candidates_scored(h, actions, z=z)
@@ -137,7 +147,8 @@ class MPCAgent:
         w = np.exp((score - score.max()) / (self.spread * score.std() + 1e-6))
         w /= w.sum()
         plan = np.einsum("k,hkc->hc", w, actions[:, :: self.futures])
-        return float(w @ steer[:, 0]), float(w @ target[:, 0]), plan, np.array([targets[0], steers[0]])
+        chosen = float(np.clip(w @ steer[:, 0], -1.0, 1.0)), float(np.clip(w @ target[:, 0], *self.speed_range))
+        return chosen[0], chosen[1], plan, np.array([targets[0], steers[0]])
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
         """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
@@ -147,7 +158,6 @@ class MPCAgent:
             return warming_up
         z = self.sim.encode(frame)
         steer, target, plan, policy = self.plan(z, self.h, speed)
-        steer = float(np.clip(steer, -1.0, 1.0))
         self.planned += 1
         self.departures += bool(abs(steer - policy[1]) > DEPART_STEER or abs(target - policy[0]) > DEPART_SPEED)
         self.last_state, self.last_plan = (z, self.h), plan
