@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A training run killed with SIGKILL at random moments and resumed each time (--checkpoint,
 # --resume) must write the same --out bytes as the run never stopped; once it has finished, no
-# temporary file may be left behind. Usage: examples/train/kill_resume.sh TRAIN_BINARY EPISODES transition|vae-gan|policy [KILLS]
+# temporary file may be left behind. Usage: examples/train/kill_resume.sh TRAIN_BINARY EPISODES transition|vae-gan|policy|heads [KILLS]
 # (.ci/run runs both on a small episodes file, one thread).
 set -euo pipefail
 train="$1" episodes="$2" command="$3" kills="${4:-5}"
@@ -11,6 +11,8 @@ case "$command" in
     transition) extra=(--steps 2000 --batch 16 --checkpoint-every 100) ;;
     vae-gan) extra=(--steps 40 --batch 2 --every 1000 --checkpoint-every 4) ;;
     policy) extra=(--steps 12000 --batch 256 --checkpoint-every 500) ;;
+    # The value head by TD(λ): its targets are recomputed at each checkpoint (--refresh).
+    heads) extra=(--head value --restart --steps 6000 --batch 256 --refresh 500 --checkpoint-every 500) ;;
     *) echo "unknown command $command"; exit 2 ;;
 esac
 args=("$command" --weights weights/default.safetensors --episodes "$episodes" --threads 1 "${extra[@]}"

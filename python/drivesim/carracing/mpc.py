@@ -38,9 +38,13 @@ class MPCAgent:
     Deterministic for a ``seed``: the noise is drawn from a generator seeded at every
     ``reset()``, and the simulator gives the same bits whatever the thread count.
 
+    The defaults were chosen on tracks 6000-6031 (``docs/carracing.md``): 16 candidates, each
+    over 4 futures sampled at temperature 1, 8 decisions ahead.
+
     Options (ValueError outside these, TypeError for the wrong kind): ``candidates`` 2 to 1024;
     ``horizon`` 1 to 100; ``futures`` 1 to 64 (sampled futures per candidate, at sampling
-    temperature ``temperature`` > 0; 1 with temperature 0 is the mean dream); ``threads`` >= 1;
+    temperature ``temperature`` > 0; ``futures=1, temperature=0`` is the mean dream, for a
+    model that does not sample); ``threads`` >= 1;
     ``seed`` >= 0; ``steer_noise``, ``speed_noise``, ``w_off``, ``temperature`` finite and >=
     0; ``spread`` finite and > 0; ``smooth`` from 0 to 0.99 (the noise's correlation from one
     decision to the next); ``max_speed`` the fastest target speed planned, above the model's
@@ -55,15 +59,15 @@ class MPCAgent:
         self,
         model: Optional[Model] = None,
         threads: int = 1,
-        candidates: int = 32,
+        candidates: int = 16,
         horizon: int = 8,
-        futures: int = 1,
-        temperature: float = 0.0,
-        steer_noise: float = 0.15,
-        speed_noise: float = 6.0,
+        futures: int = 4,
+        temperature: float = 1.0,
+        steer_noise: float = 0.08,
+        speed_noise: float = 3.0,
         smooth: float = 0.7,
         w_off: float = 5.0,
-        spread: float = 0.5,
+        spread: float = 2.0,
         seed: int = 0,
         max_speed: Optional[float] = None,
     ):
