@@ -63,6 +63,7 @@ def test_evaluation_command(tmp_path, capsys):
     # What planning adds: the departures from the policy and the policy alone on the same track.
     figures = json.loads((tmp_path / "track_7.json").read_text())
     assert 0 <= figures["departed"] <= 1 and np.isfinite(figures["policy_alone"])
+    assert figures["speed_change"] >= 0 and figures["steer_change"] >= 0
     assert "the policy alone:" in out and "mpc - policy" in out
     # Resumable: a second run reads the track's figures instead of driving it again.
     main(["--agent", "mpc", "--seeds", "7", "--frames", "80", "--out", str(tmp_path)])

@@ -6,8 +6,9 @@ Per track: the env's reward over its 1000 frames (less if the lap ends), the fra
 the share of the track's tiles visited, the share of decisions with a wheel on the road, and
 the milliseconds the agent took per decision; then the mean and standard deviation. For a
 planner seeded by the policy (``mpc``), also the share of decisions where the plan departed
-from the policy's own action, and the score of the policy alone (``cloned``, the same model)
-on the same track, with the paired difference and its standard error: what planning adds. With
+from the policy's own action (and, in the JSON, the mean change of target speed and steering),
+and the score of the policy alone (``cloned``, the same model) on the same track, with the
+paired difference and its standard error: what planning adds. With
 ``--out``, each track's figures go to ``DIR/track_SEED.json`` (a run that stops resumes: tracks
 already there are read, not driven again) and an animation ``DIR/track_SEED.gif`` of the real
 frames beside what the agent imagined at each decision, dreamed 2 and 8 steps ahead (``mpc``:
@@ -69,6 +70,8 @@ def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple
     }
     if hasattr(agent, "departures"):  # a planner seeded by the policy
         figures["departed"] = round(agent.departures / max(agent.planned, 1), 4)
+        speed_change, steer_change = agent.changes / max(agent.planned, 1)
+        figures["speed_change"], figures["steer_change"] = round(float(speed_change), 3), round(float(steer_change), 4)
     env.close()
     return figures, rows
 

@@ -8,9 +8,11 @@ speed, noise correlated in time) and the prior itself are rolled out in one batc
 (``Simulator.rollout_candidates_scored``, ``futures`` sampled futures each where ``futures >
 1``). Each is scored by the predicted rewards less ``w_off`` times the predicted off-road
 chance, discounted, plus the discounted value of the last state. The first action is the
-average of the candidates' first actions weighted by ``exp(score / (spread * sd))``. It is
-replanned at every decision. ``departures`` counts the decisions where the applied action left
-the policy's own by more than ``DEPART_STEER`` in steering or ``DEPART_SPEED`` in target speed.
+policy's, moved by the candidates' first actions weighted by ``exp(score / (spread * sd))`` less
+their plain average (so that a dream that prefers no candidate leaves the policy's action as it
+is). It is replanned at every decision. ``departures`` counts the decisions where the applied action left
+the policy's own by more than ``DEPART_STEER`` in steering or ``DEPART_SPEED`` in target speed,
+``changes`` sums the differences (target speed, steering) over the ``planned`` decisions.
 """
 
 from __future__ import annotations
@@ -103,6 +105,7 @@ class MPCAgent:
         """Forgets the drive: call at every new episode."""
         self.h = np.zeros(self.model.hidden_dim, np.float32)
         self.decisions = self.planned = self.departures = 0
+        self.changes = np.zeros(2)  # summed |plan - policy|: target speed, steering
         self.rng = np.random.default_rng(self.seed)
         self.last_state: Optional[tuple] = None  # (z, h) the last plan started from
         self.last_plan: Optional[np.ndarray] = None  # (horizon, 2) dream actions of the chosen plan
@@ -150,8 +153,12 @@ class MPCAgent:
         score = score.reshape(self.candidates, self.futures).mean(axis=1)
         w = np.exp((score - score.max()) / (self.spread * score.std() + 1e-6))
         w /= w.sum()
+        # The weights' excess over the uniform average moves the plan from the prior: where the
+        # dream prefers no candidate, the policy's own action is applied, not the noise's mean.
+        excess = w - 1.0 / self.candidates
+        first = np.array([targets[0] + excess @ (target[:, 0] - targets[0]), steers[0] + excess @ (steer[:, 0] - steers[0])])
         plan = np.einsum("k,hkc->hc", w, actions[:, :: self.futures])
-        chosen = float(np.clip(w @ steer[:, 0], -1.0, 1.0)), float(np.clip(w @ target[:, 0], *self.speed_range))
+        chosen = float(np.clip(first[1], -1.0, 1.0)), float(np.clip(first[0], *self.speed_range))
         return chosen[0], chosen[1], plan, np.array([targets[0], steers[0]])
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
@@ -163,7 +170,9 @@ class MPCAgent:
         z = self.sim.encode(frame)
         steer, target, plan, policy = self.plan(z, self.h, speed)
         self.planned += 1
-        self.departures += bool(abs(steer - policy[1]) > DEPART_STEER or abs(target - policy[0]) > DEPART_SPEED)
+        change = np.abs([target - policy[0], steer - policy[1]])
+        self.changes += change
+        self.departures += bool(change[1] > DEPART_STEER or change[0] > DEPART_SPEED)
         self.last_state, self.last_plan = (z, self.h), plan
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
         gas, brake = speed_control(speed, target)
