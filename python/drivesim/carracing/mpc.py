@@ -40,15 +40,15 @@ class MPCAgent:
     Deterministic for a ``seed``: the noise is drawn from a generator seeded at every
     ``reset()``, and the simulator gives the same bits whatever the thread count.
 
-    The defaults were chosen on tracks 6000-6031 (``docs/carracing.md``): 16 candidates, each
+    The defaults were chosen on tracks 6000-6031 (``docs/planning.md``): 16 candidates, each
     over 4 futures sampled at temperature 1, 8 decisions ahead.
 
     Options (ValueError outside these, TypeError for the wrong kind): ``candidates`` 2 to 1024;
     ``horizon`` 1 to 100; ``futures`` 1 to 64 (sampled futures per candidate, at sampling
     temperature ``temperature`` > 0; ``futures=1, temperature=0`` is the mean dream, for a
-    model that does not sample); ``threads`` >= 1;
-    ``seed`` >= 0; ``steer_noise``, ``speed_noise``, ``w_off``, ``temperature`` finite and >=
-    0; ``spread`` finite and > 0; ``smooth`` from 0 to 0.99 (the noise's correlation from one
+    model that does not sample; ``candidates * futures`` at most 1024); ``threads`` >= 1;
+    ``seed`` >= 0; ``steer_noise``, ``speed_noise``, ``w_off``, ``temperature`` finite and >= 0;
+    ``spread`` finite and > 0; ``smooth`` from 0 to 0.99 (the noise's correlation from one
     decision to the next); ``max_speed`` the fastest target speed planned, above the model's
     trained minimum and at most ``SPEED_MAX`` (None: the model's trained range, where the
     policy's own targets are clipped too).
@@ -85,6 +85,8 @@ class MPCAgent:
         if missing or self.model.discount is None:
             raise ValueError(f"mpc needs a model with its policy, reward and value heads and a discount: "
                              f"missing {', '.join(missing) or 'drivesim.discount'} (train them with `train heads`)")
+        if self.candidates * self.futures > 1024:
+            raise ValueError(f"candidates * futures is {self.candidates * self.futures}: at most 1024 rollouts a decision")
         if self.futures > 1 and self.temperature == 0.0:
             raise ValueError("futures > 1 needs a sampling temperature above 0 (else every future is the mean)")
         if self.temperature > 0.0 and not self.model.samples:
