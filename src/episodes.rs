@@ -221,7 +221,7 @@ impl Episodes {
     /// The optional `reward` (f32, finite) and `on_road` (u8, 0 or 1), `[n]` each: both or
     /// neither (`weights/README.md`).
     fn outcomes(file: &SafeTensors<'_>, n: usize) -> Result<Option<(Vec<f32>, Vec<u8>)>> {
-        let bad = |reason: String| Error::Episodes { reason };
+        let bad = |reason: alloc::string::String| Error::Episodes { reason };
         let (reward, on_road) = match (file.tensor("reward"), file.tensor("on_road")) {
             (Err(_), Err(_)) => return Ok(None),
             (Ok(r), Ok(o)) => (r, o),

@@ -106,7 +106,7 @@ impl<M: Borrow<Model>> Simulator<M> {
     /// every step, in the same batch: the planner's scores. `rewards` receives
     /// `[T][candidates][2]`, each step's `(reward, off-road chance)` ([`Simulator::reward`]
     /// of the state the step reached), and `values` `[T][candidates]`, the value of that state
-    /// ([`Simulator::value`]). A model without both heads is [`Error::NoHead`].
+    /// ([`Simulator::value`]). A model without both heads is [`crate::Error::NoHead`].
     ///
     /// ```
     /// # use drivesim::{Config, Model, Simulator};

@@ -17,7 +17,7 @@
 
 use super::arena::{cut, cut_ref, Memory};
 use super::shared::column_sums;
-use super::{Adam, NamedTensor, TrainedOn};
+use super::{Adam, NamedTensor};
 use crate::heads::{Head, HeadKind};
 use crate::layers::dense;
 use crate::pool::Exec;
@@ -378,7 +378,7 @@ impl HeadTrainer {
     /// `trained_on` (a value head's `discount`): a file [`Model::load`] reads, whose
     /// [`crate::Simulator::act`] (or reward or value) is this head.
     #[cfg(feature = "std")]
-    pub fn weight_file(&self, original: &[u8], trained_on: TrainedOn<'_>) -> Result<Vec<u8>> {
+    pub fn weight_file(&self, original: &[u8], trained_on: super::TrainedOn<'_>) -> Result<Vec<u8>> {
         let (config, ..) = crate::weights::SafetensorsSource::parse(original)?;
         if config != self.config {
             return Err(Error::Metadata {
