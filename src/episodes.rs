@@ -204,7 +204,7 @@ impl Episodes {
         })?;
         let frame_hz = header.metadata().as_ref().and_then(|m| m.get(FRAME_HZ));
         let frame_hz = frame_hz
-            .map(|text| crate::weights::parse_frame_hz(FRAME_HZ, text))
+            .map(|text| crate::metadata::parse_frame_hz(FRAME_HZ, text))
             .transpose()?;
         Ok(Episodes {
             height,

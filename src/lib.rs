@@ -60,6 +60,7 @@ mod frames;
 mod generator;
 mod heads;
 mod layers;
+mod metadata;
 mod model;
 mod plan;
 mod pool;

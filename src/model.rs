@@ -4,8 +4,9 @@ use crate::actions::ActionSpec;
 use crate::encoder::Encoder;
 use crate::generator::Generator;
 use crate::heads::{Head, HeadKind};
+use crate::metadata::Described;
 use crate::transition::Transition;
-use crate::weights::{Described, RandomSource, SafetensorsSource, TensorSource, WeightDtype};
+use crate::weights::{RandomSource, SafetensorsSource, TensorSource, WeightDtype};
 use crate::{Config, Result};
 use alloc::vec::Vec;
 

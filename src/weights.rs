@@ -1,7 +1,7 @@
 //! Where the network builders get their tensors: a safetensors file, or a seeded random draw.
 //! Both hand out tensors in PyTorch layout; the networks pack them for the kernels.
 
-use crate::actions::{ActionSpec, ACTIONS_KEY};
+use crate::metadata::Described;
 use crate::{Config, Error, Result};
 use alloc::format;
 use alloc::string::{String, ToString};
@@ -102,15 +102,7 @@ impl<'a> SafetensorsSource<'a> {
             })?;
         let config = Config::from_json(json)?;
         let key = |k: &str| metadata.metadata().as_ref().and_then(|m| m.get(k));
-        let described = Described {
-            actions: key(ACTIONS_KEY)
-                .map(|json| ActionSpec::parse_all(json, config.action_dim))
-                .transpose()?,
-            frame_hz: key(FRAME_HZ_KEY)
-                .map(|text| parse_frame_hz(FRAME_HZ_KEY, text))
-                .transpose()?,
-            discount: key(DISCOUNT_KEY).map(|text| parse_discount(text)).transpose()?,
-        };
+        let described = Described::read(&key, config.action_dim)?;
         let file = SafeTensors::deserialize(bytes).map_err(malformed)?;
         // One supported dtype per file (`weights/README.md`): name the first tensor, in name
         // order, that breaks it.
@@ -133,45 +125,6 @@ impl<'a> SafetensorsSource<'a> {
             }
         }
         Ok((config, described, SafetensorsSource { file, read: Vec::new() }))
-    }
-}
-
-/// The metadata key of the frame rate a model was trained at: a decimal number of frames per
-/// second (`"12.5"`), as the episodes files' `frame_hz`.
-pub(crate) const FRAME_HZ_KEY: &str = "drivesim.frame_hz";
-
-/// The metadata key of the discount per decision of a value head's returns: a decimal number
-/// above 0 and below 1 (`"0.98"`).
-pub(crate) const DISCOUNT_KEY: &str = "drivesim.discount";
-
-/// What a weight file says about its inputs beyond the config: what the actions mean
-/// (`drivesim.actions`), how far apart its frames are (`drivesim.frame_hz`) and the value
-/// head's discount (`drivesim.discount`).
-#[derive(Default)]
-pub(crate) struct Described {
-    pub actions: Option<Vec<ActionSpec>>,
-    pub frame_hz: Option<f32>,
-    pub discount: Option<f32>,
-}
-
-/// A discount in metadata: a finite number above 0 and below 1.
-pub(crate) fn parse_discount(text: &str) -> Result<f32> {
-    match text.trim().parse::<f32>() {
-        Ok(d) if d > 0.0 && d < 1.0 => Ok(d),
-        _ => Err(Error::Metadata {
-            reason: format!("`{DISCOUNT_KEY}`: expected a number above 0 and below 1, found {text:?}"),
-        }),
-    }
-}
-
-/// A frame rate in metadata (`key`: a weight file's `drivesim.frame_hz`, an episodes file's
-/// `frame_hz`): a finite number above zero.
-pub(crate) fn parse_frame_hz(key: &str, text: &str) -> Result<f32> {
-    match text.trim().parse::<f32>() {
-        Ok(hz) if hz.is_finite() && hz > 0.0 => Ok(hz),
-        _ => Err(Error::Metadata {
-            reason: format!("`{key}`: expected frames per second above zero, found {text:?}"),
-        }),
     }
 }
 
@@ -341,21 +294,7 @@ pub(crate) fn rewrite(
     let (config, _, mut src) = SafetensorsSource::parse(bytes)?;
     let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;
     let mut metadata = metadata.metadata().clone().unwrap_or_default();
-    if let Some(actions) = trained_on.actions {
-        let json = ActionSpec::to_json(actions);
-        ActionSpec::parse_all(&json, config.action_dim)?; // what is written must read back
-        metadata.insert(ACTIONS_KEY.to_string(), json);
-    }
-    if let Some(hz) = trained_on.frame_hz {
-        let text = format!("{hz}");
-        parse_frame_hz(FRAME_HZ_KEY, &text)?; // what is written must read back
-        metadata.insert(FRAME_HZ_KEY.to_string(), text);
-    }
-    if let Some(discount) = trained_on.discount {
-        let text = format!("{discount}");
-        parse_discount(&text)?; // what is written must read back
-        metadata.insert(DISCOUNT_KEY.to_string(), text);
-    }
+    crate::metadata::write(&trained_on, config.action_dim, &mut metadata)?;
     let in_group = |name: &str| group.is_some_and(|prefix| name.starts_with(prefix));
     let mut names: Vec<String> = src
         .file
