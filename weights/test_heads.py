@@ -358,3 +358,87 @@ def test_the_order_is_the_rust_commands():
         got = np.concatenate([order.draw(batch) for _ in range(9)]).tolist()
         assert got == rust_order(count, seed, 9 * batch), (count, seed)
     assert train_heads.cosine_lr(1e-3, 0, 10) == np.float32(1e-3) and train_heads.cosine_lr(1e-3, 10, 10) == 0.0
+
+
+# --dream-steps: the value head also learns from dreamed drives (dreams.rs's twin).
+
+@pytest.fixture
+def dream_weights(tmp_path):
+    """An f16 weight file that can dream: a spread head with a noise factor, a policy, a reward head."""
+    torch.manual_seed(12)
+    model = DriveSim(HEAD_CFG, spread=True, policy_width=3, reward_width=2)
+    model.transition.set_noise_factor(torch.linalg.cholesky(0.5 * torch.eye(4) + 0.5))
+    save_drivesim(model, HEAD_CFG, tmp_path / "dream.safetensors", "f16", actions=ACTIONS)
+    return tmp_path / "dream.safetensors"
+
+
+def test_heads_command_trains_the_value_on_dreams(head_files, dream_weights, tmp_path, capsys):
+    _, data = head_files
+    out = tmp_path / "value.safetensors"
+    text = run_heads(capsys, dream_weights, data, out, "--head", "value", "--dream-steps", "3", "--dream-every", "2")
+    # Training: the 6- and 8-frame drives and their mirror images, 28 states, a dream from every
+    # second: 14 drives of 3 decisions after the 5 + 7 + 5 + 7 real decisions.
+    assert "14 dreamed drives of 3 decisions from real states" in text
+    assert "66 examples (18 held out), value head width 3" in text and "wrote" in text
+    loaded, _ = load_drivesim(out)
+    assert list(loaded.heads()) == ["policy", "reward", "value"] and loaded.discount == 0.98
+    assert_the_rest_is_kept(dream_weights, out, "value")
+    # The reward head ignores the flags.
+    text = run_heads(capsys, dream_weights, data, out, "--head", "reward", "--dream-steps", "3")
+    assert "dreamed" not in text and "24 examples" in text
+
+
+def test_the_dreams_start_from_the_real_states_and_follow_on(head_files, dream_weights):
+    import episodes
+    import train_heads
+
+    model, cfg = load_drivesim(dream_weights)
+    drives = train_heads.views(model, episodes.read(head_files[1]), no_mirror=False)[:2]
+    ex = train_heads.examples(model, cfg, drives, 0.9, 0.8)
+    assert len(ex.states) == len(ex.speeds) == 14 and torch.equal(ex.speeds[6:], drives[1][1][:, 0])
+    ranges = train_heads.action_ranges({"drivesim.actions": json.dumps(ACTIONS)})
+    d = train_heads.dream(model, cfg, ex.states, ex.speeds, 3, 2, 5, ranges)
+    assert d.ends == [3 * k for k in range(1, 8)] and d.inputs.shape == d.next_states.shape == (21, 10)
+    assert torch.equal(d.inputs[::3], ex.states[::2])  # step 0: the real states
+    for k in range(7):  # each step's next state is the next step's state
+        assert torch.equal(d.next_states[3 * k:3 * k + 2], d.inputs[3 * k + 1:3 * k + 3])
+    zd = cfg.z_dim
+    with torch.no_grad():
+        torch.testing.assert_close(d.rewards, model.reward(d.next_states[:, :zd], d.next_states[:, zd:])[:, 0])
+        # The first step: driven at the speedometer's speed, the policy's steering clipped.
+        z, h = ex.states[::2, :zd], ex.states[::2, zd:]
+        steer = model.policy(z, h)[:, 1].clamp(-1.0, 1.0)
+        h1 = model.transition(z, h, torch.stack([ex.speeds[::2], steer], 1))[1]
+    torch.testing.assert_close(d.next_states[::3, zd:], h1)
+    # Sampled: a seed of its own, the same again.
+    again, other = (train_heads.dream(model, cfg, ex.states, ex.speeds, 3, 2, s, ranges) for s in (5, 6))
+    assert torch.equal(again.next_states, d.next_states) and not torch.equal(other.next_states, d.next_states)
+    real, reward_inputs = len(ex.value), ex.reward.inputs
+    ex.add(d)
+    assert real == 12 and len(ex.value) == len(ex.rewards) == len(ex.next_states) == 12 + 21
+    assert ex.drive_ends == [5, 12] + [12 + e for e in d.ends] and ex.reward.inputs is reward_inputs
+    assert torch.equal(ex.value.inputs[12:], d.inputs) and torch.equal(ex.next_states[12:], d.next_states)
+    # Each dream a drive cut off: its λ-returns bootstrapped from its last state's value.
+    next_values = torch.arange(33.0)
+    ex.returns(next_values)
+    assert np.array_equal(ex.value.targets[15:18, 0].numpy(),
+                          lambda_returns(d.rewards[3:6], next_values[15:18], 0.9, 0.8))
+
+
+def test_dreams_are_refused_without_a_policy_a_reward_head_or_a_spread(head_files, tmp_path, capsys):
+    import train
+    import train_heads
+
+    weights, data = head_files  # a policy, no reward head, no spread head
+    for more, match in ((["--dream-steps", "2"], "need the model's policy and reward head"),
+                        (["--dream-steps", "-1"], "--dream-steps must be at least 0"),
+                        (["--dream-steps", "2", "--dream-every", "0"], "--dream-every at least 1")):
+        with pytest.raises(SystemExit) as exit:
+            train.main(["heads", "--weights", str(weights), "--out", str(tmp_path / "o.safetensors"),
+                        "--head", "value", "--episodes", str(data), "--width", "3", *more])
+        assert exit.value.code == 2 and match in capsys.readouterr().err
+    assert not (tmp_path / "o.safetensors").exists()
+    no_spread = DriveSim(HEAD_CFG, policy_width=3, reward_width=2)
+    states = torch.zeros(3, HEAD_CFG.z_dim + HEAD_CFG.hidden_dim)
+    with pytest.raises(ValueError, match="predicts no spread"):
+        train_heads.dream(no_spread, HEAD_CFG, states, torch.zeros(3), 2, 1, 0)

@@ -192,6 +192,10 @@ def main(argv=None):
     h.add_argument("--lambda", dest="lam", metavar="LAMBDA", type=float, default=0.95, help="TD(λ)'s λ")
     h.add_argument("--refresh", type=int, default=500, help="steps between recomputing the value's targets "
                    "with the head as trained so far")
+    h.add_argument("--dream-steps", type=int, default=0, help="the value head also learns from dreamed drives "
+                   "of this many decisions (0: real drives only): the policy driving on from real states over "
+                   "sampled futures, the reward head scoring them (the file needs both)")
+    h.add_argument("--dream-every", type=int, default=4, help="a dreamed drive from every this many real states")
     h.add_argument("--restart", action="store_true", help="start a new head even where the file has one")
     h.add_argument("--seed", type=int, default=0, help="seed of a new head's weights and of the examples' order")
     h.add_argument("--no-mirror", action="store_true", help="train on the episodes only, not also on their "

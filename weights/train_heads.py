@@ -9,7 +9,10 @@ is [z_t | h_t], h_t the hidden state before the step with frame t's code and act
 - reward: for t in 0..N-1, from state t+1, the targets (reward[t], 1 - on_road[t+1]).
 - value: from state t, TD(λ)'s λ-return with rewards reward[t] and next values V(state t+1)
   (heads.py `lambda_returns`, per drive), recomputed with the head as trained so far every
-  --refresh steps from step 0; the discount is written as `drivesim.discount`.
+  --refresh steps from step 0; the discount is written as `drivesim.discount`. With
+  --dream-steps K, also on dreamed drives (dreams.rs's `dream`): from every --dream-every-th
+  state of the training drives the policy drives on for K decisions over sampled futures, the
+  reward head scoring them; each is a drive cut off after K decisions, after the real ones.
 Training: heads.py's HeadTrainer in each target's mean and population deviation over the training
 examples (for value, of the returns with every next value 0), at a cosine learning rate, on
 batches drawn in the Rust command's seeded order (SplitMix64 shuffles). The written file is the
@@ -66,6 +69,8 @@ class HeadExamples:
     drive_ends: list  # the end of each drive's decisions in the rows above
     discount: float
     lam: float
+    states: torch.Tensor = None  # [frames, z + hd]: every frame's state, where dreamed drives start
+    speeds: torch.Tensor = None  # [frames]: the speedometer at each
 
     def returns(self, next_values) -> torch.Tensor:
         """Each drive's λ-returns with `next_values` [n] (a drive cut off by the recording is
@@ -77,6 +82,16 @@ class HeadExamples:
             start = end
         self.value.targets = out[:, None]
         return out
+
+    def add(self, dreams: "Dreams"):
+        """Dreamed drives added to the value's examples, after the real ones (heads.rs's `add`),
+        each a drive cut off; the value's targets the returns with every next value 0 again."""
+        base = len(self.rewards)
+        self.value.inputs = torch.cat([self.value.inputs, dreams.inputs])
+        self.next_states = torch.cat([self.next_states, dreams.next_states])  # the reward's inputs kept
+        self.rewards = torch.cat([self.rewards, dreams.rewards])
+        self.drive_ends = self.drive_ends + [base + e for e in dreams.ends]
+        self.returns(torch.zeros(len(self.rewards)))
 
 
 class Order:
@@ -204,27 +219,99 @@ def states(transition, drives, hidden_dim: int) -> list:
     return [torch.cat([z[i, :len(d[0])], hs[i, :len(d[0])]], 1) for i, d in enumerate(drives)]
 
 
+def _cat(parts, *shape):
+    return torch.cat(parts) if parts else torch.zeros(0, *shape)
+
+
 def examples(model, cfg, drives, discount: float, lam: float) -> HeadExamples:
     """The heads' examples of `drives` (heads.rs's `examples`); the value's targets are the
     returns with every next value 0 (the units' targets)."""
     width = cfg.z_dim + cfg.hidden_dim
     inputs, nexts, reward_targets, rewards, ends = [], [], [], [], []
-    end = 0
-    for s, (_, _, reward, on_road) in zip(states(model.transition, drives, cfg.hidden_dim), drives):
+    end, along = 0, states(model.transition, drives, cfg.hidden_dim)
+    for s, (_, _, reward, on_road) in zip(along, drives):
         inputs.append(s[:-1])
         nexts.append(s[1:])
         reward_targets.append(torch.stack([reward[:-1], 1.0 - on_road[1:].float()], 1))
         rewards.append(reward[:-1])
         end += len(rewards[-1])
         ends.append(end)
-    def cat(parts, *shape):
-        return torch.cat(parts) if parts else torch.zeros(0, *shape)
-
-    next_states = cat(nexts, width)
-    out = HeadExamples(Examples(next_states, cat(reward_targets, 2)), Examples(cat(inputs, width), None),
-                       cat(rewards), next_states, ends, discount, lam)
+    next_states = _cat(nexts, width)
+    out = HeadExamples(Examples(next_states, _cat(reward_targets, 2)), Examples(_cat(inputs, width), None),
+                       _cat(rewards), next_states, ends, discount, lam, _cat(along, width),
+                       _cat([d[1][:, 0] for d in drives]))
     out.returns(torch.zeros(len(out.rewards)))
     return out
+
+
+DREAM_BATCH = 256
+
+
+@dataclass
+class Dreams:
+    """Dreamed drives (dreams.rs's `Dreams`): each decision's state [n, z + hd], its predicted
+    reward [n], the state it led to [n, z + hd], and where each drive ends (counted in decisions)."""
+    inputs: torch.Tensor
+    rewards: torch.Tensor
+    next_states: torch.Tensor
+    ends: list
+
+
+def action_ranges(meta: dict):
+    """Each action's (min, max) of `drivesim.actions` as float32 tensors, what the crate's
+    `Simulator::act` clips the policy's actions to; None without the metadata (no clipping)."""
+    if ACTIONS_KEY not in meta:
+        return None
+    specs = json.loads(meta[ACTIONS_KEY])
+    return tuple(torch.tensor([np.float32(a[k]) for a in specs]) for k in ("min", "max"))
+
+
+@torch.no_grad()
+def dream(model, cfg, states: torch.Tensor, speeds: torch.Tensor, steps: int, every: int, seed: int,
+          ranges=None) -> Dreams:
+    """Drives of `steps` decisions from every `every`-th of the real `states` ([z | h] rows, the
+    speedometer at each in `speeds`), DREAM_BATCH at a time (dreams.rs's `dream`): at each step
+    the policy's (target, steering), clipped to `ranges`, steers the transition driven at the
+    speed reached (the start's speedometer, then the last target); the predicted code is sampled
+    at temperature 1 (`mean + exp(S h' + s) * L eps`, eps from a generator seeded with seed +
+    batch, not the crate's counter-based draws) and the reward head's reward of the new state is
+    the decision's."""
+    heads = model.heads()
+    if "policy" not in heads or "reward" not in heads:
+        raise ValueError("dreamed drives need the model's policy and reward head (train heads --head reward first)")
+    transition, zd = model.transition, cfg.z_dim
+    if not transition.spread:
+        raise ValueError("dreamed drives sample their futures, and the model's transition predicts no spread "
+                         "(no `transition.S` and `transition.s` in its weight file)")
+    inputs, rewards, nexts, ends = [], [], [], []
+    starts = torch.arange(0, len(speeds), max(every, 1))
+    for b, batch in enumerate(starts.split(DREAM_BATCH)):
+        generator = torch.Generator().manual_seed((seed + b) & Order.MASK)
+        z, h, speed = states[batch, :zd], states[batch, zd:], speeds[batch]
+        rows, scores = [], []
+        for t in range(steps + 1):
+            rows.append(torch.cat([z, h], 1))
+            if t == steps:
+                break
+            act = model.policy(z, h)
+            if ranges is not None:
+                act = act.clamp(ranges[0], ranges[1])
+            # The transition reads the speed driven, the policy gives the target.
+            z, h = transition(z, h, torch.stack([speed, act[:, 1]], 1))
+            speed = act[:, 0]
+            noise = torch.randn(z.shape, generator=generator)
+            if transition.correlated:
+                noise = noise @ transition.L.T
+            z = z + transition.log_sigma(h).clamp(-20, 20).exp() * noise
+            scores.append(model.reward(z, h)[:, 0])
+        rows = torch.stack(rows, 1)  # [drive, step, z + hd]
+        inputs.append(rows[:, :-1].flatten(0, 1))
+        nexts.append(rows[:, 1:].flatten(0, 1))
+        rewards.append(torch.stack(scores, 1).flatten() if steps else torch.zeros(0))
+        base = ends[-1] if ends else 0
+        ends.extend(base + steps * (k + 1) for k in range(len(batch)))
+    width = cfg.z_dim + cfg.hidden_dim
+    return Dreams(_cat(inputs, width), _cat(rewards), _cat(nexts, width), ends)
 
 
 @torch.no_grad()
@@ -276,6 +363,8 @@ def check(args):
         raise ValueError(f"--lr must be a finite number above 0, got {args.lr}")
     if not 0.0 <= args.lam <= 1.0:
         raise ValueError(f"--lambda must be from 0 to 1, got {args.lam}")
+    if args.dream_steps < 0 or args.dream_every < 1:
+        raise ValueError("--dream-steps must be at least 0, --dream-every at least 1")
     if args.head == "value":
         check_discount(args.discount)
 
@@ -298,6 +387,11 @@ def heads(args):
     train_drives, heldout_drives = split(model, cfg, args)
     train = examples(model, cfg, train_drives, args.discount, args.lam)
     heldout = examples(model, cfg, heldout_drives, args.discount, args.lam)
+    if kind == "value" and args.dream_steps > 0:
+        dreams = dream(model, cfg, train.states, train.speeds, args.dream_steps, args.dream_every, args.seed,
+                       action_ranges(meta))
+        print(f"{len(dreams.ends)} dreamed drives of {args.dream_steps} decisions from real states", flush=True)
+        train.add(dreams)
     ex = train.reward if kind == "reward" else train.value
     if not len(ex):
         raise ValueError("no examples to train on (every training episode is a single frame)")

@@ -6,11 +6,13 @@
 //! - `--head reward`: from the state a decision led to (the next frame's code and the hidden
 //!   state after the step), the decision's reward and whether the car is off the road there.
 //! - `--head value`: TD(λ): from each frame's state, its λ-return, recomputed with the head as
-//!   trained so far every `--refresh` steps, the discount written as `drivesim.discount`.
+//!   trained so far every `--refresh` steps, the discount written as `drivesim.discount`; with
+//!   `--dream-steps`, on dreamed drives too (`dreams.rs`).
 
 use crate::args::{data_help, Data};
 use crate::checkpoint::Checkpointing;
 use crate::common::Encoded;
+use crate::dreams::{dream, Dreams};
 use crate::drives::split;
 use crate::files::read;
 use crate::regression::{fit, predict, rms_errors, Examples, Refresh, Run};
@@ -59,6 +61,14 @@ pub struct HeadsArgs {
     /// Steps between recomputing the value's targets with the head as trained so far
     #[arg(long, default_value_t = 500, value_parser = clap::value_parser!(u32).range(1..))]
     pub refresh: u32,
+    /// The value head also learns from dreamed drives of this many decisions (0: real drives
+    /// only): the policy driving on from real states over sampled futures, the reward head
+    /// scoring them (the file needs both)
+    #[arg(long, default_value_t = 0)]
+    pub dream_steps: usize,
+    /// A dreamed drive from every this many real states
+    #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..))]
+    pub dream_every: u32,
     /// Start a new head even where the file has one
     #[arg(long)]
     pub restart: bool,
@@ -77,9 +87,10 @@ impl HeadsArgs {
     fn run_arguments(&self) -> String {
         let d = &self.data;
         format!(
-            "weights {:?} episodes {:?} heldout {:?} holdout {} head {} steps {} batch {} lr {} width {} discount {} lambda {} refresh {} no_mirror {} restart {} seed {}",
+            "weights {:?} episodes {:?} heldout {:?} holdout {} head {} steps {} batch {} lr {} width {} discount {} lambda {} refresh {} dream_steps {} dream_every {} no_mirror {} restart {} seed {}",
             d.weights, d.episodes, d.heldout, d.holdout, self.kind().name(), self.steps, self.batch, self.lr,
-            self.width, self.discount, self.lambda, self.refresh, d.no_mirror, self.restart, self.seed
+            self.width, self.discount, self.lambda, self.refresh, self.dream_steps, self.dream_every, d.no_mirror,
+            self.restart, self.seed
         )
     }
 
@@ -100,6 +111,9 @@ struct HeadExamples {
     rewards: Vec<f32>,
     next_states: Examples,
     drive_ends: Vec<usize>,
+    /// Every frame's state and the speedometer there: where dreamed drives start.
+    states: Vec<f32>,
+    speeds: Vec<f32>,
 }
 
 /// Every frame's state `[z | h]` along each drive (the transition stepped from zeros, as the
@@ -114,6 +128,8 @@ fn examples(model: &Model, drives: &[Encoded], what: &str) -> Result<HeadExample
         rewards: Vec::new(),
         next_states: Examples::new(1),
         drive_ends: Vec::new(),
+        states: Vec::new(),
+        speeds: Vec::new(),
     };
     let (mut states, mut h, mut next) = (Vec::new(), vec![0.0; hd], vec![0.0; z]);
     for drive in drives {
@@ -144,11 +160,24 @@ fn examples(model: &Model, drives: &[Encoded], what: &str) -> Result<HeadExample
         out.value.targets.resize(out.rewards.len(), 0.0);
         out.next_states.targets.resize(out.rewards.len(), 0.0);
         out.drive_ends.push(out.rewards.len());
+        out.states.extend_from_slice(&states);
+        out.speeds.extend(drive.actions.iter().step_by(2));
     }
     Ok(out)
 }
 
 impl HeadExamples {
+    /// Dreamed drives added to the value's examples, after the real ones.
+    fn add(&mut self, dreams: Dreams) {
+        let base = self.rewards.len();
+        self.value.inputs.extend_from_slice(&dreams.inputs);
+        self.next_states.inputs.extend_from_slice(&dreams.next_states);
+        self.rewards.extend_from_slice(&dreams.rewards);
+        self.value.targets.resize(self.rewards.len(), 0.0);
+        self.next_states.targets.resize(self.rewards.len(), 0.0);
+        self.drive_ends.extend(dreams.ends.iter().map(|e| base + e));
+    }
+
     /// The value's targets: each drive's λ-returns with `next_values` (the value of each next
     /// state; a drive cut off by the recording is bootstrapped from its last state's value).
     fn returns(&mut self, next_values: &[f32], discount: f32, lambda: f32) -> Result<(), String> {
@@ -177,6 +206,16 @@ pub fn heads(args: &HeadsArgs) -> Result<(), String> {
     let mut train = examples(&model, &drives.train, "episodes")?;
     let mut heldout = examples(&model, &drives.heldout, "held-out episodes")?;
     let (discount, lambda) = (args.discount, args.lambda);
+    if kind == HeadKind::Value && args.dream_steps > 0 {
+        let every = args.dream_every as usize;
+        let dreams = dream(&model, &train.states, &train.speeds, args.dream_steps, every, args.seed)?;
+        println!(
+            "{} dreamed drives of {} decisions from real states",
+            dreams.ends.len(),
+            args.dream_steps
+        );
+        train.add(dreams);
+    }
     if kind == HeadKind::Value {
         // The first targets, for the units: the returns with every next value 0.
         let zeros = vec![0.0; train.rewards.len()];

@@ -11,8 +11,9 @@ case "$command" in
     transition) extra=(--steps 2000 --batch 16 --checkpoint-every 100) ;;
     vae-gan) extra=(--steps 40 --batch 2 --every 1000 --checkpoint-every 4) ;;
     policy) extra=(--steps 12000 --batch 256 --checkpoint-every 500) ;;
-    # The value head by TD(λ): its targets are recomputed at each checkpoint (--refresh).
-    heads) extra=(--head value --restart --steps 6000 --batch 256 --refresh 500 --checkpoint-every 500) ;;
+    # The value head by TD(λ) on real and dreamed drives: its targets are recomputed at each
+    # checkpoint (--refresh).
+    heads) extra=(--head value --restart --dream-steps 4 --dream-every 8 --steps 6000 --batch 256 --refresh 500 --checkpoint-every 500) ;;
     *) echo "unknown command $command"; exit 2 ;;
 esac
 args=("$command" --weights weights/default.safetensors --episodes "$episodes" --threads 1 "${extra[@]}"

@@ -46,6 +46,7 @@ mod args;
 mod checkpoint;
 #[path = "../common.rs"]
 mod common;
+mod dreams;
 mod drives;
 mod files;
 mod fit;
