@@ -76,7 +76,8 @@ def frames_shape(lead_dims, dtype):
 @given(frames=arrays(items(FRAME)), z=arrays(items((Z,))), h=arrays(items((H,))), a=arrays(items((A,))),
        dtype=frame_dtypes)
 def test_simulator_calls(frames, z, h, a, dtype):
-    """Each array in each position of encode, generate, transition, transition_fed_back, act."""
+    """Each array in each position of encode, generate, transition, transition_fed_back, act and
+    the reward and value heads."""
     if (n := lead(frames, FRAME)) is not None:
         call(SIM.encode, frames, shape=(*n, Z))
     if (n := lead(z, (Z,))) is not None:
@@ -94,6 +95,8 @@ def test_simulator_calls(frames, z, h, a, dtype):
     for args in ((z, h1), (z1, h), (z, h)):
         n = lead(args[0], (Z,))
         call(SIM.act, *args, shape=lambda out, n=n: out.shape == (*n, A))
+        call(SIM.reward, *args, shape=lambda out, n=n: out.shape == (*n, 2) and ((out[..., 1] >= 0) & (out[..., 1] <= 1)).all())
+        call(SIM.value, *args, shape=lambda out, n=n: out.shape == (*n, 1))
     usable_simulator()
 
 
@@ -120,6 +123,9 @@ def test_rollouts(seed_frames, plan, steps, candidates, h, z, frames, dtype):
     call(SIM.rollout_candidates, h, grid, z, frames, dtype, shape=shaped)
     if not huge:
         call(SIM.rollout_candidates, HV[0], plan, ZV[0], frames, dtype)
+        scored = lambda out, t=steps, n=candidates: [o.shape for o in out] == [(t, n, Z), (t, n, 2), (t, n)]  # noqa
+        call(SIM.rollout_candidates_scored, h, grid, z, shape=scored)
+        call(SIM.rollout_candidates_scored, HV[0], plan, ZV[0])
     usable_simulator()
 
 
