@@ -221,3 +221,19 @@ def test_messages_name_shapes_and_state(model, clip):
         dream.reset(options={"frames": np.zeros((0, 80, 160, 3), np.uint8)})
     with pytest.raises(TypeError, match="options"):
         dream.reset(options=[("episode", 0)])
+
+
+def test_mpc_options_that_would_overflow_a_decision_are_refused_when_made(clip):
+    """The long fuzz made MPCAgent with temperature 7.8e36: accepted, then its 13th decision
+    raised ValueError (sampled codes overflowed). Each option is bounded where it is made, and
+    at the bounds every decision is finite."""
+    for options in ({"temperature": 7.8e36}, {"temperature": 10.5}, {"w_off": 1e300}, {"steer_noise": 1e30},
+                    {"speed_noise": 1e30}, {"spread": 1e30}):
+        with pytest.raises(ValueError):
+            carracing.MPCAgent(candidates=4, **options)
+    agent = carracing.MPCAgent(candidates=4, temperature=10.0, steer_noise=10.0, speed_noise=1000.0, w_off=1e6,
+                               spread=1e6, horizon=30)
+    agent.warmup = 0
+    frames, _ = clip
+    for frame in frames[:4]:
+        assert np.isfinite(agent.act(frame, 30.0)).all()

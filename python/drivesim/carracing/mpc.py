@@ -47,8 +47,8 @@ class MPCAgent:
     ``horizon`` 1 to 100; ``futures`` 1 to 64 (sampled futures per candidate, at sampling
     temperature ``temperature`` > 0; ``futures=1, temperature=0`` is the mean dream, for a
     model that does not sample; ``candidates * futures`` at most 1024); ``threads`` >= 1;
-    ``seed`` >= 0; ``steer_noise``, ``speed_noise``, ``w_off``, ``temperature`` finite and >= 0;
-    ``spread`` finite and > 0; ``smooth`` from 0 to 0.99 (the noise's correlation from one
+    ``seed`` >= 0; ``temperature`` 0 to 10; ``steer_noise`` 0 to 10; ``speed_noise`` 0 to
+    1000; ``w_off`` 0 to 1e6; ``spread`` above 0, at most 1e6; ``smooth`` from 0 to 0.99 (the noise's correlation from one
     decision to the next); ``max_speed`` the fastest target speed planned, above the model's
     trained minimum and at most ``SPEED_MAX`` (None: the model's trained range, where the
     policy's own targets are clipped too).
@@ -76,10 +76,12 @@ class MPCAgent:
         count, number = _checks.integer, _checks.number
         self.candidates, self.horizon = count("candidates", candidates, 2, 1024), count("horizon", horizon, 1, 100)
         self.futures, self.seed = count("futures", futures, 1, 64), count("seed", seed, 0)
-        self.temperature = number("temperature", temperature, 0.0)
-        self.steer_noise, self.speed_noise = number("steer_noise", steer_noise, 0.0), number("speed_noise", speed_noise, 0.0)
-        self.smooth, self.w_off = number("smooth", smooth, 0.0, 0.99), number("w_off", w_off, 0.0)
-        self.spread = number("spread", spread, 0.0, above=True)
+        # Bounded so that no decision overflows: a dream sampled far past its spread, noise or
+        # weights whose scores leave float32.
+        self.temperature = number("temperature", temperature, 0.0, 10.0)
+        self.steer_noise, self.speed_noise = number("steer_noise", steer_noise, 0.0, 10.0), number("speed_noise", speed_noise, 0.0, 1000.0)
+        self.smooth, self.w_off = number("smooth", smooth, 0.0, 0.99), number("w_off", w_off, 0.0, 1e6)
+        self.spread = number("spread", spread, 0.0, 1e6, above=True)
         self.model = model if model is not None else Model.load()
         missing = [n for n in ("policy", "reward", "value") if getattr(self.model, f"{n}_width") is None]
         if missing or self.model.discount is None:
