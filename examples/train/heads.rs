@@ -10,14 +10,13 @@
 //!   `--dream-steps`, on dreamed drives too (`dreams.rs`).
 
 use crate::args::{data_help, Data};
-use crate::checkpoint::Checkpointing;
 use crate::common::Encoded;
 use crate::dreams::{dream, Dreams};
 use crate::drives::split;
 use crate::files::read;
-use crate::regression::{fit, predict, rms_errors, Examples, Refresh, Run};
+use crate::regression::{fit, predict, rms_errors, Examples, FitFlags, Refresh};
 use clap::{Parser, ValueEnum};
-use drivesim::train::{lambda_returns, HeadSettings, HeadTrainer, TrainedOn};
+use drivesim::train::{lambda_returns, HeadTrainer, TrainedOn};
 use drivesim::{HeadKind, Model, Simulator};
 use std::time::Instant;
 
@@ -41,17 +40,8 @@ pub struct HeadsArgs {
     /// Which head to train
     #[arg(long, value_enum)]
     pub head: HeadArg,
-    #[arg(long, default_value_t = 4000)]
-    pub steps: usize,
-    /// Examples per step
-    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    pub batch: u32,
-    /// Peak learning rate (cosine decay to zero)
-    #[arg(long, default_value_t = 1e-3)]
-    pub lr: f32,
-    /// Units of the head's hidden layer (a new head; one the file has keeps its own)
-    #[arg(long, default_value_t = 64)]
-    pub width: usize,
+    #[command(flatten)]
+    pub fit: FitFlags,
     /// The value's discount per decision (0.98: a return looks about 50 decisions, 4 s, ahead)
     #[arg(long, default_value_t = 0.98)]
     pub discount: f32,
@@ -69,28 +59,17 @@ pub struct HeadsArgs {
     /// A dreamed drive from every this many real states
     #[arg(long, default_value_t = 4, value_parser = clap::value_parser!(u32).range(1..))]
     pub dream_every: u32,
-    /// Start a new head even where the file has one
-    #[arg(long)]
-    pub restart: bool,
-    /// Threads that encode the frames
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
-    pub threads: u32,
-    /// Seed of the new head's weights and of the order of the examples
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    #[command(flatten)]
-    pub checkpointing: Checkpointing,
 }
 
 impl HeadsArgs {
     /// The arguments that decide the run (and so its checkpoints).
     fn run_arguments(&self) -> String {
-        let d = &self.data;
+        let (d, f) = (&self.data, &self.fit);
         format!(
             "weights {:?} episodes {:?} heldout {:?} holdout {} head {} steps {} batch {} lr {} width {} discount {} lambda {} refresh {} dream_steps {} dream_every {} no_mirror {} restart {} seed {}",
-            d.weights, d.episodes, d.heldout, d.holdout, self.kind().name(), self.steps, self.batch, self.lr,
-            self.width, self.discount, self.lambda, self.refresh, self.dream_steps, self.dream_every, d.no_mirror,
-            self.restart, self.seed
+            d.weights, d.episodes, d.heldout, d.holdout, self.kind().name(), f.steps, f.batch, f.lr,
+            f.width, self.discount, self.lambda, self.refresh, self.dream_steps, self.dream_every, d.no_mirror,
+            f.restart, f.seed
         )
     }
 
@@ -202,13 +181,20 @@ pub fn heads(args: &HeadsArgs) -> Result<(), String> {
     let kind = args.kind();
     let bytes = read(&args.data.weights)?;
     let model = Model::from_bytes(&bytes).map_err(|e| format!("{}: {e}", args.data.weights.display()))?;
-    let drives = split(&model, &args.data, args.threads as usize)?;
+    let drives = split(&model, &args.data, args.fit.threads as usize)?;
     let mut train = examples(&model, &drives.train, "episodes")?;
     let mut heldout = examples(&model, &drives.heldout, "held-out episodes")?;
     let (discount, lambda) = (args.discount, args.lambda);
     if kind == HeadKind::Value && args.dream_steps > 0 {
         let every = args.dream_every as usize;
-        let dreams = dream(&model, &train.states, &train.speeds, args.dream_steps, every, args.seed)?;
+        let dreams = dream(
+            &model,
+            &train.states,
+            &train.speeds,
+            args.dream_steps,
+            every,
+            args.fit.seed,
+        )?;
         println!(
             "{} dreamed drives of {} decisions from real states",
             dreams.ends.len(),
@@ -231,12 +217,7 @@ pub fn heads(args: &HeadsArgs) -> Result<(), String> {
     };
     let mut examples = target(&mut train);
     let units = examples.units();
-    let settings = HeadSettings {
-        width: args.width,
-        batch: args.batch as usize,
-        restart: (args.restart || model.head_width(kind).is_none()).then_some(args.seed),
-        ..HeadSettings::default()
-    };
+    let settings = args.fit.settings(model.head_width(kind).is_some());
     let mut trainer = HeadTrainer::with_units(&model, kind, &units, settings).map_err(|e| e.to_string())?;
     println!(
         "{} examples ({} held out), {} head width {}, targets' mean and deviation {units:?}, {} steps of {}",
@@ -244,8 +225,8 @@ pub fn heads(args: &HeadsArgs) -> Result<(), String> {
         heldout.rewards.len(),
         kind.name(),
         trainer.width(),
-        args.steps,
-        args.batch
+        args.fit.steps,
+        args.fit.batch
     );
     let trained_on = TrainedOn {
         discount: (kind == HeadKind::Value).then_some(discount),
@@ -279,15 +260,7 @@ pub fn heads(args: &HeadsArgs) -> Result<(), String> {
         Ok(())
     };
     report(&model, "before")?;
-    let run = Run {
-        steps: args.steps,
-        batch: args.batch as usize,
-        lr: args.lr,
-        seed: args.seed,
-        checkpoints: &args.checkpointing,
-        command: "heads",
-        arguments: args.run_arguments(),
-    };
+    let run = args.fit.run("heads", args.run_arguments());
     let start = Instant::now();
     let mut refresh_targets = |t: &HeadTrainer, e: &mut Examples| -> Result<(), String> {
         let next = predict(&as_model(t)?, HeadKind::Value, &train.next_states)?;

@@ -4,13 +4,12 @@
 //! later (or, where the episodes carry them, a teacher's `labels`: DAgger's), reports the held-out error before and after, and writes the weights with the policy.
 
 use crate::args::{data_help, Data};
-use crate::checkpoint::Checkpointing;
 use crate::common::Encoded;
 use crate::drives::split;
 use crate::files::read;
-use crate::regression::{fit, rms_errors, Examples, Run};
+use crate::regression::{fit, rms_errors, Examples, FitFlags};
 use clap::Parser;
-use drivesim::train::{HeadSettings, HeadTrainer, TrainedOn};
+use drivesim::train::{HeadTrainer, TrainedOn};
 use drivesim::HeadKind;
 use drivesim::{Model, Simulator};
 use std::time::Instant;
@@ -26,42 +25,22 @@ use std::time::Instant;
 pub struct PolicyArgs {
     #[command(flatten)]
     pub data: Data,
-    #[arg(long, default_value_t = 4000)]
-    pub steps: usize,
-    /// Examples (frames) per step
-    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    pub batch: u32,
-    /// Peak learning rate (cosine decay to zero)
-    #[arg(long, default_value_t = 1e-3)]
-    pub lr: f32,
-    /// Units of the policy's hidden layer (a new policy; one the file has keeps its own)
-    #[arg(long, default_value_t = 64)]
-    pub width: usize,
+    #[command(flatten)]
+    pub fit: FitFlags,
     /// The speed to learn is the one the driver reached this many frames later
     #[arg(long, default_value_t = 1)]
     pub lead: usize,
-    /// Start a new policy even where the file has one
-    #[arg(long)]
-    pub restart: bool,
-    /// Threads that encode the frames
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
-    pub threads: u32,
-    /// Seed of the new policy's weights and of the order of the examples
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    #[command(flatten)]
-    pub checkpointing: Checkpointing,
 }
 
 impl PolicyArgs {
     /// The arguments that decide the run (and so its checkpoints): all but the threads, which
     /// change no bit, and the checkpointing itself.
     fn run_arguments(&self) -> String {
-        let d = &self.data;
+        let (d, f) = (&self.data, &self.fit);
         format!(
             "weights {:?} episodes {:?} heldout {:?} holdout {} steps {} batch {} lr {} width {} lead {} no_mirror {} restart {} seed {}",
-            d.weights, d.episodes, d.heldout, d.holdout, self.steps, self.batch, self.lr, self.width, self.lead,
-            d.no_mirror, self.restart, self.seed
+            d.weights, d.episodes, d.heldout, d.holdout, f.steps, f.batch, f.lr, f.width, self.lead,
+            d.no_mirror, f.restart, f.seed
         )
     }
 }
@@ -101,18 +80,13 @@ fn examples(model: &Model, drives: &[Encoded], lead: usize) -> Result<Examples, 
 pub fn policy(args: &PolicyArgs) -> Result<(), String> {
     let bytes = read(&args.data.weights)?;
     let model = Model::from_bytes(&bytes).map_err(|e| format!("{}: {e}", args.data.weights.display()))?;
-    let drives = split(&model, &args.data, args.threads as usize)?;
+    let drives = split(&model, &args.data, args.fit.threads as usize)?;
     let (train, heldout) = (drives.train, drives.heldout);
     let (train, heldout) = (
         examples(&model, &train, args.lead)?,
         examples(&model, &heldout, args.lead)?,
     );
-    let settings = HeadSettings {
-        width: args.width,
-        batch: args.batch as usize,
-        restart: (args.restart || model.policy_width().is_none()).then_some(args.seed),
-        ..HeadSettings::default()
-    };
+    let settings = args.fit.settings(model.policy_width().is_some());
     let mut trainer = HeadTrainer::new(&model, HeadKind::Policy, settings).map_err(|e| e.to_string())?;
     let mut train = train;
     let count = train.len();
@@ -126,8 +100,8 @@ pub fn policy(args: &PolicyArgs) -> Result<(), String> {
         "{count} examples ({} held out), policy width {}, {} steps of {}",
         heldout.len(),
         trainer.width(),
-        args.steps,
-        args.batch
+        args.fit.steps,
+        args.fit.batch
     );
     let report = |model: &Model, when: &str| -> Result<(), String> {
         if model.policy_width().is_some() && heldout.len() > 0 {
@@ -138,15 +112,7 @@ pub fn policy(args: &PolicyArgs) -> Result<(), String> {
         Ok(())
     };
     report(&model, "before")?;
-    let run = Run {
-        steps: args.steps,
-        batch: args.batch as usize,
-        lr: args.lr,
-        seed: args.seed,
-        checkpoints: &args.checkpointing,
-        command: "policy",
-        arguments: args.run_arguments(),
-    };
+    let run = args.fit.run("policy", args.run_arguments());
     let start = Instant::now();
     fit(&mut trainer, &mut train, &run, None)?;
     let written = trainer

@@ -3,7 +3,7 @@
 
 use crate::checkpoint::Checkpointing;
 use crate::common::bar;
-use drivesim::train::{cosine_lr, HeadTrainer};
+use drivesim::train::{cosine_lr, HeadSettings, HeadTrainer};
 use drivesim::{HeadKind, Model, Simulator};
 
 /// A head's examples: its input `[z | h]` per example and `outputs` targets per example.
@@ -82,6 +82,58 @@ pub fn rms_errors(model: &Model, kind: HeadKind, examples: &Examples) -> Result<
     }
     let n = examples.len().max(1) as f64;
     Ok(sums.iter().map(|s| (s / n).sqrt()).collect())
+}
+
+/// The flags of a head's fit, shared by `train policy` and `train heads`.
+#[derive(clap::Args)]
+pub struct FitFlags {
+    #[arg(long, default_value_t = 4000)]
+    pub steps: usize,
+    /// Examples (frames) per step
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub batch: u32,
+    /// Peak learning rate (cosine decay to zero)
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f32,
+    /// Units of the head's hidden layer (a new head; one the file has keeps its own)
+    #[arg(long, default_value_t = 64)]
+    pub width: usize,
+    /// Start a new head even where the file has one
+    #[arg(long)]
+    pub restart: bool,
+    /// Threads that encode the frames
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub threads: u32,
+    /// Seed of the new head's weights and of the order of the examples
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[command(flatten)]
+    pub checkpointing: Checkpointing,
+}
+
+impl FitFlags {
+    /// The trainer's settings: a new head (seeded) with `--restart` or where `has_head` is false.
+    pub fn settings(&self, has_head: bool) -> HeadSettings {
+        HeadSettings {
+            width: self.width,
+            batch: self.batch as usize,
+            restart: (self.restart || !has_head).then_some(self.seed),
+            ..HeadSettings::default()
+        }
+    }
+
+    /// How `command`'s fit runs, `arguments` deciding its checkpoints.
+    pub fn run<'a>(&'a self, command: &'a str, arguments: String) -> Run<'a> {
+        Run {
+            steps: self.steps,
+            batch: self.batch as usize,
+            lr: self.lr,
+            seed: self.seed,
+            checkpoints: &self.checkpointing,
+            command,
+            arguments,
+        }
+    }
 }
 
 /// How a fit runs.
