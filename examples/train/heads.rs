@@ -157,12 +157,13 @@ impl HeadExamples {
         self.drive_ends.extend(dreams.ends.iter().map(|e| base + e));
     }
 
-    /// The value's targets: each drive's λ-returns with `next_values` (the value of each next
-    /// state; a drive cut off by the recording is bootstrapped from its last state's value).
-    fn returns(&mut self, next_values: &[f32], discount: f32, lambda: f32) -> Result<(), String> {
+    /// The value's targets into `targets`: each drive's λ-returns with `next_values` (the value
+    /// of each next state; a drive cut off by the recording is bootstrapped from its last
+    /// state's value).
+    fn returns(&self, next_values: &[f32], discount: f32, lambda: f32, targets: &mut [f32]) -> Result<(), String> {
         let mut start = 0;
         for &end in &self.drive_ends {
-            let out = &mut self.value.targets[start..end];
+            let out = &mut targets[start..end];
             lambda_returns(
                 &self.rewards[start..end],
                 &next_values[start..end],
@@ -205,7 +206,9 @@ pub fn heads(args: &HeadsArgs) -> Result<(), String> {
     if kind == HeadKind::Value {
         // The first targets, for the units: the returns with every next value 0.
         let zeros = vec![0.0; train.rewards.len()];
-        train.returns(&zeros, discount, lambda)?;
+        let mut targets = zeros.clone();
+        train.returns(&zeros, discount, lambda, &mut targets)?;
+        train.value.targets = targets;
     }
     let target = |e: &mut HeadExamples| -> Examples {
         let pick = if kind == HeadKind::Reward {
@@ -249,7 +252,9 @@ pub fn heads(args: &HeadsArgs) -> Result<(), String> {
             );
         } else {
             let next = predict(model, kind, &heldout.next_states)?;
-            heldout.returns(&next, discount, lambda)?;
+            let mut targets = next.clone();
+            heldout.returns(&next, discount, lambda, &mut targets)?;
+            heldout.value.targets = targets;
             let rms = rms_errors(model, kind, &heldout.value)?;
             let spread = heldout.value.units()[0].1;
             println!(
@@ -264,10 +269,7 @@ pub fn heads(args: &HeadsArgs) -> Result<(), String> {
     let start = Instant::now();
     let mut refresh_targets = |t: &HeadTrainer, e: &mut Examples| -> Result<(), String> {
         let next = predict(&as_model(t)?, HeadKind::Value, &train.next_states)?;
-        std::mem::swap(&mut train.value, e);
-        let done = train.returns(&next, discount, lambda);
-        std::mem::swap(&mut train.value, e);
-        done
+        train.returns(&next, discount, lambda, &mut e.targets)
     };
     let refresh = (kind == HeadKind::Value).then_some(Refresh {
         every: args.refresh as usize,

@@ -99,7 +99,8 @@ impl<M: Borrow<Model>> Simulator<M> {
         codes: &mut [f32],
         frames: Option<&mut [f32]>,
     ) -> Result<()> {
-        self.candidates(h, z, candidates, actions, codes, frames, None)
+        let steps = self.check_candidates(h, z, candidates, actions, codes, frames.as_deref())?;
+        self.candidates(steps, h, z, candidates, actions, codes, frames, None)
     }
 
     /// [`Simulator::rollout_candidates`] with the model's reward and value heads read after
@@ -140,14 +141,15 @@ impl<M: Borrow<Model>> Simulator<M> {
         expect_len("rewards", rewards, steps * candidates * 2)?;
         expect_len("values", values, steps * candidates)?;
         let scores = Some(Scores { rewards, values });
-        self.candidates(h, z, candidates, actions, codes, None, scores)
+        self.candidates(steps, h, z, candidates, actions, codes, None, scores)
     }
 
     /// The rollout of [`Simulator::rollout_candidates`] and
-    /// [`Simulator::rollout_candidates_scored`].
+    /// [`Simulator::rollout_candidates_scored`], `steps` long, on arguments they checked.
     #[allow(clippy::too_many_arguments)]
     fn candidates(
         &mut self,
+        steps: usize,
         h: &[f32],
         z: Option<&[f32]>,
         candidates: usize,
@@ -158,7 +160,6 @@ impl<M: Borrow<Model>> Simulator<M> {
     ) -> Result<()> {
         let c = *self.config();
         let n = candidates;
-        let steps = self.check_candidates(h, z, n, actions, codes, frames.as_deref())?;
         let step_len = n * c.action_dim;
 
         let exec = Exec {

@@ -160,10 +160,10 @@ class MPCAgent:
         # The weights' excess over the uniform average moves the plan from the prior: where the
         # dream prefers no candidate, the policy's own action is applied, not the noise's mean.
         excess = w - 1.0 / self.candidates
-        first = np.array([targets[0] + excess @ (target[:, 0] - targets[0]), steers[0] + excess @ (steer[:, 0] - steers[0])])
+        first_target = float(np.clip(targets[0] + excess @ (target[:, 0] - targets[0]), *self.speed_range))
+        first_steer = float(np.clip(steers[0] + excess @ (steer[:, 0] - steers[0]), -1.0, 1.0))
         plan = np.einsum("k,hkc->hc", w, actions[:, :: self.futures])
-        chosen = float(np.clip(first[1], -1.0, 1.0)), float(np.clip(first[0], *self.speed_range))
-        return chosen[0], chosen[1], plan, np.array([targets[0], steers[0]])
+        return first_steer, first_target, plan, np.array([targets[0], steers[0]])
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
         """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
