@@ -1,5 +1,5 @@
 //! Recorded driving, as written by `weights/record.py` and `weights/convert_comma.py`
-//! (format: `weights/README.md`, "Episodes format"): seed frames for rollouts and data for
+//! (format: `weights/TRAINING_FILES.md`, "Episodes format"): seed frames for rollouts and data for
 //! training.
 
 use crate::{Error, Result};
@@ -42,7 +42,7 @@ pub struct Episode<'a> {
     /// `len() * 2` values: (speed, steering) in effect at each frame.
     pub actions: &'a [f32],
     /// `len() * 2` values, where the file has them: (speed to drive at, steering) that a
-    /// teacher gave for each frame (DAgger's labels, `weights/README.md`), which a policy
+    /// teacher gave for each frame (DAgger's labels, `weights/TRAINING_FILES.md`), which a policy
     /// learns instead of the driver's own.
     pub labels: Option<&'a [f32]>,
     /// `len()` values, where the file has them: the env's reward for the decision taken at
@@ -100,7 +100,7 @@ impl Episodes {
     /// Values of an action: (speed, steering).
     pub const ACTION_DIM: usize = 2;
 
-    /// Reads an episodes file (`weights/README.md`), gzipped or not.
+    /// Reads an episodes file (`weights/TRAINING_FILES.md`), gzipped or not.
     ///
     /// ```
     /// use drivesim::Episodes;
@@ -219,7 +219,7 @@ impl Episodes {
     }
 
     /// The optional `reward` (f32, finite) and `on_road` (u8, 0 or 1), `[n]` each: both or
-    /// neither (`weights/README.md`).
+    /// neither (`weights/TRAINING_FILES.md`).
     fn outcomes(file: &SafeTensors<'_>, n: usize) -> Result<Option<(Vec<f32>, Vec<u8>)>> {
         let bad = |reason: alloc::string::String| Error::Episodes { reason };
         let (reward, on_road) = match (file.tensor("reward"), file.tensor("on_road")) {

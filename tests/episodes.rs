@@ -1,4 +1,4 @@
-//! Reading the episodes format (`weights/README.md`), with typed errors for bad files.
+//! Reading the episodes format (`weights/TRAINING_FILES.md`), with typed errors for bad files.
 
 mod common;
 

@@ -3,7 +3,7 @@ run needs to go on as if it had never stopped. A resumed run writes the `--out` 
 run that never stopped, on the same device and number of processes (the tests check it on the
 CPU, in one process and under torchrun).
 
-The file is `torch.save` of a dict (weights/README.md, "Checkpoints"): `format`, `arguments`
+The file is `torch.save` of a dict (weights/TRAINING_FILES.md, "Checkpoints"): `format`, `arguments`
 (those that decide the run), `stage` ("vae_gan" or "transition") and `step` (steps of it done),
 `model` and `discriminator` (state dicts), `optimisers` (the stage's Adam states) and
 `scheduler` (the transition's learning-rate schedule), `random` (the global generators', the

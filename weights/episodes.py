@@ -1,6 +1,6 @@
 """Episodes file: recorded driving as one safetensors file.
 
-Tensors (see the "Episodes format" section of weights/README.md):
+Tensors (see the "Episodes format" section of weights/TRAINING_FILES.md):
   frames          uint8   [N, H, W, 3]  RGB frames, episodes back to back
   actions         float32 [N, 2]        (speed, steering) in effect at frame i
   episode_starts  int64   [E]           index of each episode's first frame; starts at 0, increasing

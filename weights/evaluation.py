@@ -1,4 +1,4 @@
-"""`train eval`: how well a weight file simulates held-out episodes (weights/README.md §5)."""
+"""`train eval`: how well a weight file simulates held-out episodes (weights/TRAINING_FILES.md §5)."""
 
 import json
 from pathlib import Path

@@ -10,7 +10,7 @@ the first step's loss, gradients and updated tensors, and the tensors after ten
 steps, from reference_step.py's); for some, NAME.gan.safetensors (the weights with a
 discriminator) and NAME.gan.io.safetensors (a VAE-GAN batch, the first step's
 losses, gradients and updated tensors, and the tensors after five steps). See
-weights/README.md for the tensor names. heads_f32.train.safetensors holds a reward head's
+weights/TRAINING_FILES.md for the tensor names. heads_f32.train.safetensors holds a reward head's
 steps (heads.py's HeadTrainer) and a drive's λ-returns, for tests/heads_parity.rs.
 """
 

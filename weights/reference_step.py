@@ -1,5 +1,5 @@
 """`train step`: one training step of a stage on a given batch, the Rust `train step`'s
-reference (weights/README.md)."""
+reference (weights/TRAINING_FILES.md)."""
 
 import torch
 import torch.distributed as dist
@@ -11,7 +11,7 @@ from vae_gan import ADAM_VAE_GAN, Discriminator, to_input, vae_gan_step
 
 
 def step(args):
-    """`train step`: one training step of a stage on a batch file; see weights/README.md."""
+    """`train step`: one training step of a stage on a batch file; see weights/TRAINING_FILES.md."""
     {"transition": step_transition, "vae-gan": step_vae_gan}[args.stage](args)
 
 

@@ -19,7 +19,7 @@ normalisation used in training is folded into U and b, so the exported model tak
 
 step (reference_step.py): one training step of a stage on a given batch, writing the losses,
 the gradients (for the transition, before clipping) and the updated tensors: the reference of
-the Rust `train step` (weights/README.md). The VAE-GAN step reads the discriminator from the
+the Rust `train step` (weights/TRAINING_FILES.md). The VAE-GAN step reads the discriminator from the
 weight file, where `fit` stores it (`discriminator.*`), so training can go on from either side.
 
 heads (train_heads.py): the reward head or the value head (TD(λ)) on episodes with rewards,
@@ -27,7 +27,7 @@ added to a weight file: the twin of the Rust `train heads`.
 
 eval (evaluation.py): reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
 a contact sheet of a 100-step rollout, all from frames the model never saw; and the fidelity
-figures (`fidelity` in eval.json, weights/README.md §5): PSNR percentiles, the latent error
+figures (`fidelity` in eval.json, weights/TRAINING_FILES.md §5): PSNR percentiles, the latent error
 after 10 and 30 fed-back steps against the mean code, the road's direction under constant
 steering, the fed-back codes' norm.
 """

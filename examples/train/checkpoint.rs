@@ -1,7 +1,7 @@
 //! Checkpoints of a training command, so that a run that stops (a kill, a power cut) resumes
 //! where its last checkpoint was and writes the `--out` the run never stopped would have.
 //!
-//! A checkpoint file (`weights/README.md`, "Checkpoints"): the 8 bytes `DSCKPT01`, a
+//! A checkpoint file (`weights/TRAINING_FILES.md`, "Checkpoints"): the 8 bytes `DSCKPT01`, a
 //! little-endian u32 `L`, `L` bytes of JSON (`command`, the `arguments` that decide the run,
 //! `step`: steps done, `draw`: the data order's generator state as a decimal string), then the
 //! trainer's state (`TransitionTrainer::save_state`, `VaeGanTrainer::save_state`). Written

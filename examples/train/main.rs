@@ -26,8 +26,8 @@
 //! transition on windows of 15 codes as `weights/train.py` does, reports the held-out latent
 //! error before and after, and writes a weight file `Model::load` reads. `step` is the
 //! verification mode: one step on a given batch, writing the loss, every gradient and the
-//! updated tensors (the file formats are in `weights/README.md`), as `weights/tool train step`
-//! does in PyTorch.
+//! updated tensors (the file formats are in `weights/TRAINING_FILES.md`), as
+//! `weights/tool train step` does in PyTorch.
 //!
 //! `noise` fits the correlation of sampled futures' noise (`transition.L`) for a file with the
 //! spread head, training nothing (`transition --spread` fits it after training).

@@ -27,7 +27,7 @@ use alloc::vec;
 use alloc::vec::Vec;
 use drivesim_kernels::{Activation, Isa, Matrix, MatrixData};
 
-/// The first 8 bytes of a head trainer's state (`weights/README.md`, "Checkpoints"), one
+/// The first 8 bytes of a head trainer's state (`weights/TRAINING_FILES.md`, "Checkpoints"), one
 /// kind per head so that one head's state is never read into another's trainer.
 fn state_magic(kind: HeadKind) -> &'static [u8; 8] {
     match kind {

@@ -1,7 +1,8 @@
 //! A trainer's state as bytes (checkpoints), into and from the caller's bytes, so that saving
 //! needs no allocator: 8 bytes naming the trainer and the format, little-endian u32 words (the
 //! sizes the state is for, then the Adam steps taken), then the saved buffers' values as
-//! little-endian f32, back to back. `weights/README.md` ("Checkpoints") gives each trainer's.
+//! little-endian f32, back to back. `weights/TRAINING_FILES.md` ("Checkpoints") gives each
+//! trainer's.
 
 use crate::error::expect_len;
 use crate::{Error, Result};

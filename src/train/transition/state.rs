@@ -1,7 +1,7 @@
 //! A [`TransitionTrainer`]'s state as bytes: everything a run needs to go on exactly where it
 //! stopped (a checkpoint), into and from the caller's bytes, so that it needs no allocator.
 //!
-//! Layout (`weights/README.md`, "Checkpoints"): the 8 bytes `DSTRAN02`; `hidden_dim`, `z_dim`,
+//! Layout (`weights/TRAINING_FILES.md`, "Checkpoints"): the 8 bytes `DSTRAN02`; `hidden_dim`, `z_dim`,
 //! `action_dim`, whether the spread head is there (1 or 0) and the Adam steps taken, each a
 //! little-endian u32; then little-endian f32: the packed weights (the spread head's last),
 //! Adam's first and second moments (the arena's own layout) and the action normalisation (each

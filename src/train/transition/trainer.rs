@@ -220,7 +220,7 @@ impl<'a> TransitionTrainer<'a> {
     /// `codes` holds `[batch, window, z]` values (each window's codes in order), `actions`
     /// `[batch, window - 1, action_dim]` (the action taken after each code but the last), raw.
     /// The loss is the mean squared error of the `window - 1` predictions (plus, with the spread
-    /// head, its negative log-likelihood: `weights/README.md`).
+    /// head, its negative log-likelihood: `weights/TRAINING_FILES.md`).
     pub fn compute_gradients(&mut self, codes: &[f32], actions: &[f32]) -> Result<f32> {
         let batch = self.check_batch(codes, actions)?;
         let loss = self.forward(codes, actions, batch)?;

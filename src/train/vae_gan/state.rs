@@ -1,7 +1,7 @@
 //! A [`VaeGanTrainer`]'s state as bytes: everything a run needs to go on exactly where it
 //! stopped (a checkpoint), into and from the caller's bytes.
 //!
-//! Layout (`weights/README.md`, "Checkpoints"): the 8 bytes `DSVGAN01`; `height`, `width`,
+//! Layout (`weights/TRAINING_FILES.md`, "Checkpoints"): the 8 bytes `DSVGAN01`; `height`, `width`,
 //! `channels`, `base_channels`, `z_dim` and the Adam steps taken, each a little-endian u32; then
 //! little-endian f32: the three networks' parameters (encoder, generator, discriminator, in the
 //! trainer's layout), Adam's first and second moments in the same layout, and the running
