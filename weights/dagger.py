@@ -13,6 +13,12 @@ Round 0 clones the policy on the expert's own episodes (``--data``, recorded by
    ``train policy``'s own, by default);
 4. the policy is cloned again from the base model (``train policy --restart``, fitting labels).
 
+With ``--noise SD`` the rounds' drives perturb the agent's steering (DART, Laskey et al., 2017):
+an AR(1) offset of standard deviation SD and correlation ``NOISE_CORRELATION`` per decision, the
+same for a track's seed, is added to what the policy asks, so the car drifts off its line the way
+a planner's departures take it, and the expert labels the way back. The transition is stepped
+with the steering applied, and that is the action recorded.
+
 After each round the policy is scored on ``--heldout`` tracks, never driven in a round
 (``python -m drivesim.carracing --agent cloned``), and a line goes to ``DIR/log.jsonl``.
 Everything a round makes is written atomically under ``DIR/round_K/``, and a step whose file
@@ -44,11 +50,37 @@ _files = package.load("_files.py")
 HERE = Path(__file__).resolve().parent
 
 
+# Decision to decision correlation of `--noise`'s steering offset (about 5 decisions, 0.4 s).
+NOISE_CORRELATION = 0.8
+
+
+def steering_noise(sd, seed):
+    """`--noise`'s offsets for the track `seed`: an endless AR(1) sequence of standard deviation
+    `sd` (all zeros for sd 0)."""
+    rng, offset = np.random.default_rng([seed, 0x0DA6]), 0.0
+    rho = NOISE_CORRELATION
+    while True:
+        offset = rho * offset + np.sqrt(1.0 - rho * rho) * sd * rng.standard_normal()
+        yield offset
+
+
+def perturb(agent, action, offset):
+    """`action` (the cloned agent's, just taken) with `offset` added to its steering (clipped to
+    [-1, 1]), the agent's transition stepped again from its last state with the steering applied."""
+    if offset == 0.0 or agent.last_state is None:
+        return action
+    z, h, speed = agent.last_state
+    steer = float(np.clip(action[0] + offset, -1.0, 1.0))
+    _, agent.h = agent.sim.transition(z, h, np.array([speed, steer], np.float32))
+    return np.array([steer, action[1], action[2]], np.float32)
+
+
 def drive_labelled(job):
-    """One track driven by the cloned agent of `weights`, labelled by the expert at every
-    decision after the agent's warm-up: an `episodes.Episodes` of one episode (None if the
-    drive has no decision past the warm-up) and the env's reward over the drive."""
-    weights, seed, frames = job
+    """One track driven by the cloned agent of `weights` (its steering perturbed by `noise`'s
+    offsets, `steering_noise`), labelled by the expert at every decision after the agent's
+    warm-up: an `episodes.Episodes` of one episode (None if the drive has no decision past the
+    warm-up) and the env's reward over the drive."""
+    weights, seed, frames, noise = job
     import gymnasium
     from drivesim import carracing
 
@@ -59,12 +91,14 @@ def drive_labelled(job):
     teacher = record.Driver(car_env.track, None, "expert")
     seconds = agent.frame_skip / record.car_racing.FPS
     out = {"frames": [], "actions": [], "labels": [], "reward": [], "tiles": [], "on_road": []}
-    total, done = 0.0, False
+    total, done, offsets = 0.0, False, steering_noise(noise, seed)
     while not done:
         view, speed = carracing.observe(env), carracing.speed(env)
         label, _, _ = teacher.act(car_env.car, seconds)  # keeps its place on the track, too
         action = agent.act(view, speed)
         learn = agent.decisions > agent.warmup  # the warm-up's zoom frames are no example
+        if learn:
+            action = perturb(agent, action, next(offsets))
         if learn:
             out["frames"].append(view)
             out["actions"].append((speed, action[0]))
@@ -123,11 +157,11 @@ def run_round(args, k):
         if len(seeds) < args.per_round:
             raise SystemExit(f"--tracks has too few tracks for round {k} ({args.per_round} a round)")
         with Pool(args.workers) as pool:
-            parts = pool.map(drive_labelled, [(driver, s, args.frames) for s in seeds], chunksize=1)
+            parts = pool.map(drive_labelled, [(driver, s, args.frames, args.noise) for s in seeds], chunksize=1)
         drives = [p for p, _ in parts if p is not None]
         episodes.write(data, episodes.Episodes.concat(drives),
                        {"source": f"dagger round {k}: the round {k - 1} policy driving, the expert labelling",
-                        "seeds": ",".join(map(str, seeds)), "frame_hz": "12.5"})
+                        "seeds": ",".join(map(str, seeds)), "frame_hz": "12.5", "steering_noise": str(args.noise)})
         print(f"round {k}: {sum(len(d.frames) for d in drives)} labelled frames; the round {k - 1} policy "
               f"scored {np.mean([r for _, r in parts]):.1f} on them", flush=True)
     if not policy.exists():
@@ -161,12 +195,16 @@ def main(argv=None):
     p.add_argument("--workers", type=int, default=os.cpu_count(), help="processes (and trainer threads)")
     p.add_argument("--trainer", type=Path, default=HERE.parent / "target/release/examples/train")
     p.add_argument("--dir", type=Path, required=True, help="where rounds are written (resumable)")
+    p.add_argument("--noise", type=float, default=0.0,
+                   help="standard deviation of the steering offset added while a round drives (DART)")
     args = p.parse_args(argv)
     args.heldout_text, args.heldout = args.heldout, record.parse_seeds(args.heldout)
     if set(args.heldout) & set(args.tracks):
         p.error("--heldout tracks must not be driven in the rounds")
     if min(args.rounds + 1, args.per_round, args.frames, args.workers, args.steps) < 1:
         p.error("--rounds must be >= 0, and --per-round, --frames, --workers and --steps positive")
+    if not (np.isfinite(args.noise) and 0.0 <= args.noise <= 1.0):
+        p.error("--noise must be a number from 0 to 1")
     for path in (args.data, args.base, args.trainer):
         if not path.exists():
             p.error(f"{path}: no such file")

@@ -57,3 +57,28 @@ def test_a_short_round_end_to_end_and_its_resume_after_a_kill(expert_data, tmp_p
     for name in ("round_0/policy.safetensors", "round_1/data.safetensors.gz", "round_1/policy.safetensors"):
         assert (killed / name).read_bytes() == (whole / name).read_bytes(), name
     assert (killed / "log.jsonl").read_text().count("\n") == 2
+
+
+def test_steering_noise_is_a_seeded_ar1_sequence_of_its_deviation():
+    import dagger
+    from itertools import islice
+    assert list(islice(dagger.steering_noise(0.0, 4), 50)) == [0.0] * 50
+    draws = np.array(list(islice(dagger.steering_noise(0.1, 4), 20000)))
+    assert np.array_equal(draws[:100], np.array(list(islice(dagger.steering_noise(0.1, 4), 100))))
+    assert not np.array_equal(draws[:100], np.array(list(islice(dagger.steering_noise(0.1, 5), 100))))
+    assert abs(draws.std() - 0.1) < 0.01
+    assert abs(np.corrcoef(draws[1:], draws[:-1])[0, 1] - dagger.NOISE_CORRELATION) < 0.03
+
+
+def test_noise_moves_the_applied_and_recorded_steering_by_the_offset():
+    import dagger
+    weights = Path(__file__).with_name("default.safetensors")
+    plain, _ = dagger.drive_labelled((weights, 4000, 100, 0.0))
+    noisy, _ = dagger.drive_labelled((weights, 4000, 100, 0.3))
+    first = next(dagger.steering_noise(0.3, 4000))
+    # The first recorded decision is the same state in both drives; only the offset differs.
+    assert np.array_equal(plain.frames[0], noisy.frames[0])
+    assert noisy.actions[0, 1] == pytest.approx(np.clip(plain.actions[0, 1] + first, -1, 1), abs=1e-6)
+    # Later states differ: the car went where the perturbed steering took it.
+    assert not np.array_equal(plain.frames[-1], noisy.frames[-1])
+    assert np.array_equal(plain.labels.shape, noisy.labels.shape)
