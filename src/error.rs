@@ -169,8 +169,8 @@ pub enum Error {
         /// The head's name: `reward` or `value`.
         head: &'static str,
     },
-    /// Sampling asked of a model whose transition has no spread head (`transition.S` and
-    /// `transition.s`): it predicts its mean only.
+    /// Sampling asked of a model whose transition has neither the spread head (`transition.S`
+    /// and `transition.s`) nor the texture net (`transition.texture.*`): it predicts its mean only.
     NoSampling,
     /// A trainer asked to apply gradients it has not computed (each set is applied once).
     NoGradients,
@@ -297,8 +297,9 @@ impl fmt::Display for Error {
             ),
             Error::NoSampling => write!(
                 f,
-                "the model's transition predicts no spread (no `transition.S` and `transition.s` in its weight file): \
-                 it cannot sample, only give its mean (temperature 0)"
+                "the model's transition predicts no spread and has no texture net (no `transition.S` and \
+                 `transition.s`, no `transition.texture.*` in its weight file): it cannot sample, only give its \
+                 mean (temperature 0)"
             ),
             Error::NoPolicy => write!(
                 f,

@@ -78,10 +78,21 @@ impl Head {
     /// any tensor under the head's prefix; `None` where it has none. `width` is the hidden
     /// layer's bias length, 1 to `hidden_dim` (heads run in the simulator's planned buffers).
     pub fn load(config: &Config, src: &mut dyn TensorSource, kind: HeadKind) -> Result<Option<Head>> {
-        if !src.contains(kind.prefix()) {
+        Head::load_at(config, src, kind.prefix(), kind.outputs(config))
+    }
+
+    /// [`Head::load`] of the two layers under `prefix` with `outputs` outputs: also the
+    /// transition's texture net ([`crate::texture`]), which has the heads' shape.
+    pub(crate) fn load_at(
+        config: &Config,
+        src: &mut dyn TensorSource,
+        prefix: &str,
+        outputs: usize,
+    ) -> Result<Option<Head>> {
+        if !src.contains(prefix) {
             return Ok(None);
         }
-        let bias = format!("{}hidden.bias", kind.prefix());
+        let bias = format!("{prefix}hidden.bias");
         let width = match src.shape(&bias).as_deref() {
             Some(&[width]) => width,
             Some(found) => {
@@ -100,12 +111,17 @@ impl Head {
                 found: width,
             });
         }
-        Head::read(config, src, kind, width).map(Some)
+        Head::read_at(config, src, prefix, outputs, width).map(Some)
     }
 
     /// The layers of width `width` from `src` (a file's, or a random draw for a trainer's start).
+    #[cfg(feature = "train")]
     pub(crate) fn read(config: &Config, src: &mut dyn TensorSource, kind: HeadKind, width: usize) -> Result<Head> {
-        let (cols, outputs, p) = (config.z_dim + config.hidden_dim, kind.outputs(config), kind.prefix());
+        Head::read_at(config, src, kind.prefix(), kind.outputs(config), width)
+    }
+
+    pub(crate) fn read_at(config: &Config, src: &mut dyn TensorSource, p: &str, outputs: usize, width: usize) -> Result<Head> {
+        let cols = config.z_dim + config.hidden_dim;
         let w1 = src.tensor(&format!("{p}hidden.weight"), &[width, cols], Init::FanIn(cols))?;
         let b1 = src.f32(&format!("{p}hidden.bias"), &[width], Init::FanIn(cols))?;
         let w2 = src.tensor(&format!("{p}output.weight"), &[outputs, width], Init::FanIn(width))?;

@@ -66,6 +66,7 @@ mod plan;
 mod pool;
 mod sampling;
 mod simulator;
+mod texture;
 #[cfg(feature = "train")]
 pub mod train;
 mod transition;

@@ -157,10 +157,18 @@ impl Model {
         self.discount
     }
 
-    /// Whether the transition predicts its codes' spread (`transition.S`, `transition.s`), so
-    /// that a simulator can sample futures ([`crate::Simulator::set_sampling`]).
+    /// Whether the transition can sample its codes, so that a simulator can sample futures
+    /// ([`crate::Simulator::set_sampling`]): it predicts their spread (`transition.S`,
+    /// `transition.s`), or it has the texture net (`transition.texture.*`, [`Model::texture_width`]).
     pub fn samples(&self) -> bool {
         self.transition.samples()
+    }
+
+    /// The width of the transition's texture net (`transition.texture.*`), where it has one: a
+    /// sampler trained adversarially so that sampled futures keep the road's kerbs and grass
+    /// patches, used by sampling in place of the spread head (docs/fidelity.md).
+    pub fn texture_width(&self) -> Option<usize> {
+        self.transition.texture_width()
     }
 
     /// Whether the sampled noise is correlated across the code's dimensions (`transition.L`,

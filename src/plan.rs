@@ -117,7 +117,7 @@ impl Plan {
             encoder_flat: mul(max_batch, c.flat_len())?,
             generator_flat: mul(max_batch, c.flat_len())?,
             transition_concat: mul(max_batch, c.hidden_dim + c.z_dim + c.action_dim)?,
-            transition_code: mul(max_batch, c.z_dim)?,
+            transition_code: mul(max_batch, c.z_dim.max(c.hidden_dim))?,
             sampling_noise: mul(max_batch, mul(2, c.z_dim)?)?,
             rollout: add(mul(max_batch, c.hidden_dim + c.z_dim)?, c.z_dim)?,
             heads: mul(max_batch, c.hidden_dim)?,

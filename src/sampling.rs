@@ -31,9 +31,15 @@ impl Sampling {
     /// Fills `noise` (`[item][z]`, items numbered from 0) with the standard normal draws of
     /// rollout step `step`: each value from the seed, the step, the item and the dimension.
     pub fn draw(&self, noise: &mut [f32], z: usize, step: u64) {
-        for (n, item) in noise.chunks_exact_mut(z).enumerate() {
+        self.draw_rows(noise, z, z, step);
+    }
+
+    /// [`Sampling::draw`] into the first `z` values of each row of `stride` values of `rows`
+    /// (the others left as they are): the same draws, where another input sits beside them.
+    pub fn draw_rows(&self, rows: &mut [f32], z: usize, stride: usize, step: u64) {
+        for (n, item) in rows.chunks_exact_mut(stride).enumerate() {
             let key = stream_key(self.seed, step, n as u64);
-            for (d, value) in item.iter_mut().enumerate() {
+            for (d, value) in item[..z].iter_mut().enumerate() {
                 *value = standard_normal(key, d as u64);
             }
         }

@@ -4,6 +4,7 @@ use crate::layers::DenseLayer;
 use crate::plan::{zeros, Plan};
 use crate::pool::{Exec, ItemParts};
 use crate::sampling::Sampling;
+use crate::texture::{Texture, TextureScratch};
 use crate::weights::{Init, TensorSource};
 use crate::{Config, Result};
 use alloc::vec::Vec;
@@ -31,6 +32,9 @@ pub(crate) struct Transition {
     /// `L`, where the model has it: the lower-triangular Cholesky factor of the correlation of
     /// the spread's noise across dimensions (the noise drawn is `L ε`, `ε` standard normal).
     noise_factor: Option<DenseLayer>,
+    /// The texture net, where the model has it: sampled codes are drawn through it and not
+    /// through the spread ([`crate::texture`]).
+    texture: Option<Texture>,
 }
 
 /// Per-simulator scratch of the transition, as planned.
@@ -38,7 +42,8 @@ pub(crate) struct TransitionBuffers {
     /// Each batch element's input, `[h | z]` or `h`.
     concat: Vec<f32>,
     /// The code `A h + a` that a fed-back step of an unfolded (f16) model recomputes; when
-    /// sampling, the log standard deviation of each item's code.
+    /// sampling, the log standard deviation of each item's code, or the texture net's hidden
+    /// layer (`max(z_dim, hidden_dim)` floats per item).
     code: Vec<f32>,
     /// When sampling: the standard normal noise of each item's code, then its correlated image.
     noise: Vec<f32>,
@@ -113,12 +118,19 @@ impl Transition {
             output: DenseLayer::new(big_a, small_a, z, hd, Activation::Identity),
             spread,
             noise_factor,
+            texture: Texture::load(config, src)?,
         })
     }
 
-    /// Whether the model predicts its codes' spread (`transition.S` and `transition.s`).
+    /// Whether the model can sample its codes: the spread head (`transition.S` and
+    /// `transition.s`) or the texture net (`transition.texture.*`).
     pub fn samples(&self) -> bool {
-        self.spread.is_some()
+        self.spread.is_some() || self.texture.is_some()
+    }
+
+    /// The texture net's width, where the model has one.
+    pub fn texture_width(&self) -> Option<usize> {
+        self.texture.as_ref().map(Texture::width)
     }
 
     /// Whether the model correlates its sampled noise across dimensions (`transition.L`).
@@ -128,8 +140,9 @@ impl Transition {
 
     /// Turns the mean codes `codes` that a step predicted from the hidden states `h` it left
     /// into the samples of rollout step `step`: `code += temperature * exp(S h + s) * (L ε)`,
-    /// `ε` drawn by `sampling` (without `L`: `ε` itself). Nothing changes for a model without
-    /// the spread head. The products run on the dense kernel, bit-identical for any threads.
+    /// `ε` drawn by `sampling` (without `L`: `ε` itself); with the texture net,
+    /// `code += T([temperature * ε | h])` instead. Nothing changes for a model without either.
+    /// The products run on the dense kernel, bit-identical for any threads.
     pub fn sample(
         &self,
         exec: Exec<'_>,
@@ -139,6 +152,15 @@ impl Transition {
         step: u64,
         codes: &mut [f32],
     ) {
+        if let Some(texture) = &self.texture {
+            let half = buf.noise.len() / 2;
+            let scratch = TextureScratch {
+                input: &mut buf.concat,
+                hidden: &mut buf.code,
+                offsets: &mut buf.noise[half..],
+            };
+            return texture.sample(exec, sampling, h, step, codes, scratch);
+        }
         let Some(spread) = &self.spread else {
             return;
         };

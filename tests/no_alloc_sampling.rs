@@ -1,5 +1,5 @@
 //! Sampled rollouts allocate nothing: `set_sampling`, `sample`, the rollouts and an
-//! environment's steps with sampling on. (A binary of its own: the allocation counter is global.)
+//! environment's steps with sampling on, through the spread head and through the texture net. (A binary of its own: the allocation counter is global.)
 #![cfg(feature = "train")]
 
 mod common;
@@ -48,4 +48,22 @@ fn sampling_allocates_nothing() {
         assert!(sim.set_sampling(-1.0, 3).is_err());
     });
     assert_eq!(n, 0, "{n} allocations with sampling on");
+
+    // The texture net's sampled path (transition.texture.*, width up to hidden_dim).
+    let cols = z + hd;
+    let net = [
+        ("transition.texture.hidden.weight", vec![hd, cols], values(6, hd * cols, 0.2)),
+        ("transition.texture.hidden.bias", vec![hd], values(7, hd, 0.1)),
+        ("transition.texture.output.weight", vec![z, hd], values(8, z * hd, 0.2)),
+        ("transition.texture.output.bias", vec![z], values(9, z, 0.1)),
+    ];
+    let model = Model::from_bytes(&with_f32_tensors(&file, &net)).unwrap();
+    let mut sim = Simulator::with_batch(&model, 6).unwrap().with_threads(2).unwrap();
+    let ((), n, _) = counted(|| {
+        sim.set_sampling(0.8, 3).unwrap();
+        sim.rollout_candidates(&h, Some(&code), 6, &actions, &mut codes, None)
+            .unwrap();
+        sim.sample(&h, 2, &mut one[..z]).unwrap();
+    });
+    assert_eq!(n, 0, "{n} allocations sampling through the texture net");
 }

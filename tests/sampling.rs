@@ -1,13 +1,14 @@
 //! Sampled futures (`Simulator::set_sampling`): temperature 0 is the mean bit for bit, a seed
 //! gives the same bits at any thread count and in any batch, seeds differ, the noise is
 //! standard normal scaled by the model's spread (correlated by `transition.L` where the model has
-//! it), and bad settings are typed errors. (The weight
+//! it), a texture net (`transition.texture.*`) samples in the spread's place, and bad settings
+//! are typed errors. (The weight
 //! files are the trainer's `random_weight_file`s: `--features train`.)
 #![cfg(feature = "train")]
 
 mod common;
 
-use common::{values, with_f32_tensors, SMALL};
+use common::{fixture_path, relative_error, values, with_f32_tensors, Io, SMALL};
 use drivesim::{Environment, Error, Model, Simulator};
 
 /// The small config's random model as a weight file, and the same with a spread head whose
@@ -30,6 +31,18 @@ fn spread_file(file: &[u8]) -> Vec<u8> {
         ),
     ];
     with_f32_tensors(file, &spread)
+}
+
+/// `file` with a texture net of width `width` (`transition.texture.*`).
+fn texture_file(file: &[u8], width: usize) -> Vec<u8> {
+    let (z, cols) = (SMALL.z_dim, SMALL.z_dim + SMALL.hidden_dim);
+    let net = [
+        ("transition.texture.hidden.weight", vec![width, cols], values(11, width * cols, 0.3)),
+        ("transition.texture.hidden.bias", vec![width], values(12, width, 0.1)),
+        ("transition.texture.output.weight", vec![z, width], values(13, z * width, 0.4)),
+        ("transition.texture.output.bias", vec![z], values(14, z, 0.1)),
+    ];
+    with_f32_tensors(file, &net)
 }
 
 /// A lower-triangular noise factor (positive diagonal, rows of unit norm: a correlation's).
@@ -118,6 +131,48 @@ fn same_bits_at_any_thread_count_and_in_any_batch(sampled: &Model) {
     sim.rollout_candidates(&zero_h, Some(&seed), 1, &actions, &mut first, None)
         .unwrap();
     assert_eq!(codes, first);
+}
+
+#[test]
+fn a_texture_net_samples_in_the_spreads_place() {
+    let (plain, _) = models();
+    let file = drivesim::train::random_weight_file(&SMALL, 3).unwrap();
+    let textured = Model::from_bytes(&texture_file(&file, 7)).unwrap();
+    assert!(textured.samples() && !textured.samples_correlated());
+    assert_eq!((textured.texture_width(), plain.texture_width()), (Some(7), None));
+    let mean = candidates(&mut Simulator::with_batch(&plain, 6).unwrap(), 6, 4);
+    let mut sim = Simulator::with_batch(&textured, 6).unwrap();
+    assert_eq!(candidates(&mut sim, 6, 4), mean, "sampling never set");
+    sim.set_sampling(1.0, 9).unwrap();
+    let drawn = candidates(&mut sim, 6, 4);
+    assert_ne!(drawn, mean);
+    sim.set_sampling(0.5, 9).unwrap();
+    assert_ne!(candidates(&mut sim, 6, 4), drawn, "the temperature scales the noise it reads");
+    // With the spread head too, the texture net samples: the same draws.
+    let both = Model::from_bytes(&texture_file(&spread_file(&file), 7)).unwrap();
+    let mut sim = Simulator::with_batch(&both, 6).unwrap();
+    sim.set_sampling(1.0, 9).unwrap();
+    assert_eq!(candidates(&mut sim, 6, 4), drawn);
+    same_bits_at_any_thread_count_and_in_any_batch(&textured);
+    // Wider than the hidden state, or half a net: typed errors.
+    let wide = texture_file(&file, SMALL.hidden_dim + 1);
+    assert!(matches!(Model::from_bytes(&wide), Err(Error::Config { .. })));
+    let half = with_f32_tensors(&file, &[("transition.texture.hidden.bias", vec![3], vec![0.0; 3])]);
+    assert!(matches!(Model::from_bytes(&half), Err(Error::MissingTensor { .. })));
+}
+
+#[test]
+fn the_texture_net_is_read_as_pytorch_writes_it() {
+    // weights/fixtures.py's texture_f32: a net whose noise columns are zero, so that a sample
+    // is the mean plus its offset of h alone, at any temperature and seed.
+    let model = Model::load(fixture_path("texture_f32.safetensors")).unwrap();
+    let io = Io::open("texture_f32.io.safetensors");
+    let (h, mut codes) = (io.values("h"), io.values("mean"));
+    let mut sim = Simulator::with_batch(&model, 5).unwrap();
+    sim.set_sampling(0.7, 3).unwrap();
+    sim.sample(&h, 4, &mut codes).unwrap();
+    let error = relative_error(&codes, &io.values("sampled"));
+    assert!(error < 1e-5, "relative error {error}");
 }
 
 #[test]

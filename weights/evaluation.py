@@ -195,7 +195,7 @@ def evaluate(args):
         top = list(data.frames[s0:s0 + TEACHER]) + list(decode(pred[shown]))
         bottom = list(data.frames[s0:s0 + TEACHER]) + list(data.frames[[s0 + TEACHER + i for i in shown]])
         sheet([top, bottom]).save(figs / "contact_sheet.png")
-        if model.transition.spread:
+        if model.transition.samples:
             # The same drive sampled (temperature 1) between the mean rollout and the recording.
             g = torch.Generator().manual_seed(0)
             z = torch.cat([seed_codes, seed_codes.new_zeros(n, seed_codes.shape[1])])[None]

@@ -80,6 +80,8 @@ SPREAD = {"spread_f32"}
 # The head trainer's fixture: the Rust tests' SMALL config, a reward head of HEAD_WIDTH units
 # trained in HEAD_UNITS for HEAD_STEPS Adam steps of HEAD_BATCH examples; one drive's λ-returns.
 HEAD_CONFIG = Config(16, 32, 3, 3, z_dim=12, hidden_dim=40, action_dim=2)
+# The texture_f32 fixture's texture net (HEAD_CONFIG's model).
+TEXTURE_WIDTH = 9
 HEAD_WIDTH, HEAD_BATCH, HEAD_STEPS, HEAD_LR = 20, 7, 3, 0.01
 HEAD_UNITS = [(1.5, 2.0), (0.3, 0.45)]
 RETURNS_T, RETURNS_DISCOUNT, RETURNS_LAMBDA = 9, 0.9, 0.8
@@ -284,6 +286,29 @@ def reference_heads(out: Path) -> None:
             "lambda": str(RETURNS_LAMBDA)}
     save_file({k: v.float().contiguous() for k, v in io.items()}, str(out / "heads_f32.train.safetensors"),
               metadata=meta)
+
+
+def reference_texture(out: Path) -> None:
+    """Writes texture_f32.safetensors (HEAD_CONFIG's random model with a texture net of width
+    TEXTURE_WIDTH whose noise columns are zero, so that its offset is a function of h alone) and
+    texture_f32.io.safetensors: `h` [n, hd], `mean` [n, z] and `sampled` [n, z], the mean plus
+    the net's offset, the crate's `Simulator::sample` at any temperature and seed."""
+    cfg, n = HEAD_CONFIG, 5
+    torch.manual_seed(5000)
+    model = DriveSim(cfg, texture_width=TEXTURE_WIDTH)
+    randomize(model)
+    with torch.no_grad():
+        model.transition.texture.hidden.weight[:, :cfg.z_dim] = 0
+    weights = out / "texture_f32.safetensors"
+    save_drivesim(model, cfg, weights, "f32")
+    net = load_drivesim(weights)[0].transition.texture
+    g = torch.Generator().manual_seed(5001)
+    h = torch.rand(n, cfg.hidden_dim, generator=g) * 2 - 1
+    mean = torch.randn(n, cfg.z_dim, generator=g)
+    with torch.no_grad():
+        sampled = mean + net(torch.zeros(n, cfg.z_dim), h)
+    save_file(dict(h=h, mean=mean, sampled=sampled.contiguous()), str(out / "texture_f32.io.safetensors"),
+              metadata={CONFIG_KEY: cfg.to_json()})
 
 
 def generate(out: Path) -> None:

@@ -4,7 +4,7 @@ episodes (`train eval` reports them under `futures` in eval.json; docs/fidelity.
 - the steering probe (probe.py): 5 seed codes from real frames, then 30 fed-back steps with
   constant steering, the road's centre in the 30th generated frame (probe_real.py measures the
   same in the real environment);
-- sampled futures (a transition with the spread head, temperature 1): windows every 5 frames, 5
+- sampled futures (a transition that samples: the spread head or the texture net, temperature 1): windows every 5 frames, 5
   seed codes then 30 steps under the recorded actions, 16 sampled futures each: the best of the
   16 at the 30th step against predicting the held-out codes' mean; the 30th sampled codes' norm
   against real codes'; the Fréchet distance (a Gaussian fit to each set, as FID does on
@@ -62,7 +62,7 @@ def frechet(a, b):
 
 @torch.no_grad()
 def sampled_futures(model, data, codes, actions, seed=0, reference=None):
-    """The mean rollout's and (with the spread head) the sampled rollouts' measures at the 30th
+    """The mean rollout's and (with a sampler) the sampled rollouts' measures at the 30th
     fed-back step (module docstring); with `reference` (episodes, their codes and actions) also
     `real_futures`' baselines."""
     z, c = futures_windows(data, codes, actions, 5)
@@ -79,7 +79,7 @@ def sampled_futures(model, data, codes, actions, seed=0, reference=None):
     out["mean"] = dict(mse_ratio=float((mean - real).square().mean()) / base,
                        norm_ratio=float(mean.norm(dim=1).mean()) / out["encoded_norm"],
                        frechet=frechet(mean, real))
-    if not model.transition.spread:
+    if not model.transition.samples:
         return out
     g = torch.Generator().manual_seed(seed)
     drawn = torch.stack([predict(model.transition, z, c, TEACHER, temperature=1.0, generator=g)[:, -1]
@@ -184,7 +184,7 @@ def texture_figures(frames):
 def texture(model, data, codes, actions, decode, recon_frames, seed=0, reference=None):
     """Texture kept under the recorded actions: windows every 10 frames, 5 seed codes, then
     after each of TEXTURE_STEPS fed-back steps, `texture_figures` of the recorded frames, their
-    reconstructions `recon_frames` (uint8), the mean rollout's and (with the spread head) one rollout's sampled at
+    reconstructions `recon_frames` (uint8), the mean rollout's and (with a sampler) one rollout's sampled at
     temperature 1; with `reference` (episodes, codes, actions) also two baselines: `linear`, a
     least-squares predictor fitted on the reference (`linear_predictor`), and `copy`, the last
     seed code again. {source: {figure: [one per step]}}."""
@@ -193,7 +193,7 @@ def texture(model, data, codes, actions, decode, recon_frames, seed=0, reference
         return None
     starts = window_starts(data, 10)
     rollouts = dict(mean=predict(model.transition, z, c, TEACHER))
-    if model.transition.spread:
+    if model.transition.samples:
         g = torch.Generator().manual_seed(seed)
         rollouts["sampled"] = predict(model.transition, z, c, TEACHER, temperature=1.0, generator=g)
     fitted = linear_predictor(*reference) if reference is not None else None

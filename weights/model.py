@@ -146,12 +146,36 @@ class Generator(nn.Module):
         return torch.tanh(getattr(self, f"deconv{self.layers}")(x))
 
 
+class Texture(nn.Module):
+    """The transition's texture net (`transition.texture.*`, the crate's texture.rs): a sampled
+    code is `A h' + a + texture(temperature * noise, h')`, the offset from the mean drawn by one
+    tanh layer of `width` units from `z_dim` standard normal draws and the hidden state h' the
+    step left (the heads' shape, the noise in the code's place). Trained adversarially
+    (train_texture.py) so that sampled futures keep the road's kerbs and grass patches. Its
+    output layer starts at zero: the mean."""
+
+    def __init__(self, cfg: Config, width: int):
+        super().__init__()
+        self.hidden = nn.Linear(cfg.z_dim + cfg.hidden_dim, width)
+        self.output = nn.Linear(width, cfg.z_dim)
+        nn.init.zeros_(self.output.weight)
+        nn.init.zeros_(self.output.bias)
+
+    @property
+    def width(self) -> int:
+        return self.hidden.out_features
+
+    def forward(self, noise: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        return self.output(torch.tanh(self.hidden(torch.cat([noise, h], -1))))
+
+
 class Transition(nn.Module):
     """RNN in code space: h' = tanh(W h + V z + U c + b), z' = A h' + a. With `spread`, also the
     log standard deviation of each dimension of z', `S h' + s` (weights/README.md): the spread
-    sampled futures draw from (the crate's `Simulator::set_sampling`)."""
+    sampled futures draw from (the crate's `Simulator::set_sampling`). With `texture_width`, the
+    texture net (`Texture`), which sampled futures draw from instead."""
 
-    def __init__(self, cfg: Config, spread: bool = False):
+    def __init__(self, cfg: Config, spread: bool = False, texture_width: int | None = None):
         super().__init__()
         hd, zd, ad = cfg.hidden_dim, cfg.z_dim, cfg.action_dim
         self.W = nn.Parameter(torch.empty(hd, hd))
@@ -166,10 +190,17 @@ class Transition(nn.Module):
         if spread:  # zeros: a unit spread to start from, and no draw taken from the other weights'
             self.S = nn.Parameter(torch.zeros(zd, hd))
             self.s = nn.Parameter(torch.zeros(zd))
+        if texture_width is not None:
+            self.texture = Texture(cfg, texture_width)
 
     @property
     def spread(self) -> bool:
         return hasattr(self, "S")
+
+    @property
+    def samples(self) -> bool:
+        """Whether sampled futures can be drawn: the spread head or the texture net."""
+        return self.spread or hasattr(self, "texture")
 
     @property
     def correlated(self) -> bool:
@@ -196,6 +227,8 @@ class Transition(nn.Module):
         return h @ self.A.T + self.a, h
 
 
+# The prefix of the transition's texture net's tensors (`Texture`).
+TEXTURE = "transition.texture."
 # The optional heads on `[z | h]` (the crate's `HeadKind`), in the order a weight file is read:
 # name -> outputs (None: the config's action_dim).
 HEADS = {"policy": None, "reward": 2, "value": 1}
@@ -265,12 +298,12 @@ class DriveSim(nn.Module):
 
     def __init__(self, cfg: Config, spread: bool = False, policy_width: int | None = None,
                  reward_width: int | None = None, value_width: int | None = None,
-                 discount: float | None = None):
+                 discount: float | None = None, texture_width: int | None = None):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg)
         self.generator = Generator(cfg)
-        self.transition = Transition(cfg, spread)
+        self.transition = Transition(cfg, spread, texture_width)
         if policy_width is not None:
             self.policy = Policy(cfg, policy_width)
         for kind, width in (("reward", reward_width), ("value", value_width)):
@@ -381,7 +414,11 @@ def from_state_dict(cfg: Config, tensors: dict[str, torch.Tensor]) -> DriveSim:
             if bias is None or bias.dim() != 1:
                 raise ValueError(f"the {kind} head's tensors lack a 1-D {kind}.hidden.bias")
             widths[f"{kind}_width"] = bias.shape[0]
-    model = DriveSim(cfg, spread="transition.S" in tensors, **widths)
+    texture = tensors.get(TEXTURE + "hidden.bias")
+    if texture is not None and texture.dim() != 1:
+        raise ValueError(f"{TEXTURE}hidden.bias must be 1-D, got {list(texture.shape)}")
+    model = DriveSim(cfg, spread="transition.S" in tensors, texture_width=None if texture is None else texture.shape[0],
+                     **widths)
     if "transition.L" in tensors:
         model.transition.set_noise_factor(torch.zeros(cfg.z_dim, cfg.z_dim))
     # Shape mismatches raise here; missing/unexpected names are checked below.

@@ -28,7 +28,8 @@ def predict(transition, z, c, teacher, detach=True, hidden=False, temperature=0.
     state each step left, [B,T-1,hd]). With a temperature above 0 (a transition with the spread
     head), each output is a sample, `mean + temperature * exp(S h' + s) * noise`, as the crate's
     sampled rollouts draw them (the noise from `generator`, not the crate's; correlated by
-    `transition.L` where the transition has it)."""
+    `transition.L` where the transition has it); with the texture net,
+    `mean + texture(temperature * noise, h')` instead."""
     h = z.new_zeros(len(z), transition.W.shape[0])
     out, hs = [], []
     for t in range(z.shape[1] - 1):
@@ -37,9 +38,12 @@ def predict(transition, z, c, teacher, detach=True, hidden=False, temperature=0.
         zin, h = transition(zin, h, c[:, t])
         if temperature > 0:
             noise = torch.randn(zin.shape, generator=generator, dtype=zin.dtype, device=zin.device)
-            if transition.correlated:
-                noise = noise @ transition.L.T
-            zin = zin + temperature * transition.log_sigma(h).clamp(-20, 20).exp() * noise
+            if hasattr(transition, "texture"):
+                zin = zin + transition.texture(temperature * noise, h)
+            else:
+                if transition.correlated:
+                    noise = noise @ transition.L.T
+                zin = zin + temperature * transition.log_sigma(h).clamp(-20, 20).exp() * noise
         out.append(zin)
         hs.append(h)
         if detach:

@@ -44,7 +44,7 @@ class FrameStepper(torch.nn.Module):
 
     def __init__(self, frames):
         super().__init__()
-        self.W, self.frames, self.spread = torch.zeros(1, 1), frames, False
+        self.W, self.frames, self.spread, self.samples = torch.zeros(1, 1), frames, False, False
 
     def forward(self, z, h, c):
         return z + self.frames, h

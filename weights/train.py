@@ -5,6 +5,7 @@
   weights/tool train eval --weights default.safetensors --data eval.safetensors.gz --figures figures/
   weights/tool train step --stage transition|vae-gan --weights W.safetensors --batch B.safetensors --out O.safetensors
   weights/tool train heads --head reward|value --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors
+  weights/tool train texture --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors [--device cuda]
 
 fit: (1) VAE-GAN (vae_gan.py): encoder, generator and a discriminator. (2) The transition RNN
 (sequences.py) on encoded 15-frame sequences: 5 frames teacher forced, then 10 with its own
@@ -24,6 +25,10 @@ weight file, where `fit` stores it (`discriminator.*`), so training can go on fr
 
 heads (train_heads.py): the reward head or the value head (TD(λ)) on episodes with rewards,
 added to a weight file: the twin of the Rust `train heads`.
+
+texture (train_texture.py): the transition's texture net, a sampler trained adversarially so
+that sampled futures keep the road's kerbs and grass patches, added to a weight file (PyTorch
+only: the crate samples through it, it has no trainer of it).
 
 eval (evaluation.py): reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
 a contact sheet of a 100-step rollout, all from frames the model never saw; and the fidelity
@@ -47,9 +52,9 @@ import torch.distributed as dist
 import episodes
 import package
 import train_heads
+import train_texture
 from checkpoints import Checkpoints
 from distributed import globalise_batch_norms, start_distributed, world
-from evaluation import evaluate
 from model import Config, DriveSim, save_drivesim
 from reference_step import step
 from sequences import SEQ, TEACHER, encode, noise_factor, train_transition
@@ -120,6 +125,13 @@ def fit(args):
     print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MiB) in {t2 - t0:.0f} s", flush=True)
     if world() > 1:
         dist.destroy_process_group()
+
+
+def evaluate(args):
+    """`eval` (evaluation.py), imported here: its real-car probe needs gymnasium, the trainers do not."""
+    from evaluation import evaluate as run
+
+    run(args)
 
 
 def main(argv=None):
@@ -200,8 +212,10 @@ def main(argv=None):
     h.add_argument("--seed", type=int, default=0, help="seed of a new head's weights and of the examples' order")
     h.add_argument("--no-mirror", action="store_true", help="train on the episodes only, not also on their "
                    "mirror images (frames flipped left to right, steering negated)")
+    train_texture.add_arguments(sub.add_parser("texture", help="train the transition's texture net, a sampler "
+                                               "whose futures keep the road's texture (train_texture.py)"))
     args = p.parse_args(argv)
-    modes = {"fit": fit, "eval": evaluate, "step": step, "heads": train_heads.heads}
+    modes = {"fit": fit, "eval": evaluate, "step": step, "heads": train_heads.heads, "texture": train_texture.texture}
     try:
         modes[args.mode](args)
     except (episodes.EpisodesError, ValueError, OSError) as err:

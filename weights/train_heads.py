@@ -168,9 +168,10 @@ def views(model, data: episodes.Episodes, no_mirror: bool) -> list:
     return drives
 
 
-def load_episodes(path, cfg, what: str) -> episodes.Episodes:
+def load_episodes(path, cfg, what: str, rewards: bool = True) -> episodes.Episodes:
+    """Episodes whose frames and actions `cfg`'s model takes (with `rewards`: rewards too)."""
     data = episodes.read(path)
-    if data.rewards is None:
+    if rewards and data.rewards is None:
         raise ValueError(f"{what} {path}: episodes without rewards (`reward`, `on_road`): record them "
                          "again with `weights/tool record` (or `dagger`), which writes them")
     h, w, c = data.frames.shape[1:]
@@ -356,6 +357,31 @@ class _Stored(torch.nn.Module):
         return dict(self.stored)
 
 
+class Source:
+    """The weight file a trainer starts from (its dtype, metadata and discriminator), and
+    `write`: a trained model written as that file was, in its dtype, with its metadata (a
+    warning names metadata the crate does not read, which is not written) and its
+    discriminator."""
+
+    def __init__(self, path, out):
+        self.stored = load_file(str(path))
+        self.dtype = next(iter(self.stored.values())).dtype
+        with safe_open(str(path), "pt") as f:
+            self.meta = f.metadata() or {}
+        unknown = sorted(set(self.meta) - {CONFIG_KEY, ACTIONS_KEY, FRAME_HZ_KEY, DISCOUNT_KEY})
+        if unknown:
+            print(f"warning: {path}: metadata {unknown} is not written to {out}", flush=True)
+
+    def write(self, model, cfg, out, discount=None):
+        """`model` to `out`; `discount` (default: the model's) as `drivesim.discount`."""
+        hz, meta = self.meta.get(FRAME_HZ_KEY), self.meta
+        discriminator = {k[len(DISCRIMINATOR):]: v for k, v in self.stored.items() if k.startswith(DISCRIMINATOR)}
+        save_drivesim(model, cfg, out, self.dtype, actions=json.loads(meta[ACTIONS_KEY]) if ACTIONS_KEY in meta
+                      else None, discriminator=_Stored(discriminator) if discriminator else None,
+                      frame_hz=float(hz) if hz else None, discount=discount)
+        print(f"wrote {out}", flush=True)
+
+
 def check(args):
     if args.steps < 0 or not 1 <= args.batch <= 65536 or args.width < 1 or args.refresh < 1:
         raise ValueError("--steps must be at least 0, --batch from 1 to 65536, --width and --refresh at least 1")
@@ -373,13 +399,8 @@ def heads(args):
     check(args)
     kind = args.head
     model, cfg = load_drivesim(args.weights)
-    stored = load_file(str(args.weights))
-    dtype = next(iter(stored.values())).dtype
-    with safe_open(str(args.weights), "pt") as f:
-        meta = f.metadata() or {}
-    unknown = sorted(set(meta) - {CONFIG_KEY, ACTIONS_KEY, FRAME_HZ_KEY, DISCOUNT_KEY})
-    if unknown:
-        print(f"warning: {args.weights}: metadata {unknown} is not written to {args.out}", flush=True)
+    source = Source(args.weights, args.out)
+    dtype, meta = source.dtype, source.meta
     old = model.heads().get(kind)
     if (args.restart or old is None) and not 1 <= args.width <= cfg.hidden_dim:
         raise ValueError(f"--width {args.width}: a new head's width must be from 1 to the model's hidden_dim "
@@ -420,9 +441,4 @@ def heads(args):
     print(f"trained in {time.time() - start:.1f} s", flush=True)
     report(kind, head, heldout, dtype, "after")
     setattr(model, kind, head)
-    hz = meta.get(FRAME_HZ_KEY)
-    discriminator = {k[len(DISCRIMINATOR):]: v for k, v in stored.items() if k.startswith(DISCRIMINATOR)}
-    save_drivesim(model, cfg, args.out, dtype, actions=json.loads(meta[ACTIONS_KEY]) if ACTIONS_KEY in meta
-                  else None, discriminator=_Stored(discriminator) if discriminator else None,
-                  frame_hz=float(hz) if hz else None, discount=args.discount if kind == "value" else None)
-    print(f"wrote {args.out}", flush=True)
+    source.write(model, cfg, args.out, discount=args.discount if kind == "value" else None)

@@ -57,8 +57,13 @@ class Model:
         """The value head's discount per decision (``drivesim.discount``), or None."""
     @property
     def samples(self) -> bool:
-        """Whether the transition predicts its codes' spread, so that rollouts can be sampled
-        (``Simulator.set_sampling``)."""
+        """Whether the transition can sample its codes (the spread head or the texture net), so
+        that rollouts can be sampled (``Simulator.set_sampling``)."""
+    @property
+    def texture_width(self) -> Optional[int]:
+        """Units of the texture net's hidden layer (``transition.texture.*``), or None: an
+        adversarially trained sampler that keeps the road's texture; where a file has it,
+        sampling draws through it, not the spread head."""
     @property
     def samples_correlated(self) -> bool:
         """Whether sampled noise is correlated across the code's dimensions (the weight file's

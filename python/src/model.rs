@@ -129,11 +129,20 @@ impl PyModel {
         self.inner.discount()
     }
 
-    /// Whether the transition predicts its codes' spread (`transition.S`, `transition.s`), so
-    /// that simulators can sample futures (`Simulator.set_sampling`).
+    /// Whether the transition can sample its codes, so that simulators can sample futures
+    /// (`Simulator.set_sampling`): it predicts their spread (`transition.S`, `transition.s`)
+    /// or it has the texture net (`texture_width`).
     #[getter]
     fn samples(&self) -> bool {
         self.inner.samples()
+    }
+
+    /// Units of the texture net's hidden layer (`transition.texture.*`, `train.py texture`), or
+    /// None: a sampler trained adversarially so that sampled futures keep the road's kerbs and
+    /// grass patches; where a file has it, sampling draws through it, not the spread head.
+    #[getter]
+    fn texture_width(&self) -> Option<usize> {
+        self.inner.texture_width()
     }
 
     /// Whether sampled noise is correlated across the code's dimensions (`transition.L`, fitted
