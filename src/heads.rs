@@ -120,7 +120,13 @@ impl Head {
         Head::read_at(config, src, kind.prefix(), kind.outputs(config), width)
     }
 
-    pub(crate) fn read_at(config: &Config, src: &mut dyn TensorSource, p: &str, outputs: usize, width: usize) -> Result<Head> {
+    pub(crate) fn read_at(
+        config: &Config,
+        src: &mut dyn TensorSource,
+        p: &str,
+        outputs: usize,
+        width: usize,
+    ) -> Result<Head> {
         let cols = config.z_dim + config.hidden_dim;
         let w1 = src.tensor(&format!("{p}hidden.weight"), &[width, cols], Init::FanIn(cols))?;
         let b1 = src.f32(&format!("{p}hidden.bias"), &[width], Init::FanIn(cols))?;

@@ -61,10 +61,22 @@ impl Texture {
     /// `codes += T([temperature * ε | h])` for rollout step `step`, items numbered from 0:
     /// `h` `[n, hidden_dim]`, `codes` `[n, z_dim]`, `ε` each item's own stream of `sampling`.
     /// The products run on the dense kernel, bit-identical for any threads or batch.
-    pub fn sample(&self, exec: Exec<'_>, sampling: &Sampling, h: &[f32], step: u64, codes: &mut [f32], s: TextureScratch<'_>) {
+    pub fn sample(
+        &self,
+        exec: Exec<'_>,
+        sampling: &Sampling,
+        h: &[f32],
+        step: u64,
+        codes: &mut [f32],
+        s: TextureScratch<'_>,
+    ) {
         let (zd, hd) = (self.z_dim, self.hidden_dim);
         let n = codes.len() / zd;
-        let (input, hidden, offsets) = (&mut s.input[..n * (zd + hd)], &mut s.hidden[..n * self.width()], &mut s.offsets[..n * zd]);
+        let (input, hidden, offsets) = (
+            &mut s.input[..n * (zd + hd)],
+            &mut s.hidden[..n * self.width()],
+            &mut s.offsets[..n * zd],
+        );
         // The noise goes where the input's codes go, then is scaled there; h beside it.
         sampling.draw_rows(input, zd, zd + hd, step);
         for (row, h) in input.chunks_exact_mut(zd + hd).zip(h.chunks_exact(hd)) {
@@ -119,7 +131,11 @@ mod tests {
         };
         let h: alloc::vec::Vec<f32> = (0..n * hd).map(|i| ((i * 7 % 13) as f32 - 6.0) / 7.0).collect();
         let means: alloc::vec::Vec<f32> = (0..n * zd).map(|i| (i as f32 - 8.0) / 5.0).collect();
-        let (mut input, mut hidden, mut offsets) = (alloc::vec![0.0; n * (zd + hd)], alloc::vec![0.0; n * hd], alloc::vec![0.0; n * zd]);
+        let (mut input, mut hidden, mut offsets) = (
+            alloc::vec![0.0; n * (zd + hd)],
+            alloc::vec![0.0; n * hd],
+            alloc::vec![0.0; n * zd],
+        );
         let mut codes = means.clone();
         let exec = Exec {
             isa: Isa::best(),
@@ -142,9 +158,13 @@ mod tests {
                 .map(|u| tanh64(b1[u] + (0..zd + hd).map(|c| w1[u * (zd + hd) + c] * x[c]).sum::<f64>()))
                 .collect();
             for d in 0..zd {
-                let want = means[item * zd + d] as f64 + b2[d] + (0..width).map(|u| w2[d * width + u] * units[u]).sum::<f64>();
+                let want =
+                    means[item * zd + d] as f64 + b2[d] + (0..width).map(|u| w2[d * width + u] * units[u]).sum::<f64>();
                 let got = codes[item * zd + d] as f64;
-                assert!((got - want).abs() < 1e-5 * (1.0 + want.abs()), "item {item} dim {d}: {got} against {want}");
+                assert!(
+                    (got - want).abs() < 1e-5 * (1.0 + want.abs()),
+                    "item {item} dim {d}: {got} against {want}"
+                );
             }
         }
     }

@@ -52,7 +52,11 @@ fn sampling_allocates_nothing() {
     // The texture net's sampled path (transition.texture.*, width up to hidden_dim).
     let cols = z + hd;
     let net = [
-        ("transition.texture.hidden.weight", vec![hd, cols], values(6, hd * cols, 0.2)),
+        (
+            "transition.texture.hidden.weight",
+            vec![hd, cols],
+            values(6, hd * cols, 0.2),
+        ),
         ("transition.texture.hidden.bias", vec![hd], values(7, hd, 0.1)),
         ("transition.texture.output.weight", vec![z, hd], values(8, z * hd, 0.2)),
         ("transition.texture.output.bias", vec![z], values(9, z, 0.1)),

@@ -37,9 +37,17 @@ fn spread_file(file: &[u8]) -> Vec<u8> {
 fn texture_file(file: &[u8], width: usize) -> Vec<u8> {
     let (z, cols) = (SMALL.z_dim, SMALL.z_dim + SMALL.hidden_dim);
     let net = [
-        ("transition.texture.hidden.weight", vec![width, cols], values(11, width * cols, 0.3)),
+        (
+            "transition.texture.hidden.weight",
+            vec![width, cols],
+            values(11, width * cols, 0.3),
+        ),
         ("transition.texture.hidden.bias", vec![width], values(12, width, 0.1)),
-        ("transition.texture.output.weight", vec![z, width], values(13, z * width, 0.4)),
+        (
+            "transition.texture.output.weight",
+            vec![z, width],
+            values(13, z * width, 0.4),
+        ),
         ("transition.texture.output.bias", vec![z], values(14, z, 0.1)),
     ];
     with_f32_tensors(file, &net)
@@ -147,7 +155,11 @@ fn a_texture_net_samples_in_the_spreads_place() {
     let drawn = candidates(&mut sim, 6, 4);
     assert_ne!(drawn, mean);
     sim.set_sampling(0.5, 9).unwrap();
-    assert_ne!(candidates(&mut sim, 6, 4), drawn, "the temperature scales the noise it reads");
+    assert_ne!(
+        candidates(&mut sim, 6, 4),
+        drawn,
+        "the temperature scales the noise it reads"
+    );
     // With the spread head too, the texture net samples: the same draws.
     let both = Model::from_bytes(&texture_file(&spread_file(&file), 7)).unwrap();
     let mut sim = Simulator::with_batch(&both, 6).unwrap();
