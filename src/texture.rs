@@ -6,9 +6,9 @@
 //! own and the hidden state the step left: `code = A h' + a + T([temperature * ε | h'])`, `T` a
 //! two-layer tanh network of the heads' shape ([`crate::HeadKind`]; `ε` in the code's place,
 //! `z_dim` standard normal draws of [`crate::sampling`]'s generator). It is trained
-//! adversarially (`weights/train.py texture`): its generated frames are judged by an image
-//! discriminator, and its codes with the hidden state by a latent one, so that its samples are
-//! frames a discriminator cannot tell from the road's (docs/fidelity.md).
+//! adversarially (`weights/train.py texture`): critics of its generated frames, of its codes
+//! with the hidden state and of its fed-back codes judge it against the recorded drives, so that
+//! its samples are frames a discriminator cannot tell from the road's (docs/fidelity.md).
 //!
 //! A model with the texture net samples through it and not through the spread head; the mean
 //! path (temperature 0) is the transition's, bit for bit.
