@@ -174,7 +174,7 @@ def _bytes(state) -> bytes:
 def restore(path, gan: TextureGAN, arguments: dict) -> int:
     """The step a checkpoint at `path` was written after (0 where there is none)."""
     try:
-        state = torch.load(path, map_location=gan.device, weights_only=False)
+        state = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         return 0
     if state.get("format") != CHECKPOINT_FORMAT or state.get("arguments") != arguments:
