@@ -243,6 +243,26 @@ def test_sampled_futures(model):
     env.set_sampling(1.0, 4)
 
 
+def test_texture_net_sampled_futures(model):
+    """A file with the texture net (`transition.texture.*`, the texture_f32 fixture's) samples
+    through it: temperature 0 is the mean, a seed gives its bits at any thread count."""
+    textured = drivesim.Model.load(fixture("texture_f32.safetensors"))
+    assert textured.texture_width == 9 and textured.samples and model.texture_width is None
+    h = np.linspace(-0.5, 0.5, textured.hidden_dim, dtype=np.float32)
+    z = np.linspace(-1.0, 1.0, textured.z_dim, dtype=np.float32)
+    plans = np.zeros((4, 3, 2), np.float32)
+    plans[..., 0], plans[..., 1] = 20.0, np.linspace(-0.3, 0.3, 3)
+
+    def futures(threads, temperature):
+        s = drivesim.Simulator(textured, batch=3, threads=threads)
+        s.set_sampling(temperature, 5)
+        return s.rollout_candidates(h, plans, z=z)
+
+    mean, drawn = futures(1, 0.0), futures(1, 1.0)
+    assert np.all(np.isfinite(drawn)) and not np.array_equal(drawn, mean)
+    np.testing.assert_array_equal(futures(2, 1.0), drawn)
+
+
 def test_correlated_sampled_futures(tmp_path):
     """A file with the noise factor (`transition.L`, here the spread_f32 fixture's, which PyTorch
     fitted) samples correlated noise: the same seed gives the same bits at any thread count,
