@@ -333,6 +333,7 @@ def generate(out: Path) -> None:
             meta = {"lr": str(ADAM_VAE_GAN["lr"]), "steps": str(GAN_STEPS), "steps_lr": str(GAN_STEPS_LR)}
             save_file(gan_io, str(out / f"{name}.gan.io.safetensors"), metadata=meta)
     reference_heads(out)
+    reference_texture(out)
 
 
 def compare(committed: Path, fresh: Path) -> list[str]:
