@@ -39,13 +39,15 @@ pub(crate) struct Transition {
 
 /// Per-simulator scratch of the transition, as planned.
 pub(crate) struct TransitionBuffers {
-    /// Each batch element's input, `[h | z]` or `h`.
+    /// Each batch element's input, `[h | z]` or `h`; when sampling through the texture net,
+    /// its input `[temperature * ε | h']`.
     concat: Vec<f32>,
     /// The code `A h + a` that a fed-back step of an unfolded (f16) model recomputes; when
     /// sampling, the log standard deviation of each item's code, or the texture net's hidden
     /// layer (`max(z_dim, hidden_dim)` floats per item).
     code: Vec<f32>,
-    /// When sampling: the standard normal noise of each item's code, then its correlated image.
+    /// When sampling: the standard normal noise of each item's code, then its correlated image
+    /// (or the texture net's offsets).
     noise: Vec<f32>,
 }
 
