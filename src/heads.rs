@@ -120,6 +120,7 @@ impl Head {
         Head::read_at(config, src, kind.prefix(), kind.outputs(config), width)
     }
 
+    /// [`Head::read`] of the layers under `prefix` `p` with `outputs` outputs.
     pub(crate) fn read_at(
         config: &Config,
         src: &mut dyn TensorSource,

@@ -99,7 +99,6 @@ def drive_labelled(job):
         learn = agent.decisions > agent.warmup  # the warm-up's zoom frames are no example
         if learn:
             action = perturb(agent, action, next(offsets))
-        if learn:
             out["frames"].append(view)
             out["actions"].append((speed, action[0]))
             out["labels"].append((teacher.target, label[0]))

@@ -146,29 +146,6 @@ class Generator(nn.Module):
         return torch.tanh(getattr(self, f"deconv{self.layers}")(x))
 
 
-class Texture(nn.Module):
-    """The transition's texture net (`transition.texture.*`, the crate's texture.rs): a sampled
-    code is `A h' + a + texture(temperature * noise, h')`, the offset from the mean drawn by one
-    tanh layer of `width` units from `z_dim` standard normal draws and the hidden state h' the
-    step left (the heads' shape, the noise in the code's place). Trained adversarially
-    (train_texture.py) so that sampled futures keep the road's kerbs and grass patches. Its
-    output layer starts at zero: the mean."""
-
-    def __init__(self, cfg: Config, width: int):
-        super().__init__()
-        self.hidden = nn.Linear(cfg.z_dim + cfg.hidden_dim, width)
-        self.output = nn.Linear(width, cfg.z_dim)
-        nn.init.zeros_(self.output.weight)
-        nn.init.zeros_(self.output.bias)
-
-    @property
-    def width(self) -> int:
-        return self.hidden.out_features
-
-    def forward(self, noise: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-        return self.output(torch.tanh(self.hidden(torch.cat([noise, h], -1))))
-
-
 class Transition(nn.Module):
     """RNN in code space: h' = tanh(W h + V z + U c + b), z' = A h' + a. With `spread`, also the
     log standard deviation of each dimension of z', `S h' + s` (weights/README.md): the spread
@@ -261,11 +238,11 @@ class Head(nn.Module):
       the car is off the road there (the crate reads it clamped to [0, 1]);
     - "value": the discounted return from the state (the discount in `drivesim.discount`)."""
 
-    def __init__(self, cfg: Config, width: int, kind: str = "policy"):
+    def __init__(self, cfg: Config, width: int, kind: str = "policy", outputs: int | None = None):
         super().__init__()
         self.kind = kind
         self.hidden = nn.Linear(cfg.z_dim + cfg.hidden_dim, width)
-        self.output = nn.Linear(width, head_outputs(cfg, kind))
+        self.output = nn.Linear(width, head_outputs(cfg, kind) if outputs is None else outputs)
 
     @property
     def prefix(self) -> str:
@@ -282,6 +259,24 @@ class Head(nn.Module):
 
     def forward(self, z: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
         return self.output(torch.tanh(self.hidden(torch.cat([z, h], -1))))
+
+
+class Texture(Head):
+    """The transition's texture net (`transition.texture.*`, the crate's texture.rs): a sampled
+    code is `A h' + a + texture(temperature * noise, h')`, the offset from the mean drawn from
+    `z_dim` standard normal draws and the hidden state h' the step left by a network of the heads'
+    shape (the noise in the code's place). Trained adversarially (train_texture.py) so that
+    sampled futures keep the road's kerbs and grass patches. Its output layer starts at zero: the
+    mean."""
+
+    def __init__(self, cfg: Config, width: int):
+        super().__init__(cfg, width, "texture", cfg.z_dim)
+        nn.init.zeros_(self.output.weight)
+        nn.init.zeros_(self.output.bias)
+
+    @property
+    def prefix(self) -> str:
+        return TEXTURE
 
 
 class Policy(Head):

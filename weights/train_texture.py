@@ -30,6 +30,7 @@ in the file's dtype.
 
 from __future__ import annotations
 
+import io
 import math
 import time
 
@@ -164,8 +165,6 @@ def save_checkpoint(path, gan: TextureGAN, step: int, arguments: dict):
 
 
 def _bytes(state) -> bytes:
-    import io
-
     buf = io.BytesIO()
     torch.save(state, buf)
     return buf.getvalue()
