@@ -106,3 +106,40 @@ def test_cloned_agent_needs_a_policy():
 
     with pytest.raises(ValueError, match="no policy"):
         carracing.make_agent("cloned", weights=fixture("small_f32.safetensors"))
+
+
+def test_speed_model_is_the_controllers_pace():
+    from drivesim.carracing.control import ACCELERATION, speed_after, speeds_reached
+
+    assert speed_after(40.0, 45.0) == pytest.approx(41.0)  # a gain of the gap...
+    assert speed_after(40.0, 90.0) == pytest.approx(40.0 + ACCELERATION)  # ...up to the car's
+    assert speed_after(40.0, 37.0) == 40.0  # the brake's dead band
+    assert speed_after(40.0, 20.0) == 20.0  # braking hard gets there within the decision
+    plans = np.float32([[90, 90, 90, 10], [40, 40, 40, 40]])
+    reached = speeds_reached(40.0, plans)
+    assert reached.shape == plans.shape and (reached[:, 0] == 40.0).all()
+    np.testing.assert_allclose(reached[0], [40, 42, 44, 46])
+    np.testing.assert_allclose(reached[1], 40.0)
+    for bad in ((float("nan"), 40.0), (40.0, [1.0, float("inf")])):
+        with pytest.raises(ValueError, match="finite"):
+            speed_after(*bad)
+    with pytest.raises(ValueError, match="targets"):
+        speeds_reached(40.0, 50.0)
+
+
+def test_planner_dreams_at_the_speed_the_car_reaches(model, clip):
+    """The dream's speed was the policy's target: for a policy that asks for far more than
+    the car reaches in a decision, a dream of a car that is not there."""
+    from drivesim.carracing.control import speed_after
+
+    frames, _ = clip
+    agent = carracing.MPCAgent(model)
+    z, h = agent.sim.encode(frames[0]), np.zeros(model.hidden_dim, np.float32)
+    speeds, transition = [], agent.sim.transition
+    agent.sim = type("Recorder", (), {"act": agent.sim.act, "transition": lambda self, z, h, a: (
+        speeds.append(float(a[0])), transition(z, h, a))[1]})()
+    targets, _ = agent.prior(z, h, 5.0)  # far below the policy's targets
+    assert speeds[0] == 5.0 and targets[0] > 5.0 + 10
+    for t in range(1, len(speeds)):
+        assert speeds[t] == pytest.approx(float(speed_after(speeds[t - 1], targets[t - 1])))
+    assert speeds[1] < targets[0]

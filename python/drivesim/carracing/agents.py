@@ -34,6 +34,7 @@ from .control import (  # noqa: F401 (re-exported: the agents' building blocks)
     SPEED_MAX,
     check_inputs,
     proportional_steering,
+    speed_after,
     speed_control,
     target_speed,
     warmup_action,
@@ -127,7 +128,7 @@ class ClonedAgent:
     def imagine(self, steps: int = 8) -> Optional[np.ndarray]:
         """The policy driving on in the dream from the last decision, ``steps`` steps:
         ``(steps, 80, 160, 3)`` uint8 frames (for pictures, not for driving; the dream's speed
-        is the speed the policy asks for). ``steps``: an integer >= 1."""
+        is the one the car would reach, ``control.speed_after``). ``steps``: an integer >= 1."""
         steps = _checks.integer("steps", steps, 1)
         if self.last_state is None:
             return None
@@ -136,7 +137,7 @@ class ClonedAgent:
         for _ in range(steps):
             target, steer = (float(v) for v in self.sim.act(z, h))
             z, h = self.sim.transition(z, h, np.array([speed, steer], np.float32))
-            speed = target
+            speed = float(speed_after(speed, target))
             codes.append(z)
         return np.stack([self.sim.generate(code) for code in codes])
 

@@ -29,6 +29,45 @@ def speed_control(speed: float, target: float) -> tuple[float, float]:
     return gas, brake
 
 
+#: How the car's speed answers ``speed_control`` in one decision (4 frames), fitted on the clones'
+#: drives of tracks 6000-6001 and 6005 (``weights/speed_model.py``): it gains at most
+#: ``ACCELERATION`` units/s, a ``GAIN`` of the gap below that; it keeps its speed while the
+#: target is at most ``BRAKE_DEAD`` below it (``speed_control``'s dead band) and reaches a target
+#: further below within the decision.
+ACCELERATION, GAIN, BRAKE_DEAD = 2.0, 0.2, 4.0
+
+
+def speed_after(speed, target) -> np.ndarray:
+    """The speed a decision after ``speed`` with ``speed_control`` driving to ``target``
+    (numbers or arrays that broadcast; ValueError for what is not finite)."""
+    speed, target = _finite("speed", speed), _finite("target", target)
+    gap = target - speed
+    return speed + np.where(gap >= 0.0, np.minimum(GAIN * gap, ACCELERATION), np.where(gap < -BRAKE_DEAD, gap, 0.0))
+
+
+def speeds_reached(speed: float, targets: np.ndarray) -> np.ndarray:
+    """The speed at the start of each decision of a plan, from ``speed`` now and the plan's
+    target speeds ``targets`` ``(..., H)``: what the dream is stepped with (the transition
+    learnt from the speedometer's speed), not the targets themselves, which a policy or a
+    planner may set far above what the car reaches in a decision."""
+    targets = _finite("targets", targets).astype(np.float32)
+    if targets.ndim == 0:
+        raise ValueError("targets: expected an array (..., H) of target speeds, got a number")
+    out = np.empty(targets.shape, np.float32)
+    now = np.full(targets.shape[:-1], _checks.number("speed", speed), np.float32)
+    for t in range(targets.shape[-1]):
+        out[..., t] = now
+        now = speed_after(now, targets[..., t]).astype(np.float32)
+    return out
+
+
+def _finite(name: str, value) -> np.ndarray:
+    value = _checks.floats(name, value)
+    if not np.isfinite(value).all():
+        raise ValueError(f"{name}: expected finite numbers")
+    return value
+
+
 def warmup_action(agent, speed: float) -> Optional[np.ndarray]:
     """Counts the agent's decision; while there have been at most ``agent.warmup`` (the env's
     first second, its camera zooming in: frames unlike anything the models saw), the action

@@ -6,13 +6,15 @@ the drive, as ``ClonedAgent`` does. The policy then drives on in the dream for `
 decisions: its plan is the prior. ``candidates - 1`` perturbed copies of it (steering and target
 speed, noise correlated in time) and the prior itself are rolled out in one batch
 (``Simulator.rollout_candidates_scored``, ``futures`` sampled futures each where ``futures >
-1``). Each is scored by the predicted rewards less ``w_off`` times the predicted off-road
-chance, discounted, plus the discounted value of the last state. The first action is the
-policy's, moved by the candidates' first actions weighted by ``exp(score / (spread * sd))`` less
-their plain average (so that a dream that prefers no candidate leaves the policy's action as it
-is). It is replanned at every decision. ``departures`` counts the decisions where the applied action left
-the policy's own by more than ``DEPART_STEER`` in steering or ``DEPART_SPEED`` in target speed,
-``changes`` sums the differences (target speed, steering) over the ``planned`` decisions.
+1``), each dream stepped with the speeds the car would reach under its targets
+(``control.speeds_reached``: the transition learnt from the speedometer's speed). Each is scored
+by the predicted rewards less ``w_off`` times the predicted off-road chance, discounted, plus the
+discounted value of the last state. The first action is the policy's, moved by the candidates'
+first actions weighted by ``exp(score / (spread * sd))`` less their plain average (so that a
+dream that prefers no candidate leaves the policy's action as it is). It is replanned at every
+decision. ``departures`` counts the decisions where the applied action left the policy's own by
+more than ``DEPART_STEER`` in steering or ``DEPART_SPEED`` in target speed, ``changes`` sums the
+differences (target speed, steering) over the ``planned`` decisions.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import numpy as np
 
 from .. import _checks
 from .._drivesim import Model, Simulator
-from .control import SPEED_MAX, check_inputs, speed_control, warmup_action
+from .control import SPEED_MAX, check_inputs, speed_after, speed_control, speeds_reached, warmup_action
 
 #: A decision departs from the policy when its steering differs by more than this...
 DEPART_STEER = 0.05
@@ -116,13 +118,14 @@ class MPCAgent:
 
     def prior(self, z: np.ndarray, h: np.ndarray, speed: float) -> tuple[np.ndarray, np.ndarray]:
         """The policy driving on in the dream from ``(z, h)`` at ``speed``: its target speeds and
-        steerings, ``(horizon,)`` each. The dream's speed at each step is the last target."""
+        steerings, ``(horizon,)`` each. The dream is stepped with the speed the car would reach
+        under ``speed_control`` (``control.speed_after``), not the target itself."""
         targets, steers = np.empty(self.horizon, np.float32), np.empty(self.horizon, np.float32)
         for t in range(self.horizon):
             targets[t], steers[t] = self.sim.act(z, h)
             if t + 1 < self.horizon:
                 z, h = self.sim.transition(z, h, np.array([speed, steers[t]], np.float32))
-                speed = float(targets[t])
+                speed = float(speed_after(speed, targets[t]))
         return targets, steers
 
     def _noise(self, sd: float) -> np.ndarray:
@@ -146,7 +149,7 @@ class MPCAgent:
         # prior at the limit (the policy's target speed often is). The action applied is clipped.
         steer = steers + self._noise(self.steer_noise)  # (K, H)
         target = targets + self._noise(self.speed_noise)
-        speed_in = np.concatenate([np.full((self.candidates, 1), speed, np.float32), target[:, :-1]], axis=1)
+        speed_in = speeds_reached(speed, np.clip(target, *self.speed_range))
         dream = np.stack([np.clip(speed_in, *self.speed_range), np.clip(steer, -1.0, 1.0)], axis=-1)
         actions = dream.transpose(1, 0, 2)  # (H, K, 2) step-major
         actions = np.repeat(actions, self.futures, axis=1).astype(np.float32)  # futures side by side
