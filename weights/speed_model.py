@@ -26,8 +26,9 @@ import record
 BANDS = [(-60, -10), (-10, -4), (-4, 0), (0, 4), (4, 10), (10, 20), (20, 40), (40, 100)]
 
 
-def drive(weights: str, seeds: list) -> np.ndarray:
-    """Rows (speed, target, speed a decision later) of the decisions on the road."""
+def drive(weights, seeds: list, frames: int = 1000) -> np.ndarray:
+    """Rows (speed, target, speed a decision later) of the decisions on the road, ``frames`` env
+    frames a track at most."""
     import gymnasium
     from drivesim import Model
     from drivesim.carracing.agents import ClonedAgent
@@ -35,7 +36,7 @@ def drive(weights: str, seeds: list) -> np.ndarray:
 
     agent, rows = ClonedAgent(Model.load(weights)), []
     for seed in seeds:
-        env = gymnasium.make("CarRacing-v3", max_episode_steps=1000)
+        env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
         env.reset(seed=seed)
         agent.reset()
         done, last = False, None
@@ -57,15 +58,28 @@ def drive(weights: str, seeds: list) -> np.ndarray:
     return np.array(rows, np.float64).reshape(-1, 3)
 
 
+def rms_errors(rows: np.ndarray) -> tuple[float, float]:
+    """The RMS error of the speed a decision later: the model's, and the target's."""
+    from drivesim.carracing.control import speed_after
+
+    speed, target, later = rows.T
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))
+    return rms(speed_after(speed, target) - later), rms(target - later)
+
+
 def main(argv=None) -> int:
     from drivesim.carracing.control import speed_after
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--weights", help="weight file with a policy (default: the built-in model)")
     p.add_argument("--seeds", nargs="+", required=True, help="tracks, e.g. 6000-6001 6005")
+    p.add_argument("--frames", type=int, default=1000, help="env frames a track at most")
     args = p.parse_args(argv)
     seeds = [s for text in args.seeds for s in record.parse_seeds(text)]
-    speed, target, later = drive(args.weights, seeds).T
+    if args.frames < 1:
+        p.error("--frames must be positive")
+    rows = drive(args.weights, seeds, args.frames)
+    speed, target, later = rows.T
     gap, change = target - speed, later - speed
     print(f"{len(speed)} decisions on the road; target - speed: mean {gap.mean():.1f}, sd {gap.std():.1f}")
     print("   gap band   decisions  change of speed (mean, sd)  the model's")
@@ -74,9 +88,8 @@ def main(argv=None) -> int:
         if m.sum():
             model = speed_after(speed[m], target[m]) - speed[m]
             print(f"  {lo:4d}..{hi:4d}  {m.sum():9d}  {change[m].mean():+8.2f} {change[m].std():6.2f}  {model.mean():+12.2f}")
-    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))
-    print(f"RMS error of the speed a decision later: the model {rms(speed_after(speed, target) - later):.2f}, "
-          f"the target {rms(target - later):.2f}")
+    model, target = rms_errors(rows)
+    print(f"RMS error of the speed a decision later: the model {model:.2f}, the target {target:.2f}")
     return 0
 
 

@@ -1,0 +1,25 @@
+"""The data behind the planners' speed model (speed_model.py): the default's clone driving a
+short stretch of a track, the model's error against the target's. Needs the drivesim package
+with CarRacing: skipped without it."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("drivesim")
+pytest.importorskip("gymnasium")
+import speed_model  # noqa: E402
+
+
+def test_the_model_predicts_the_speed_a_decision_later_better_than_the_target():
+    rows = speed_model.drive(None, [6000], frames=400)
+    assert rows.shape[1] == 3 and len(rows) > 40
+    speed, target, later = rows.T
+    assert (np.abs(later - speed) < 10).mean() > 0.9  # a decision is 4 frames: no jumps
+    model, as_target = speed_model.rms_errors(rows)
+    assert model < 0.5 * as_target, (model, as_target)
+
+
+def test_the_command_prints_the_bands_and_the_errors(capsys):
+    assert speed_model.main(["--seeds", "6000", "--frames", "200"]) == 0
+    out = capsys.readouterr().out
+    assert "decisions on the road" in out and "0..   4" in out and "RMS error" in out
