@@ -79,6 +79,8 @@ def main(argv=None) -> int:
     if args.frames < 1:
         p.error("--frames must be positive")
     rows = drive(args.weights, seeds, args.frames)
+    if not len(rows):
+        raise SystemExit("speed-model: no decision on the road to measure (more --frames or other --seeds)")
     speed, target, later = rows.T
     gap, change = target - speed, later - speed
     print(f"{len(speed)} decisions on the road; target - speed: mean {gap.mean():.1f}, sd {gap.std():.1f}")
@@ -88,8 +90,8 @@ def main(argv=None) -> int:
         if m.sum():
             model = speed_after(speed[m], target[m]) - speed[m]
             print(f"  {lo:4d}..{hi:4d}  {m.sum():9d}  {change[m].mean():+8.2f} {change[m].std():6.2f}  {model.mean():+12.2f}")
-    model, target = rms_errors(rows)
-    print(f"RMS error of the speed a decision later: the model {model:.2f}, the target {target:.2f}")
+    model_rms, target_rms = rms_errors(rows)
+    print(f"RMS error of the speed a decision later: the model {model_rms:.2f}, the target {target_rms:.2f}")
     return 0
 
 

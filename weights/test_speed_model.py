@@ -23,3 +23,8 @@ def test_the_command_prints_the_bands_and_the_errors(capsys):
     assert speed_model.main(["--seeds", "6000", "--frames", "200"]) == 0
     out = capsys.readouterr().out
     assert "decisions on the road" in out and "0..   4" in out and "RMS error" in out
+
+
+def test_nothing_to_measure_is_a_clear_exit():
+    with pytest.raises(SystemExit, match="no decision on the road"):
+        speed_model.main(["--seeds", "6000", "--frames", "20"])  # still warming up
