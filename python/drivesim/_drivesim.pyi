@@ -117,6 +117,12 @@ class Simulator:
     @property
     def sampling(self) -> tuple[float, int]:
         """``(temperature, seed)``; temperature 0: off."""
+    def sample(self, h: F32, step: int, codes: F32) -> F32:
+        """For a controller stepping the transition itself, what the rollouts do after each
+        step: the mean codes ``codes`` ``(N, z_dim)`` a step predicted, with the hidden states
+        ``h`` ``(N, hidden_dim)`` it left (one of each without the leading N), sampled as rollout
+        step ``step`` (an integer >= 0; items numbered from 0). A new array; with sampling off,
+        the codes as given. ValueError for shapes that differ or more items than the batch."""
     def act(self, z: F32, h: F32) -> F32:
         """The cloned driver's actions ``(N, 2)`` (speed to drive at, steering) for the codes
         ``z`` of the frames seen now and the hidden states ``h`` after the drive so far; ValueError

@@ -7,7 +7,7 @@ use crate::to_py;
 use drivesim::{frames_from_rgb, Config, PixelLayout};
 use numpy::npyffi::{self, NpyTypes, PY_ARRAY_API};
 use numpy::{Element, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArray, PyUntypedArrayMethods};
-use pyo3::exceptions::PyValueError;
+use pyo3::exceptions::{PyOverflowError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyWeakrefReference;
 use std::ops::Deref;
@@ -244,4 +244,30 @@ fn one_or_each(a: &Borrowed<'_, f32>, lead: &[usize], n: usize, what: &str, dim:
             shape_str(a.shape())
         ))),
     }
+}
+
+/// A checked array's values.
+pub fn slice<'a>(a: &'a Borrowed<'_, f32>) -> &'a [f32] {
+    a.as_slice().expect("checked C-ordered")
+}
+
+/// A temperature argument as the crate's f32: a number (TypeError otherwise) that is finite
+/// and does not overflow f32 (ValueError otherwise; the crate rejects what is below 0).
+pub fn temperature_f32(t: &Bound<'_, PyAny>) -> PyResult<f32> {
+    let out_of_range = || value_error(format!("temperature is {t}: expected a finite number >= 0"));
+    let value = t
+        .extract::<f64>()
+        .map_err(|e| match e.is_instance_of::<PyOverflowError>(t.py()) {
+            true => out_of_range(), // an integer beyond any float
+            false => e,
+        })?;
+    match value.is_finite() && value.abs() <= f32::MAX as f64 {
+        true => Ok(value as f32),
+        false => Err(out_of_range()),
+    }
+}
+
+/// The frame type a `dtype` argument asks for (uint8 when None).
+pub fn frame_type(py: Python<'_>, dtype: Option<&Bound<'_, PyAny>>) -> PyResult<FrameType> {
+    dtype.map_or(Ok(FrameType::U8), |d| FrameType::parse(py, d))
 }

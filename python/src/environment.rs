@@ -1,9 +1,8 @@
 //! `Environment`: N dreamed drives that a controller steps, on numpy arrays.
 
-use crate::arrays::{f32_items, shape_str, value_error, Frames};
+use crate::arrays::{f32_items, frame_type, shape_str, slice, temperature_f32, value_error, Frames};
 use crate::model::PyModel;
 use crate::outputs::{codes_and_frames, frames_out, rows_copy};
-use crate::simulator::{frame_type, slice, temperature_f32};
 use crate::{count, size, to_py};
 use drivesim::{Environment, Model};
 use numpy::{PyArrayDyn, PyUntypedArrayMethods};

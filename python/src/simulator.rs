@@ -1,12 +1,11 @@
 //! `Simulator`: encode, generate, transition steps and rollouts on numpy arrays.
 
-use crate::arrays::{candidates, f32_items, value_error, Borrowed, Frames};
+use crate::arrays::{candidates, f32_items, frame_type, slice, temperature_f32, value_error, Frames};
 use crate::model::PyModel;
-use crate::outputs::{codes_and_frames, frames_out, new_array, FrameType};
+use crate::outputs::{codes_and_frames, frames_out, new_array};
 use crate::{count, size, to_py};
 use drivesim::{HeadKind, Model, Simulator};
 use numpy::{PyArrayDyn, PyArrayMethods};
-use pyo3::exceptions::PyOverflowError;
 use pyo3::prelude::*;
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -190,6 +189,35 @@ impl PySimulator {
     #[getter]
     fn sampling(&self) -> PyResult<(f32, u64)> {
         Ok(lock(&self.state)?.sim.sampling())
+    }
+
+    /// For a controller stepping the transition itself, what the rollouts do after each step: the
+    /// mean codes `codes` `(N, z_dim)` a step predicted, with the hidden states `h` it left, sampled
+    /// as rollout step `step` (items from 0). A new array; with sampling off, the codes as given.
+    fn sample<'py>(
+        &self,
+        py: Python<'py>,
+        h: &Bound<'py, PyAny>,
+        step: &Bound<'py, PyAny>,
+        codes: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let step = count(step, "step", 0, u64::MAX)?;
+        let mut guard = lock(&self.state)?;
+        let sim = &mut guard.sim;
+        let c = *sim.config();
+        let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
+        let (codes, lead) = f32_items(codes, "codes", &[0, 1], &[c.z_dim])?;
+        if h_lead != lead {
+            return Err(value_error(format!(
+                "leading dimensions differ: h {h_lead:?}, codes {lead:?}"
+            )));
+        }
+        let out = new_array::<f32>(py, &shape_of(&lead, &[c.z_dim]), "the codes")?;
+        let sampled = unsafe { out.as_slice_mut() }.expect("new"); // SAFETY: new, no other reference
+        sampled.copy_from_slice(slice(&codes));
+        let h = slice(&h);
+        py.detach(|| sim.sample(h, step, sampled)).map_err(to_py)?;
+        Ok(out)
     }
 
     /// The cloned driver's actions (the model's policy; `Model.policy_width` is None without
@@ -418,30 +446,4 @@ impl PySimulator {
         .map_err(to_py)?;
         Ok((z_next, h_next))
     }
-}
-
-/// A checked array's values.
-pub fn slice<'a>(a: &'a Borrowed<'_, f32>) -> &'a [f32] {
-    a.as_slice().expect("checked C-ordered")
-}
-
-/// A temperature argument as the crate's f32: a number (TypeError otherwise) that is finite
-/// and does not overflow f32 (ValueError otherwise; the crate rejects what is below 0).
-pub fn temperature_f32(t: &Bound<'_, PyAny>) -> PyResult<f32> {
-    let out_of_range = || value_error(format!("temperature is {t}: expected a finite number >= 0"));
-    let value = t
-        .extract::<f64>()
-        .map_err(|e| match e.is_instance_of::<PyOverflowError>(t.py()) {
-            true => out_of_range(), // an integer beyond any float
-            false => e,
-        })?;
-    match value.is_finite() && value.abs() <= f32::MAX as f64 {
-        true => Ok(value as f32),
-        false => Err(out_of_range()),
-    }
-}
-
-/// The frame type a `dtype` argument asks for (uint8 when None).
-pub fn frame_type(py: Python<'_>, dtype: Option<&Bound<'_, PyAny>>) -> PyResult<FrameType> {
-    dtype.map_or(Ok(FrameType::U8), |d| FrameType::parse(py, d))
 }

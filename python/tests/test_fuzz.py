@@ -129,12 +129,15 @@ def test_rollouts(seed_frames, plan, steps, candidates, h, z, frames, dtype):
     usable_simulator()
 
 
-@given(temperature=numbers, seed=numbers | counts)
-def test_sampling_settings(temperature, seed):
+@given(temperature=numbers, seed=numbers | counts, step=numbers | counts, h=arrays(items((H,))), z=arrays(items((Z,))))
+def test_sampling_settings(temperature, seed, step, h, z):
+    """set_sampling, then sample on any states, steps and codes."""
     call(SIM.set_sampling, temperature, seed)
     call(SIM.set_sampling, temperature, 0)
+    call(SIM.sample, h, step, z)
     call(ENV.set_sampling, temperature, seed)
     usable_simulator()
+    SIM.set_sampling(0.0, 0)
     ENV.set_sampling(0.0, 0)
 
 

@@ -292,3 +292,34 @@ def test_correlated_sampled_futures(tmp_path):
     np.testing.assert_array_equal(futures(correlated, 2, 1.0), drawn)
     assert not np.allclose(drawn, futures(independent, 1, 1.0))
     np.testing.assert_array_equal(futures(correlated, 1, 0.0), futures(independent, 1, 0.0))
+
+
+def test_sample_is_the_rollouts_step_for_a_controller(model):
+    """`Simulator.sample`: a step taken with `transition`, then sampled, is the first step of a
+    rollout sampled with the same seed; the texture_f32 fixture's draws are PyTorch's."""
+    sim = drivesim.Simulator(model, batch=2)
+    h, z = np.zeros(model.hidden_dim, np.float32), np.linspace(-1, 1, model.z_dim, dtype=np.float32)
+    action = np.float32([30.0, 0.2])
+    z_mean, h_next = sim.transition(z, h, action)
+    np.testing.assert_array_equal(sim.sample(h_next, 0, z_mean), z_mean)  # sampling off
+    sim.set_sampling(1.0, 9)
+    drawn = sim.sample(h_next, 0, z_mean)
+    assert not np.array_equal(drawn, z_mean)
+    rollout = sim.rollout_candidates(h, action[None, None], z=z)
+    np.testing.assert_array_equal(drawn, rollout[0, 0])
+    np.testing.assert_array_equal(z_mean, sim.transition(z, h, action)[0])  # codes not changed
+    with pytest.raises(ValueError, match="leading dimensions"):
+        sim.sample(h_next[None], 0, z_mean)
+    with pytest.raises(ValueError, match="step"):
+        sim.sample(h_next, -1, z_mean)
+    with pytest.raises(TypeError, match="step"):
+        sim.sample(h_next, "0", z_mean)
+    with pytest.raises(ValueError):
+        sim.sample(np.tile(h_next, (3, 1)), 0, np.tile(z_mean, (3, 1)))  # beyond the batch of 2
+
+    io = pytest.importorskip("safetensors.numpy").load_file(fixture("texture_f32.io.safetensors"))
+    textured = drivesim.Simulator(drivesim.Model.load(fixture("texture_f32.safetensors")), batch=5)
+    textured.set_sampling(0.7, 3)
+    got = textured.sample(io["h"], 4, io["mean"])
+    error = np.linalg.norm(got - io["sampled"]) / np.linalg.norm(io["sampled"])
+    assert error < 1e-5, error
