@@ -102,6 +102,24 @@ pub fn f32_items<'py>(
     Ok((a, lead))
 }
 
+/// Codes `(N, z_dim)` (named `what`) and hidden states `h` `(N, hidden_dim)`, or one of each,
+/// checked to have the same leading dimensions, which are returned with them.
+pub fn codes_and_states<'py>(
+    c: &Config,
+    z: &Bound<'py, PyAny>,
+    what: &str,
+    h: &Bound<'py, PyAny>,
+) -> PyResult<(Borrowed<'py, f32>, Borrowed<'py, f32>, Vec<usize>)> {
+    let (z, lead) = f32_items(z, what, &[0, 1], &[c.z_dim])?;
+    let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
+    if h_lead != lead {
+        return Err(value_error(format!(
+            "{what} and h must have the same leading dimensions: {lead:?} and {h_lead:?}"
+        )));
+    }
+    Ok((z, h, lead))
+}
+
 /// A shape as Python writes it: `(3, 2)`, `(3,)`, `()`.
 pub fn shape_str(shape: &[usize]) -> String {
     match shape {

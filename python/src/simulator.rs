@@ -1,6 +1,6 @@
 //! `Simulator`: encode, generate, transition steps and rollouts on numpy arrays.
 
-use crate::arrays::{candidates, f32_items, frame_type, slice, temperature_f32, value_error, Frames};
+use crate::arrays::{candidates, codes_and_states, f32_items, frame_type, slice, temperature_f32, value_error, Frames};
 use crate::model::PyModel;
 use crate::outputs::{codes_and_frames, frames_out, new_array};
 use crate::{count, size, to_py};
@@ -205,15 +205,10 @@ impl PySimulator {
         let mut guard = lock(&self.state)?;
         let sim = &mut guard.sim;
         let c = *sim.config();
-        let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
-        let (codes, lead) = f32_items(codes, "codes", &[0, 1], &[c.z_dim])?;
-        if h_lead != lead {
-            return Err(value_error(format!(
-                "leading dimensions differ: h {h_lead:?}, codes {lead:?}"
-            )));
-        }
+        let (codes, h, lead) = codes_and_states(&c, codes, "codes", h)?;
         let out = new_array::<f32>(py, &shape_of(&lead, &[c.z_dim]), "the codes")?;
-        let sampled = unsafe { out.as_slice_mut() }.expect("new"); // SAFETY: new, no other reference
+        // SAFETY: the array was just created here and no other reference to it exists.
+        let sampled = unsafe { out.as_slice_mut() }.expect("new");
         sampled.copy_from_slice(slice(&codes));
         let h = slice(&h);
         py.detach(|| sim.sample(h, step, sampled)).map_err(to_py)?;
@@ -393,13 +388,7 @@ impl PySimulator {
         let mut guard = lock(&self.state)?;
         let sim = &mut guard.sim;
         let c = *sim.config();
-        let (z, lead) = f32_items(z, "z", &[0, 1], &[c.z_dim])?;
-        let (h, h_lead) = f32_items(h, "h", &[0, 1], &[c.hidden_dim])?;
-        if h_lead != lead {
-            return Err(value_error(format!(
-                "z and h must have the same leading dimensions: {lead:?} and {h_lead:?}"
-            )));
-        }
+        let (z, h, lead) = codes_and_states(&c, z, "z", h)?;
         let out = new_array::<f32>(py, &shape_of(&lead, &[kind.outputs(&c)]), "the outputs")?;
         // SAFETY: the array was just created here and no other reference to it exists.
         let slice_out = unsafe { out.as_slice_mut() }.expect("new");

@@ -40,7 +40,10 @@ ACCELERATION, GAIN, BRAKE_DEAD = 2.0, 0.2, 4.0
 def speed_after(speed, target) -> np.ndarray:
     """The speed a decision after ``speed`` with ``speed_control`` driving to ``target``
     (numbers or arrays that broadcast; ValueError for what is not finite)."""
-    speed, target = _finite("speed", speed), _finite("target", target)
+    return _speed_after(_finite("speed", speed), _finite("target", target))
+
+
+def _speed_after(speed: np.ndarray, target: np.ndarray) -> np.ndarray:
     gap = target - speed
     return speed + np.where(gap >= 0.0, np.minimum(GAIN * gap, ACCELERATION), np.where(gap < -BRAKE_DEAD, gap, 0.0))
 
@@ -57,7 +60,7 @@ def speeds_reached(speed: float, targets: np.ndarray) -> np.ndarray:
     now = np.full(targets.shape[:-1], _checks.number("speed", speed), np.float32)
     for t in range(targets.shape[-1]):
         out[..., t] = now
-        now = speed_after(now, targets[..., t]).astype(np.float32)
+        now = _speed_after(now, targets[..., t]).astype(np.float32)  # checked above
     return out
 
 
