@@ -8,7 +8,8 @@ mod common;
 
 use common::{fixture_path, relative_error, Io, Rng, FIXTURES};
 use drivesim::train::{
-    cosine_lr, fit_noise_factor, with_noise_factor, TrainedOn, TransitionPlan, TransitionSettings, TransitionTrainer,
+    cosine_lr, fit_noise_factor, sharpen_noise_factor, with_noise_factor, TrainedOn, TransitionPlan,
+    TransitionSettings, TransitionTrainer,
 };
 use drivesim::{Config, Error, Isa, Model, WeightDtype};
 
@@ -108,6 +109,20 @@ fn noise_factor_matches_pytorch() {
         .collect();
     let factor = fit_noise_factor(&f.model, &drives).unwrap();
     check("noise factor", &factor, &f.io.values("noise_factor"));
+    // Sharpened (the correlation squared, back to unit diagonal) as PyTorch sharpens it; power
+    // 1 gives the factor back.
+    let sharp = sharpen_noise_factor(&factor, 2).unwrap();
+    check("noise factor, power 2", &sharp, &f.io.values("noise_factor_power2"));
+    assert_eq!(sharpen_noise_factor(&factor, 1).unwrap(), factor);
+    assert!(sharp.iter().zip(&factor).any(|(a, b)| (a - b).abs() > 1e-2));
+    assert!(matches!(sharpen_noise_factor(&factor, 0), Err(Error::Config { .. })));
+    assert!(matches!(
+        sharpen_noise_factor(&factor[1..], 2),
+        Err(Error::BufferLength { .. })
+    ));
+    let mut bad = factor.clone();
+    bad[3] = f32::NAN;
+    assert!(matches!(sharpen_noise_factor(&bad, 2), Err(Error::NonFinite { .. })));
     // The same drives with the unused last action of each: the same factor.
     let longer: Vec<Vec<f32>> = drives.iter().map(|(_, c)| [c, &c[..a]].concat()).collect();
     let drives_t: Vec<(&[f32], &[f32])> = drives.iter().zip(&longer).map(|((z, _), c)| (*z, &c[..])).collect();

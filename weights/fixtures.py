@@ -28,7 +28,7 @@ from safetensors.torch import load_file, save_file
 
 from heads import HeadTrainer, lambda_returns
 from model import CONFIG_KEY, Config, DriveSim, Head, load_discriminator, load_drivesim, save_drivesim
-from sequences import noise_factor, transition_step
+from sequences import noise_factor, sharpen_noise, transition_step
 from vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
 
 OUT = Path(__file__).resolve().parent.parent / "tests" / "fixtures"
@@ -172,6 +172,7 @@ def reference_train(model: DriveSim, cfg: Config, name: str, seed: int) -> tuple
     io = {"codes": codes, "actions": actions}
     if model.transition.spread:  # the noise's correlation from the windows' one-step errors, at the start
         io["noise_factor"] = noise_factor(model.transition, list(zip(codes, actions)))
+        io["noise_factor_power2"] = sharpen_noise(io["noise_factor"], 2)
     start = {k: p.detach().clone() for k, p in model.transition.named_parameters()}
 
     def run(steps, detach):

@@ -87,6 +87,27 @@ def noise_factor(transition, drives):
     return torch.linalg.cholesky(corr).float()
 
 
+def sharpen_noise(factor: torch.Tensor, power: int) -> torch.Tensor:
+    """`transition.L` sharpened, as the crate's `train::sharpen_noise_factor`: the Cholesky
+    factor of the correlation `L Lᵀ` raised to `power` (an integer, at least 1) and scaled back
+    to unit diagonal, in float64; each dimension's spread stays the head's and the noise
+    gathers where the one-step errors move together most (docs/next_second.md)."""
+    if int(power) != power or power < 1:
+        raise ValueError(f"the noise factor's power must be an integer at least 1, got {power}")
+    factor = factor.double().cpu()
+    if factor.ndim != 2 or factor.shape[0] != factor.shape[1] or not torch.isfinite(factor).all():
+        raise ValueError(f"the noise factor must be a finite square matrix, got shape {tuple(factor.shape)}")
+    if power == 1:
+        return factor.float()
+    c = factor @ factor.T
+    p = torch.linalg.matrix_power(c, int(power))
+    d = p.diagonal().clamp_min(0).sqrt()
+    scale = torch.outer(d, d)
+    corr = torch.where(scale > 1e-300, p / scale.clamp_min(1e-300), torch.zeros_like(p))
+    corr.fill_diagonal_(1.0)
+    return torch.linalg.cholesky(corr).float()
+
+
 def spread_loss(transition, hidden, pred, target, teacher):
     """The spread head's loss: the Gaussian negative log-likelihood (without its constant) of
     each target dimension around the prediction, `0.5 r^2 exp(-2 l) + l` with `r` the

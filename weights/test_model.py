@@ -126,6 +126,35 @@ def test_the_optional_networks_load_and_round_trip(tmp_path):
     assert not plain.transition.spread and not hasattr(plain, "policy")
 
 
+def test_a_sharpened_noise_factor_keeps_unit_spreads_and_gathers_the_correlation():
+    """sequences.sharpen_noise: power 1 gives the factor back; power 2 is the Cholesky factor of
+    the correlation squared, back to unit diagonal: fewer directions carry the noise."""
+    from sequences import sharpen_noise
+
+    torch.manual_seed(5)
+    mix = torch.randn(40, 6) @ torch.randn(6, 6)
+    corr = torch.corrcoef(mix.T).double()
+    factor = torch.linalg.cholesky(corr).float()
+    assert torch.equal(sharpen_noise(factor, 1), factor)
+    sharp = sharpen_noise(factor, 2)
+    c = (sharp @ sharp.T).double()
+    assert torch.allclose(sharp, sharp.tril()) and torch.allclose(c.diagonal(), torch.ones(6, dtype=torch.float64), atol=1e-5)
+    squared = corr @ corr
+    d = squared.diagonal().sqrt()
+    assert torch.allclose(c, squared / torch.outer(d, d), atol=1e-5)
+
+    def participation(m):
+        w = torch.linalg.eigvalsh(m)
+        return float(w.sum() ** 2 / (w**2).sum())
+
+    assert participation(c) < participation(corr)
+    for bad in (0, 1.5):
+        with pytest.raises(ValueError, match="power"):
+            sharpen_noise(factor, bad)
+    with pytest.raises(ValueError, match="square"):
+        sharpen_noise(factor[:5], 2)
+
+
 def test_the_noise_factor_round_trips_and_correlates_the_samples(tmp_path):
     """`transition.L` (sequences.noise_factor) is saved and loaded with the spread head, and a
     sampled prediction draws `L @ eps`: with L's rows swapped, the same draws land swapped."""

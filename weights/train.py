@@ -57,7 +57,7 @@ from checkpoints import Checkpoints
 from distributed import globalise_batch_norms, start_distributed, world
 from model import Config, DriveSim, save_drivesim
 from reference_step import step
-from sequences import SEQ, TEACHER, encode, noise_factor, train_transition
+from sequences import SEQ, TEACHER, encode, noise_factor, sharpen_noise, train_transition
 from vae_gan import ADAM_VAE_GAN, LOSS_WEIGHTS, Discriminator, train_vae_gan
 
 _files = package.load("_files.py")
@@ -103,8 +103,8 @@ def fit(args):
     actions = torch.from_numpy(data.actions).to(dev)
     norm = train_transition(model, dis, codes, actions, data.windows(SEQ), args, log, checkpoints, state)
     if args.spread:  # the correlation of the sampled noise, from the training drives' one-step errors
-        model.transition.set_noise_factor(noise_factor(model.transition.cpu(), [
-            (codes[a:b], actions[a:b]) for a, b in data.bounds()]).to(dev))
+        model.transition.set_noise_factor(sharpen_noise(noise_factor(model.transition.cpu(), [
+            (codes[a:b], actions[a:b]) for a, b in data.bounds()]), args.noise_power).to(dev))
         model.transition.to(dev)
     t2 = time.time()
     log.append(dict(vae_gan_seconds=round(t1 - t0, 1), transition_seconds=round(t2 - t1, 1), **norm))
@@ -160,6 +160,10 @@ def main(argv=None):
     f.add_argument("--dtype", default="f16", choices=["f32", "f16", "bf16"], help="dtype of the written weights")
     f.add_argument("--spread", action="store_true", help="also train the transition's spread head (sampled "
                    "futures: the log standard deviation of each predicted code, S h' + s)")
+    f.add_argument("--noise-power", type=int, choices=range(1, 9), default=1, metavar="1..8",
+                   help="with --spread: raise the noise's correlation to this power, back to unit diagonal "
+                   "(sequences.sharpen_noise, the crate's `train noise --noise-power`): 2 brings the best of a "
+                   "few sampled futures nearer what happened and makes the sampled codes smaller")
     f.add_argument("--no-mirror", action="store_true", help="train on the episodes only, not also on their mirror "
                    "images (frames flipped left to right, steering negated)")
     f.add_argument("--checkpoint", help="checkpoint file: written every --checkpoint-every steps, read by --resume")

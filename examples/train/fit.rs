@@ -39,6 +39,8 @@ pub struct FitArgs {
     /// Also train the transition's spread head (sampled futures; see `transition --spread`)
     #[arg(long)]
     spread: bool,
+    #[command(flatten)]
+    noise_power: crate::noise::NoisePower,
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
     threads: u32,
     #[arg(long, default_value_t = 0)]
@@ -100,6 +102,9 @@ pub fn fit(args: &FitArgs) -> Result<(), String> {
         restart: args.from_scratch,
         spread: args.spread,
         independent_noise: false,
+        noise_power: crate::noise::NoisePower {
+            noise_power: args.noise_power.noise_power,
+        },
         dtype: args.dtype,
         seed: args.seed,
         checkpointing: stage(&args.checkpointing, "transition"),

@@ -8,7 +8,7 @@ use crate::common::Encoded;
 use crate::drives::{split, Drives};
 use crate::files::read;
 use clap::Parser;
-use drivesim::train::{fit_noise_factor, with_noise_factor};
+use drivesim::train::{fit_noise_factor, sharpen_noise_factor, with_noise_factor};
 use drivesim::Model;
 
 #[derive(Parser)]
@@ -24,14 +24,30 @@ pub struct NoiseArgs {
     pub data: Data,
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=256))]
     pub threads: u32,
+    #[command(flatten)]
+    pub power: NoisePower,
 }
 
-/// `file` (whose model is `model`) with the noise factor fitted on the drives `train`.
-pub fn with_fitted_noise(file: &[u8], model: &Model, train: &[Encoded]) -> Result<Vec<u8>, String> {
+/// How the fitted correlation is sharpened (`train noise` and `train transition --spread`).
+#[derive(clap::Args)]
+pub struct NoisePower {
+    /// Raise the noise's correlation to this power, back to unit diagonal
+    /// (`sharpen_noise_factor`): 2 brings the best of a few sampled futures nearer what
+    /// happened and makes the sampled codes smaller (docs/next_second.md); 1 keeps it as fitted
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=8))]
+    pub noise_power: u32,
+}
+
+/// `file` (whose model is `model`) with the noise factor fitted on the drives `train`,
+/// sharpened to `power`.
+pub fn with_fitted_noise(file: &[u8], model: &Model, train: &[Encoded], power: &NoisePower) -> Result<Vec<u8>, String> {
     let drives: Vec<(&[f32], &[f32])> = train.iter().map(|e| (&e.codes[..], &e.actions[..])).collect();
-    let factor = fit_noise_factor(model, &drives).map_err(|e| format!("the noise's correlation: {e}"))?;
+    let fitted = fit_noise_factor(model, &drives).map_err(|e| format!("the noise's correlation: {e}"))?;
+    let factor =
+        sharpen_noise_factor(&fitted, power.noise_power).map_err(|e| format!("the noise's correlation: {e}"))?;
     println!(
-        "fitted the noise's correlation (transition.L) on {} drives",
+        "fitted the noise's correlation (transition.L, power {}) on {} drives",
+        power.noise_power,
         drives.len()
     );
     with_noise_factor(file, &factor).map_err(|e| e.to_string())
@@ -47,7 +63,7 @@ pub fn noise(args: &NoiseArgs) -> Result<(), String> {
         ));
     }
     let Drives { train, .. } = split(&model, &args.data, args.threads as usize)?;
-    let bytes = with_fitted_noise(&original, &model, &train)?;
+    let bytes = with_fitted_noise(&original, &model, &train, &args.power)?;
     crate::files::write_atomically(&args.data.out, &bytes)?;
     println!("wrote {}", args.data.out.display());
     Ok(())

@@ -53,6 +53,8 @@ pub struct TransitionArgs {
     /// correlation of the one-step errors on the training drives is fitted (`transition.L`)
     #[arg(long)]
     pub independent_noise: bool,
+    #[command(flatten)]
+    pub noise_power: crate::noise::NoisePower,
     /// Dtype of the written file (default: the input file's)
     #[arg(long)]
     pub dtype: Option<DtypeArg>,
@@ -347,7 +349,7 @@ pub fn transition(args: &TransitionArgs) -> Result<(), String> {
     let written = Model::from_bytes(&bytes).map_err(|e| format!("the written file does not load: {e}"))?;
     let bytes = match written.samples() && !args.independent_noise {
         // Too few steps for the correlation must not cost the training: the file goes without.
-        true => crate::noise::with_fitted_noise(&bytes, &written, &train).unwrap_or_else(|e| {
+        true => crate::noise::with_fitted_noise(&bytes, &written, &train, &args.noise_power).unwrap_or_else(|e| {
             eprintln!("warning: written without transition.L (independent sampled noise): {e}");
             bytes
         }),

@@ -8,7 +8,8 @@
 //!   [`VaeGanPlan`] is measured by building the trainer without allocating (as ggml's
 //!   allocator measures a graph), then exactly that is allocated.
 //! - [`fit_noise_factor`] fits the correlation of sampled futures' noise (`transition.L`) once
-//!   a transition with the spread head is trained.
+//!   a transition with the spread head is trained; [`sharpen_noise_factor`] gathers it in the
+//!   directions the errors share most.
 //! - [`HeadTrainer`] trains a head ([`crate::HeadKind`]) by regression on the caller's
 //!   examples: the policy, the cloned driver of [`crate::Simulator::act`], by behavioural
 //!   cloning; the reward head on the env's rewards; the value head on [`lambda_returns`].
@@ -36,9 +37,9 @@ mod vae_gan;
 
 pub use adam::Adam;
 pub use heads::{HeadSettings, HeadTrainer};
-pub use noise::fit_noise_factor;
 #[cfg(feature = "std")]
 pub use noise::with_noise_factor;
+pub use noise::{fit_noise_factor, sharpen_noise_factor};
 pub use returns::lambda_returns;
 pub use transition::{TransitionPlan, TransitionSettings, TransitionTrainer};
 #[cfg(feature = "std")]
