@@ -103,7 +103,7 @@ def sharpen_noise(factor: torch.Tensor, power: int) -> torch.Tensor:
     p = torch.linalg.matrix_power(c, int(power))
     d = p.diagonal().clamp_min(0).sqrt()
     scale = torch.outer(d, d)
-    corr = torch.where(scale > 1e-300, p / scale.clamp_min(1e-300), torch.zeros_like(p))
+    corr = torch.where(scale > 1e-12, p / scale.clamp_min(1e-300), torch.zeros_like(p))
     corr.fill_diagonal_(1.0)
     return torch.linalg.cholesky(corr).float()
 

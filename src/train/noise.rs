@@ -131,19 +131,7 @@ pub fn sharpen_noise_factor(factor: &[f32], power: u32) -> Result<Vec<f32>> {
         }
         core::mem::swap(&mut p, &mut next);
     }
-    let d: Vec<f64> = (0..z)
-        .map(|i| drivesim_kernels::math::sqrt(p[i * z + i].max(0.0)))
-        .collect();
-    let mut r = vec![0.0f64; z * z];
-    for i in 0..z {
-        for j in 0..=i {
-            r[i * z + j] = match (i == j, d[i] * d[j] > 1e-300) {
-                (true, _) => 1.0,
-                (false, true) => p[i * z + j] / (d[i] * d[j]),
-                (false, false) => 0.0,
-            };
-        }
-    }
+    let r = unit_diagonal(z, |i, j| p[i * z + j]);
     cholesky(&r, z).ok_or_else(|| Error::Episodes {
         reason: format!("the noise's correlation to the power {power} is singular"),
     })
@@ -168,16 +156,20 @@ fn check_drive(codes: &[f32], actions: &[f32], z: usize, a: usize) -> Result<()>
 fn correlation(sums: &[f64], products: &[f64], n: f64) -> Vec<f64> {
     let z = sums.len();
     let mean: Vec<f64> = sums.iter().map(|s| s / n).collect();
-    let cov = |i: usize, j: usize| products[i * z + j] / n - mean[i] * mean[j];
-    let std: Vec<f64> = (0..z)
-        .map(|i| drivesim_kernels::math::sqrt(cov(i, i).max(0.0)))
-        .collect();
+    unit_diagonal(z, |i, j| products[i * z + j] / n - mean[i] * mean[j])
+}
+
+/// The symmetric `[z, z]` matrix `m(i, j)` (read for `j <= i`) scaled to unit diagonal, its
+/// lower triangle row-major: `m(i, j) / sqrt(m(i, i) m(j, j))`, 0 off the diagonal where a
+/// dimension has no variance.
+fn unit_diagonal(z: usize, m: impl Fn(usize, usize) -> f64) -> Vec<f64> {
+    let std: Vec<f64> = (0..z).map(|i| drivesim_kernels::math::sqrt(m(i, i).max(0.0))).collect();
     let mut r = vec![0.0; z * z];
     for i in 0..z {
         for j in 0..=i {
             r[i * z + j] = match (i == j, std[i] * std[j] > 1e-12) {
                 (true, _) => 1.0,
-                (false, true) => cov(i, j) / (std[i] * std[j]),
+                (false, true) => m(i, j) / (std[i] * std[j]),
                 (false, false) => 0.0,
             };
         }
