@@ -24,8 +24,10 @@ from distributed import world
 _files = package.load("_files.py")
 
 FORMAT = "drivesim train.py fit checkpoint 1"
-# Arguments that do not change what the run computes: a resumed run may change them.
-FREE = {"out", "dtype", "device", "log_every", "max_minutes", "checkpoint", "checkpoint_every", "resume", "mode"}
+# Arguments that do not change what the run computes: a resumed run may change them (the
+# written file's dtype and its noise factor's power are applied after the last step).
+FREE = {"out", "dtype", "device", "log_every", "max_minutes", "checkpoint", "checkpoint_every", "resume", "mode",
+        "noise_power"}
 
 
 def run_arguments(args) -> dict:
