@@ -102,9 +102,7 @@ pub fn fit(args: &FitArgs) -> Result<(), String> {
         restart: args.from_scratch,
         spread: args.spread,
         independent_noise: false,
-        noise_power: crate::noise::NoisePower {
-            noise_power: args.noise_power.noise_power,
-        },
+        noise_power: args.noise_power,
         dtype: args.dtype,
         seed: args.seed,
         checkpointing: stage(&args.checkpointing, "transition"),

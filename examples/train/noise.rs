@@ -28,8 +28,8 @@ pub struct NoiseArgs {
     pub power: NoisePower,
 }
 
-/// How the fitted correlation is sharpened (`train noise` and `train transition --spread`).
-#[derive(clap::Args)]
+/// How the fitted correlation is sharpened (`train noise`, `train transition --spread`, `train fit`).
+#[derive(clap::Args, Clone, Copy)]
 pub struct NoisePower {
     /// Raise the noise's correlation to this power, back to unit diagonal
     /// (`sharpen_noise_factor`): 2 brings the best of a few sampled futures nearer what

@@ -202,17 +202,17 @@ impl PySimulator {
         codes: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
         let step = count(step, "step", 0, u64::MAX)?;
-        let mut guard = lock(&self.state)?;
-        let sim = &mut guard.sim;
-        let c = *sim.config();
-        let (codes, h, lead) = codes_and_states(&c, codes, "codes", h)?;
-        let out = new_array::<f32>(py, &shape_of(&lead, &[c.z_dim]), "the codes")?;
-        // SAFETY: the array was just created here and no other reference to it exists.
-        let sampled = unsafe { out.as_slice_mut() }.expect("new");
-        sampled.copy_from_slice(slice(&codes));
-        let h = slice(&h);
-        py.detach(|| sim.sample(h, step, sampled)).map_err(to_py)?;
-        Ok(out)
+        let z_dim = self.config()?.z_dim;
+        self.on_states(
+            py,
+            (codes, "codes"),
+            h,
+            (z_dim, "the codes"),
+            |sim, codes, h, sampled| {
+                sampled.copy_from_slice(codes);
+                sim.sample(h, step, sampled)
+            },
+        )
     }
 
     /// The cloned driver's actions (the model's policy; `Model.policy_width` is None without
@@ -385,20 +385,32 @@ impl PySimulator {
         z: &Bound<'py, PyAny>,
         h: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let outputs = kind.outputs(&self.config()?);
+        self.on_states(py, (z, "z"), h, (outputs, "the outputs"), |sim, z, h, out| match kind {
+            HeadKind::Policy => sim.act(z, h, out),
+            HeadKind::Reward => sim.reward(z, h, out),
+            HeadKind::Value => sim.value(z, h, out),
+        })
+    }
+
+    /// `run(sim, z, h, out)` on states (codes `z` and hidden states `h`, one of each or `(N,
+    /// ...)` each) into a new array of `width` values per state, the GIL released.
+    fn on_states<'py>(
+        &self,
+        py: Python<'py>,
+        (z, what): (&Bound<'py, PyAny>, &str),
+        h: &Bound<'py, PyAny>,
+        (width, name): (usize, &str),
+        run: impl FnOnce(&mut Simulator<Arc<Model>>, &[f32], &[f32], &mut [f32]) -> drivesim::Result<()> + Send,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
         let mut guard = lock(&self.state)?;
         let sim = &mut guard.sim;
-        let c = *sim.config();
-        let (z, h, lead) = codes_and_states(&c, z, "z", h)?;
-        let out = new_array::<f32>(py, &shape_of(&lead, &[kind.outputs(&c)]), "the outputs")?;
+        let (z, h, lead) = codes_and_states(sim.config(), z, what, h)?;
+        let out = new_array::<f32>(py, &shape_of(&lead, &[width]), name)?;
         // SAFETY: the array was just created here and no other reference to it exists.
-        let slice_out = unsafe { out.as_slice_mut() }.expect("new");
+        let values = unsafe { out.as_slice_mut() }.expect("new");
         let (z, h) = (slice(&z), slice(&h));
-        py.detach(|| match kind {
-            HeadKind::Policy => sim.act(z, h, slice_out),
-            HeadKind::Reward => sim.reward(z, h, slice_out),
-            HeadKind::Value => sim.value(z, h, slice_out),
-        })
-        .map_err(to_py)?;
+        py.detach(|| run(sim, z, h, values)).map_err(to_py)?;
         Ok(out)
     }
 

@@ -114,27 +114,25 @@ pub fn sharpen_noise_factor(factor: &[f32], power: u32) -> Result<Vec<f32>> {
     if power == 1 {
         return Ok(factor.to_vec());
     }
-    let l = |i: usize, j: usize| factor[i * z + j] as f64;
-    let mut c = vec![0.0f64; z * z];
-    for i in 0..z {
-        for j in 0..z {
-            c[i * z + j] = (0..z).map(|k| l(i, k) * l(j, k)).sum();
-        }
-    }
-    let mut p = c.clone();
-    let mut next = vec![0.0f64; z * z];
-    for _ in 1..power {
-        for i in 0..z {
-            for j in 0..z {
-                next[i * z + j] = (0..z).map(|k| p[i * z + k] * c[k * z + j]).sum();
-            }
-        }
-        core::mem::swap(&mut p, &mut next);
-    }
+    let l: Vec<f64> = factor.iter().map(|&v| v as f64).collect();
+    let c = times_transposed(&l, &l, z);
+    // C is symmetric: P C = P Cᵀ.
+    let p = (1..power).fold(c.clone(), |p, _| times_transposed(&p, &c, z));
     let r = unit_diagonal(z, |i, j| p[i * z + j]);
     cholesky(&r, z).ok_or_else(|| Error::Episodes {
         reason: format!("the noise's correlation to the power {power} is singular"),
     })
+}
+
+/// `a bᵀ` of two row-major `[z, z]` matrices, in f64.
+fn times_transposed(a: &[f64], b: &[f64], z: usize) -> Vec<f64> {
+    let mut out = vec![0.0; z * z];
+    for (i, row) in out.chunks_exact_mut(z).enumerate() {
+        for (j, value) in row.iter_mut().enumerate() {
+            *value = a[i * z..][..z].iter().zip(&b[j * z..][..z]).map(|(x, y)| x * y).sum();
+        }
+    }
+    out
 }
 
 /// A drive's codes whole items and finite, with `T - 1` or `T` actions.
