@@ -79,10 +79,15 @@ def noise_factor(transition, drives):
         raise ValueError(f"the noise's correlation needs more one-step errors than the code's {zd} dimensions: "
                          f"the drives hold {steps}")
     mean = sums / steps
-    cov = products / steps - torch.outer(mean, mean)
-    std = cov.diagonal().clamp_min(0).sqrt()
+    return _unit_diagonal_factor(products / steps - torch.outer(mean, mean))
+
+
+def _unit_diagonal_factor(m: torch.Tensor) -> torch.Tensor:
+    """The Cholesky factor (float32) of the symmetric float64 `m` scaled to unit diagonal (a
+    dimension without variance uncorrelated), as the crate's `unit_diagonal` then `cholesky`."""
+    std = m.diagonal().clamp_min(0).sqrt()
     scale = torch.outer(std, std)
-    corr = torch.where(scale > 1e-12, cov / scale.clamp_min(1e-300), torch.zeros_like(cov))
+    corr = torch.where(scale > 1e-12, m / scale.clamp_min(1e-300), torch.zeros_like(m))
     corr.fill_diagonal_(1.0)
     return torch.linalg.cholesky(corr).float()
 
@@ -99,13 +104,7 @@ def sharpen_noise(factor: torch.Tensor, power: int) -> torch.Tensor:
         raise ValueError(f"the noise factor must be a finite square matrix, got shape {tuple(factor.shape)}")
     if power == 1:
         return factor.float()
-    c = factor @ factor.T
-    p = torch.linalg.matrix_power(c, int(power))
-    d = p.diagonal().clamp_min(0).sqrt()
-    scale = torch.outer(d, d)
-    corr = torch.where(scale > 1e-12, p / scale.clamp_min(1e-300), torch.zeros_like(p))
-    corr.fill_diagonal_(1.0)
-    return torch.linalg.cholesky(corr).float()
+    return _unit_diagonal_factor(torch.linalg.matrix_power(factor @ factor.T, int(power)))
 
 
 def spread_loss(transition, hidden, pred, target, teacher):
