@@ -1,0 +1,224 @@
+"""Every third-party module a Python file imports is named by a requirement list of each
+virtualenv that runs it: the scan that catches a missing install step before a fresh machine does.
+
+`./test` makes one virtualenv per list in this folder (and the package's own from its wheel);
+VENVS below says what each one runs, as `./test` runs it. From those files the scan follows every
+import (plain, `from`, inside functions, `pytest.importorskip`, and `package.load("...")` of the
+package's modules by path) through the checkout's own modules, and checks that each third-party
+module it reaches is provided by that virtualenv's requirements, unless the virtualenv is meant
+to go without it (its tests skip themselves: `may_skip`).
+
+    python -m pytest tests/venvs/test_imports.py     # stdlib only: any Python >= 3.10 with pytest
+"""
+
+import ast
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PACKAGE = ROOT / "python" / "drivesim"
+
+# Each virtualenv ./test makes: its requirement lists (files; `pyproject:EXTRA` is the package's
+# dependencies plus that extra, what installing the wheel as `wheel[EXTRA]` brings), the files it
+# runs (globs from the root), and the third-party modules whose absence there is intended.
+VENVS = {
+    "data": {
+        "requirements": ["tests/venvs/data.txt"],
+        "runs": ["weights/test_data.py", "weights/episodes.py", "tests/venvs/test_imports.py"],
+        "may_skip": {"torch", "gymnasium", "Box2D", "pygame", "PIL", "onnx", "onnxruntime", "drivesim"},
+    },
+    "torch": {
+        "requirements": ["tests/venvs/torch.txt"],
+        "runs": ["weights/test_model.py", "weights/test_train.py", "weights/test_resume.py", "weights/test_data.py",
+                 "weights/test_futures.py", "weights/test_heads.py", "weights/test_texture.py", "weights/fixtures.py"],
+        # carracing/view.py, loaded by path, shrinks frames with Pillow where the package is absent.
+        "may_skip": {"drivesim"},
+    },
+    "package": {
+        "requirements": ["pyproject:test", "tests/venvs/package.txt"],
+        "runs": ["python/tests/*.py", "weights/test_data.py", "weights/test_expert.py", "weights/test_dagger.py",
+                 "weights/test_speed_model.py"],
+        # weights/test_data.py's PyTorch tests are deselected there (`-k "record or driver"`).
+        "may_skip": {"torch"},
+    },
+    # The machine's python3 drives the play page in Chromium: the standard library alone.
+    "host": {"requirements": [], "runs": ["tests/browser/*.py"], "may_skip": set()},
+    # `weights/tool setup`'s weights/.venv, which runs every tool in weights/.
+    "tool": {
+        "requirements": ["weights/requirements.txt", "weights/requirements-data.txt"],
+        "runs": ["weights/*.py"],
+        # dagger drives the package's agents: it needs the package installed (weights/README.md).
+        "may_skip": {"drivesim"},
+    },
+}
+
+# Distributions (with an extra where it matters) whose modules are not their own name.
+PROVIDES = {
+    "pillow": {"PIL"},
+    "gymnasium[box2d]": {"gymnasium", "Box2D", "pygame"},
+    "box2d-py": {"Box2D"},
+    "maturin": set(),
+}
+# Installed as the wheel under test, not from a requirement list.
+WHEEL_MODULES = {"drivesim"}
+
+
+def normalize(name):
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def modules_of(requirement):
+    """The top-level modules a requirement line (`name[extras] >= x ; marker`) provides."""
+    match = re.match(r"\s*([A-Za-z0-9][A-Za-z0-9._-]*)\s*(\[[^\]]*\])?", requirement)
+    if not match:
+        raise ValueError(f"not a requirement: {requirement!r}")
+    name = normalize(match.group(1))
+    modules = set(PROVIDES.get(name, {name.replace("-", "_")}))
+    for extra in (match.group(2) or "[]")[1:-1].split(","):
+        if extra.strip():
+            modules |= PROVIDES.get(f"{name}[{extra.strip()}]", set())
+    return modules
+
+
+def read_requirements(path):
+    """The modules a requirements file provides, following `-r` relative to the file."""
+    modules = set()
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        if line.startswith(("-r ", "--requirement ")):
+            modules |= read_requirements((path.parent / line.split(None, 1)[1]).resolve())
+        elif line.startswith("-"):
+            raise ValueError(f"{path}: option lines other than -r are not understood here: {line!r}")
+        else:
+            modules |= modules_of(line)
+    return modules
+
+
+def read_pyproject(extra):
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        pytest.skip("reading pyproject.toml needs Python >= 3.11 (tomllib)")
+    project = tomllib.loads((ROOT / "python" / "pyproject.toml").read_text())["project"]
+    modules = set()
+    for requirement in project["dependencies"] + project["optional-dependencies"][extra]:
+        modules |= modules_of(requirement)
+    return modules
+
+
+def provided(venv):
+    modules = set(WHEEL_MODULES) if any(r.startswith("pyproject:") for r in VENVS[venv]["requirements"]) else set()
+    for source in VENVS[venv]["requirements"]:
+        if source.startswith("pyproject:"):
+            modules |= read_pyproject(source.split(":", 1)[1])
+        else:
+            modules |= read_requirements(ROOT / source)
+    return modules
+
+
+def imports_of(path):
+    """(module, level, by_path) of every import in the file, `pytest.importorskip("m")` and
+    `package.load("rel.py")` (the package's module loaded by path: ("drivesim.rel", 0, True))
+    included."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found += [(alias.name, 0, False) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            found.append((node.module or "", node.level, False))
+            if node.level and not node.module:  # `from . import a, b`
+                found += [(alias.name, node.level, False) for alias in node.names]
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.args
+              and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
+            owner = node.func.value.id if isinstance(node.func.value, ast.Name) else None
+            if (owner, node.func.attr) == ("pytest", "importorskip"):
+                found.append((node.args[0].value, 0, False))
+            elif (owner, node.func.attr) == ("package", "load"):
+                found.append(("drivesim." + node.args[0].value.removesuffix(".py").replace("/", "."), 0, True))
+    return found
+
+
+def package_file(dotted):
+    """python/drivesim's file for `drivesim.a.b`, or None (the compiled extension, a name in a module)."""
+    parts = dotted.split(".")[1:]
+    while parts:
+        base = PACKAGE.joinpath(*parts)
+        for candidate in (base.with_suffix(".py"), base / "__init__.py"):
+            if candidate.is_file():
+                return candidate
+        parts.pop()  # `from drivesim.carracing import view`'s module is drivesim.carracing
+    return PACKAGE / "__init__.py"
+
+
+def third_party(venv):
+    """{module: [the files that import it]} for every third-party module `venv` reaches."""
+    package_installed = "drivesim" in provided(venv)
+    stdlib = set(sys.stdlib_module_names)
+    files = sorted({p for pattern in VENVS[venv]["runs"] for p in ROOT.glob(pattern)})
+    assert files, f"{venv}: its runs match no file"
+    seen, queue, reached = set(), list(files), {}
+    while queue:
+        path = queue.pop()
+        if path in seen:
+            continue
+        seen.add(path)
+        for module, level, by_path in imports_of(path):
+            if level:  # relative: inside python/drivesim
+                base = path.parent
+                for _ in range(level - 1):
+                    base = base.parent
+                target = package_file(".".join(("drivesim",) + base.relative_to(PACKAGE).parts + ((module,) if module else ())))
+                # Loaded by path (weights/package.py), the package's __init__.py never runs.
+                if package_installed or target != PACKAGE / "__init__.py":
+                    queue.append(target)
+                continue
+            top = module.split(".")[0]
+            if top in stdlib or top == "__future__":
+                continue
+            if (path.parent / f"{top}.py").is_file():  # a neighbour: weights/model.py, conftest.py
+                queue.append(path.parent / f"{top}.py")
+            elif by_path or (top == "drivesim" and package_installed):
+                queue.append(package_file(module))
+                if not by_path:
+                    reached.setdefault(top, []).append(path)
+            else:
+                reached.setdefault(top, []).append(path)
+    return reached
+
+
+@pytest.mark.parametrize("venv", sorted(VENVS))
+def test_every_import_is_installed(venv):
+    if sys.version_info < (3, 10):
+        pytest.skip("needs sys.stdlib_module_names (Python >= 3.10)")
+    have = provided(venv) | VENVS[venv]["may_skip"]
+    missing = {m: sorted({str(p.relative_to(ROOT)) for p in paths})
+               for m, paths in third_party(venv).items() if m not in have}
+    assert not missing, (f"the {venv} virtualenv ({', '.join(VENVS[venv]['requirements'])}) lacks modules its "
+                         f"files import: {missing}; name each in a requirement list (PROVIDES maps a distribution "
+                         f"whose module has another name)")
+
+
+def test_the_scan_sees_what_a_venv_lacks(tmp_path, monkeypatch):
+    """The scan itself: a file importing an unlisted module through a neighbour is reported."""
+    (tmp_path / "tool.py").write_text("import helper\n")
+    (tmp_path / "helper.py").write_text("def f():\n    from gymnasium.envs.box2d import car_racing\n")
+    (tmp_path / "needs.txt").write_text("numpy\n")
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    monkeypatch.setitem(VENVS, "probe", {"requirements": ["needs.txt"], "runs": ["tool.py"], "may_skip": set()})
+    assert set(third_party("probe")) == {"gymnasium"}
+    with pytest.raises(AssertionError, match="gymnasium"):
+        test_every_import_is_installed("probe")
+    (tmp_path / "needs.txt").write_text("numpy\ngymnasium[box2d]\n")
+    test_every_import_is_installed("probe")
+
+
+def test_requirement_lines_name_their_modules():
+    assert modules_of("gymnasium[box2d]>=1.0") == {"gymnasium", "Box2D", "pygame"}
+    assert modules_of("pillow") == {"PIL"}
+    assert modules_of("maturin>=1.9,<2") == set()
+    assert modules_of("Safe_Tensors==0.8.0 ; python_version >= '3.9'") == {"safe_tensors"}
