@@ -9,7 +9,9 @@ reset) the right one, for the same time each, and checks that the frames change 
 road's centre (the steering probe's: the grey road pixels of the top 60 rows, as
 `drivesim.road.centre`) lies right of the straight drive's after steering left and left of it
 after steering right; sends a malformed message on a second connection and checks that only
-that connection ends; where the model samples, checks that `s` turns sampling on and off.
+that connection ends; with the server's two drives taken (the page's and a second), checks that
+a third is closed with 1013 and the reason the page shows; where the model samples, checks that
+`s` turns sampling on and off.
 Exits non-zero on any failure.
 """
 
@@ -47,6 +49,19 @@ const s = new WebSocket(`ws://${location.host}/ws`);
 s.onopen = () => s.send('steer left please');
 s.onclose = () => done(true);
 setTimeout(() => done(false), 5000);
+"""
+
+# With the server at --max-drives 2: a second drive, then a third, which must be refused with a
+# reason; [code, reason] of the third's close.
+BUSY = """
+const done = arguments[arguments.length - 1];
+const second = new WebSocket(`ws://${location.host}/ws`);
+second.onmessage = () => {
+  second.onmessage = null;
+  const third = new WebSocket(`ws://${location.host}/ws`);
+  third.onclose = (e) => { second.close(); done([e.code, e.reason]); };
+};
+setTimeout(() => done(null), 5000);
 """
 
 
@@ -124,7 +139,7 @@ def main() -> int:
     a = p.parse_args()
     port, driver_port = free_port(), free_port()
     weights = ["--weights", a.weights] if a.weights else []
-    server = subprocess.Popen([a.play, "--port", str(port), "--threads", str(a.threads), *weights])
+    server = subprocess.Popen([a.play, "--port", str(port), "--threads", str(a.threads), "--max-drives", "2", *weights])
     driver = subprocess.Popen([CHROMEDRIVER, f"--port={driver_port}"], stdout=subprocess.DEVNULL)
     browser = None
     try:
@@ -162,6 +177,9 @@ def main() -> int:
         print(f"road centre after {HOLD_MS} ms: straight {ends['straight']:.1f} px, left {ends['left']:.1f}, right {ends['right']:.1f}")
         assert ends["left"] > ends["straight"] > ends["right"], "the road did not move the right way"
         assert browser.script(MALFORMED, asynchronous=True), "a malformed message did not end its connection"
+        time.sleep(0.3)  # its drive given back
+        busy = browser.script(BUSY, asynchronous=True)
+        assert busy and busy[0] == 1013 and "busy" in busy[1], f"a drive past --max-drives: {busy}"
         before = browser.script(READ)[1]
         time.sleep(0.5)
         assert browser.script(READ)[1] != before, "the page's own drive stopped with the other connection"

@@ -1,0 +1,329 @@
+"""Does the dream rank drivers as the real track does? A family of drivers, each the cloned
+policy with one thing changed (steering gain, a steering bias, the target speed scaled, seeded
+steering noise, a delay, and combinations), scored in gymnasium's real CarRacing and in the
+dream from the same starts.
+
+  python -m drivesim.carracing.rank --seeds 7000-7019 --out runs/rank --workers 2
+
+Real: each driver drives each track (the env's reward over its 1000 frames, and the share of
+decisions with no wheel on the road). Dream: from ``--starts`` states of the unchanged driver's
+real drive of each track (its code, hidden state and speed at evenly spaced decisions), every
+driver is rolled ``--horizon`` decisions in the dream, all of them stepped together in one batch:
+the policy acts on the dream's codes, its action is changed as the driver changes it, the
+transition steps with the speed the car would reach (``control.speed_after``), and the reward
+head's rewards are summed (its off-road chance averaged). ``--value`` adds the value head at the
+horizon. The report: each driver's real score and off-road share beside its dream return and
+off-road chance; the Spearman rank correlation between the two over the family (and per track,
+averaged), regret@1 (the real score lost by picking the dream's favourite, as a share of the
+range between the best and the worst driver) and the Pearson correlation of the means.
+
+``--out`` keeps every real drive (``real/DRIVER_SEED.json``, the starts in ``starts_SEED.npz``): a
+run that stops resumes where it was; the report goes to ``rank.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import multiprocessing
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame draws off-screen
+os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+
+import numpy as np
+
+from .._drivesim import Model, Simulator
+from .._files import atomic_write
+from .agents import ClonedAgent
+from .control import SPEED_MAX, speed_after
+from .view import decision_steps, observe, parse_seeds, speed
+
+
+@dataclass(frozen=True)
+class Driver:
+    """The cloned policy with its action changed: steering ``gain * steer + bias + noise`` (noise
+    normal with sd ``noise``, clipped to [-1, 1]), the target speed times ``speed``, and every
+    action applied ``delay`` decisions late."""
+
+    name: str
+    gain: float = 1.0
+    bias: float = 0.0
+    speed: float = 1.0
+    noise: float = 0.0
+    delay: int = 0
+
+
+FAMILY = [
+    Driver("clone"),
+    Driver("gain 0.5", gain=0.5), Driver("gain 2", gain=2.0),
+    Driver("bias -0.2", bias=-0.2), Driver("bias +0.2", bias=0.2), Driver("bias +0.4", bias=0.4),
+    Driver("speed 0.6", speed=0.6), Driver("speed 1.3", speed=1.3),
+    Driver("noise 0.3", noise=0.3), Driver("noise 0.7", noise=0.7),
+    Driver("delay 2", delay=2), Driver("delay 4", delay=4),
+    Driver("gain 1.5, speed 1.2", gain=1.5, speed=1.2),
+    Driver("bias +0.2, noise 0.3", bias=0.2, noise=0.3),
+    Driver("delay 2, speed 1.2", delay=2, speed=1.2),
+    Driver("gain 0.5, bias -0.2", gain=0.5, bias=-0.2),
+    Driver("noise 1, speed 0.8", noise=1.0, speed=0.8),
+]
+#: A family small enough for a test: the clone and two drivers it must rank apart.
+SMALL = [FAMILY[0], FAMILY[5], FAMILY[6]]
+
+
+class Changes:
+    """The drivers' changes applied to a batch of policy actions, one row per drive (each row's
+    driver, noise drawn from its own generator, delays kept per row): the same code for the real
+    drives (one row) and the dream's (a row per driver and start)."""
+
+    def __init__(self, drivers: list, seeds: list):
+        self.gain, self.bias, self.speed, self.noise = (
+            np.array([getattr(d, f) for d in drivers], np.float32) for f in ("gain", "bias", "speed", "noise"))
+        self.delay = np.array([d.delay for d in drivers], np.int64)
+        self.rngs = [np.random.default_rng(s) for s in seeds]
+        self.queue = None  # (max delay + 1, N, 2): the actions decided, newest last
+
+    def __call__(self, actions: np.ndarray) -> np.ndarray:
+        """``(N, 2)`` policy actions (target speed, steering) to the actions applied."""
+        noise = np.array([rng.standard_normal() for rng in self.rngs], np.float32) * self.noise
+        steer = np.clip(self.gain * actions[:, 1] + self.bias + noise, -1.0, 1.0)
+        target = np.clip(self.speed * actions[:, 0], 0.0, SPEED_MAX)
+        decided = np.stack([target, steer], 1).astype(np.float32)
+        if self.queue is None:  # a drive starts with its first decision already in the past
+            self.queue = np.repeat(decided[None], self.delay.max() + 1, 0)
+        self.queue = np.concatenate([self.queue[1:], decided[None]])
+        return self.queue[-1 - self.delay, np.arange(len(self.delay))]
+
+
+class ChangedAgent(ClonedAgent):
+    """``ClonedAgent`` whose every action passes through a driver's ``Changes``."""
+
+    def __init__(self, driver: Driver, seed: int, model=None, threads: int = 1):
+        self.driver, self.seed = driver, seed
+        super().__init__(model, threads)
+
+    def reset(self) -> None:
+        super().reset()
+        self.changes = Changes([self.driver], [self.seed])
+
+    def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
+        from .control import check_inputs, speed_control, warmup_action
+
+        frame, speed = check_inputs(frame, speed, self.model.frame_shape)
+        warming_up = warmup_action(self, speed)
+        if warming_up is not None:
+            return warming_up
+        z = self.sim.encode(frame)
+        target, steer = self.changes(self.sim.act(z, self.h)[None])[0]
+        self.last_state = (z, self.h, speed)
+        _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
+        gas, brake = speed_control(speed, float(target))
+        return np.array([steer, gas, brake], np.float32)
+
+
+def drive_real(agent: ChangedAgent, seed: int, frames: int, start_at: list) -> tuple[dict, dict]:
+    """One real drive: its figures, and the states ``(z, h, speed)`` before the decisions numbered
+    in ``start_at``."""
+    import gymnasium
+
+    env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
+    env.reset(seed=seed)
+    agent.reset()
+    car, total, decisions, off, starts, done = env.unwrapped, 0.0, 0, 0, {}, False
+    while not done:
+        action = agent.act(observe(env), speed(env))
+        if decisions in start_at and agent.last_state is not None:
+            z, h, v = agent.last_state
+            starts[decisions] = (z.copy(), h.copy(), v)
+        decisions += 1
+        off += not any(len(w.tiles) > 0 for w in car.car.wheels)
+        for _, reward, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
+            total += float(reward)
+            done = terminated or truncated
+            if done:
+                break
+    env.close()
+    return {"reward": round(total, 2), "off_road": round(off / decisions, 4), "decisions": decisions}, starts
+
+
+def start_decisions(frames: int, starts: int, horizon: int, warmup: int) -> list:
+    """Evenly spaced decisions after the warm-up, each at least ``horizon`` before the end."""
+    first, last = warmup + 8, frames // 4 - horizon
+    if last < first:
+        raise ValueError(f"{frames} frames leave no start {horizon} decisions before the end")
+    return sorted({int(round(x)) for x in np.linspace(first, last, starts)})
+
+
+_model = None  # this process's model, loaded at its first job
+
+
+def real_job(job) -> dict:
+    """One driver on one track: read from ``--out`` when an earlier run drove it."""
+    global _model
+    args, index, seed = job
+    path = os.path.join(args.out, "real", f"{index}_{seed}.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            return json.load(f)
+    if _model is None:
+        _model = Model.load(args.weights)
+    agent = ChangedAgent(args.family[index], seed=seed * 1000 + index, model=_model)
+    at = start_decisions(args.frames, args.starts, args.horizon, agent.warmup) if index == 0 else []
+    figures, starts = drive_real(agent, seed, args.frames, at)
+    figures.update(driver=index, seed=seed)
+    if index == 0:
+        missing = [d for d in at if d not in starts]
+        if missing:
+            raise RuntimeError(f"track {seed}: the drive ended before decisions {missing}")
+        z, h, v = (np.stack([starts[d][i] for d in at]) for i in range(3))
+        with atomic_write(os.path.join(args.out, f"starts_{seed}.npz")) as f:
+            np.savez(f, z=z, h=h, speed=v.astype(np.float32))
+    with atomic_write(path) as f:
+        f.write(json.dumps(figures).encode())
+    return figures
+
+
+def dream(sim: Simulator, family: list, starts: dict, horizon: int, seed: int, use_value: bool) -> dict:
+    """Every driver from every start, ``horizon`` decisions, in one batch: ``(return, off-road
+    chance)`` per driver, each ``(starts,)``."""
+    k, n = len(starts["speed"]), len(family)
+    z = np.ascontiguousarray(np.tile(starts["z"], (n, 1)), np.float32)
+    h = np.ascontiguousarray(np.tile(starts["h"], (n, 1)), np.float32)
+    v = np.tile(starts["speed"], n).astype(np.float32)
+    drivers = [d for d in family for _ in range(k)]
+    changes = Changes(drivers, [seed * 1000 + i for i in range(n * k)])
+    total, off = np.zeros(n * k), np.zeros(n * k)
+    for step in range(horizon):
+        target, steer = changes(sim.act(z, h)).T
+        z, h = sim.transition(z, h, np.ascontiguousarray(np.stack([v, steer], 1), np.float32))
+        if sim.sampling[0] > 0:
+            z = sim.sample(h, step, z)
+        v = speed_after(v, target).astype(np.float32)
+        reward = sim.reward(z, h)
+        total += reward[:, 0]
+        off += reward[:, 1]
+    if use_value:
+        total += sim.value(z, h)[:, 0]
+    return {"return": total.reshape(n, k), "off_road": (off / horizon).reshape(n, k)}
+
+
+def ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks from 0, ties sharing their mean rank."""
+    order = np.argsort(x, kind="stable")
+    r = np.empty(len(x))
+    r[order] = np.arange(len(x))
+    for value in np.unique(x):
+        tied = x == value
+        r[tied] = r[tied].mean()
+    return r
+
+
+def spearman(a, b) -> float:
+    a, b = ranks(np.asarray(a, float)), ranks(np.asarray(b, float))
+    if a.std() == 0 or b.std() == 0:
+        return float("nan")
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.ndarray, dream_off: np.ndarray) -> dict:
+    """The figures of the report from ``(drivers, tracks)`` arrays of real scores and off-road
+    shares, and the dream's returns and off-road chances (each the mean over the starts)."""
+    real_mean, dream_mean = real.mean(1), dreamt.mean(1)
+    favourite = int(np.argmax(dream_mean))
+    span = real_mean.max() - real_mean.min()
+    per_track = [spearman(dreamt[:, t], real[:, t]) for t in range(real.shape[1])]
+    return {
+        "spearman": spearman(dream_mean, real_mean),
+        "spearman_per_track": float(np.nanmean(per_track)),
+        "regret_at_1": float((real_mean.max() - real_mean[favourite]) / span) if span > 0 else 0.0,
+        "pearson": float(np.corrcoef(dream_mean, real_mean)[0, 1]) if dream_mean.std() > 0 else float("nan"),
+        "off_road_gap": float(np.abs(dream_off.mean(1) - real_off.mean(1)).max()),
+        "favourite": family[favourite].name,
+        "drivers": [{"driver": asdict(d), "real": float(real_mean[i]), "real_sd": float(real[i].std()),
+                     "real_off_road": float(real_off[i].mean()), "dream": float(dream_mean[i]),
+                     "dream_off_road": float(dream_off[i].mean())} for i, d in enumerate(family)],
+    }
+
+
+def report(args, results: list) -> dict:
+    """The dream's side for every track (from the starts the real drives left), then the figures."""
+    family, seeds = args.family, args.seeds
+    sim = Simulator(Model.load(args.weights), batch=len(family) * args.starts, threads=args.threads)
+    if args.temperature > 0:
+        sim.set_sampling(args.temperature, 0)
+    real = {(r["driver"], r["seed"]): r for r in results}
+    shape = (len(family), len(seeds))
+    real_score, real_off, dream_return, dream_off = (np.zeros(shape) for _ in range(4))
+    start = time.perf_counter()
+    for t, seed in enumerate(seeds):
+        with np.load(os.path.join(args.out, f"starts_{seed}.npz")) as f:
+            starts = {k: f[k] for k in ("z", "h", "speed")}
+        d = dream(sim, family, starts, args.horizon, seed, args.value)
+        dream_return[:, t], dream_off[:, t] = d["return"].mean(1), d["off_road"].mean(1)
+        for i in range(len(family)):
+            real_score[i, t], real_off[i, t] = real[i, seed]["reward"], real[i, seed]["off_road"]
+    seconds = time.perf_counter() - start
+    out = summary(family, real_score, real_off, dream_return, dream_off)
+    out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
+               value=args.value, frames=args.frames, weights=args.weights,
+               dream_decisions_per_second=len(family) * args.starts * args.horizon * len(seeds) / seconds,
+               per_track={"real": real_score.tolist(), "dream": dream_return.tolist()})
+    return out
+
+
+def print_report(out: dict) -> None:
+    print(f"\n{'driver':24} {'real':>8} {'± sd':>6} {'off road':>8} {'dream':>8} {'off road':>8}")
+    for d in out["drivers"]:
+        print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_sd']:6.1f} {d['real_off_road']:8.1%} "
+              f"{d['dream']:8.1f} {d['dream_off_road']:8.1%}")
+    print(f"Spearman {out['spearman']:+.2f} over the family ({out['spearman_per_track']:+.2f} per track, averaged); "
+          f"regret@1 {out['regret_at_1']:.2f} (the dream's favourite: {out['favourite']}); Pearson {out['pearson']:+.2f}; "
+          f"the largest off-road gap {out['off_road_gap']:.2f}; {len(out['seeds'])} tracks, {out['starts']} starts, "
+          f"horizon {out['horizon']}; {out['dream_decisions_per_second']:.0f} dream decisions a second")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m drivesim.carracing.rank", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", type=parse_seeds, required=True, help="track seeds, e.g. 7000-7019")
+    p.add_argument("--out", required=True, help="folder for the real drives and the report (resumable)")
+    p.add_argument("--weights", help="weight file (default: the built-in model)")
+    p.add_argument("--family", choices=["all", "small"], default="all",
+                   help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests)")
+    p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
+    p.add_argument("--starts", type=int, default=7, help="starts per track")
+    p.add_argument("--temperature", type=float, default=0.0, help="sampled futures (0: the mean dream)")
+    p.add_argument("--value", action="store_true", help="add the value head at the horizon")
+    p.add_argument("--frames", type=int, default=1000, help="env frames per real drive (CarRacing-v3: 1000)")
+    p.add_argument("--workers", type=int, default=1, help="real drives at once, each in its own process")
+    p.add_argument("--threads", type=int, default=1, help="threads of the dream's simulator")
+    args = p.parse_args(argv)
+    if min(args.horizon, args.starts, args.frames, args.workers, args.threads) < 1 or not args.temperature >= 0:
+        p.error("--horizon, --starts, --frames, --workers and --threads must be positive, --temperature >= 0")
+    try:
+        start_decisions(args.frames, args.starts, args.horizon, ClonedAgent.warmup)
+    except ValueError as e:
+        p.error(str(e))
+    args.family = FAMILY if args.family == "all" else SMALL
+    os.makedirs(os.path.join(args.out, "real"), exist_ok=True)
+    # Each track's unchanged driver first: its drive leaves the dream's starts.
+    jobs = [(args, i, seed) for i in range(len(args.family)) for seed in args.seeds]
+    results, started = [], time.perf_counter()
+    with multiprocessing.Pool(min(args.workers, len(jobs))) if args.workers > 1 else contextlib.nullcontext() as pool:
+        for r in (pool.imap_unordered(real_job, jobs) if pool else map(real_job, jobs)):
+            results.append(r)
+            print(f"[{len(results)}/{len(jobs)}, {time.perf_counter() - started:.0f} s] {args.family[r['driver']].name} "
+                  f"on track {r['seed']}: {r['reward']:.1f}, off the road {r['off_road']:.1%}", flush=True)
+    out = report(args, results)
+    with atomic_write(os.path.join(args.out, "rank.json")) as f:
+        f.write(json.dumps(out, indent=1).encode())
+    print_report(out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

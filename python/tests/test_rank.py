@@ -1,0 +1,101 @@
+"""The rank probe (``python -m drivesim.carracing.rank``): the drivers' changes, the rank figures,
+and a small family on two short tracks end to end, killed and resumed to the same report."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from drivesim.carracing import rank
+
+
+def test_changes_apply_each_drivers_change_to_its_own_row():
+    drivers = [rank.Driver("a", gain=2.0, bias=0.1), rank.Driver("b", speed=0.5), rank.Driver("c", bias=-5.0)]
+    changes = rank.Changes(drivers, [0, 1, 2])
+    out = changes(np.array([[40.0, 0.3], [40.0, 0.3], [40.0, 0.3]], np.float32))
+    np.testing.assert_allclose(out, [[40.0, 0.7], [20.0, 0.3], [40.0, -1.0]], rtol=1e-6)
+
+
+def test_a_delay_applies_the_action_decided_that_many_decisions_before():
+    changes = rank.Changes([rank.Driver("late", delay=2), rank.Driver("now")], [0, 1])
+    applied = [changes(np.array([[10.0 * t, 0.1 * t]] * 2, np.float32)) for t in range(1, 5)]
+    # The first decision stands in for the ones before the drive.
+    np.testing.assert_allclose([a[0, 1] for a in applied], [0.1, 0.1, 0.1, 0.2], rtol=1e-6)
+    np.testing.assert_allclose([a[1, 1] for a in applied], [0.1, 0.2, 0.3, 0.4], rtol=1e-6)
+
+
+def test_noise_is_seeded_per_row():
+    def run(seeds):
+        changes = rank.Changes([rank.Driver("n", noise=0.5)] * 2, seeds)
+        return np.stack([changes(np.zeros((2, 2), np.float32)) for _ in range(5)])
+    a, b = run([3, 4]), run([3, 4])
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a[:, 0], a[:, 1])
+    assert np.abs(a[..., 1]).max() <= 1.0
+
+
+def test_spearman_and_regret():
+    assert rank.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
+    assert rank.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+    np.testing.assert_allclose(rank.ranks(np.array([5.0, 1.0, 5.0])), [1.5, 0.0, 1.5])
+    family = [rank.Driver(n) for n in "abc"]
+    real = np.array([[900.0, 880.0], [100.0, 120.0], [500.0, 500.0]])
+    dreamt = np.array([[1.0, 1.0], [3.0, 3.0], [2.0, 2.0]])  # ranks them backwards
+    off = np.zeros((3, 2))
+    s = rank.summary(family, real, off, dreamt, off + 0.25)
+    assert s["spearman"] == pytest.approx(-1.0)
+    assert s["favourite"] == "b"
+    assert s["regret_at_1"] == pytest.approx(1.0)
+    assert s["off_road_gap"] == pytest.approx(0.25)
+
+
+def test_start_decisions_leave_the_horizon_and_refuse_a_short_drive():
+    starts = rank.start_decisions(1000, 7, 40, 12)
+    assert len(starts) == 7 and starts[0] == 20 and starts[-1] == 250 - 40
+    with pytest.raises(ValueError, match="no start"):
+        rank.start_decisions(100, 2, 40, 12)
+
+
+def _probe(out, *extra):
+    pytest.importorskip("Box2D")
+    command = [sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "3,4", "--out", str(out), "--family",
+               "small", "--frames", "160", "--horizon", "4", "--starts", "2", *extra]
+    return command
+
+
+def _report(out):
+    with open(os.path.join(out, "rank.json")) as f:
+        report = json.load(f)
+    report.pop("dream_decisions_per_second")
+    return report
+
+
+def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
+    whole = tmp_path / "whole"
+    subprocess.run(_probe(whole), check=True, capture_output=True, timeout=600)
+    report = _report(whole)
+    assert [d["driver"]["name"] for d in report["drivers"]] == [d.name for d in rank.SMALL]
+    for d in report["drivers"]:
+        assert np.isfinite([d["real"], d["dream"], d["real_off_road"], d["dream_off_road"]]).all()
+        assert 0 <= d["dream_off_road"] <= 1 and 0 <= d["real_off_road"] <= 1
+    assert len(report["per_track"]["real"][0]) == 2
+
+    # Killed once the first drives are kept, then run again: the same report.
+    killed = tmp_path / "killed"
+    process = subprocess.Popen(_probe(killed, "--workers", "2"), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    end = time.time() + 300
+    while not list(killed.glob("real/*.json")):
+        assert time.time() < end and process.poll() is None, "no drive kept before the probe ended"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    kept = len(list((killed / "real").glob("*.json")))
+    assert 1 <= kept < 6
+    resumed = subprocess.run(_probe(killed), check=True, capture_output=True, text=True, timeout=600)
+    assert resumed.stdout.count("on track") == 6
+    assert _report(killed) == report
