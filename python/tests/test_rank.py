@@ -55,10 +55,11 @@ def test_spearman_and_regret():
 
 
 def test_start_decisions_leave_the_horizon_and_refuse_a_short_drive():
-    starts = rank.start_decisions(1000, 7, 40, 12)
+    starts = rank.start_decisions(250, 7, 40, 12)
     assert len(starts) == 7 and starts[0] == 20 and starts[-1] == 250 - 40
+    assert rank.start_decisions(180, 2, 40, 12) == [20, 140]  # a lap finished early
     with pytest.raises(ValueError, match="no start"):
-        rank.start_decisions(100, 2, 40, 12)
+        rank.start_decisions(25, 2, 40, 12)
 
 
 def _probe(out, *extra):

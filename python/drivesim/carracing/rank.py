@@ -125,20 +125,20 @@ class ChangedAgent(ClonedAgent):
         return np.array([steer, gas, brake], np.float32)
 
 
-def drive_real(agent: ChangedAgent, seed: int, frames: int, start_at: list) -> tuple[dict, dict]:
-    """One real drive: its figures, and the states ``(z, h, speed)`` before the decisions numbered
-    in ``start_at``."""
+def drive_real(agent: ChangedAgent, seed: int, frames: int, keep_states: bool) -> tuple[dict, dict]:
+    """One real drive: its figures, and (``keep_states``) the states ``(z, h, speed)`` before each
+    decision after the warm-up, by decision number."""
     import gymnasium
 
     env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
     env.reset(seed=seed)
     agent.reset()
-    car, total, decisions, off, starts, done = env.unwrapped, 0.0, 0, 0, {}, False
+    car, total, decisions, off, states, done = env.unwrapped, 0.0, 0, 0, {}, False
     while not done:
         action = agent.act(observe(env), speed(env))
-        if decisions in start_at and agent.last_state is not None:
+        if keep_states and agent.last_state is not None and agent.decisions > agent.warmup:
             z, h, v = agent.last_state
-            starts[decisions] = (z.copy(), h.copy(), v)
+            states[decisions] = (z.copy(), h.copy(), v)
         decisions += 1
         off += not any(len(w.tiles) > 0 for w in car.car.wheels)
         for _, reward, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
@@ -147,14 +147,15 @@ def drive_real(agent: ChangedAgent, seed: int, frames: int, start_at: list) -> t
             if done:
                 break
     env.close()
-    return {"reward": round(total, 2), "off_road": round(off / decisions, 4), "decisions": decisions}, starts
+    return {"reward": round(total, 2), "off_road": round(off / decisions, 4), "decisions": decisions}, states
 
 
-def start_decisions(frames: int, starts: int, horizon: int, warmup: int) -> list:
-    """Evenly spaced decisions after the warm-up, each at least ``horizon`` before the end."""
-    first, last = warmup + 8, frames // 4 - horizon
+def start_decisions(decisions: int, starts: int, horizon: int, warmup: int) -> list:
+    """Evenly spaced decisions of a drive ``decisions`` long, after the warm-up, each at least
+    ``horizon`` before the end (a lap finished early ends the drive early)."""
+    first, last = warmup + 8, decisions - horizon
     if last < first:
-        raise ValueError(f"{frames} frames leave no start {horizon} decisions before the end")
+        raise ValueError(f"{decisions} decisions leave no start {horizon} decisions before the end")
     return sorted({int(round(x)) for x in np.linspace(first, last, starts)})
 
 
@@ -172,14 +173,11 @@ def real_job(job) -> dict:
     if _model is None:
         _model = Model.load(args.weights)
     agent = ChangedAgent(args.family[index], seed=seed * 1000 + index, model=_model)
-    at = start_decisions(args.frames, args.starts, args.horizon, agent.warmup) if index == 0 else []
-    figures, starts = drive_real(agent, seed, args.frames, at)
+    figures, states = drive_real(agent, seed, args.frames, keep_states=index == 0)
     figures.update(driver=index, seed=seed)
     if index == 0:
-        missing = [d for d in at if d not in starts]
-        if missing:
-            raise RuntimeError(f"track {seed}: the drive ended before decisions {missing}")
-        z, h, v = (np.stack([starts[d][i] for d in at]) for i in range(3))
+        at = start_decisions(figures["decisions"], args.starts, args.horizon, agent.warmup)
+        z, h, v = (np.stack([states[d][i] for d in at]) for i in range(3))
         with atomic_write(os.path.join(args.out, f"starts_{seed}.npz")) as f:
             np.savez(f, z=z, h=h, speed=v.astype(np.float32))
     with atomic_write(path) as f:
@@ -305,7 +303,7 @@ def main(argv=None) -> int:
     if min(args.horizon, args.starts, args.frames, args.workers, args.threads) < 1 or not args.temperature >= 0:
         p.error("--horizon, --starts, --frames, --workers and --threads must be positive, --temperature >= 0")
     try:
-        start_decisions(args.frames, args.starts, args.horizon, ClonedAgent.warmup)
+        start_decisions(args.frames // ClonedAgent.frame_skip, args.starts, args.horizon, ClonedAgent.warmup)
     except ValueError as e:
         p.error(str(e))
     args.family = FAMILY if args.family == "all" else SMALL
