@@ -3,6 +3,7 @@
 use crate::{Error, Result};
 use alloc::format;
 use alloc::string::{String, ToString};
+use drivesim_kernels::{ConvKind, ConvShape, Plane};
 
 /// The architecture of a model: everything needed to know every tensor's shape.
 ///
@@ -178,5 +179,40 @@ impl Config {
     pub const fn flat_len(&self) -> usize {
         let (h, w) = self.top_size();
         self.top_channels() * h * w
+    }
+
+    /// The shapes of the encoder's convolutions.
+    pub(crate) fn encoder_convs(&self) -> impl Iterator<Item = ConvShape> {
+        let config = *self;
+        let (k, b) = (config.kernel, config.base_channels);
+        let halo = ConvKind::Down.input_halo(k);
+        let mut input = Plane::new(config.height, config.width, config.channels, halo);
+        (0..config.layers).map(move |i| {
+            // The last output feeds the dense heads, which need no border.
+            let last = i + 1 == config.layers;
+            let shape = ConvShape::new(ConvKind::Down, k, input, b << i, if last { 0 } else { halo });
+            input = shape.output;
+            shape
+        })
+    }
+
+    /// The shapes of the generator's transposed convolutions.
+    pub(crate) fn generator_convs(&self) -> impl Iterator<Item = ConvShape> {
+        let config = *self;
+        let k = config.kernel;
+        let (c, (h, w)) = (config.top_channels(), config.top_size());
+        let halo = ConvKind::Up.input_halo(k);
+        let mut input = Plane::new(h, w, c, halo);
+        (1..=config.layers).map(move |i| {
+            // The last layer writes the frame: no border.
+            let (out_channels, out_halo) = if i == config.layers {
+                (config.channels, 0)
+            } else {
+                (c >> i, halo)
+            };
+            let shape = ConvShape::new(ConvKind::Up, k, input, out_channels, out_halo);
+            input = shape.output;
+            shape
+        })
     }
 }

@@ -8,7 +8,7 @@ use crate::{Config, Result};
 use alloc::format;
 use alloc::vec::Vec;
 use drivesim_kernels::pack::permute_cols_chw_to_hwc;
-use drivesim_kernels::{Activation, ConvKind, ConvShape, Plane, Tensor};
+use drivesim_kernels::{Activation, Tensor};
 
 /// `LeakyReLU(0.2)` after every encoder convolution.
 pub(crate) const LEAKY_SLOPE: f32 = 0.2;
@@ -19,24 +19,10 @@ pub(crate) struct Encoder {
     logsigma: DenseLayer,
 }
 
-/// The shapes of the encoder's convolutions for `config`.
-pub(crate) fn conv_shapes(config: &Config) -> impl Iterator<Item = ConvShape> {
-    let config = *config;
-    let (k, b) = (config.kernel, config.base_channels);
-    let halo = ConvKind::Down.input_halo(k);
-    let mut input = Plane::new(config.height, config.width, config.channels, halo);
-    (0..config.layers).map(move |i| {
-        // The last output feeds the dense heads, which need no border.
-        let last = i + 1 == config.layers;
-        let shape = ConvShape::new(ConvKind::Down, k, input, b << i, if last { 0 } else { halo });
-        input = shape.output;
-        shape
-    })
-}
-
 impl Encoder {
     pub fn load(config: &Config, src: &mut dyn TensorSource) -> Result<Self> {
-        let convs = conv_shapes(config)
+        let convs = config
+            .encoder_convs()
             .enumerate()
             .map(|(i, shape)| {
                 let bn = (i > 0).then(|| format!("encoder.bn{i}"));

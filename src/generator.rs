@@ -8,32 +8,12 @@ use crate::{Config, Result};
 use alloc::format;
 use alloc::vec::Vec;
 use drivesim_kernels::pack::permute_rows_chw_to_hwc;
-use drivesim_kernels::{Activation, ConvKind, ConvShape, Plane, Tensor};
+use drivesim_kernels::{Activation, Tensor};
 
 pub(crate) struct Generator {
     /// `fc` with `bn0` folded in and ReLU fused; rows permuted to HWC order.
     fc: DenseLayer,
     deconvs: Vec<ConvLayer>,
-}
-
-/// The shapes of the generator's transposed convolutions for `config`.
-pub(crate) fn conv_shapes(config: &Config) -> impl Iterator<Item = ConvShape> {
-    let config = *config;
-    let k = config.kernel;
-    let (c, (h, w)) = (config.top_channels(), config.top_size());
-    let halo = ConvKind::Up.input_halo(k);
-    let mut input = Plane::new(h, w, c, halo);
-    (1..=config.layers).map(move |i| {
-        // The last layer writes the frame: no border.
-        let (out_channels, out_halo) = if i == config.layers {
-            (config.channels, 0)
-        } else {
-            (c >> i, halo)
-        };
-        let shape = ConvShape::new(ConvKind::Up, k, input, out_channels, out_halo);
-        input = shape.output;
-        shape
-    })
 }
 
 impl Generator {
@@ -48,7 +28,8 @@ impl Generator {
         let (weight, bias) = permute_rows_chw_to_hwc(&weight, &bias, z, c, h, w, Some(bn0.view()));
         let fc = DenseLayer::new(Tensor::F32(weight), bias, flat, z, Activation::Relu);
 
-        let deconvs = conv_shapes(config)
+        let deconvs = config
+            .generator_convs()
             .enumerate()
             .map(|(i, shape)| {
                 let last = i + 1 == config.layers;

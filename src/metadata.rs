@@ -15,6 +15,20 @@ pub(crate) const FRAME_HZ_KEY: &str = "drivesim.frame_hz";
 /// above 0 and below 1 (`"0.98"`).
 pub(crate) const DISCOUNT_KEY: &str = "drivesim.discount";
 
+#[cfg(feature = "train")]
+/// What a trainer writes about its training data into a weight file's metadata
+/// ([`crate::train::TransitionTrainer::weight_file`], [`crate::train::VaeGanTrainer::weight_file`]); what is `None` stays
+/// as the original file has it.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct TrainedOn<'a> {
+    /// What the actions mean and their range (`drivesim.actions`).
+    pub actions: Option<&'a [ActionSpec]>,
+    /// The frames' rate (`drivesim.frame_hz`), e.g. [`crate::Episodes::frame_hz`].
+    pub frame_hz: Option<f32>,
+    /// The value head's discount per decision (`drivesim.discount`).
+    pub discount: Option<f32>,
+}
+
 /// What a weight file says about its inputs beyond the config: what the actions mean
 /// (`drivesim.actions`), how far apart its frames are (`drivesim.frame_hz`) and the value
 /// head's discount (`drivesim.discount`).
@@ -76,7 +90,7 @@ impl Described {
 /// checked to read back.
 #[cfg(all(feature = "std", feature = "train"))]
 pub(crate) fn write(
-    trained_on: &crate::train::TrainedOn<'_>,
+    trained_on: &TrainedOn<'_>,
     action_dim: usize,
     metadata: &mut std::collections::HashMap<alloc::string::String, alloc::string::String>,
 ) -> Result<()> {

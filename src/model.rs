@@ -171,8 +171,9 @@ impl Model {
         self.transition.texture_width()
     }
 
-    /// Whether the sampled noise is correlated across the code's dimensions (`transition.L`,
-    /// [`crate::train::fit_noise_factor`]); without it each dimension's noise is independent.
+    /// Whether the sampled noise is correlated across the code's dimensions (`transition.L`, fitted
+    /// by `train::fit_noise_factor` with the `train` feature); without it each dimension's noise is
+    /// independent.
     pub fn samples_correlated(&self) -> bool {
         self.transition.correlates()
     }

@@ -2,7 +2,7 @@
 //! config, the batch and the thread count, in checked arithmetic, so that an impossible or
 //! unaffordable plan is an [`Error`] naming its size instead of an overflow or an abort.
 
-use crate::{encoder, generator, Config, Error, Result};
+use crate::{Config, Error, Result};
 use alloc::vec::Vec;
 use drivesim_kernels::{ConvShape, Winograd};
 
@@ -112,8 +112,8 @@ impl Plan {
         let mut plan = Plan {
             max_batch,
             threads,
-            encoder: StackPlan::new(encoder::conv_shapes(c), sets, threads)?,
-            generator: StackPlan::new(generator::conv_shapes(c), sets, threads)?,
+            encoder: StackPlan::new(c.encoder_convs(), sets, threads)?,
+            generator: StackPlan::new(c.generator_convs(), sets, threads)?,
             encoder_flat: mul(max_batch, c.flat_len())?,
             generator_flat: mul(max_batch, c.flat_len())?,
             transition_concat: mul(max_batch, c.hidden_dim + c.z_dim + c.action_dim)?,

@@ -289,7 +289,7 @@ pub(crate) fn rewrite(
     replace: &[(&str, &[usize], &[f32])],
     group: Option<&str>,
     dtype: Option<WeightDtype>,
-    trained_on: crate::train::TrainedOn<'_>,
+    trained_on: crate::metadata::TrainedOn<'_>,
 ) -> Result<Vec<u8>> {
     let (config, _, mut src) = SafetensorsSource::parse(bytes)?;
     let (_, metadata) = SafeTensors::read_metadata(bytes).map_err(malformed)?;

@@ -41,23 +41,12 @@ pub use heads::{HeadSettings, HeadTrainer};
 pub use noise::with_noise_factor;
 pub use noise::{fit_noise_factor, sharpen_noise_factor};
 pub use returns::lambda_returns;
+// Defined beside the metadata it fills, so that the core never imports `train`.
+pub use crate::metadata::TrainedOn;
 pub use transition::{TransitionPlan, TransitionSettings, TransitionTrainer};
 #[cfg(feature = "std")]
 pub use vae_gan::random_weight_file;
 pub use vae_gan::{VaeGanLosses, VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR};
-
-/// What a trainer writes about its training data into a weight file's metadata
-/// ([`TransitionTrainer::weight_file`], [`VaeGanTrainer::weight_file`]); what is `None` stays
-/// as the original file has it.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct TrainedOn<'a> {
-    /// What the actions mean and their range (`drivesim.actions`).
-    pub actions: Option<&'a [crate::ActionSpec]>,
-    /// The frames' rate (`drivesim.frame_hz`), e.g. [`crate::Episodes::frame_hz`].
-    pub frame_hz: Option<f32>,
-    /// The value head's discount per decision (`drivesim.discount`).
-    pub discount: Option<f32>,
-}
 
 /// A named tensor in PyTorch layout: name, shape, row-major values.
 pub type NamedTensor = (alloc::string::String, alloc::vec::Vec<usize>, alloc::vec::Vec<f32>);

@@ -1,6 +1,7 @@
 //! The transition's forward pass over windows of codes (every activation saved) and
 //! back-propagation through time, with the products of the backward pass.
 
+use super::settings::Backward;
 use super::spread::{spread_loss, Saved};
 use super::trainer::TransitionTrainer;
 use crate::layers::dense;
@@ -187,13 +188,6 @@ impl TransitionTrainer<'_> {
         }
         Ok(())
     }
-}
-
-/// What [`TransitionTrainer::backward`] computes.
-#[derive(Clone, Copy, PartialEq, Eq)]
-pub(super) enum Backward {
-    Weights,
-    Inputs,
 }
 
 /// One step of the RNN backward: `dh = [Aᵀ | Wᵀ] [dz' | dpre_next]` (the hidden state feeds

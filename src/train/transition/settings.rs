@@ -49,3 +49,10 @@ pub(super) fn check_settings(s: &TransitionSettings) -> Result<()> {
     }
     s.adam.check()
 }
+
+/// What `TransitionTrainer::backward` (in `bptt.rs`) computes.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(super) enum Backward {
+    Weights,
+    Inputs,
+}

@@ -1,9 +1,8 @@
 //! [`TransitionTrainer`]'s public API: starting from a model, the steps (gradients, clipping,
 //! Adam), predictions, action gradients, and the trained tensors in PyTorch layout.
 
-use super::bptt::Backward;
 use super::plan::{Dims, TransitionPlan};
-use super::settings::{check_settings, TransitionSettings};
+use super::settings::{check_settings, Backward, TransitionSettings};
 use crate::error::{expect_finite, expect_finite_output, expect_len};
 use crate::pool::Pool;
 use crate::train::arena::{cut, cut_ref, Memory};

@@ -2,8 +2,8 @@
 //! convolution with its BatchNorm and activation ([`Conv`]), and a dense layer in the kernels'
 //! packed layout ([`Dense`]) with its forward product and gradients.
 
-use super::networks::{Norm, Table};
-use super::plan::{Budget, Sizes};
+use super::budget::{Budget, Sizes};
+use super::table::{Norm, Table};
 use crate::layers::dense;
 use crate::pool::{Exec, Parts};
 use crate::weights::Init;
@@ -265,4 +265,18 @@ impl Dense {
             }
         }
     }
+}
+
+/// The scratch every layer's passes share.
+pub(super) struct Work {
+    /// One per thread.
+    pub(super) scratch: Vec<Scratch>,
+    pub(super) weight_scratch: Vec<f32>,
+    /// The gradients of a BatchNorm pass's scale and shift.
+    pub(super) channel_tmp: Vec<f32>,
+    /// Zeros: the bias of the data-gradient convolutions.
+    pub(super) zero: Vec<f32>,
+    /// BatchNorm's per-channel sums of each item of a pass, and of the pass.
+    pub(super) item_sums: Vec<f64>,
+    pub(super) sums: Vec<f64>,
 }

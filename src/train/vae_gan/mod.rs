@@ -26,6 +26,8 @@
 // Passes are lists of item ranges, each a batch of its own for BatchNorm: often just one.
 #![allow(clippy::single_range_in_vec_init)]
 
+mod budget;
+mod buffers;
 mod layers;
 mod loss;
 mod networks;
@@ -34,6 +36,7 @@ mod plan;
 mod stack;
 mod state;
 mod step;
+mod table;
 mod trainer;
 mod update;
 

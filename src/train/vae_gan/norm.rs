@@ -1,8 +1,8 @@
 //! BatchNorm in training mode: the forward pass with batch statistics, the per-channel sums
 //! (the same whatever the thread count), and the backward pass.
 
-use super::networks::Norm;
-use super::plan::Work;
+use super::layers::Work;
+use super::table::Norm;
 use crate::pool::{Exec, Parts};
 use drivesim_kernels::norm::{
     gradient_moments, moments, normalize, normalize_gradient, parameter_gradients, statistics, sums_len,

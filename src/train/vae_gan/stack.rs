@@ -1,9 +1,9 @@
 //! A stack of convolutions: its saved activations and their gradients, its forward and backward
 //! passes (weight gradients included), and the moves between planes and a dense layer's vectors.
 
-use super::layers::Conv;
+use super::budget::{mul, Budget};
+use super::layers::{Conv, Work};
 use super::norm::{add, batch_sums, norm_backward, norm_forward};
-use super::plan::{mul, Budget, Work};
 use crate::pool::{Exec, Parts};
 use crate::Result;
 use alloc::vec::Vec;

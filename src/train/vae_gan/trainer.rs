@@ -1,8 +1,10 @@
 //! The VAE-GAN trainer's public face: its settings, the losses a step returns, and
 //! [`VaeGanTrainer`] (loading the weights, checking a step's inputs, the trained tensors).
 
-use super::networks::{build, Layout, Networks};
-use super::plan::{Budget, VaeGanPlan};
+use super::budget::Budget;
+use super::networks::{build, Networks};
+use super::plan::VaeGanPlan;
+use super::table::Layout;
 use crate::error::{expect_finite, expect_frames, expect_len};
 use crate::pool::{Exec, Pool};
 use crate::train::adam::Adam;
