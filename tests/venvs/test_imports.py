@@ -27,7 +27,7 @@ PACKAGE = ROOT / "python" / "drivesim"
 VENVS = {
     "data": {
         "requirements": ["tests/venvs/data.txt"],
-        "runs": ["weights/test_data.py", "weights/episodes.py", "tests/venvs/test_imports.py"],
+        "runs": ["weights/test_data.py", "weights/episodes.py", "tests/venvs/test_imports.py", "tests/test_layout.py"],
         "may_skip": {"torch", "gymnasium", "Box2D", "pygame", "PIL", "onnx", "onnxruntime", "drivesim"},
     },
     "torch": {

@@ -1,0 +1,61 @@
+"""docs/layout.md names only paths that exist: every backticked file or folder in its tables is
+found relative to the row's folder (a first cell such as `train/vae_gan/`), the table's (the line
+"In `src/`, ..." above it) or the repository's root. `simd/{conv,dense}.rs` names each file.
+
+    python -m pytest tests/test_layout.py      # the standard library and pytest
+"""
+
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PATH = re.compile(r"^[\w./{},-]+(\.(rs|py|md|sh|toml|txt|html|json|pyi)|/)$")
+
+
+def expand(token):
+    """`a/{b,c}.rs` as `a/b.rs`, `a/c.rs`."""
+    match = re.search(r"\{([^}]*)\}", token)
+    if not match:
+        return [token]
+    return [x for part in match.group(1).split(",") for x in expand(token[:match.start()] + part + token[match.end():])]
+
+
+def named_paths(text):
+    """(line number, the folders a token may be relative to, token) for every path in the tables."""
+    section, found = "", []
+    for number, line in enumerate(text.splitlines(), 1):
+        heading = re.match(r"^In `([^`]+/)`", line)
+        if heading:
+            section = heading.group(1)
+        if not line.startswith("|") or line.startswith("| ---"):
+            continue
+        cells = line.strip("|").split("|")
+        first = re.fullmatch(r"\s*`([^`]+/)`(\s*\(.*\))?\s*", cells[0])
+        row = section + first.group(1) if first else section
+        for token in re.findall(r"`([^`]+)`", line):
+            token = token.split("::")[0]
+            if PATH.match(token):
+                found.append((number, (row, section, ""), token))
+    return found
+
+
+def missing(text):
+    out = []
+    for number, bases, token in named_paths(text):
+        for path in expand(token):
+            if not any((ROOT / base / path).exists() for base in bases):
+                out.append(f"line {number}: {path} (from {bases[0] or 'the root'})")
+    return out
+
+
+def test_every_path_docs_layout_names_exists():
+    text = (ROOT / "docs" / "layout.md").read_text()
+    assert len(named_paths(text)) > 100, "the tables were not read"
+    assert missing(text) == []
+
+
+def test_a_path_that_does_not_exist_is_found():
+    text = "In `src/`, one file:\n\n| file | what |\n| --- | --- |\n| `config.rs`, `policy.rs` | x |\n" \
+           "| `train/` | `heads.rs`, `policy.rs`, `simd/{conv,nothing}.rs` |\n"
+    assert missing(text) == ["line 5: policy.rs (from src/)", "line 6: policy.rs (from src/train/)",
+                             "line 6: simd/conv.rs (from src/train/)", "line 6: simd/nothing.rs (from src/train/)"]
