@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 
+import drivesim
 from drivesim.carracing import rank
 
 
@@ -37,6 +38,42 @@ def test_noise_is_seeded_per_row():
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a[:, 0], a[:, 1])
     assert np.abs(a[..., 1]).max() <= 1.0
+
+
+def test_the_unchanged_driver_drives_as_the_clone():
+    from drivesim.carracing.agents import ClonedAgent
+
+    model = drivesim.Model.load()
+    clone, unchanged, biased = ClonedAgent(model), rank.ChangedAgent(rank.FAMILY[0], 0, model), \
+        rank.ChangedAgent(rank.Driver("b", bias=0.3), 0, model)
+    rng = np.random.default_rng(0)
+    steer_gap = []
+    for _ in range(clone.warmup + 6):
+        frame, speed = rng.integers(0, 256, (80, 160, 3), dtype=np.uint8), float(rng.uniform(10, 40))
+        a = clone.act(frame, speed)
+        np.testing.assert_array_equal(a, unchanged.act(frame, speed))
+        steer_gap.append(biased.act(frame, speed)[0] - a[0])
+    assert steer_gap[0] == 0 and max(steer_gap) > 0  # the warm-up drives straight, then the bias shows
+
+
+def test_the_worlds_hidden_state_steps_along_the_behaviour_drive():
+    """Where the world is the drivers' own model, its hidden state at each start is the
+    driver's, bit for bit."""
+    model = drivesim.Model.load()
+    sim = drivesim.Simulator(model, batch=4)
+    rng = np.random.default_rng(1)
+    n, first = 60, 12
+    z = rng.standard_normal((n, model.z_dim)).astype(np.float32)
+    speed, steer = rng.uniform(10, 50, n).astype(np.float32), rng.uniform(-1, 1, n).astype(np.float32)
+    h = np.zeros((n, model.hidden_dim), np.float32)
+    for t in range(n - 1):  # as ClonedAgent steps its memory, one decision at a time
+        _, h[t + 1] = sim.transition(z[t], h[t], np.array([speed[t], steer[t]], np.float32))
+    drive = {"z": z, "h": h, "speed": speed, "steer": steer, "first": np.int64(first)}
+    starts = rank.starts_of(drive, sim, model.hidden_dim, 3, 10)
+    at = [d - first for d in rank.start_decisions(first + n, 3, 10, first)]
+    np.testing.assert_array_equal(starts["h_world"], h[at])
+    np.testing.assert_array_equal(starts["h"], h[at])
+    np.testing.assert_array_equal(starts["z"], z[at])
 
 
 def test_spearman_and_regret():

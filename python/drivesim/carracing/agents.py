@@ -118,12 +118,18 @@ class ClonedAgent:
         if warming_up is not None:
             return warming_up
         z = self.sim.encode(frame)
-        target, steer = (float(v) for v in self.sim.act(z, self.h))
-        steer = float(np.clip(steer, -1.0, 1.0))
+        target, steer = self.decide(z)
         self.last_state = (z, self.h, speed)
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
         gas, brake = speed_control(speed, target)
         return np.array([steer, gas, brake], np.float32)
+
+    def decide(self, z: np.ndarray) -> tuple:
+        """The speed to drive at and the steering (in [-1, 1]) for the code ``z`` of the frame
+        seen now and the drive's hidden state: where a variant of the clone changes how it drives
+        (``rank.ChangedAgent``)."""
+        target, steer = (float(v) for v in self.sim.act(z, self.h))
+        return target, float(np.clip(steer, -1.0, 1.0))
 
     def imagine(self, steps: int = 8) -> Optional[np.ndarray]:
         """The policy driving on in the dream from the last decision, ``steps`` steps:

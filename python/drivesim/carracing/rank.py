@@ -17,8 +17,12 @@ off-road chance; the Spearman rank correlation between the two over the family (
 averaged), regret@1 (the real score lost by picking the dream's favourite, as a share of the
 range between the best and the worst driver) and the Pearson correlation of the means.
 
-``--out`` keeps every real drive (``real/DRIVER_SEED.json``, the starts in ``starts_SEED.npz``): a
-run that stops resumes where it was; the report goes to ``rank.json``.
+``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
+``--weights`` and step its transition for their own memory): a world model is judged without
+changing the drivers. ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, the behaviour
+drive in ``drive_SEED.npz``): a run that stops resumes where it was, and another ``--world`` or
+``--horizon`` reuses the real drives; the report goes to ``rank.json`` (``--report``: another
+name).
 """
 
 from __future__ import annotations
@@ -100,7 +104,7 @@ class Changes:
 
 
 class ChangedAgent(ClonedAgent):
-    """``ClonedAgent`` whose every action passes through a driver's ``Changes``."""
+    """``ClonedAgent`` whose every decision passes through a driver's ``Changes``."""
 
     def __init__(self, driver: Driver, seed: int, model=None, threads: int = 1):
         self.driver, self.seed = driver, seed
@@ -110,35 +114,26 @@ class ChangedAgent(ClonedAgent):
         super().reset()
         self.changes = Changes([self.driver], [self.seed])
 
-    def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
-        from .control import check_inputs, speed_control, warmup_action
-
-        frame, speed = check_inputs(frame, speed, self.model.frame_shape)
-        warming_up = warmup_action(self, speed)
-        if warming_up is not None:
-            return warming_up
-        z = self.sim.encode(frame)
+    def decide(self, z: np.ndarray) -> tuple:
         target, steer = self.changes(self.sim.act(z, self.h)[None])[0]
-        self.last_state = (z, self.h, speed)
-        _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
-        gas, brake = speed_control(speed, float(target))
-        return np.array([steer, gas, brake], np.float32)
+        return float(target), float(steer)
 
 
-def drive_real(agent: ChangedAgent, seed: int, frames: int, keep_states: bool) -> tuple[dict, dict]:
-    """One real drive: its figures, and (``keep_states``) the states ``(z, h, speed)`` before each
-    decision after the warm-up, by decision number."""
+def drive_real(agent: ChangedAgent, seed: int, frames: int, keep_states: bool) -> tuple[dict, list]:
+    """One real drive: its figures, and (``keep_states``) every decision after the warm-up in
+    order: ``(z, h, speed, steering applied)``, the code seen, the driver's hidden state before
+    the decision, the speedometer and what the transition was stepped with."""
     import gymnasium
 
     env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
     env.reset(seed=seed)
     agent.reset()
-    car, total, decisions, off, states, done = env.unwrapped, 0.0, 0, 0, {}, False
+    car, total, decisions, off, states, done = env.unwrapped, 0.0, 0, 0, [], False
     while not done:
         action = agent.act(observe(env), speed(env))
-        if keep_states and agent.last_state is not None and agent.decisions > agent.warmup:
+        if keep_states and agent.decisions > agent.warmup:
             z, h, v = agent.last_state
-            states[decisions] = (z.copy(), h.copy(), v)
+            states.append((z.copy(), h.copy(), v, float(action[0])))
         decisions += 1
         off += not any(len(w.tiles) > 0 for w in car.car.wheels)
         for _, reward, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
@@ -175,37 +170,59 @@ def real_job(job) -> dict:
     agent = ChangedAgent(args.family[index], seed=seed * 1000 + index, model=_model)
     figures, states = drive_real(agent, seed, args.frames, keep_states=index == 0)
     figures.update(driver=index, seed=seed)
-    if index == 0:
-        at = start_decisions(figures["decisions"], args.starts, args.horizon, agent.warmup)
-        z, h, v = (np.stack([states[d][i] for d in at]) for i in range(3))
-        with atomic_write(os.path.join(args.out, f"starts_{seed}.npz")) as f:
-            np.savez(f, z=z, h=h, speed=v.astype(np.float32))
+    if index == 0:  # the behaviour drive: the dream's starts are states of it
+        z, h, v, steer = (np.stack([s[i] for s in states]).astype(np.float32) for i in range(4))
+        with atomic_write(os.path.join(args.out, f"drive_{seed}.npz")) as f:
+            np.savez(f, z=z, h=h, speed=v, steer=steer, first=np.int64(agent.warmup))
     with atomic_write(path) as f:
         f.write(json.dumps(figures).encode())
     return figures
 
 
-def dream(sim: Simulator, family: list, starts: dict, horizon: int, seed: int, use_value: bool) -> dict:
+def starts_of(drive: dict, world: Simulator, hidden_dim: int, count: int, horizon: int) -> dict:
+    """``count`` starts in the behaviour drive ``drive`` (``drive_SEED.npz``): the code, the
+    driver's hidden state and the speed at each, and the world model's hidden state there, its
+    transition stepped along the drive from the decision the driver's started (the same state
+    where the world is the driver's own model)."""
+    first, n = int(drive["first"]), len(drive["speed"])
+    at = [d - first for d in start_decisions(first + n, count, horizon, first)]
+    h_world = np.zeros((1, hidden_dim), np.float32)
+    hidden = []
+    for t in range(max(at) + 1):
+        hidden.append(h_world[0])
+        action = np.array([[drive["speed"][t], drive["steer"][t]]], np.float32)
+        _, h_world = world.transition(np.ascontiguousarray(drive["z"][t:t + 1]), h_world, action)
+    return {"z": drive["z"][at], "h": drive["h"][at], "speed": drive["speed"][at],
+            "h_world": np.stack([hidden[t] for t in at])}
+
+
+def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horizon: int, seed: int,
+          use_value: bool) -> dict:
     """Every driver from every start, ``horizon`` decisions, in one batch: ``(return, off-road
-    chance)`` per driver, each ``(starts,)``."""
+    chance)`` per driver, each ``(starts,)``. The drivers' policy reads the codes the world
+    predicts, and their hidden states step on their own model's transition (as a real drive
+    steps them on the codes of what the car sees); the world's transition predicts the codes,
+    its reward head scores them."""
     k, n = len(starts["speed"]), len(family)
-    z = np.ascontiguousarray(np.tile(starts["z"], (n, 1)), np.float32)
-    h = np.ascontiguousarray(np.tile(starts["h"], (n, 1)), np.float32)
+    tile = lambda a: np.ascontiguousarray(np.tile(a, (n, 1)), np.float32)  # noqa: E731
+    z, h, h_world = tile(starts["z"]), tile(starts["h"]), tile(starts["h_world"])
     v = np.tile(starts["speed"], n).astype(np.float32)
     drivers = [d for d in family for _ in range(k)]
     changes = Changes(drivers, [seed * 1000 + i for i in range(n * k)])
     total, off = np.zeros(n * k), np.zeros(n * k)
     for step in range(horizon):
-        target, steer = changes(sim.act(z, h)).T
-        z, h = sim.transition(z, h, np.ascontiguousarray(np.stack([v, steer], 1), np.float32))
-        if sim.sampling[0] > 0:
-            z = sim.sample(h, step, z)
+        target, steer = changes(driver.act(z, h)).T
+        action = np.ascontiguousarray(np.stack([v, steer], 1), np.float32)
+        _, h = driver.transition(z, h, action)
+        z, h_world = world.transition(z, h_world, action)
+        if world.sampling[0] > 0:
+            z = world.sample(h_world, step, z)
         v = speed_after(v, target).astype(np.float32)
-        reward = sim.reward(z, h)
+        reward = world.reward(z, h_world)
         total += reward[:, 0]
         off += reward[:, 1]
     if use_value:
-        total += sim.value(z, h)[:, 0]
+        total += world.value(z, h_world)[:, 0]
     return {"return": total.reshape(n, k), "off_road": (off / horizon).reshape(n, k)}
 
 
@@ -250,24 +267,27 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
 def report(args, results: list) -> dict:
     """The dream's side for every track (from the starts the real drives left), then the figures."""
     family, seeds = args.family, args.seeds
-    sim = Simulator(Model.load(args.weights), batch=len(family) * args.starts, threads=args.threads)
+    batch = len(family) * args.starts
+    driver = Simulator(Model.load(args.weights), batch=batch, threads=args.threads)
+    world_model = Model.load(args.world or args.weights)
+    world = Simulator(world_model, batch=batch, threads=args.threads)
     if args.temperature > 0:
-        sim.set_sampling(args.temperature, 0)
+        world.set_sampling(args.temperature, 0)
     real = {(r["driver"], r["seed"]): r for r in results}
     shape = (len(family), len(seeds))
     real_score, real_off, dream_return, dream_off = (np.zeros(shape) for _ in range(4))
     start = time.perf_counter()
     for t, seed in enumerate(seeds):
-        with np.load(os.path.join(args.out, f"starts_{seed}.npz")) as f:
-            starts = {k: f[k] for k in ("z", "h", "speed")}
-        d = dream(sim, family, starts, args.horizon, seed, args.value)
+        with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
+            starts = starts_of({k: f[k] for k in f.files}, world, world_model.hidden_dim, args.starts, args.horizon)
+        d = dream(driver, world, family, starts, args.horizon, seed, args.value)
         dream_return[:, t], dream_off[:, t] = d["return"].mean(1), d["off_road"].mean(1)
         for i in range(len(family)):
             real_score[i, t], real_off[i, t] = real[i, seed]["reward"], real[i, seed]["off_road"]
     seconds = time.perf_counter() - start
     out = summary(family, real_score, real_off, dream_return, dream_off)
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
-               value=args.value, frames=args.frames, weights=args.weights,
+               value=args.value, frames=args.frames, weights=args.weights, world=args.world,
                dream_decisions_per_second=len(family) * args.starts * args.horizon * len(seeds) / seconds,
                per_track={"real": real_score.tolist(), "dream": dream_return.tolist()})
     return out
@@ -289,7 +309,8 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seeds", type=parse_seeds, required=True, help="track seeds, e.g. 7000-7019")
     p.add_argument("--out", required=True, help="folder for the real drives and the report (resumable)")
-    p.add_argument("--weights", help="weight file (default: the built-in model)")
+    p.add_argument("--weights", help="the drivers' weight file: their policy (default: the built-in model)")
+    p.add_argument("--world", help="the world model's weight file: the transition and heads that dream (default: --weights)")
     p.add_argument("--family", choices=["all", "small"], default="all",
                    help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests)")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
@@ -299,6 +320,7 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=1000, help="env frames per real drive (CarRacing-v3: 1000)")
     p.add_argument("--workers", type=int, default=1, help="real drives at once, each in its own process")
     p.add_argument("--threads", type=int, default=1, help="threads of the dream's simulator")
+    p.add_argument("--report", default="rank.json", help="the report's file name in --out")
     args = p.parse_args(argv)
     if min(args.horizon, args.starts, args.frames, args.workers, args.threads) < 1 or not args.temperature >= 0:
         p.error("--horizon, --starts, --frames, --workers and --threads must be positive, --temperature >= 0")
@@ -317,7 +339,7 @@ def main(argv=None) -> int:
             print(f"[{len(results)}/{len(jobs)}, {time.perf_counter() - started:.0f} s] {args.family[r['driver']].name} "
                   f"on track {r['seed']}: {r['reward']:.1f}, off the road {r['off_road']:.1%}", flush=True)
     out = report(args, results)
-    with atomic_write(os.path.join(args.out, "rank.json")) as f:
+    with atomic_write(os.path.join(args.out, args.report)) as f:
         f.write(json.dumps(out, indent=1).encode())
     print_report(out)
     return 0

@@ -1,0 +1,143 @@
+"""Failure data: real CarRacing driven by the cloned policy with one or two things changed, recorded
+as episodes with the env's rewards, the tiles and `on_road`: oversteer and understeer (a steering
+gain), a pull to one side (a bias), unsteady hands (noise), late hands (a delay), too fast into
+bends (the target speed scaled), and the spins, grass and recoveries that follow. The data a
+world model needs to foresee the car leaving the road (docs/fidelity.md, the rank probe).
+
+  weights/tool failures --tracks 12000-12031 --per-track 3 --dir runs/failures \\
+      --out data/failures.safetensors.gz --workers 2
+
+`TRAINING` is a family of its own, not the rank probe's (`drivesim.carracing.rank.FAMILY`): other
+gains, biases, speeds, noise and delays, so that the probe's drivers stay drivers the model never
+saw. Track k is driven by `--per-track` drivers of the family in turn (driver (k * per_track + j)
+mod the family's size), every decision after the warm-up recorded: the frame, the speed and the
+steering applied (what the transition steps with), the reward over the decision's frames, the
+tiles it first visited and whether a wheel was on the road. Each drive is written to
+`DIR/SEED_DRIVER.safetensors.gz` as it ends (a run started again skips those), then all of them to
+`--out`. Needs the `drivesim` package with CarRacing (`pip install "./python[carracing]"`).
+"""
+
+import argparse
+import os
+import sys
+from multiprocessing import Pool
+
+import numpy as np
+
+import episodes
+import record
+from record import parse_seeds
+
+
+def training_family():
+    from drivesim.carracing.rank import Driver
+
+    return [
+        Driver("clone"),
+        Driver("gain 0.35", gain=0.35), Driver("gain 1.7", gain=1.7), Driver("gain 2.5", gain=2.5),
+        Driver("bias -0.3", bias=-0.3), Driver("bias +0.1", bias=0.1), Driver("bias +0.3", bias=0.3),
+        Driver("speed 0.75", speed=0.75), Driver("speed 1.15", speed=1.15), Driver("speed 1.45", speed=1.45),
+        Driver("noise 0.2", noise=0.2), Driver("noise 0.5", noise=0.5), Driver("noise 0.85", noise=0.85),
+        Driver("delay 1", delay=1), Driver("delay 3", delay=3), Driver("delay 5", delay=5),
+        Driver("gain 1.3, noise 0.4", gain=1.3, noise=0.4),
+        Driver("bias -0.15, speed 1.2", bias=-0.15, speed=1.2),
+        Driver("delay 3, gain 1.4", delay=3, gain=1.4),
+    ]
+
+
+def drive(job):
+    """One track by one driver of the family: (seed, driver, an `episodes.Episodes` of one episode
+    or None when no decision passed the warm-up, the env's reward, the share of decisions off the
+    road)."""
+    seed, index, frames, weights = job
+    import gymnasium
+    from drivesim import Model
+    from drivesim.carracing import observe, speed
+    from drivesim.carracing.rank import ChangedAgent
+    from drivesim.carracing.view import decision_steps
+
+    agent = ChangedAgent(training_family()[index], seed=seed * 1000 + index, model=Model.load(weights))
+    env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
+    env.reset(seed=seed)
+    agent.reset()
+    car = env.unwrapped
+    out = {"frames": [], "actions": [], "reward": [], "tiles": [], "on_road": []}
+    total, done = 0.0, False
+    while not done:
+        view, now = observe(env), speed(env)
+        action = agent.act(view, now)
+        keep = agent.decisions > agent.warmup  # the warm-up's zoom frames are no example
+        if keep:
+            out["frames"].append(view)
+            out["actions"].append((now, action[0]))
+            out["on_road"].append(record.wheel_on_road(car.car))
+        tiles, reward = car.tile_visited_count, 0.0
+        for _, r, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
+            reward += float(r)
+            if terminated or truncated:
+                done = True
+                break
+        total += reward
+        if keep:
+            out["reward"].append(reward)
+            out["tiles"].append(car.tile_visited_count - tiles)
+    env.close()
+    if not out["frames"]:
+        return seed, index, None, total, 1.0
+    rewards = {k: np.array(out[k], dtype=episodes.REWARDS[k]) for k in episodes.REWARDS}
+    data = episodes.Episodes(np.stack(out["frames"]), np.array(out["actions"], np.float32),
+                             np.zeros(1, np.int64), rewards)
+    return seed, index, data, total, 1.0 - float(np.mean(out["on_road"]))
+
+
+def kept(job, directory):
+    seed, index, _, _ = job
+    return os.path.join(directory, f"{seed}_{index}.safetensors.gz")
+
+
+def drive_and_keep(args):
+    job, directory = args
+    path = kept(job, directory)
+    if os.path.exists(path):
+        return job[0], job[1], None, None, None
+    seed, index, data, total, off = drive(job)
+    if data is not None:
+        episodes.write(path, data, {"frame_hz": "12.5", "driver": training_family()[index].name, "seed": str(seed)})
+    return seed, index, data, total, off
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--tracks", type=parse_seeds, required=True, help="track seeds, e.g. 12000-12031")
+    p.add_argument("--per-track", type=int, default=3, help="drivers of the family on each track")
+    p.add_argument("--frames", type=int, default=1000, help="env frames per drive")
+    p.add_argument("--weights", help="weight file whose policy drives (default: the package's built-in model)")
+    p.add_argument("--dir", required=True, help="folder of the drives as they end (resumable)")
+    p.add_argument("--out", required=True, help="episodes file of every drive (.safetensors.gz)")
+    p.add_argument("--workers", type=int, default=os.cpu_count(), help="drives at once")
+    args = p.parse_args(argv)
+    if min(args.per_track, args.frames, args.workers) < 1:
+        p.error("--per-track, --frames and --workers must be positive")
+    family = training_family()
+    os.makedirs(args.dir, exist_ok=True)
+    jobs = [(seed, (k * args.per_track + j) % len(family), args.frames, args.weights)
+            for k, seed in enumerate(args.tracks) for j in range(args.per_track)]
+    with Pool(min(args.workers, len(jobs))) as pool:
+        for seed, index, data, total, off in pool.imap_unordered(drive_and_keep, [(j, args.dir) for j in jobs]):
+            if total is None:
+                print(f"track {seed}, {family[index].name}: kept from an earlier run", flush=True)
+            else:
+                frames = 0 if data is None else len(data.frames)
+                print(f"track {seed}, {family[index].name}: {total:.1f}, off the road {off:.0%}, {frames} frames",
+                      flush=True)
+    parts = [episodes.read(kept(j, args.dir)) for j in jobs if os.path.exists(kept(j, args.dir))]
+    data = episodes.Episodes.concat(parts)
+    episodes.write(args.out, data, {"source": "gymnasium CarRacing-v3, the cloned policy changed (weights/failures.py)",
+                                    "seeds": ",".join(map(str, args.tracks)), "frame_hz": "12.5"})
+    off = 1.0 - float(np.mean(data.rewards["on_road"]))
+    print(f"wrote {args.out}: {len(parts)} episodes, {len(data.frames)} frames, {off:.0%} of them off the road")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
