@@ -40,7 +40,7 @@ VENVS = {
     "package": {
         "requirements": ["pyproject:test", "tests/venvs/package.txt"],
         "runs": ["python/tests/*.py", "weights/test_data.py", "weights/test_expert.py", "weights/test_dagger.py",
-                 "weights/test_speed_model.py"],
+                 "weights/test_speed_model.py", "weights/test_failures.py"],
         # weights/test_data.py's PyTorch tests are deselected there (`-k "record or driver"`).
         "may_skip": {"torch"},
     },

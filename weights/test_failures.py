@@ -1,0 +1,41 @@
+"""weights/failures.py: the cloned driver changed, recorded as episodes with rewards (needs the
+drivesim package and CarRacing: skipped without them)."""
+
+import numpy as np
+import pytest
+
+import episodes
+
+pytest.importorskip("drivesim")
+pytest.importorskip("Box2D")
+import failures  # noqa: E402 (after the skips: it needs the package's rank probe)
+
+
+def test_the_training_family_is_not_the_probes():
+    from drivesim.carracing.rank import FAMILY
+
+    probe = {(d.gain, d.bias, d.speed, d.noise, d.delay) for d in FAMILY[1:]}
+    mine = [(d.gain, d.bias, d.speed, d.noise, d.delay) for d in failures.training_family()[1:]]
+    assert len(set(mine)) == len(mine) and not probe & set(mine)
+
+
+def test_drives_recorded_and_resumed(tmp_path, capsys):
+    out, kept = tmp_path / "failures.safetensors.gz", tmp_path / "drives"
+    args = ["--tracks", "5,6", "--per-track", "2", "--frames", "120", "--dir", str(kept), "--out", str(out),
+            "--workers", "1"]
+    assert failures.main(args) == 0
+    data = episodes.read(out)
+    assert len(data.episode_starts) == 4
+    n = len(data.frames)
+    assert n == 4 * (120 // 4 - 12)  # every decision after the warm-up, no track ended early
+    assert data.frames.shape == (n, 80, 160, 3) and data.actions.shape == (n, 2)
+    assert set(data.rewards) == set(episodes.REWARDS) and all(len(v) == n for v in data.rewards.values())
+    assert np.all(np.abs(data.actions[:, 1]) <= 1.0)
+    # Track 5 is driven by the family's first two drivers, track 6 by the next two.
+    assert sorted(p.name for p in kept.iterdir()) == [f"{s}_{i}.safetensors.gz" for s, i in ((5, 0), (5, 1), (6, 2), (6, 3))]
+    capsys.readouterr()
+    assert failures.main(args) == 0  # run again: every drive kept, none driven
+    assert capsys.readouterr().out.count("kept from an earlier run") == 4
+    again = episodes.read(out)
+    np.testing.assert_array_equal(again.frames, data.frames)
+    np.testing.assert_array_equal(again.actions, data.actions)
