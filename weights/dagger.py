@@ -103,23 +103,15 @@ def drive_labelled(job):
             out["actions"].append((speed, action[0]))
             out["labels"].append((teacher.target, label[0]))
             out["on_road"].append(record.wheel_on_road(car_env.car))
-        tiles, reward = car_env.tile_visited_count, 0.0
-        for _, r, terminated, truncated, _ in carracing.view.decision_steps(env, action, agent.frame_skip):
-            reward += float(r)
-            if terminated or truncated:
-                done = True
-                break
+        reward, tiles, done = record.decision(env, action, agent.frame_skip)
         total += reward
         if learn:
             out["reward"].append(reward)
-            out["tiles"].append(car_env.tile_visited_count - tiles)
+            out["tiles"].append(tiles)
     env.close()
     if not out["frames"]:
         return None, total
-    rewards = {k: np.array(out[k], dtype=episodes.REWARDS[k]) for k in episodes.REWARDS}
-    data = episodes.Episodes(np.stack(out["frames"]), np.array(out["actions"], np.float32),
-                             np.zeros(1, np.int64), rewards, np.array(out["labels"], np.float32))
-    return data, total
+    return record.one_episode(out, np.array(out["labels"], np.float32)), total
 
 
 def train(args, data_files, out):

@@ -54,7 +54,6 @@ def drive(job):
     from drivesim import Model
     from drivesim.carracing import observe, speed
     from drivesim.carracing.rank import ChangedAgent
-    from drivesim.carracing.view import decision_steps
 
     agent = ChangedAgent(training_family()[index], seed=seed * 1000 + index, model=Model.load(weights))
     env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
@@ -71,23 +70,15 @@ def drive(job):
             out["frames"].append(view)
             out["actions"].append((now, action[0]))
             out["on_road"].append(record.wheel_on_road(car.car))
-        tiles, reward = car.tile_visited_count, 0.0
-        for _, r, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
-            reward += float(r)
-            if terminated or truncated:
-                done = True
-                break
+        reward, tiles, done = record.decision(env, action, agent.frame_skip)
         total += reward
         if keep:
             out["reward"].append(reward)
-            out["tiles"].append(car.tile_visited_count - tiles)
+            out["tiles"].append(tiles)
     env.close()
     if not out["frames"]:
         return seed, index, None, total, 1.0
-    rewards = {k: np.array(out[k], dtype=episodes.REWARDS[k]) for k in episodes.REWARDS}
-    data = episodes.Episodes(np.stack(out["frames"]), np.array(out["actions"], np.float32),
-                             np.zeros(1, np.int64), rewards)
-    return seed, index, data, total, 1.0 - float(np.mean(out["on_road"]))
+    return seed, index, record.one_episode(out), total, 1.0 - float(np.mean(out["on_road"]))
 
 
 def kept(job, directory):

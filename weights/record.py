@@ -218,6 +218,26 @@ def wheel_on_road(car):
     return int(any(len(w.tiles) > 0 for w in car.wheels))
 
 
+def decision(env, action, frame_skip):
+    """One decision's env steps (``view.decision_steps``): the env's reward over them, the tiles
+    the car first visited and whether the episode ended."""
+    car, reward = env.unwrapped, 0.0
+    tiles = car.tile_visited_count
+    for _, r, terminated, truncated, _ in view.decision_steps(env, action, frame_skip):
+        reward += float(r)
+        if terminated or truncated:
+            return reward, car.tile_visited_count - tiles, True
+    return reward, car.tile_visited_count - tiles, False
+
+
+def one_episode(out, labels=None):
+    """An `episodes.Episodes` of one episode from a drive's lists: ``out`` holds "frames",
+    "actions" and every name of `episodes.REWARDS`, one entry a decision."""
+    rewards = {k: np.array(out[k], dtype=episodes.REWARDS[k]) for k in episodes.REWARDS}
+    return episodes.Episodes(np.stack(out["frames"]), np.array(out["actions"], np.float32), np.zeros(1, np.int64),
+                             rewards, labels)
+
+
 def score_episode(seed, style="steady", frame_skip=4, limit=1000):
     """The env's own reward for the driver on one track, as the agents are scored
     (`python -m drivesim.carracing`): driving from the first frame, `limit` frames at most, the
