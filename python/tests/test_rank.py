@@ -76,6 +76,25 @@ def test_the_worlds_hidden_state_steps_along_the_behaviour_drive():
     np.testing.assert_array_equal(starts["z"], z[at])
 
 
+def test_the_dream_batch_and_the_value_at_the_horizon():
+    """Every driver from every start in one batch: the clone and a driver biased off its line
+    differ, one row per start; the value head at the horizon adds its value to each return."""
+    model = drivesim.Model.load()
+    sim = drivesim.Simulator(model, batch=6)
+    rng = np.random.default_rng(2)
+    starts = {"z": rng.standard_normal((3, model.z_dim)).astype(np.float32),
+              "h": np.zeros((3, model.hidden_dim), np.float32), "speed": np.float32([30, 40, 50])}
+    starts["h_world"] = starts["h"]
+    family = [rank.FAMILY[0], rank.Driver("b", bias=0.5)]
+    plain = rank.dream(sim, sim, family, starts, 6, 0, False)
+    valued = rank.dream(sim, sim, family, starts, 6, 0, True)
+    assert plain["return"].shape == plain["off_road"].shape == (2, 3)
+    assert np.isfinite(plain["return"]).all() and ((0 <= plain["off_road"]) & (plain["off_road"] <= 1)).all()
+    assert not np.allclose(plain["return"][0], plain["return"][1])
+    assert not np.allclose(valued["return"], plain["return"])
+    np.testing.assert_array_equal(valued["off_road"], plain["off_road"])
+
+
 def test_spearman_and_regret():
     assert rank.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
     assert rank.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
