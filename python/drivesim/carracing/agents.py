@@ -32,6 +32,7 @@ from ..road import measure
 from .control import (  # noqa: F401 (re-exported: the agents' building blocks)
     FRAME_SHAPE,
     SPEED_MAX,
+    ModelAgent,
     check_inputs,
     proportional_steering,
     speed_after,
@@ -86,17 +87,12 @@ class ReactiveAgent:
         return np.array([proportional_steering(road), gas, brake], np.float32)
 
 
-class ClonedAgent:
+class ClonedAgent(ModelAgent):
     """Behavioural cloning: the model's policy (``Model.policy_width`` is not None) drives.
     ``act(frame, speed)`` encodes the view, asks the policy for the speed to drive at and the
     steering from the code and the transition's hidden state, then steps the transition with
     the code and the action taken (the speedometer's speed and that steering), as the policy's
     training data was built. Deterministic; about 4 ms per decision on one thread."""
-
-    frame_skip = 4
-    #: Decisions at the start driving straight while the env's camera zooms in, as the recorder
-    #: does before its episodes begin.
-    warmup = 12
 
     def __init__(self, model: Optional[Model] = None, threads: int = 1):
         self.model = model if model is not None else Model.load()
@@ -111,13 +107,7 @@ class ClonedAgent:
         self.decisions = 0
         self.last_state: Optional[tuple] = None  # (z, h, speed) of the last decision
 
-    def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
-        """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
-        frame, speed = check_inputs(frame, speed, self.model.frame_shape)
-        warming_up = warmup_action(self, speed)
-        if warming_up is not None:
-            return warming_up
-        z = self.sim.encode(frame)
+    def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
         target, steer = self.decide(z)
         self.last_state = (z, self.h, speed)
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))

@@ -82,6 +82,28 @@ def warmup_action(agent, speed: float) -> Optional[np.ndarray]:
     return np.array([0.0, gas, brake], np.float32)
 
 
+class ModelAgent:
+    """What the agents that read the models share: a decision every ``frame_skip`` env frames,
+    the warm-up, and ``act``'s preamble (the inputs checked against the model's view, the
+    warm-up's action, the view encoded). A subclass has ``model`` and ``sim`` and gives
+    ``drive(frame, z, speed)``: the action for the checked view, its code and the speed."""
+
+    #: Env frames per decision: the models step at 12.5 Hz, CarRacing at 50.
+    frame_skip = 4
+    #: Decisions at the start spent driving straight while the env's camera zooms in (its
+    #: first second): the zoomed-out frames are unlike anything the models saw, and the
+    #: recorder starts its episodes after them.
+    warmup = 12
+
+    def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
+        """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
+        frame, speed = check_inputs(frame, speed, self.model.frame_shape)
+        warming_up = warmup_action(self, speed)
+        if warming_up is not None:
+            return warming_up
+        return self.drive(frame, self.sim.encode(frame), speed)
+
+
 def _road(road: np.ndarray) -> np.ndarray:
     road = _checks.floats("road", road)
     if road.shape != (4,) or not np.isfinite(road).all():

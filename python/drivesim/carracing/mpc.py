@@ -25,7 +25,7 @@ import numpy as np
 
 from .. import _checks
 from .._drivesim import Model, Simulator
-from .control import SPEED_MAX, check_inputs, speed_after, speed_control, speeds_reached, warmup_action
+from .control import SPEED_MAX, ModelAgent, speed_after, speed_control, speeds_reached
 
 #: A decision departs from the policy when its steering differs by more than this...
 DEPART_STEER = 0.05
@@ -33,7 +33,7 @@ DEPART_STEER = 0.05
 DEPART_SPEED = 2.0
 
 
-class MPCAgent:
+class MPCAgent(ModelAgent):
     """MPPI seeded by the policy, scored by the reward and value heads (see the module).
     ``act(frame, speed)`` takes the models' view (``observe(env)``, ``(80, 160, 3)`` uint8) and
     the speedometer, and returns CarRacing's action ``[steer, gas, brake]`` (float32).
@@ -55,9 +55,6 @@ class MPCAgent:
     trained minimum and at most ``SPEED_MAX`` (None: the model's trained range, where the
     policy's own targets are clipped too).
     """
-
-    frame_skip = 4
-    warmup = 12
 
     def __init__(
         self,
@@ -168,13 +165,7 @@ class MPCAgent:
         plan = np.einsum("k,hkc->hc", w, actions[:, :: self.futures])
         return first_steer, first_target, plan, np.array([targets[0], steers[0]])
 
-    def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
-        """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
-        frame, speed = check_inputs(frame, speed, self.model.frame_shape)
-        warming_up = warmup_action(self, speed)
-        if warming_up is not None:
-            return warming_up
-        z = self.sim.encode(frame)
+    def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
         steer, target, plan, policy = self.plan(z, self.h, speed)
         self.planned += 1
         change = np.abs([target - policy[0], steer - policy[1]])

@@ -13,10 +13,10 @@ import numpy as np
 from .. import _checks
 from .._drivesim import Model, Simulator
 from ..road import RoadCost, measure
-from .control import SPEED_MAX, check_inputs, proportional_steering, speed_control, target_speed, warmup_action
+from .control import SPEED_MAX, ModelAgent, proportional_steering, speed_control, target_speed
 
 
-class RoadMPCAgent:
+class RoadMPCAgent(ModelAgent):
     """Model-predictive control in the dream, on a grid of steering ramps scored by
     ``RoadCost``. ``act(frame, speed)`` takes the models' view (``observe(env)``, ``(80, 160,
     3)`` uint8) and the speedometer, and returns CarRacing's action ``[steer, gas, brake]``
@@ -33,12 +33,6 @@ class RoadMPCAgent:
     ``road_scale`` and ``search`` finite and > 0; the weights ``w_*`` and ``correct`` finite
     and >= 0.
     """
-
-    #: Env frames per decision: the models step at 12.5 Hz, CarRacing at 50.
-    frame_skip = 4
-    #: Decisions at the start spent driving straight while the env's camera zooms in (its
-    #: first second): the zoomed-out frames are unlike anything the models saw.
-    warmup = 12
 
     def __init__(
         self,
@@ -139,13 +133,7 @@ class RoadMPCAgent:
         specs = self.model.actions
         return (specs[0]["min"], specs[0]["max"]) if specs else (0.0, 100.0)
 
-    def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
-        """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
-        frame, speed = check_inputs(frame, speed, self.model.frame_shape)
-        warming_up = warmup_action(self, speed)
-        if warming_up is not None:
-            return warming_up
-        z = self.sim.encode(frame)
+    def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
         h = self._hidden(z)
         # Offset-free MPC: the dream's road is corrected by what it gets wrong now (the road
         # measured on the real frame less the road read from its code), a disturbance held
