@@ -111,11 +111,15 @@ fn run(args: &Args) -> Result<(), String> {
             continue;
         };
         let (seed, drives) = (Arc::clone(&seed), Arc::clone(&drives));
-        std::thread::spawn(move || {
+        let spawned = std::thread::Builder::new().spawn(move || {
             if let Err(e) = serve(stream, &seed, &drives, waiting) {
                 eprintln!("connection ended: {e}");
             }
         });
+        if let Err(e) = spawned {
+            // The system would not start a thread: this connection is dropped, the server goes on.
+            eprintln!("connection dropped: no thread for it ({e})");
+        }
     }
     Ok(())
 }
