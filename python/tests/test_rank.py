@@ -156,3 +156,14 @@ def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
     resumed = subprocess.run(_probe(killed), check=True, capture_output=True, text=True, timeout=600)
     assert resumed.stdout.count("on track") == 6
     assert _report(killed) == report
+
+
+def test_a_bad_weight_file_is_refused_before_any_drive(tmp_path):
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not weights")
+    for flag, path in (("--world", bad), ("--world", tmp_path / "missing.safetensors"), ("--weights", bad)):
+        run = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "1", "--out",
+                              str(tmp_path / "out"), flag, str(path)], capture_output=True, text=True, timeout=120)
+        assert run.returncode == 2, run.stderr
+        assert f"error: {flag}: " in run.stderr, run.stderr
+        assert "Traceback" not in run.stderr and not (tmp_path / "out" / "real").exists()

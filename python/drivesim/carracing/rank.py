@@ -328,6 +328,14 @@ def main(argv=None) -> int:
         start_decisions(args.frames // ClonedAgent.frame_skip, args.starts, args.horizon, ClonedAgent.warmup)
     except ValueError as e:
         p.error(str(e))
+    # Before any drive: a bad file is an error now, not after the real drives.
+    for flag, path in (("--weights", args.weights), ("--world", args.world)):
+        try:
+            model = Model.load(path) if path or flag == "--weights" else None
+        except (OSError, ValueError) as e:
+            p.error(f"{flag}: {e}")
+        if flag == "--weights" and model.policy_width is None:
+            p.error("--weights: the model has no policy to drive with")
     args.family = FAMILY if args.family == "all" else SMALL
     os.makedirs(os.path.join(args.out, "real"), exist_ok=True)
     # Each track's unchanged driver first: its drive leaves the dream's starts.
