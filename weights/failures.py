@@ -2,12 +2,12 @@
 as episodes with the env's rewards, the tiles and `on_road`: oversteer and understeer (a steering
 gain), a pull to one side (a bias), unsteady hands (noise), late hands (a delay), too fast into
 bends (the target speed scaled), and the spins, grass and recoveries that follow. The data a
-world model needs to foresee the car leaving the road (docs/fidelity.md, the rank probe).
+world model needs to foresee the car leaving the road (docs/judging.md, the rank probe).
 
   weights/tool failures --tracks 12000-12031 --per-track 3 --dir runs/failures \\
       --out data/failures.safetensors.gz --workers 2
 
-`TRAINING` is a family of its own, not the rank probe's (`drivesim.carracing.rank.FAMILY`): other
+`training_family()` is a family of its own, not the rank probe's (`drivesim.carracing.rank.FAMILY`): other
 gains, biases, speeds, noise and delays, so that the probe's drivers stay drivers the model never
 saw. Track k is driven by `--per-track` drivers of the family in turn (driver (k * per_track + j)
 mod the family's size), every decision after the warm-up recorded: the frame, the speed and the
@@ -45,17 +45,23 @@ def training_family():
     ]
 
 
+_model = None  # this worker's model, loaded at its first drive
+
+
 def drive(job):
     """One track by one driver of the family: (seed, driver, an `episodes.Episodes` of one episode
     or None when no decision passed the warm-up, the env's reward, the share of decisions off the
     road)."""
+    global _model
     seed, index, frames, weights = job
     import gymnasium
     from drivesim import Model
     from drivesim.carracing import observe, speed
     from drivesim.carracing.rank import ChangedAgent
 
-    agent = ChangedAgent(training_family()[index], seed=seed * 1000 + index, model=Model.load(weights))
+    if _model is None:
+        _model = Model.load(weights)
+    agent = ChangedAgent(training_family()[index], seed=seed * 1000 + index, model=_model)
     env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
     env.reset(seed=seed)
     agent.reset()
