@@ -257,6 +257,14 @@ pub(crate) fn dense(exec: Exec<'_>, w: Matrix<'_>, bias: &[f32], act: Activation
 
 /// The threads that share the rows of a product by `w`, or `None` where one thread does it.
 fn rows_shared(exec: Exec<'_>, w: Matrix<'_>) -> Option<usize> {
-    let threads = exec.threads();
-    (threads > 1 && w.rows * w.cols >= PARALLEL_MIN_WEIGHTS).then_some(threads)
+    let threads = dense_parts(exec.threads(), w.rows, w.cols);
+    (threads > 1).then_some(threads)
+}
+
+/// The parts [`dense`] cuts a `rows x cols` product's rows into for `threads` threads.
+pub(crate) fn dense_parts(threads: usize, rows: usize, cols: usize) -> usize {
+    match rows * cols >= PARALLEL_MIN_WEIGHTS {
+        true => threads.max(1),
+        false => 1,
+    }
 }

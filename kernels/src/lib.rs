@@ -50,10 +50,11 @@ pub use half::f16;
 pub use isa::{Isa, IsaLevel};
 pub use layout::{ConvKind, ConvParams, ConvShape, Matrix, MatrixData, Plane, Tensor, Weights, NARROW_OC, OC_ALIGN};
 pub use ops::{
-    activation_backward, adam, conv, conv_channels, conv_patch_len, conv_patches, conv_weight_grad,
-    conv_weight_grad_add_rows, conv_weight_grad_rows, conv_weight_grad_scratch_len, dense, dense_add, dense_add_rows,
-    dense_data_grad, dense_data_grad_cols, dense_rows, dense_weight_grad, dense_weight_grad_add_rows,
-    dense_weight_grad_rows, winograd_channels, winograd_conv, winograd_input, winograd_weights, AdamStep, GRAD_PIXELS,
+    activation_backward, adam, conv, conv_channels, conv_grad_pixels, conv_patch_len, conv_patches, conv_weight_grad,
+    conv_weight_grad_add_rows, conv_weight_grad_block_rows, conv_weight_grad_rows, conv_weight_grad_scratch_len, dense,
+    dense_add, dense_add_rows, dense_data_grad, dense_data_grad_cols, dense_rows, dense_weight_grad,
+    dense_weight_grad_add_rows, dense_weight_grad_rows, winograd_channels, winograd_conv, winograd_input,
+    winograd_weights, AdamStep, GRAD_PIXELS,
 };
 pub use output::{OutputPart, OutputParts};
 pub use winograd::Winograd;

@@ -269,22 +269,67 @@ pub fn conv_weight_grad_add_rows(
     conv_grad_rows(isa, shape, input, dy, scratch, part, true)
 }
 
+/// Output pixels of `shape` in a batch of `items` planes: the items of its weight gradient, which
+/// [`conv_weight_grad_block_rows`] takes in ranges.
+pub const fn conv_grad_pixels(shape: &ConvShape, items: usize) -> usize {
+    items * shape.output.height * shape.output.width
+}
+
+/// [`conv_weight_grad_rows`] over the output pixels `pixels` of the batch only (numbered item by
+/// item, row by row, as [`conv_patches`]), overwriting the rows of `part`: one block of a sum
+/// that threads share by pixels as well as by rows, each block into a gradient of its own, the
+/// blocks then added in a fixed order. A block starting on a multiple of [`GRAD_PIXELS`] sums its
+/// chunks as the whole-batch functions do.
+pub fn conv_weight_grad_block_rows(
+    isa: Isa,
+    shape: ConvShape,
+    input: &[f32],
+    dy: &[f32],
+    pixels: Range<usize>,
+    scratch: &mut [f32],
+    part: OutputPart<'_>,
+) {
+    let total = conv_pixels(&shape, input, dy);
+    assert!(
+        pixels.start <= pixels.end && pixels.end <= total,
+        "pixels past the batch"
+    );
+    pixel_grad_rows(isa, shape, input, dy, pixels, scratch, part, false)
+}
+
 fn conv_grad_rows(
     isa: Isa,
     shape: ConvShape,
     input: &[f32],
     dy: &[f32],
     scratch: &mut [f32],
+    part: OutputPart<'_>,
+    add: bool,
+) {
+    let total = conv_pixels(&shape, input, dy);
+    pixel_grad_rows(isa, shape, input, dy, 0..total, scratch, part, add)
+}
+
+/// The weight gradient over `pixels` (checked to lie in the batch), a chunk of [`GRAD_PIXELS`]
+/// at a time from its start, added to `part` if `add`.
+#[allow(clippy::too_many_arguments)]
+fn pixel_grad_rows(
+    isa: Isa,
+    shape: ConvShape,
+    input: &[f32],
+    dy: &[f32],
+    pixels: Range<usize>,
+    scratch: &mut [f32],
     mut part: OutputPart<'_>,
     add: bool,
 ) {
     let (rows, cols) = (shape.output.channels, conv_patch_len(&shape));
     assert!(scratch.len() >= conv_weight_grad_scratch_len(&shape));
-    let total = conv_pixels(&shape, input, dy);
+    let (first, end) = (pixels.start, pixels.end);
     let (patches, dys) = scratch.split_at_mut(GRAD_PIXELS * cols);
     // At least one chunk, which checks `part`: no pixels make a zero gradient.
-    for start in (0..total.max(1)).step_by(GRAD_PIXELS) {
-        let n = GRAD_PIXELS.min(total - start.min(total));
+    for start in (first..end.max(first + 1)).step_by(GRAD_PIXELS) {
+        let n = GRAD_PIXELS.min(end - start.min(end));
         conv_patches(
             shape,
             input,
@@ -294,7 +339,7 @@ fn conv_grad_rows(
             &mut dys[..n * rows],
         );
         let (d, x) = (&dys[..n * rows], &patches[..n * cols]);
-        weight_grad_rows(isa, d, x, rows, cols, part.reborrow(), add || start > 0);
+        weight_grad_rows(isa, d, x, rows, cols, part.reborrow(), add || start > first);
     }
 }
 

@@ -12,10 +12,13 @@ use core::ops::Range;
 use core::sync::atomic::{AtomicUsize, Ordering};
 
 /// An output buffer cut into `parts` ranges of its `units` (output channels or rows), each
-/// starting on a multiple of [`OC_ALIGN`] (a panel of weights), of nearly equal size.
+/// starting on a multiple of [`OC_ALIGN`] (a panel of weights), of nearly equal size; or
+/// ([`OutputParts::grid`]) several such buffers one after the other, each cut the same way.
 pub struct OutputParts<'a> {
     ptr: *mut f32,
+    /// Floats of each buffer.
     len: usize,
+    buffers: usize,
     units: usize,
     parts: usize,
     /// The next part to hand out.
@@ -24,15 +27,25 @@ pub struct OutputParts<'a> {
 }
 
 // SAFETY: the buffer is only reached through the parts `take` hands out, each once, and their
-// unit ranges are disjoint.
+// unit ranges (or buffers) are disjoint.
 unsafe impl Sync for OutputParts<'_> {}
 
 impl<'a> OutputParts<'a> {
     /// `output` (all of the operation's output) as `parts` ranges of `units` (at least one).
     pub fn new(output: &'a mut [f32], units: usize, parts: usize) -> Self {
+        OutputParts::grid(output, 1, units, parts)
+    }
+
+    /// `output` as `buffers` outputs of equal length one after the other (at least one; a
+    /// shorter tail is left out), each as `parts` ranges of its `units`: buffer `b`'s part `p` is
+    /// part `b * parts + p`. For sums that threads share by blocks of their terms, each block
+    /// into a buffer of its own.
+    pub fn grid(output: &'a mut [f32], buffers: usize, units: usize, parts: usize) -> Self {
+        let buffers = buffers.max(1);
         OutputParts {
             ptr: output.as_mut_ptr(),
-            len: output.len(),
+            len: output.len() / buffers,
+            buffers,
             units,
             parts: parts.max(1),
             next: AtomicUsize::new(0),
@@ -40,7 +53,7 @@ impl<'a> OutputParts<'a> {
         }
     }
 
-    /// The units of part `i`: whole panels shared as evenly as can be.
+    /// The units of part `i` of a buffer: whole panels shared as evenly as can be.
     fn range(&self, i: usize) -> Range<usize> {
         let panels = self.units.div_ceil(OC_ALIGN);
         let panel = |i: usize| panels * i / self.parts;
@@ -49,19 +62,28 @@ impl<'a> OutputParts<'a> {
 
     /// The next part no one has taken, or `None` when all were; empty parts are skipped.
     pub fn take(&self) -> Option<OutputPart<'_>> {
+        self.take_in_buffer().map(|(_, part)| part)
+    }
+
+    /// [`OutputParts::take`] with the index of the part's buffer.
+    pub fn take_in_buffer(&self) -> Option<(usize, OutputPart<'_>)> {
         loop {
             let i = self.next.fetch_add(1, Ordering::Relaxed);
-            if i >= self.parts {
+            if i >= self.parts * self.buffers {
                 return None;
             }
-            let units = self.range(i);
+            let (buffer, units) = (i / self.parts, self.range(i % self.parts));
             if !units.is_empty() {
-                return Some(OutputPart {
-                    ptr: self.ptr,
-                    len: self.len,
-                    units,
-                    _borrow: PhantomData,
-                });
+                return Some((
+                    buffer,
+                    OutputPart {
+                        // SAFETY: `buffer < buffers`, so its start lies in the borrowed output.
+                        ptr: unsafe { self.ptr.add(buffer * self.len) },
+                        len: self.len,
+                        units,
+                        _borrow: PhantomData,
+                    },
+                ));
             }
         }
     }

@@ -8,9 +8,9 @@ mod common;
 
 use common::{levels, Rng};
 use drivesim_kernels::{
-    conv, conv_weight_grad, conv_weight_grad_add_rows, conv_weight_grad_rows, conv_weight_grad_scratch_len, pack,
-    winograd_conv, winograd_weights, Activation, ConvKind, ConvParams, ConvShape, Isa, Matrix, OutputParts, Plane,
-    Winograd,
+    conv, conv_grad_pixels, conv_weight_grad, conv_weight_grad_add_rows, conv_weight_grad_block_rows,
+    conv_weight_grad_rows, conv_weight_grad_scratch_len, pack, winograd_conv, winograd_weights, Activation, ConvKind,
+    ConvParams, ConvShape, Isa, Matrix, OutputParts, Plane, Winograd, GRAD_PIXELS,
 };
 
 /// `(kind, height, width, in channels, out channels)`: narrow and odd channel counts, planes of
@@ -196,6 +196,42 @@ fn weight_grad(isa: Isa, shape: ConvShape, x: &[f32], dy: &[f32], items: usize) 
             conv_weight_grad_rows(isa, down, &input, &grad_of_output, &mut scratch, part);
         }
         assert!(split == packed, "{:?} {shape:?}: split rows differ", isa.level());
+    }
+    // Blocks of pixels, each into a gradient of its own, then added: one block is the whole
+    // batch's bits; three blocks (on chunk boundaries, the last shorter) sum to the same values.
+    let pixels = conv_grad_pixels(&down, items);
+    let third = (pixels / 3).next_multiple_of(GRAD_PIXELS);
+    for bounds in [
+        vec![0, pixels],
+        vec![0, third.min(pixels), (2 * third).min(pixels), pixels],
+    ] {
+        let (blocks, len) = (bounds.len() - 1, packed.len());
+        let mut partials = vec![f32::NAN; blocks * len];
+        let parts = OutputParts::grid(&mut partials, blocks, rows, 2);
+        while let Some((b, part)) = parts.take_in_buffer() {
+            let range = bounds[b]..bounds[b + 1];
+            conv_weight_grad_block_rows(isa, down, &input, &grad_of_output, range, &mut scratch, part);
+        }
+        let mut sum = partials[..len].to_vec();
+        for partial in partials.chunks_exact(len).skip(1) {
+            sum.iter_mut().zip(partial).for_each(|(s, p)| *s += p);
+        }
+        let scale = packed.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        for (s, p) in sum.iter().zip(&packed) {
+            match blocks {
+                1 => assert_eq!(
+                    s.to_bits(),
+                    p.to_bits(),
+                    "{:?} {shape:?}: one block differs",
+                    isa.level()
+                ),
+                _ => assert!(
+                    (s - p).abs() <= 1e-5 * scale,
+                    "{:?} {shape:?}: blocks {s}, whole {p}",
+                    isa.level()
+                ),
+            }
+        }
     }
     // Adding to a gradient that holds the same values doubles it (to the rounding of sums of
     // terms up to the largest weight's size).

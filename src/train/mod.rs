@@ -34,6 +34,7 @@ mod shared;
 mod state;
 mod transition;
 mod vae_gan;
+mod work;
 
 pub use adam::Adam;
 pub use heads::{HeadSettings, HeadTrainer};
@@ -47,6 +48,7 @@ pub use transition::{TransitionPlan, TransitionSettings, TransitionTrainer};
 #[cfg(feature = "std")]
 pub use vae_gan::random_weight_file;
 pub use vae_gan::{VaeGanLosses, VaeGanPlan, VaeGanSettings, VaeGanTrainer, VAE_GAN_LR};
+pub use work::{PartWork, StepWork};
 
 /// A named tensor in PyTorch layout: name, shape, row-major values.
 pub type NamedTensor = (alloc::string::String, alloc::vec::Vec<usize>, alloc::vec::Vec<f32>);

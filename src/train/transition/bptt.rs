@@ -4,13 +4,12 @@
 use super::settings::Backward;
 use super::spread::{spread_loss, Saved};
 use super::trainer::TransitionTrainer;
-use crate::layers::dense;
 use crate::pool::Exec;
 use crate::train::arena::{cut, cut_ref};
 use crate::train::shared::column_sums;
 use crate::{Error, Result};
 use drivesim_kernels::pack::dense_from_fn;
-use drivesim_kernels::{Activation, Matrix, MatrixData, OutputParts};
+use drivesim_kernels::{dense_rows, Activation, Matrix, MatrixData, OutputParts, OC_ALIGN};
 
 impl TransitionTrainer<'_> {
     /// Runs the windows forward, saving every input, hidden state and prediction (time-major:
@@ -55,9 +54,9 @@ impl TransitionTrainer<'_> {
                 }
             }
             let h_t = &mut hs[hs_t..][..batch * h];
-            dense(exec, input, bx, Activation::Tanh, x, h_t);
+            product(exec, input, bx, Activation::Tanh, x, h_t);
             let out = &mut outs[t * batch * z..][..batch * z];
-            dense(exec, output, ba, Activation::Identity, h_t, out);
+            product(exec, output, ba, Activation::Identity, h_t, out);
             for (n, out) in out.chunks_exact(z).enumerate() {
                 let target = &codes[(n * d.window + t + 1) * z..][..z];
                 sum += out
@@ -157,7 +156,7 @@ impl TransitionTrainer<'_> {
             );
             if inputs {
                 let dpre_t = &dpre[t * batch * h..][..batch * h];
-                dense(
+                product(
                     exec,
                     vut,
                     &zero[..z + a],
@@ -193,7 +192,7 @@ impl TransitionTrainer<'_> {
 /// One step of the RNN backward: `dh = [Aᵀ | Wᵀ] [dz' | dpre_next]` (the hidden state feeds
 /// the prediction and the next step), then through the tanh: `dpre = dh (1 - h²)`.
 fn step_backward(exec: Exec<'_>, bt: Matrix<'_>, zero: &[f32], gathered: &[f32], h: &[f32], dpre: &mut [f32]) {
-    dense(exec, bt, zero, Activation::Identity, gathered, dpre);
+    product(exec, bt, zero, Activation::Identity, gathered, dpre);
     drivesim_kernels::activation_backward(exec.isa, Activation::Tanh, h, dpre);
 }
 
@@ -205,4 +204,40 @@ fn weight_grad(exec: Exec<'_>, dy: &[f32], x: &[f32], rows: usize, cols: usize, 
             drivesim_kernels::dense_weight_grad_rows(exec.isa, dy, x, rows, cols, part);
         }
     });
+}
+
+/// `y = act(W x + b)` over a batch, shared by the threads in a grid: ranges of whole panels of
+/// the rows (each thread reading its share of the weights) times equal blocks of items, where
+/// the panels alone are too few for the threads ([`product_grid`]). Each output is the same dot
+/// product however the batch is cut, so the bits do not change with the threads.
+fn product(exec: Exec<'_>, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
+    let items = x.len() / w.cols;
+    let (row_parts, blocks) = product_grid(exec.threads(), w.rows, items);
+    let per_block = items / blocks;
+    let parts = OutputParts::grid(y, blocks, w.rows, row_parts);
+    exec.run(&|| {
+        while let Some((b, part)) = parts.take_in_buffer() {
+            let x = &x[b * per_block * w.cols..][..per_block * w.cols];
+            dense_rows(exec.isa, w, bias, act, x, part);
+        }
+    });
+}
+
+/// The grid of [`product`] for `threads` threads, `rows` rows and `items` items: row parts and
+/// item blocks (a divisor of `items`), the pair whose slowest thread gets the least work (in
+/// panels times items), the fewest blocks among equals (each block reads every weight again).
+pub(super) fn product_grid(threads: usize, rows: usize, items: usize) -> (usize, usize) {
+    let panels = rows.div_ceil(OC_ALIGN).max(1);
+    let threads = threads.max(1);
+    let mut best = (usize::MAX, 1, 1);
+    for blocks in (1..=threads.min(items.max(1))).filter(|b| items.is_multiple_of(*b)) {
+        for row_parts in 1..=panels.min(threads) {
+            let units_each = (row_parts * blocks).div_ceil(threads);
+            let slowest = units_each * panels.div_ceil(row_parts) * (items / blocks);
+            if slowest < best.0 {
+                best = (slowest, row_parts, blocks);
+            }
+        }
+    }
+    (best.1, best.2)
 }

@@ -10,8 +10,8 @@
 //!
 //! The files: `plan` (the [`TransitionPlan`] and the arena's buffers), `settings`
 //! ([`TransitionSettings`]), `trainer` (the public API of [`TransitionTrainer`]), `bptt` (the
-//! forward pass over windows and back-propagation through time) and `state` (its state as bytes,
-//! for checkpoints).
+//! forward pass over windows and back-propagation through time), `state` (its state as bytes,
+//! for checkpoints) and `work` (the count of a step's work per thread).
 
 mod bptt;
 mod plan;
@@ -19,6 +19,7 @@ mod settings;
 mod spread;
 mod state;
 mod trainer;
+mod work;
 
 pub use plan::TransitionPlan;
 pub use settings::TransitionSettings;

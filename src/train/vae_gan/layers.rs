@@ -140,6 +140,17 @@ impl Conv {
     }
 }
 
+impl Conv {
+    /// The strided shape whose weight gradient is this layer's: its own, or a transposed
+    /// layer's [`ConvShape::transposed`] (its rows the layer's input channels).
+    pub(super) fn grad_shape(&self) -> ConvShape {
+        match self.shape.kind {
+            ConvKind::Down => self.shape,
+            ConvKind::Up => self.shape.transposed(),
+        }
+    }
+}
+
 /// How a dense layer's PyTorch rows or columns map to the kernels' order: a flattened feature
 /// map is CHW in PyTorch and HWC in a plane.
 #[derive(Clone, Copy)]
@@ -272,6 +283,9 @@ pub(super) struct Work {
     /// One per thread.
     pub(super) scratch: Vec<Scratch>,
     pub(super) weight_scratch: Vec<f32>,
+    /// The partial weight gradients of a layer's blocks of pixels
+    /// ([`super::weight_grad::GradSplit`]).
+    pub(super) partials: Vec<f32>,
     /// The gradients of a BatchNorm pass's scale and shift.
     pub(super) channel_tmp: Vec<f32>,
     /// Zeros: the bias of the data-gradient convolutions.

@@ -19,7 +19,8 @@
 //! The files: `trainer` (the public API: settings, losses, [`VaeGanTrainer`]), `plan` (the
 //! [`VaeGanPlan`] and a step's buffers), `networks` (the tensors' table, the networks built),
 //! `layers` (packed convolutions and dense layers), `stack` (a convolution stack's forward and
-//! backward passes), `norm` (BatchNorm's training passes), `loss` (the losses' building blocks),
+//! backward passes), `norm` (BatchNorm's training passes), `weight_grad` (a convolution's weight gradient shared
+//! by threads), `loss` (the losses' building blocks),
 //! `step` (one step, top to bottom), `update` (the gradients checked, Adam, the repacking) and
 //! `state` (the trainer's state as bytes, for checkpoints).
 
@@ -39,6 +40,8 @@ mod step;
 mod table;
 mod trainer;
 mod update;
+mod weight_grad;
+mod work;
 
 #[cfg(feature = "std")]
 pub use networks::random_weight_file;

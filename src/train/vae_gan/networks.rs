@@ -7,6 +7,7 @@ use super::buffers::Buffers;
 use super::layers::{Conv, Dense, Order, Scratch, Work};
 use super::stack::{stack, stack_grads, PASSES};
 use super::table::{Entry, Layout, Norm, Table};
+use super::weight_grad::GradSplit;
 use super::HALO;
 use crate::encoder::LEAKY_SLOPE;
 use crate::train::NamedTensor;
@@ -158,6 +159,15 @@ pub(super) fn build(config: &Config, batch: usize, threads: usize, budget: &mut 
     let [enc, gen, dis]: [[Conv; 4]; 3] = [enc, gen, dis].map(|v| v.try_into().ok().expect("four layers"));
 
     let pair = mul(2, batch)?;
+    // A backward pass runs over one batch or two (reconstructions and prior samples).
+    let partials = [&enc, &gen, &dis]
+        .iter()
+        .flat_map(|net| net.iter())
+        .flat_map(|l| {
+            [batch, pair].map(|items| GradSplit::new(&l.grad_shape(), items, threads).partials_len(&l.grad_shape()))
+        })
+        .max()
+        .unwrap_or(0);
     let act = "activations";
     let buffers = Buffers {
         batch,
@@ -199,6 +209,7 @@ pub(super) fn build(config: &Config, batch: usize, threads: usize, budget: &mut 
                 })
                 .collect::<Result<_>>()?,
             weight_scratch: budget.take("scratch", mul(threads, sizes.weight_scratch)?)?,
+            partials: budget.take("partial weight gradients", partials)?,
             channel_tmp: budget.take("scratch", 2 * sizes.channels.max(top_c))?,
             zero: budget.take("scratch", sizes.channels)?,
             item_sums: budget.take_f64("scratch", mul(pair, sums_len(sizes.channels.max(top_c)))?)?,

@@ -4,15 +4,13 @@
 use super::budget::{mul, Budget};
 use super::layers::{Conv, Work};
 use super::norm::{add, batch_sums, norm_backward, norm_forward};
+use super::weight_grad::conv_weight_grad;
 use crate::pool::{Exec, Parts};
 use crate::Result;
 use alloc::vec::Vec;
 use core::ops::Range;
 use drivesim_kernels::norm::moments;
-use drivesim_kernels::{
-    activation_backward, conv_weight_grad_add_rows, conv_weight_grad_scratch_len, Activation, ConvKind, ConvShape,
-    OutputParts, Plane,
-};
+use drivesim_kernels::{activation_backward, Activation, ConvKind, Plane};
 
 /// The activations of a stack of convolutions for a batch, saved for the backward pass, and
 /// the BatchNorm statistics of each of its passes (batches normalised on their own).
@@ -142,24 +140,6 @@ pub(super) fn stack_forward(
     }
 }
 
-/// The weight gradient of the strided layer `down` over a batch, added to what `grad` holds
-/// (in the layout of [`Table::conv`](super::networks::Table::conv)): in one run, each thread
-/// takes a share of the gradient's panels and gathers every patch into its own `scratch`
-/// ([`drivesim_kernels::conv_weight_grad_add_rows`]). Gathering twice costs less than sharing:
-/// a shared gathering needs a barrier per block of patches, and half of what each thread reads
-/// would be the other's writes.
-fn conv_weight_grad(exec: Exec<'_>, down: ConvShape, input: &[f32], dy: &[f32], scratch: &mut [f32], grad: &mut [f32]) {
-    let each = conv_weight_grad_scratch_len(&down);
-    let scratch = Parts::chunks(&mut scratch[..exec.threads() * each], each);
-    let parts = OutputParts::new(grad, down.output.channels, exec.threads());
-    exec.run(&|| {
-        let (_, scratch) = scratch.take().expect("a scratch for every thread");
-        while let Some(part) = parts.take() {
-            conv_weight_grad_add_rows(exec.isa, down, input, dy, scratch, part);
-        }
-    });
-}
-
 /// Where a backward pass through a stack starts: from the gradient of layer `i`'s output (in
 /// `g[i]`), or of its convolution's output before BatchNorm and the activation (in `g[i]` too).
 #[derive(Clone, Copy)]
@@ -241,11 +221,13 @@ pub(super) fn stack_backward(
             }
             // A transposed layer's weight gradient is its transposed shape's, with the input
             // and the output gradient swapped.
-            let (down, a, b) = match l.shape.kind {
-                ConvKind::Down => (l.shape, x, &*gz),
-                ConvKind::Up => (l.shape.transposed(), &*gz, x),
+            let terms = match l.shape.kind {
+                ConvKind::Down => (x, &*gz),
+                ConvKind::Up => (&*gz, x),
             };
-            conv_weight_grad(exec, down, a, b, &mut work.weight_scratch, &mut grads[l.weight.clone()]);
+            let (scratch, partials) = (&mut work.weight_scratch[..], &mut work.partials[..]);
+            let grad = &mut grads[l.weight.clone()];
+            conv_weight_grad(exec, l.grad_shape(), terms, scratch, partials, grad);
         }
         let target = if i > 0 {
             Some(&mut below[i - 1][..items * il])

@@ -17,7 +17,7 @@ enum Job<'a> {
 
 /// Pieces that the passes over every parameter (Adam, zeroing and checking the gradients) are
 /// cut into, threads taking them in turn: the same pieces whatever the thread count.
-const PIECES: usize = 16;
+const PIECES: usize = 64;
 
 /// Values in each of the [`PIECES`] pieces of `len` values (the last may hold fewer).
 fn piece_len(len: usize) -> usize {
@@ -25,7 +25,7 @@ fn piece_len(len: usize) -> usize {
 }
 
 /// The [`PIECES`] ranges of `len` values.
-fn pieces(len: usize) -> [Range<usize>; PIECES] {
+pub(super) fn pieces(len: usize) -> [Range<usize>; PIECES] {
     let step = piece_len(len);
     core::array::from_fn(|i| (i * step).min(len)..((i + 1) * step).min(len))
 }
