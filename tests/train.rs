@@ -226,9 +226,10 @@ fn action_gradient_matches_finite_differences() {
 #[test]
 fn threads_give_the_same_bits() {
     // Threads share each product by panels of rows and blocks of items (as many blocks as
-    // divide the batch: 5 and 12 windows cut differently), the weight gradients by rows.
+    // divide the batch: 5 and 12 windows cut differently), the weight gradients by rows and, for
+    // 40 windows (560 steps), by two blocks of steps summed apart.
     let model = Model::random(&SMALL, 6, WeightDtype::F32).unwrap();
-    for b in [5, 12] {
+    for b in [5, 12, 40] {
         let t = 15;
         let (codes, actions) = batch(&SMALL, b, t, 10);
         let plan = TransitionPlan::new(&SMALL, b, t).unwrap();

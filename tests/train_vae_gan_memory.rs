@@ -29,7 +29,8 @@ fn buffers_are_the_plan_and_steps_allocate_nothing() {
         .map(|i| (i as f32 * 0.37).sin())
         .collect();
     let eps: Vec<f32> = (0..batch * config.z_dim).map(|i| (i as f32 * 0.7).cos()).collect();
-    for threads in [1, 2] {
+    // Five threads: weight gradients cut by blocks of pixels and by groups of rows.
+    for threads in [1, 2, 5] {
         let plan = VaeGanPlan::new(&config, batch, threads).unwrap();
         let listed: usize = plan.buffers().map(|(_, bytes)| bytes).sum();
         assert_eq!(listed, plan.bytes());

@@ -3,13 +3,14 @@
 
 use super::settings::Backward;
 use super::spread::{spread_loss, Saved};
+use super::threads::{column_sums, each_row, product, spans, weight_grad, SPANS};
 use super::trainer::TransitionTrainer;
 use crate::pool::Exec;
+use crate::pool::Parts;
 use crate::train::arena::{cut, cut_ref};
-use crate::train::shared::column_sums;
 use crate::{Error, Result};
 use drivesim_kernels::pack::dense_from_fn;
-use drivesim_kernels::{dense_rows, Activation, Matrix, MatrixData, OutputParts, OC_ALIGN};
+use drivesim_kernels::{Activation, Matrix, MatrixData};
 
 impl TransitionTrainer<'_> {
     /// Runs the windows forward, saving every input, hidden state and prediction (time-major:
@@ -20,7 +21,7 @@ impl TransitionTrainer<'_> {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
-        let [params, _, _, _, _, _, xs, hs, outs, _, dout, .., norm] = cut(self.memory.floats(), &self.plan.lens);
+        let [params, _, _, _, _, _, xs, hs, outs, _, dout, .., norm, _] = cut(self.memory.floats(), &self.plan.lens);
         let [wx, bx, wa, ba, ws, bs] = cut_ref(params, &d.params());
         let (h, z, a, cols) = (d.hidden, d.z, d.actions, d.cols());
         let (mean, std) = norm.split_at(a);
@@ -34,38 +35,31 @@ impl TransitionTrainer<'_> {
             rows: z,
             cols: h,
         };
-        let mut sum = 0.0f64;
         for t in 0..d.steps() {
             let (x, hs_t) = (&mut xs[t * batch * cols..][..batch * cols], t * batch * h);
-            for (n, row) in x.chunks_exact_mut(cols).enumerate() {
+            let (hs_read, outs_read) = (&*hs, &*outs);
+            each_row(exec, x, cols, &|n, row| {
                 let (h_prev, rest) = row.split_at_mut(h);
                 let (z_in, c) = rest.split_at_mut(z);
                 match t {
                     0 => h_prev.fill(0.0),
-                    _ => h_prev.copy_from_slice(&hs[hs_t - batch * h + n * h..][..h]),
+                    _ => h_prev.copy_from_slice(&hs_read[hs_t - batch * h + n * h..][..h]),
                 }
                 match t < teacher {
                     true => z_in.copy_from_slice(&codes[(n * d.window + t) * z..][..z]),
-                    false => z_in.copy_from_slice(&outs[((t - 1) * batch + n) * z..][..z]),
+                    false => z_in.copy_from_slice(&outs_read[((t - 1) * batch + n) * z..][..z]),
                 }
                 let raw = &actions[(n * d.steps() + t) * a..][..a];
                 for (((c, raw), m), s) in c.iter_mut().zip(raw).zip(mean).zip(std.iter()) {
                     *c = (raw - m) / s;
                 }
-            }
+            });
             let h_t = &mut hs[hs_t..][..batch * h];
             product(exec, input, bx, Activation::Tanh, x, h_t);
             let out = &mut outs[t * batch * z..][..batch * z];
             product(exec, output, ba, Activation::Identity, h_t, out);
-            for (n, out) in out.chunks_exact(z).enumerate() {
-                let target = &codes[(n * d.window + t + 1) * z..][..z];
-                sum += out
-                    .iter()
-                    .zip(target)
-                    .map(|(o, y)| ((o - y) as f64) * ((o - y) as f64))
-                    .sum::<f64>();
-            }
         }
+        let sum = squared_errors(exec, d.window, batch, z, &outs[..d.steps() * batch * z], codes);
         let mut loss = sum / (batch * d.steps() * z) as f64;
         if d.spread {
             // The prediction gradients' buffer is free until the backward pass.
@@ -92,7 +86,7 @@ impl TransitionTrainer<'_> {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
-        let [params, grads, _, _, bt, vut, xs, hs, outs, dpre, dout, dzc, gathered, zero, _] =
+        let [params, grads, _, _, bt, vut, xs, hs, outs, dpre, dout, dzc, gathered, zero, _, partials] =
             cut(self.memory.floats(), &self.plan.lens);
         let (h, z, a, cols, steps) = (d.hidden, d.z, d.actions, d.cols(), d.steps());
         if !self.transposed {
@@ -115,18 +109,14 @@ impl TransitionTrainer<'_> {
         let (bt, vut) = (matrix(bt, h, z + h), matrix(vut, z + a, h));
         // d loss / d prediction: 2 (prediction - code) / (values in the loss).
         let scale = 2.0 / (batch * steps * z) as f32;
-        for t in 0..steps {
-            let (out, g) = (
-                &outs[t * batch * z..][..batch * z],
-                &mut dout[t * batch * z..][..batch * z],
-            );
-            for (n, (out, g)) in out.chunks_exact(z).zip(g.chunks_exact_mut(z)).enumerate() {
-                let target = &codes[(n * d.window + t + 1) * z..][..z];
-                for ((g, o), y) in g.iter_mut().zip(out).zip(target) {
-                    *g = scale * (o - y);
-                }
+        let outs_read = &*outs;
+        each_row(exec, &mut dout[..steps * batch * z], z, &|item, g| {
+            let (t, n) = (item / batch, item % batch);
+            let target = &codes[(n * d.window + t + 1) * z..][..z];
+            for ((g, o), y) in g.iter_mut().zip(&outs_read[item * z..][..z]).zip(target) {
+                *g = scale * (o - y);
             }
-        }
+        });
         let inputs = what == Backward::Inputs || full;
         for t in (0..steps).rev() {
             let later = t + 1 < steps;
@@ -139,13 +129,14 @@ impl TransitionTrainer<'_> {
                 }
             }
             let g = &mut gathered[..batch * (z + h)];
-            for (n, row) in g.chunks_exact_mut(z + h).enumerate() {
+            let (dout_t, dpre_read) = (&*dout_t, &*dpre);
+            each_row(exec, g, z + h, &|n, row| {
                 row[..z].copy_from_slice(&dout_t[n * z..][..z]);
                 match later {
-                    true => row[z..].copy_from_slice(&dpre[((t + 1) * batch + n) * h..][..h]),
+                    true => row[z..].copy_from_slice(&dpre_read[((t + 1) * batch + n) * h..][..h]),
                     false => row[z..].fill(0.0),
                 }
-            }
+            });
             step_backward(
                 exec,
                 bt,
@@ -169,10 +160,10 @@ impl TransitionTrainer<'_> {
         if what == Backward::Weights {
             let [gwx, gbx, gwa, gba, gws, gbs] = cut(grads, &d.params());
             let items = steps * batch;
-            weight_grad(exec, &dpre[..items * h], &xs[..items * cols], h, cols, gwx);
-            column_sums(&dpre[..items * h], gbx);
-            weight_grad(exec, &dout[..items * z], &hs[..items * h], z, h, gwa);
-            column_sums(&dout[..items * z], gba);
+            weight_grad(exec, (&dpre[..items * h], &xs[..items * cols]), h, cols, partials, gwx);
+            column_sums(exec, &dpre[..items * h], gbx);
+            weight_grad(exec, (&dout[..items * z], &hs[..items * h]), z, h, partials, gwa);
+            column_sums(exec, &dout[..items * z], gba);
             if d.spread {
                 // The input gradients' buffer is free once the steps are done.
                 let [.., ws, bs] = cut_ref(params, &d.params());
@@ -181,8 +172,8 @@ impl TransitionTrainer<'_> {
                 let forced = teacher.min(steps) * batch;
                 let dls = &mut dzc[..forced * z];
                 spread_loss(exec, d, teacher, (ws, bs), saved, dls, true);
-                weight_grad(exec, dls, &hs[..forced * h], z, h, gws);
-                column_sums(dls, gbs);
+                weight_grad(exec, (dls, &hs[..forced * h]), z, h, partials, gws);
+                column_sums(exec, dls, gbs);
             }
         }
         Ok(())
@@ -193,51 +184,29 @@ impl TransitionTrainer<'_> {
 /// the prediction and the next step), then through the tanh: `dpre = dh (1 - h²)`.
 fn step_backward(exec: Exec<'_>, bt: Matrix<'_>, zero: &[f32], gathered: &[f32], h: &[f32], dpre: &mut [f32]) {
     product(exec, bt, zero, Activation::Identity, gathered, dpre);
-    drivesim_kernels::activation_backward(exec.isa, Activation::Tanh, h, dpre);
-}
-
-/// `grad = dyᵀ x` packed, shared among the threads by panels of rows.
-fn weight_grad(exec: Exec<'_>, dy: &[f32], x: &[f32], rows: usize, cols: usize, grad: &mut [f32]) {
-    let parts = OutputParts::new(grad, rows, exec.threads());
-    exec.run(&|| {
-        while let Some(part) = parts.take() {
-            drivesim_kernels::dense_weight_grad_rows(exec.isa, dy, x, rows, cols, part);
-        }
+    let len = bt.rows;
+    each_row(exec, dpre, len, &|n, row| {
+        drivesim_kernels::activation_backward(exec.isa, Activation::Tanh, &h[n * len..][..len], row)
     });
 }
 
-/// `y = act(W x + b)` over a batch, shared by the threads in a grid: ranges of whole panels of
-/// the rows (each thread reading its share of the weights) times equal blocks of items, where
-/// the panels alone are too few for the threads ([`product_grid`]). Each output is the same dot
-/// product however the batch is cut, so the bits do not change with the threads.
-fn product(exec: Exec<'_>, w: Matrix<'_>, bias: &[f32], act: Activation, x: &[f32], y: &mut [f32]) {
-    let items = x.len() / w.cols;
-    let (row_parts, blocks) = product_grid(exec.threads(), w.rows, items);
-    let per_block = items / blocks;
-    let parts = OutputParts::grid(y, blocks, w.rows, row_parts);
+/// The sum of squared errors of the predictions `outs` (time-major, `batch` windows) against
+/// their codes, in f64: threads sum fixed spans of the items, the spans are added in order.
+fn squared_errors(exec: Exec<'_>, window: usize, batch: usize, z: usize, outs: &[f32], codes: &[f32]) -> f64 {
+    let items = outs.len() / z;
+    let spans = spans(items);
+    let mut sums = [0.0f64; SPANS];
+    let slots = Parts::chunks(&mut sums[..], 1);
     exec.run(&|| {
-        while let Some((b, part)) = parts.take_in_buffer() {
-            let x = &x[b * per_block * w.cols..][..per_block * w.cols];
-            dense_rows(exec.isa, w, bias, act, x, part);
-        }
-    });
-}
-
-/// The grid of [`product`] for `threads` threads, `rows` rows and `items` items: row parts and
-/// item blocks (a divisor of `items`), the pair whose slowest thread gets the least work (in
-/// panels times items), the fewest blocks among equals (each block reads every weight again).
-pub(super) fn product_grid(threads: usize, rows: usize, items: usize) -> (usize, usize) {
-    let panels = rows.div_ceil(OC_ALIGN).max(1);
-    let threads = threads.max(1);
-    let mut best = (usize::MAX, 1, 1);
-    for blocks in (1..=threads.min(items.max(1))).filter(|b| items.is_multiple_of(*b)) {
-        for row_parts in 1..=panels.min(threads) {
-            let units_each = (row_parts * blocks).div_ceil(threads);
-            let slowest = units_each * panels.div_ceil(row_parts) * (items / blocks);
-            if slowest < best.0 {
-                best = (slowest, row_parts, blocks);
+        while let Some((i, slot)) = slots.take() {
+            for item in spans[i].clone() {
+                let (t, n) = (item / batch, item % batch);
+                let target = &codes[(n * window + t + 1) * z..][..z];
+                let out = &outs[item * z..][..z];
+                let diff = |(o, y): (&f32, &f32)| ((o - y) as f64) * ((o - y) as f64);
+                slot[0] += out.iter().zip(target).map(diff).sum::<f64>();
             }
         }
-    }
-    (best.1, best.2)
+    });
+    sums.iter().sum()
 }

@@ -10,14 +10,16 @@
 //!
 //! The files: `plan` (the [`TransitionPlan`] and the arena's buffers), `settings`
 //! ([`TransitionSettings`]), `trainer` (the public API of [`TransitionTrainer`]), `bptt` (the
-//! forward pass over windows and back-propagation through time), `state` (its state as bytes,
-//! for checkpoints) and `work` (the count of a step's work per thread).
+//! forward pass over windows and back-propagation through time), `threads` (how the threads share
+//! a step), `state` (its state as bytes, for checkpoints) and `work` (the count of a step's work
+//! per thread).
 
 mod bptt;
 mod plan;
 mod settings;
 mod spread;
 mod state;
+mod threads;
 mod trainer;
 mod work;
 

@@ -1,12 +1,13 @@
 //! The trainer's arena, planned before anything is allocated: its buffers in order, the sizes
 //! they follow from ([`Dims`]) and [`TransitionPlan`].
 
+use super::threads::partials_len;
 use crate::train::arena::{bytes_of, total};
 use crate::{Config, Error, Result};
 use drivesim_kernels::Matrix;
 
 /// The arena's buffers, in order.
-const BUFFERS: [&str; 15] = [
+const BUFFERS: [&str; 16] = [
     "weights",
     "gradients",
     "Adam first moments",
@@ -22,11 +23,13 @@ const BUFFERS: [&str; 15] = [
     "gathered [dz' | dpre]",
     "zero bias",
     "action normalisation",
+    "partial weight gradients",
 ];
 
 /// The memory of a [`TransitionTrainer`](super::TransitionTrainer), computed from the config,
 /// the batch and the window length before anything is allocated. Threads need none of their
-/// own: they share each product by rows.
+/// own: they share each product by rows and items, and each weight gradient by rows and blocks
+/// of items summed apart ("partial weight gradients", for 256 windows' steps and more).
 ///
 /// ```
 /// use drivesim::train::TransitionPlan;
@@ -182,6 +185,8 @@ impl TransitionPlan {
             mul(batch, z + h)?,
             h.max(z + a),
             2 * a,
+            // The weight gradients' blocks, one gradient at a time (the spread head's as A's).
+            partials_len(h, dims.cols(), items).max(partials_len(z, h, items)),
         ];
         let bytes = bytes_of(total(&lens, WHAT)?, WHAT)?;
         Ok(TransitionPlan { dims, lens, bytes })

@@ -43,7 +43,7 @@ impl TransitionTrainer<'_> {
     /// [`crate::Error::BadWeight`]; then the trainer is unchanged.
     pub fn load_state(&mut self, state: &[u8]) -> Result<()> {
         let (sizes, lens) = (self.sizes(), self.plan.lens);
-        let [params, _, m, v, .., norm] = cut(self.memory.floats(), &lens);
+        let [params, _, m, v, .., norm, _] = cut(self.memory.floats(), &lens);
         let steps = read_state(
             state,
             MAGIC,

@@ -3,8 +3,9 @@
 
 use super::plan::{Dims, TransitionPlan};
 use super::settings::{check_settings, Backward, TransitionSettings};
+use super::threads::{adam_shared, squares};
 use crate::error::{expect_finite, expect_finite_output, expect_len};
-use crate::pool::Pool;
+use crate::pool::{Exec, Pool};
 use crate::train::arena::{cut, cut_ref, Memory};
 use crate::train::shared::check_lr;
 #[cfg(feature = "std")]
@@ -124,7 +125,7 @@ impl<'a> TransitionTrainer<'a> {
             pending: None,
             transposed: false,
         };
-        let [params, .., norm] = cut(trainer.memory.floats(), &trainer.plan.lens);
+        let [params, .., norm, _] = cut(trainer.memory.floats(), &trainer.plan.lens);
         let [wx, bx, wa, ba, ws, bs] = cut(params, &d.params());
         model.transition.trainer_weights((wx, bx), (wa, ba));
         match spread {
@@ -180,7 +181,7 @@ impl<'a> TransitionTrainer<'a> {
                 value: s,
             });
         }
-        let [params, grads, m, v, .., norm] = cut(self.memory.floats(), &self.plan.lens);
+        let [params, grads, m, v, .., norm, _] = cut(self.memory.floats(), &self.plan.lens);
         let [wx, bx, ..] = cut(params, &d.params());
         let (old_mean, old_std) = norm.split_at_mut(a);
         let cols = d.cols();
@@ -228,8 +229,11 @@ impl<'a> TransitionTrainer<'a> {
         // The norm that clipping scales by is the mean's alone: the spread head's loss is one of
         // its own, and Adam bounds its steps (`weights/sequences.py`'s `transition_step`).
         let grads = &grads[..self.plan.dims.clipped()];
-        let norm = grads.iter().map(|&g| g as f64 * g as f64).sum::<f64>();
-        let norm = math::sqrt(norm) as f32;
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
+        let norm = math::sqrt(squares(exec, grads)) as f32;
         if !norm.is_finite() {
             return Err(Error::NonFiniteOutput {
                 buffer: "gradients",
@@ -272,10 +276,21 @@ impl<'a> TransitionTrainer<'a> {
         let (params, spread_params) = params.split_at_mut(at);
         let ((grads, spread_grads), (m, spread_m), (v, spread_v)) =
             (grads.split_at(at), m.split_at_mut(at), v.split_at_mut(at));
-        let adam = self.settings.adam;
-        adam.update(self.steps, lr, scale, params, grads, [m, v]);
+        let (adam, t) = (self.settings.adam, self.steps);
+        let exec = Exec {
+            isa: self.isa,
+            pool: self.pool.as_ref(),
+        };
+        adam_shared(exec, &adam, (t, lr, scale), params, grads, [m, v]);
         if !spread_params.is_empty() {
-            adam.update(self.steps, lr, 1.0, spread_params, spread_grads, [spread_m, spread_v]);
+            adam_shared(
+                exec,
+                &adam,
+                (t, lr, 1.0),
+                spread_params,
+                spread_grads,
+                [spread_m, spread_v],
+            );
         }
         self.transposed = false;
         Ok(())
@@ -288,7 +303,7 @@ impl<'a> TransitionTrainer<'a> {
         let d = self.plan.dims;
         expect_len("predictions", predictions, batch * d.steps() * d.z)?;
         let loss = self.forward(codes, actions, batch)?;
-        let [.., outs, _, _, _, _, _, _] = cut_ref(self.memory.floats_ref(), &self.plan.lens);
+        let [.., outs, _, _, _, _, _, _, _] = cut_ref(self.memory.floats_ref(), &self.plan.lens);
         for (n, window) in predictions.chunks_exact_mut(d.steps() * d.z).enumerate() {
             for (t, out) in window.chunks_exact_mut(d.z).enumerate() {
                 out.copy_from_slice(&outs[(t * batch + n) * d.z..][..d.z]);
@@ -307,7 +322,7 @@ impl<'a> TransitionTrainer<'a> {
         expect_len("gradient", gradient, actions.len())?;
         let loss = self.forward(codes, actions, batch)?;
         self.backward(codes, batch, Backward::Inputs)?;
-        let [.., dzc, _, _, norm] = cut_ref(self.memory.floats_ref(), &self.plan.lens);
+        let [.., dzc, _, _, norm, _] = cut_ref(self.memory.floats_ref(), &self.plan.lens);
         let (a, std) = (d.actions, &norm[d.actions..]);
         for (n, window) in gradient.chunks_exact_mut(d.steps() * a).enumerate() {
             for (t, g) in window.chunks_exact_mut(a).enumerate() {
@@ -325,7 +340,7 @@ impl<'a> TransitionTrainer<'a> {
     /// The transition's tensors in PyTorch layout (`transition.W`, `.V`, `.U`, `.b`, `.A`,
     /// `.a`), for raw actions (the normalisation folded into `U` and `b`).
     pub fn tensors(&self) -> Vec<NamedTensor> {
-        let [params, .., norm] = cut_ref(self.memory.floats_ref(), &self.plan.lens);
+        let [params, .., norm, _] = cut_ref(self.memory.floats_ref(), &self.plan.lens);
         let mut tensors = self.unpack(params);
         let d = self.plan.dims;
         let (mean, std) = norm.split_at(d.actions);

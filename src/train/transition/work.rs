@@ -1,11 +1,12 @@
 //! The count of one transition training step's work per thread ([`TransitionPlan::work`]):
-//! the products of `bptt.rs` over the window's steps, and what runs on one thread.
+//! the products and passes of `bptt.rs` over the window's steps, as `threads.rs` shares them.
 
-use super::bptt::product_grid;
 use super::plan::TransitionPlan;
+use super::threads::{grad_blocks, product_grid, row_parts, spans};
 use crate::train::work::{panel_units, StepWork};
 use crate::Result;
 use alloc::vec::Vec;
+use drivesim_kernels::Matrix;
 
 impl TransitionPlan {
     /// The work each of `threads` threads gets in one step ([`super::TransitionTrainer::step`]
@@ -23,32 +24,48 @@ impl TransitionPlan {
         let d = self.dims;
         let (h, z, a, cols, batch) = (d.hidden, d.z, d.actions, d.cols(), d.batch);
         let mut w = StepWork::new(threads);
-        // A product `y = W x` over `items`, cut as `bptt::product` cuts it.
-        let product = |w: &mut StepWork, name, rows: usize, cols: usize, items: usize| {
+        // A product `y = W x` over `items`, cut as `threads::product` cuts it.
+        let product = |w: &mut StepWork, rows: usize, cols: usize, items: usize| {
             let (row_parts, blocks) = product_grid(threads, rows, items);
             let per_block = (cols * (items / blocks)) as u64;
             let units: Vec<u64> = (0..blocks)
                 .flat_map(|_| panel_units(rows, row_parts, per_block))
                 .collect();
-            w.part(name, units);
+            w.part("products over a step", units);
         };
         for _ in 0..d.steps() {
-            // Forward: the inputs gathered, `h = tanh([W | V | U] x + b)`, `z' = A h + a`, the
-            // loss; backward: the gradients gathered, `[Aᵀ | Wᵀ]`, the tanh's gradient.
-            w.alone("on one thread", (batch * (cols + 3 * z + (z + h) + h)) as u64);
-            product(&mut w, "products over a step", h, cols, batch);
-            product(&mut w, "products over a step", z, h, batch);
-            product(&mut w, "products over a step", h, z + h, batch);
+            // Forward: the inputs gathered (threads take windows), `h = tanh([W | V | U] x + b)`,
+            // `z' = A h + a`; backward: the gradients gathered, `[Aᵀ | Wᵀ]`, the tanh's gradient.
+            w.equal("passes over items", batch, (cols + (z + h) + h) as u64);
+            product(&mut w, h, cols, batch);
+            product(&mut w, z, h, batch);
+            product(&mut w, h, z + h, batch);
         }
-        // The weight gradients over every step at once (rows shared by the threads), the biases'
-        // on one thread.
         let items = d.steps() * batch;
-        w.part("weight gradients", panel_units(h, threads, (cols * items) as u64));
-        w.part("weight gradients", panel_units(z, threads, (h * items) as u64));
-        w.alone("on one thread", (items * (h + z)) as u64);
-        // The norm for clipping, Adam, and the transposed packings made again.
+        // The loss and its gradient, a span or a window's step at a time.
+        w.part("passes over items", spans(items).map(|s| (s.len() * z) as u64));
+        w.equal("passes over items", items, z as u64);
+        // The weight gradients, blocks of items summed apart and added, and the biases'.
+        for (rows, cols) in [(h, cols), (z, h)] {
+            let blocks = grad_blocks(items);
+            let per_block = items.div_ceil(blocks);
+            let (parts, _) = row_parts(threads, rows, blocks, per_block);
+            let block = |b: usize| (((b + 1) * per_block).min(items) - (b * per_block).min(items)) as u64;
+            let units: Vec<u64> = (0..blocks)
+                .flat_map(|b| panel_units(rows, parts, block(b) * cols as u64))
+                .collect();
+            w.part("weight gradients", units);
+            if blocks > 1 {
+                let adds = spans(Matrix::packed_len(rows, cols)).map(|s| (s.len() * blocks) as u64);
+                w.part("partial gradients added", adds);
+            }
+            w.part("passes over items", spans(rows).map(|s| (s.len() * items) as u64));
+        }
+        // The norm for clipping and Adam, a span at a time; the transposed packings made again
+        // on one thread.
         let params = h * cols + z * h + h + z;
-        w.alone("on one thread", (10 * params + h * (z + h) + (z + a) * h) as u64);
+        w.part("norm and Adam", spans(params).map(|s| 10 * s.len() as u64));
+        w.alone("on one thread", (h * (z + h) + (z + a) * h) as u64);
         Ok(w)
     }
 }
