@@ -26,7 +26,7 @@ use drivesim::{Episodes, Model};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-/// The default model's training actions (`weights/TRAINING.md`): speed in Box2D units/s and
+/// The default model's training actions (`docs/history/default.md`): speed in Box2D units/s and
 /// steering in [-1, 1], their means and standard deviations, for weight files without
 /// `drivesim.actions` metadata. The search starts at the means.
 const DEFAULT_MEAN: [f32; 2] = [24.8, -0.04];

@@ -166,7 +166,7 @@ impl Model {
 
     /// The width of the transition's texture net (`transition.texture.*`), where it has one: a
     /// sampler trained adversarially so that sampled futures keep the road's kerbs and grass
-    /// patches, used by sampling in place of the spread head (docs/next_second.md).
+    /// patches, used by sampling in place of the spread head (docs/history/next_second.md).
     pub fn texture_width(&self) -> Option<usize> {
         self.transition.texture_width()
     }

@@ -8,7 +8,7 @@
 //! `z_dim` standard normal draws of [`crate::sampling`]'s generator). It is trained
 //! adversarially (`weights/train.py texture`): critics of its generated frames, of its codes
 //! with the hidden state and of its fed-back codes judge it against the recorded drives, so that
-//! its samples are frames a discriminator cannot tell from the road's (docs/next_second.md).
+//! its samples are frames a discriminator cannot tell from the road's (docs/history/next_second.md).
 //!
 //! A model with the texture net samples through it and not through the spread head; the mean
 //! path (temperature 0) is the transition's, bit for bit.

@@ -59,3 +59,33 @@ def test_a_path_that_does_not_exist_is_found():
            "| `train/` | `heads.rs`, `policy.rs`, `simd/{conv,nothing}.rs` |\n"
     assert missing(text) == ["line 5: policy.rs (from src/)", "line 6: policy.rs (from src/train/)",
                              "line 6: simd/conv.rs (from src/train/)", "line 6: simd/nothing.rs (from src/train/)"]
+
+
+
+LINK = re.compile(r"\]\(([^)\s]+)\)")
+
+
+def broken_links(page):
+    """`line: link` for each relative link of a markdown file whose file or folder does not
+    exist (anchors and web addresses are not followed)."""
+    out = []
+    for number, line in enumerate(page.read_text().splitlines(), 1):
+        for link in LINK.findall(line):
+            if re.match(r"^[a-z]+:", link) or link.startswith("#"):
+                continue
+            if not (page.parent / link.partition("#")[0]).exists():
+                out.append(f"{number}: {link}")
+    return out
+
+
+def test_markdown_links_lead_somewhere():
+    pages = [p for p in ROOT.rglob("*.md") if not {"target", ".git", "node_modules"} & set(p.parts)]
+    assert len(pages) > 10
+    broken = [f"{p.relative_to(ROOT)}:{b}" for p in pages for b in broken_links(p)]
+    assert broken == [], broken
+
+
+def test_a_broken_link_is_found(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("[here](page.md) [web](https://x.org) [top](#top)\n[gone](history/gone.md#a)\n")
+    assert broken_links(page) == ["2: history/gone.md#a"]

@@ -96,7 +96,7 @@ def sharpen_noise(factor: torch.Tensor, power: int) -> torch.Tensor:
     """`transition.L` sharpened, as the crate's `train::sharpen_noise_factor`: the Cholesky
     factor of the correlation `L Lᵀ` raised to `power` (an integer, at least 1) and scaled back
     to unit diagonal, in float64; each dimension's spread stays the head's and the noise
-    gathers where the one-step errors move together most (docs/next_second.md)."""
+    gathers where the one-step errors move together most (docs/history/next_second.md)."""
     if int(power) != power or power < 1:
         raise ValueError(f"the noise factor's power must be an integer at least 1, got {power}")
     factor = factor.double().cpu()

@@ -33,7 +33,7 @@ pub struct NoiseArgs {
 pub struct NoisePower {
     /// Raise the noise's correlation to this power, back to unit diagonal
     /// (`sharpen_noise_factor`): 2 brings the best of a few sampled futures nearer what
-    /// happened and makes the sampled codes smaller (docs/next_second.md); 1 keeps it as fitted
+    /// happened and makes the sampled codes smaller (docs/history/next_second.md); 1 keeps it as fitted
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=8))]
     pub noise_power: u32,
 }

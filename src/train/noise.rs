@@ -86,7 +86,7 @@ pub fn fit_noise_factor(model: &Model, drives: &[(&[f32], &[f32])]) -> Result<Ve
 /// and the noise gathers in the directions the one-step errors share most (power 1 gives the
 /// factor back as it is). `weights/sequences.py`'s `sharpen_noise` computes the same.
 ///
-/// The trade-off it moves along, measured on held-out drivers (docs/next_second.md): at power
+/// The trade-off it moves along, measured on held-out drivers (docs/history/next_second.md): at power
 /// 2 the best of 16 sampled futures at 30 steps comes nearer what happened (0.94-0.97 of the
 /// mean code's error, from 1.01-1.02) and the sampled codes' norm falls (0.89-0.90 of the real
 /// codes', from 0.91-0.92).

@@ -35,6 +35,7 @@ impl TransitionTrainer<'_> {
             rows: z,
             cols: h,
         };
+        let mut sum = 0.0f64;
         for t in 0..d.steps() {
             let (x, hs_t) = (&mut xs[t * batch * cols..][..batch * cols], t * batch * h);
             let (hs_read, outs_read) = (&*hs, &*outs);
@@ -58,8 +59,8 @@ impl TransitionTrainer<'_> {
             product(exec, input, bx, Activation::Tanh, x, h_t);
             let out = &mut outs[t * batch * z..][..batch * z];
             product(exec, output, ba, Activation::Identity, h_t, out);
+            sum += squared_errors(exec, (d.window, t), z, out, codes);
         }
-        let sum = squared_errors(exec, d.window, batch, z, &outs[..d.steps() * batch * z], codes);
         let mut loss = sum / (batch * d.steps() * z) as f64;
         if d.spread {
             // The prediction gradients' buffer is free until the backward pass.
@@ -190,21 +191,18 @@ fn step_backward(exec: Exec<'_>, bt: Matrix<'_>, zero: &[f32], gathered: &[f32],
     });
 }
 
-/// The sum of squared errors of the predictions `outs` (time-major, `batch` windows) against
-/// their codes, in f64: threads sum fixed spans of the items, the spans are added in order.
-fn squared_errors(exec: Exec<'_>, window: usize, batch: usize, z: usize, outs: &[f32], codes: &[f32]) -> f64 {
-    let items = outs.len() / z;
-    let spans = spans(items);
+/// The sum of squared errors of step `t`'s predictions `out` (`batch` windows) against their
+/// codes, in f64: threads sum fixed spans of the windows, the spans are added in order.
+fn squared_errors(exec: Exec<'_>, (window, t): (usize, usize), z: usize, out: &[f32], codes: &[f32]) -> f64 {
+    let spans = spans(out.len() / z);
     let mut sums = [0.0f64; SPANS];
     let slots = Parts::chunks(&mut sums[..], 1);
     exec.run(&|| {
         while let Some((i, slot)) = slots.take() {
-            for item in spans[i].clone() {
-                let (t, n) = (item / batch, item % batch);
+            for n in spans[i].clone() {
                 let target = &codes[(n * window + t + 1) * z..][..z];
-                let out = &outs[item * z..][..z];
                 let diff = |(o, y): (&f32, &f32)| ((o - y) as f64) * ((o - y) as f64);
-                slot[0] += out.iter().zip(target).map(diff).sum::<f64>();
+                slot[0] += out[n * z..][..z].iter().zip(target).map(diff).sum::<f64>();
             }
         }
     });

@@ -53,18 +53,22 @@ pub(super) fn row_parts(threads: usize, rows: usize, blocks: usize, per_block: u
 /// Items of a weight gradient's block at least (each block adds a partial gradient to read
 /// back: a small fraction of its products at this size).
 const GRAD_BLOCK_ITEMS: usize = 256;
-/// Blocks at most: a power of two, so that they pair with the usual thread counts.
-const GRAD_BLOCKS: usize = 8;
+/// Parts a weight gradient aims at: enough for 32 threads.
+const GRAD_UNITS: usize = 32;
 
-/// The blocks a weight gradient over `items` items is summed in: fixed by the items alone.
-pub(super) fn grad_blocks(items: usize) -> usize {
-    let most = (items / GRAD_BLOCK_ITEMS).clamp(1, GRAD_BLOCKS);
+/// The blocks a `rows`-row weight gradient over `items` items is summed in: fixed by the shape
+/// and the items alone. None beyond one where the panels of rows are enough parts already (the
+/// partials cost their reading back, a few per cent of a step on one thread); else a power of
+/// two, to pair with the usual thread counts.
+pub(super) fn grad_blocks(rows: usize, items: usize) -> usize {
+    let wanted = GRAD_UNITS.div_ceil(rows.div_ceil(OC_ALIGN).max(1));
+    let most = (items / GRAD_BLOCK_ITEMS).clamp(1, wanted);
     1 << most.ilog2()
 }
 
 /// Floats of the partial gradients of a `rows x cols` weight over at most `items` items.
 pub(super) fn partials_len(rows: usize, cols: usize, items: usize) -> usize {
-    match grad_blocks(items) {
+    match grad_blocks(rows, items) {
         1 => 0,
         blocks => blocks * Matrix::packed_len(rows, cols),
     }
@@ -82,7 +86,7 @@ pub(super) fn weight_grad(
     grad: &mut [f32],
 ) {
     let items = x.len() / cols;
-    let blocks = grad_blocks(items);
+    let blocks = grad_blocks(rows, items);
     let per_block = items.div_ceil(blocks);
     let (parts, _) = row_parts(exec.threads(), rows, blocks, per_block);
     let block = |b: usize| (b * per_block).min(items)..((b + 1) * per_block).min(items);
@@ -150,14 +154,29 @@ pub(super) fn column_sums(exec: Exec<'_>, dy: &[f32], sums: &mut [f32]) {
     });
 }
 
-/// `f(n, row)` for each row of `rows` (rows of `len` floats), threads taking rows.
+/// Rows per run of [`each_row`] over `count` rows.
+pub(super) fn row_run(count: usize, threads: usize) -> usize {
+    count.div_ceil(4 * threads.max(1)).max(1)
+}
+
+/// `f(n, row)` for each row of `rows` (rows of `len` floats), threads taking runs of rows (a
+/// few per thread: each take is a cache line the threads pass between them).
 pub(super) fn each_row(exec: Exec<'_>, rows: &mut [f32], len: usize, f: &(dyn Fn(usize, &mut [f32]) + Sync)) {
-    let parts = Parts::chunks(rows, len);
+    let count = rows.len() / len;
+    let run = row_run(count, exec.threads());
+    let parts = Parts::chunks(rows, run * len);
+    let tail = count / run * run;
     exec.run(&|| {
-        while let Some((n, row)) = parts.take() {
-            f(n, row);
+        while let Some((i, rows)) = parts.take() {
+            for (k, row) in rows.chunks_exact_mut(len).enumerate() {
+                f(i * run + k, row);
+            }
         }
     });
+    // The rows after the last whole run.
+    for (k, row) in rows[tail * len..].chunks_exact_mut(len).enumerate() {
+        f(tail + k, row);
+    }
 }
 
 /// `Σ v²` in f64, threads summing fixed spans, the spans added in order: the clipping norm's
@@ -205,7 +224,7 @@ mod tests {
     #[test]
     fn blocked_weight_gradient_is_the_whole_batchs() {
         let (rows, cols, items) = (40, 24, 1100);
-        assert_eq!(grad_blocks(items), 4);
+        assert_eq!(grad_blocks(rows, items), 4);
         let value = |i: usize| ((i * 7919 % 1000) as f32 / 500.0) - 1.0;
         let dy: Vec<f32> = (0..items * rows).map(value).collect();
         let x: Vec<f32> = (0..items * cols).map(|i| value(i + 3)).collect();

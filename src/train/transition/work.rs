@@ -2,7 +2,7 @@
 //! the products and passes of `bptt.rs` over the window's steps, as `threads.rs` shares them.
 
 use super::plan::TransitionPlan;
-use super::threads::{grad_blocks, product_grid, row_parts, spans};
+use super::threads::{grad_blocks, product_grid, row_parts, row_run, spans};
 use crate::train::work::{panel_units, StepWork};
 use crate::Result;
 use alloc::vec::Vec;
@@ -24,6 +24,13 @@ impl TransitionPlan {
         let d = self.dims;
         let (h, z, a, cols, batch) = (d.hidden, d.z, d.actions, d.cols(), d.batch);
         let mut w = StepWork::new(threads);
+        // A pass over `count` rows of `each` work, runs of rows as `threads::each_row` takes them
+        // (the last rows after them on one thread).
+        let runs = |w: &mut StepWork, count: usize, each: u64| {
+            let run = row_run(count, threads);
+            w.equal("passes over items", count / run, run as u64 * each);
+            w.alone("on one thread", (count % run) as u64 * each);
+        };
         // A product `y = W x` over `items`, cut as `threads::product` cuts it.
         let product = |w: &mut StepWork, rows: usize, cols: usize, items: usize| {
             let (row_parts, blocks) = product_grid(threads, rows, items);
@@ -36,18 +43,20 @@ impl TransitionPlan {
         for _ in 0..d.steps() {
             // Forward: the inputs gathered (threads take windows), `h = tanh([W | V | U] x + b)`,
             // `z' = A h + a`; backward: the gradients gathered, `[Aᵀ | Wᵀ]`, the tanh's gradient.
-            w.equal("passes over items", batch, (cols + (z + h) + h) as u64);
+            runs(&mut w, batch, (cols + (z + h) + h) as u64);
             product(&mut w, h, cols, batch);
             product(&mut w, z, h, batch);
             product(&mut w, h, z + h, batch);
         }
         let items = d.steps() * batch;
-        // The loss and its gradient, a span or a window's step at a time.
-        w.part("passes over items", spans(items).map(|s| (s.len() * z) as u64));
-        w.equal("passes over items", items, z as u64);
+        // The loss, a span of each step's windows at a time, and its gradient, runs of items.
+        for _ in 0..d.steps() {
+            w.part("passes over items", spans(batch).map(|s| (s.len() * z) as u64));
+        }
+        runs(&mut w, items, z as u64);
         // The weight gradients, blocks of items summed apart and added, and the biases'.
         for (rows, cols) in [(h, cols), (z, h)] {
-            let blocks = grad_blocks(items);
+            let blocks = grad_blocks(rows, items);
             let per_block = items.div_ceil(blocks);
             let (parts, _) = row_parts(threads, rows, blocks, per_block);
             let block = |b: usize| (((b + 1) * per_block).min(items) - (b * per_block).min(items)) as u64;

@@ -16,8 +16,9 @@ use drivesim_kernels::{
     conv_weight_grad_scratch_len, ConvShape, Matrix, OutputParts, GRAD_PIXELS, OC_ALIGN,
 };
 
-/// Blocks of pixels at most: enough for 32 threads to share a layer with few rows.
-const BLOCKS: usize = 32;
+/// Parts a layer's weight gradient aims at (panels of rows times blocks of pixels): enough for
+/// 32 threads.
+const UNITS: usize = 32;
 /// Output pixels in a block at least: each block adds a partial gradient (the weights' size)
 /// to read back, which stays a small fraction of its products (pixels x weights) beside them.
 const BLOCK_PIXELS: usize = 2 * GRAD_PIXELS;
@@ -44,7 +45,8 @@ impl GradSplit {
         let (rows, pixels) = (down.output.channels, conv_grad_pixels(down, items));
         let panels = rows.div_ceil(OC_ALIGN).max(1);
         let chunks = pixels.div_ceil(GRAD_PIXELS).max(1);
-        let blocks = (pixels / BLOCK_PIXELS).clamp(1, BLOCKS);
+        // No more blocks than the panels need to make the parts: each is read back.
+        let blocks = (pixels / BLOCK_PIXELS).clamp(1, UNITS.div_ceil(panels));
         let threads = threads.max(1);
         let slowest = |groups: usize| {
             let units_each = (groups * blocks).div_ceil(threads);
