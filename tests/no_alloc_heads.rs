@@ -7,24 +7,17 @@ mod common;
 #[path = "common/counting.rs"]
 mod counting;
 
-use common::{values as seeded, with_f32_tensors};
+use common::{values as seeded, with_f32_tensors, TINY};
 use counting::{counted, Counting};
 use drivesim::train::{random_weight_file, HeadSettings, HeadTrainer, TrainedOn};
-use drivesim::{Config, HeadKind, Model, Simulator};
+use drivesim::{HeadKind, Model, Simulator};
 
 #[global_allocator]
 static GLOBAL: Counting = Counting;
 
 #[test]
 fn the_heads_allocate_nothing() {
-    let config = Config {
-        height: 16,
-        width: 32,
-        base_channels: 2,
-        z_dim: 12,
-        hidden_dim: 24,
-        ..Config::COMMA
-    };
+    let config = TINY;
     let (zd, hd) = (config.z_dim, config.hidden_dim);
     // The spread head, so that the sampled path is counted too.
     let spread = [

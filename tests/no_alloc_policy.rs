@@ -2,7 +2,10 @@
 //! of its own: the allocation counter is global, so a test beside it would count its calls.)
 #![cfg(feature = "train")]
 
-use drivesim::{Config, Model, Simulator};
+mod common;
+
+use common::TINY;
+use drivesim::{Model, Simulator};
 #[path = "common/counting.rs"]
 mod counting;
 
@@ -15,14 +18,7 @@ static GLOBAL: Counting = Counting;
 #[test]
 fn the_policy_allocates_nothing() {
     use drivesim::train::{random_weight_file, HeadSettings, HeadTrainer};
-    let config = Config {
-        height: 16,
-        width: 32,
-        base_channels: 2,
-        z_dim: 12,
-        hidden_dim: 24,
-        ..Config::COMMA
-    };
+    let config = TINY;
     let original = random_weight_file(&config, 1).unwrap();
     let settings = HeadSettings {
         width: 18,

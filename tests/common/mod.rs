@@ -21,6 +21,17 @@ pub const SMALL: drivesim::Config = drivesim::Config {
     ..drivesim::Config::COMMA
 };
 
+/// The smallest config of the no-allocation tests of the heads and the policy: every buffer
+/// small, so that an allocation stands out.
+pub const TINY: drivesim::Config = drivesim::Config {
+    height: 16,
+    width: 32,
+    base_channels: 2,
+    z_dim: 12,
+    hidden_dim: 24,
+    ..drivesim::Config::COMMA
+};
+
 /// The PyTorch fixtures (`weights/fixtures.py`); `spread_f32`'s transition has the spread head.
 pub const FIXTURES: [&str; 6] = [
     "small_f32",
