@@ -67,6 +67,17 @@ impl Pool {
 #[cfg(feature = "std")]
 mod workers;
 
+/// Spans a pass over a buffer is cut into (zeroing, checking, Adam, sums in f64, partial
+/// gradients added), threads taking them in turn: the same spans, so the same bits, whatever
+/// the thread count; enough for 64 threads.
+pub(crate) const SPANS: usize = 64;
+
+/// The [`SPANS`] ranges of `len` values (the last ones shorter or empty).
+pub(crate) fn spans(len: usize) -> [Range<usize>; SPANS] {
+    let step = len.div_ceil(SPANS).max(1);
+    core::array::from_fn(|i| (i * step).min(len)..((i + 1) * step).min(len))
+}
+
 /// A slice cut into parts that the threads of one task take, each part once: whole items of a
 /// batch, sets of planes, scratch per thread, spans of a buffer. Taking is safe: the parts are
 /// disjoint by construction and handed out by an atomic counter.

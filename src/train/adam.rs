@@ -2,6 +2,7 @@
 //! `m += (1 - β1)(g - m)`, `v = β2 v + (1 - β2) g²`,
 //! `θ -= (lr / (1 - β1ᵗ)) m / (√v / √(1 - β2ᵗ) + eps)`.
 
+use crate::pool::{Exec, ItemParts, SPANS};
 use crate::{Error, Result};
 use drivesim_kernels::{math, AdamStep, Isa};
 
@@ -65,5 +66,26 @@ impl Adam {
             correction2_sqrt: math::sqrt(1.0 - math::powi(self.beta2 as f64, step)) as f32,
         };
         drivesim_kernels::adam(Isa::best(), adam, params, grads, m, v);
+    }
+
+    /// [`Adam::update`] (step, learning rate, gradient scale) with threads taking spans: it is
+    /// elementwise, so the same values whatever their number.
+    pub(crate) fn update_shared(
+        &self,
+        exec: Exec<'_>,
+        (step, lr, scale): (u32, f32, f32),
+        params: &mut [f32],
+        grads: &[f32],
+        [m, v]: [&mut [f32]; 2],
+    ) {
+        if params.is_empty() {
+            return;
+        }
+        let parts = ItemParts::new([params, m, v], grads.len(), SPANS);
+        exec.run(&|| {
+            while let Some((span, [p, m, v])) = parts.take() {
+                self.update(step, lr, scale, p, &grads[span], [m, v]);
+            }
+        });
     }
 }

@@ -3,10 +3,9 @@
 
 use super::settings::Backward;
 use super::spread::{spread_loss, Saved};
-use super::threads::{column_sums, each_row, product, spans, weight_grad, SPANS};
+use super::threads::{column_sums, each_row, product, weight_grad};
 use super::trainer::TransitionTrainer;
-use crate::pool::Exec;
-use crate::pool::Parts;
+use crate::pool::{spans, Exec, Parts, SPANS};
 use crate::train::arena::{cut, cut_ref};
 use crate::{Error, Result};
 use drivesim_kernels::pack::dense_from_fn;

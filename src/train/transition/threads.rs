@@ -3,8 +3,7 @@
 //! fixed by the items alone, so the bits do not change with the threads), and its passes over
 //! items and over columns.
 
-use crate::pool::{Exec, ItemParts, Parts};
-use crate::train::Adam;
+use crate::pool::{spans, Exec, Parts, SPANS};
 use drivesim_kernels::{dense_rows, dense_weight_grad_rows, Activation, Matrix, OutputParts, OC_ALIGN};
 
 /// `y = act(W x + b)` over a batch, shared by the threads in a grid: ranges of whole panels of
@@ -127,16 +126,6 @@ pub(super) fn weight_grad(
     });
 }
 
-/// Spans a pass over a buffer is cut into, threads taking them in turn: the same whatever the
-/// thread count.
-pub(super) const SPANS: usize = 64;
-
-/// The [`SPANS`] ranges of `len` values.
-pub(super) fn spans(len: usize) -> [core::ops::Range<usize>; SPANS] {
-    let step = len.div_ceil(SPANS).max(1);
-    core::array::from_fn(|i| (i * step).min(len)..((i + 1) * step).min(len))
-}
-
 /// `sums[c] = Σ_k dy[k][c]` (a bias's gradient), the items added in order for each column,
 /// threads taking spans of the columns.
 pub(super) fn column_sums(exec: Exec<'_>, dy: &[f32], sums: &mut [f32]) {
@@ -191,27 +180,6 @@ pub(super) fn squares(exec: Exec<'_>, values: &[f32]) -> f64 {
         }
     });
     sums.iter().sum()
-}
-
-/// [`Adam::update`] (step, learning rate, gradient scale) with threads taking spans: it is
-/// elementwise, so the same values whatever their number.
-pub(super) fn adam_shared(
-    exec: Exec<'_>,
-    adam: &Adam,
-    (step, lr, scale): (u32, f32, f32),
-    params: &mut [f32],
-    grads: &[f32],
-    [m, v]: [&mut [f32]; 2],
-) {
-    if params.is_empty() {
-        return;
-    }
-    let parts = ItemParts::new([params, m, v], grads.len(), SPANS);
-    exec.run(&|| {
-        while let Some((span, [p, m, v])) = parts.take() {
-            adam.update(step, lr, scale, p, &grads[span], [m, v]);
-        }
-    });
 }
 
 #[cfg(test)]

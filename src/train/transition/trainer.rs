@@ -3,7 +3,7 @@
 
 use super::plan::{Dims, TransitionPlan};
 use super::settings::{check_settings, Backward, TransitionSettings};
-use super::threads::{adam_shared, squares};
+use super::threads::squares;
 use crate::error::{expect_finite, expect_finite_output, expect_len};
 use crate::pool::{Exec, Pool};
 use crate::train::arena::{cut, cut_ref, Memory};
@@ -281,17 +281,8 @@ impl<'a> TransitionTrainer<'a> {
             isa: self.isa,
             pool: self.pool.as_ref(),
         };
-        adam_shared(exec, &adam, (t, lr, scale), params, grads, [m, v]);
-        if !spread_params.is_empty() {
-            adam_shared(
-                exec,
-                &adam,
-                (t, lr, 1.0),
-                spread_params,
-                spread_grads,
-                [spread_m, spread_v],
-            );
-        }
+        adam.update_shared(exec, (t, lr, scale), params, grads, [m, v]);
+        adam.update_shared(exec, (t, lr, 1.0), spread_params, spread_grads, [spread_m, spread_v]);
         self.transposed = false;
         Ok(())
     }

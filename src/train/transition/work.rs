@@ -2,7 +2,8 @@
 //! the products and passes of `bptt.rs` over the window's steps, as `threads.rs` shares them.
 
 use super::plan::TransitionPlan;
-use super::threads::{grad_blocks, product_grid, row_parts, row_run, spans};
+use super::threads::{grad_blocks, product_grid, row_parts, row_run};
+use crate::pool::spans;
 use crate::train::work::{panel_units, StepWork};
 use crate::Result;
 use alloc::vec::Vec;

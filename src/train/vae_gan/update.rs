@@ -4,7 +4,7 @@
 use super::layers::{Dense, Packed};
 use super::networks::Networks;
 use crate::error::{all_finite, expect_finite_output};
-use crate::pool::{Exec, Parts};
+use crate::pool::{spans, Exec, Parts, SPANS};
 use crate::train::adam::Adam;
 use crate::Result;
 use core::ops::Range;
@@ -15,24 +15,9 @@ enum Job<'a> {
     Conv(&'a mut Packed, Range<usize>),
 }
 
-/// Pieces that the passes over every parameter (Adam, zeroing and checking the gradients) are
-/// cut into, threads taking them in turn: the same pieces whatever the thread count.
-const PIECES: usize = 64;
-
-/// Values in each of the [`PIECES`] pieces of `len` values (the last may hold fewer).
-fn piece_len(len: usize) -> usize {
-    len.div_ceil(PIECES).max(1)
-}
-
-/// The [`PIECES`] ranges of `len` values.
-pub(super) fn pieces(len: usize) -> [Range<usize>; PIECES] {
-    let step = piece_len(len);
-    core::array::from_fn(|i| (i * step).min(len)..((i + 1) * step).min(len))
-}
-
 /// Sets `data` to zero, threads taking pieces.
 pub(super) fn zero(exec: Exec<'_>, data: &mut [f32]) {
-    let spans = pieces(data.len());
+    let spans = spans(data.len());
     let parts = Parts::spans(data, &spans);
     exec.run(&|| {
         while let Some((_, piece)) = parts.take() {
@@ -44,8 +29,8 @@ pub(super) fn zero(exec: Exec<'_>, data: &mut [f32]) {
 /// [`expect_finite_output`] on gradients, threads checking pieces (the index of the first bad
 /// value is then searched alone).
 fn expect_finite_gradients(exec: Exec<'_>, buffer: &'static str, data: &[f32]) -> Result<()> {
-    let spans = pieces(data.len());
-    let mut finite = [true; PIECES];
+    let spans = spans(data.len());
+    let mut finite = [true; SPANS];
     let flags = Parts::chunks(&mut finite[..], 1);
     exec.run(&|| {
         while let Some((i, flag)) = flags.take() {
@@ -95,21 +80,8 @@ impl Networks {
     pub(super) fn update(&mut self, net: usize, exec: Exec<'_>, adam: &Adam, t: u32, lr: f32) {
         let r = self.nets[net].clone();
         let [m, v] = &mut self.moments;
-        // Adam is elementwise: threads take pieces (the same values whatever their number).
-        let len = piece_len(r.len());
         let (params, grads) = (&mut self.params[r.clone()], &self.grads[r.clone()]);
-        let mut split = params
-            .chunks_mut(len)
-            .zip(grads.chunks(len))
-            .zip(m[r.clone()].chunks_mut(len).zip(v[r].chunks_mut(len)));
-        let mut jobs: [_; PIECES] = core::array::from_fn(|_| split.next().unwrap_or_default());
-        let jobs = Parts::chunks(&mut jobs, 1);
-        exec.run(&|| {
-            while let Some((_, job)) = jobs.take() {
-                let ((p, g), (m, v)) = &mut job[0];
-                adam.update(t, lr, 1.0, p, g, [m, v]);
-            }
-        });
+        adam.update_shared(exec, (t, lr, 1.0), params, grads, [&mut m[r.clone()], &mut v[r]]);
         self.pack(net, exec);
     }
 

@@ -8,8 +8,7 @@
 //! blocks are set by the layer's shape and the batch alone, so the sums do not change with the
 //! thread count; the rows are cut by the threads.
 
-use super::update::pieces;
-use crate::pool::{Exec, Parts};
+use crate::pool::{spans, Exec, Parts};
 use core::ops::Range;
 use drivesim_kernels::{
     conv_grad_pixels, conv_patch_len, conv_weight_grad_add_rows, conv_weight_grad_block_rows,
@@ -121,7 +120,7 @@ pub(super) fn conv_weight_grad(
         }
     });
     let partials = &*partials;
-    let spans = pieces(len);
+    let spans = spans(len);
     let sums = Parts::spans(grad, &spans);
     exec.run(&|| {
         while let Some((i, grad)) = sums.take() {

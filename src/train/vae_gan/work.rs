@@ -5,9 +5,9 @@ use super::budget::Budget;
 use super::layers::{Conv, Dense};
 use super::networks::build;
 use super::plan::VaeGanPlan;
-use super::update::pieces;
 use super::weight_grad::GradSplit;
 use crate::layers::dense_parts;
+use crate::pool::spans;
 use crate::train::work::{panel_units, StepWork};
 use crate::Result;
 use alloc::vec::Vec;
@@ -72,7 +72,7 @@ impl Count<'_> {
         });
         self.work.part("weight gradients", units.collect::<Vec<_>>());
         if split.blocks > 1 {
-            let spans = pieces(Matrix::packed_len(rows, cols));
+            let spans = spans(Matrix::packed_len(rows, cols));
             let adds = spans.map(|s| (s.len() * split.blocks) as u64);
             self.work.part("partial gradients added", adds);
         }
@@ -155,7 +155,7 @@ impl VaeGanPlan {
         // Each network's update: its gradients zeroed, checked and applied by Adam, a piece of
         // each at a time, then its layers repacked one at a time.
         for net in &nets.nets {
-            let pieces = pieces(net.len()).map(|p| 8 * p.len() as u64);
+            let pieces = spans(net.len()).map(|p| 8 * p.len() as u64);
             c.work.part("zeroing, checking and Adam", pieces);
         }
         for (convs, dense) in [(enc, &nets.heads), (gen, &nets.fc), (dis, &nets.logit)] {
