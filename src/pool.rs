@@ -69,10 +69,12 @@ mod workers;
 
 /// Spans a pass over a buffer is cut into (zeroing, checking, Adam, sums in f64, partial
 /// gradients added), threads taking them in turn: the same spans, so the same bits, whatever
-/// the thread count; enough for 64 threads.
+/// the thread count; enough for 64 threads. (The trainers' passes.)
+#[cfg(feature = "train")]
 pub(crate) const SPANS: usize = 64;
 
 /// The [`SPANS`] ranges of `len` values (the last ones shorter or empty).
+#[cfg(feature = "train")]
 pub(crate) fn spans(len: usize) -> [Range<usize>; SPANS] {
     let step = len.div_ceil(SPANS).max(1);
     core::array::from_fn(|i| (i * step).min(len)..((i + 1) * step).min(len))
