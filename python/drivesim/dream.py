@@ -9,8 +9,22 @@ the generator draws it: the observation is that 8-bit frame, ``(80, 160, 3)``. T
 outside are clipped. The reward is the distance driven on the road this step (speed / frame
 rate, times the share of the car's width over road), less a penalty for being off the road's
 centre (the near offset over half the frame's width), both read from the code by a
-``RoadCost``. Episodes never terminate (the dream has no crash); they are truncated after
-``max_steps`` steps.
+``RoadCost``. Episodes are truncated after ``max_steps`` steps.
+
+Options for a learner trained in the dream as it would be in CarRacing (``DreamEnv``; the
+vector env takes the first two):
+
+- ``reward="learned"``: the model's reward head instead, the env's reward it expects for the
+  decision (CarRacing's scale), read from the state the step reached; ``info["off_road"]`` is
+  the head's chance that the car is off the road there.
+- ``actions="carracing"``: CarRacing's action space, ``(steer, gas, brake)`` in ``[-1, 1] x
+  [0, 1] x [0, 1]``. The dream is stepped with the steering and the car's speed, which moves as
+  ``carracing.control.speed_after`` says the car answers the gas and brake that
+  ``speed_control`` would give for some target (from the last seed action's speed;
+  ``info["speed"]``).
+- ``off_road_steps=N``: the episode terminates once the car has been off the road for ``N``
+  steps in a row (the off-road chance above one half: the reward head's, or one less the road's
+  share under the car by the ``RoadCost``).
 """
 
 from __future__ import annotations
@@ -24,7 +38,7 @@ from gymnasium import spaces
 from gymnasium.vector.utils import batch_space
 
 from . import _checks
-from ._drivesim import Environment, Model, load_episodes
+from ._drivesim import Environment, Model, Simulator, load_episodes
 from .road import RoadCost
 
 ModelLike = Union[Model, str, os.PathLike, None]
@@ -39,13 +53,23 @@ def action_bounds(model: Model) -> tuple[np.ndarray, np.ndarray]:
     return (np.array([s["min"] for s in specs], np.float32), np.array([s["max"] for s in specs], np.float32))
 
 
+#: CarRacing's action space: steer, gas, brake.
+CARRACING_LOW, CARRACING_HIGH = np.array([-1.0, 0.0, 0.0], np.float32), np.array([1.0, 1.0, 1.0], np.float32)
+
+
 class _Dream:
     """What both environments share: the model, the seed episodes, the spaces, the reward."""
 
-    def _setup(self, model: ModelLike, episodes, seeds: int, max_steps: int, cost: Optional[RoadCost]):
+    def _setup(self, model: ModelLike, episodes, seeds: int, max_steps: int, cost: Optional[RoadCost],
+               reward: str = "road", actions: str = "drive", off_road_steps: Optional[int] = None, drives: int = 1):
         default = model is None
         seeds, max_steps = _checks.integer("seeds", seeds, 1), _checks.integer("max_steps", max_steps, 1)
+        self.reward_kind = _choice("reward", reward, ("road", "learned"))
+        self.actions_kind = _choice("actions", actions, ("drive", "carracing"))
+        self.off_road_steps = None if off_road_steps is None else _checks.integer("off_road_steps", off_road_steps, 1)
         self.model = model if isinstance(model, Model) else Model.load(model)
+        if self.reward_kind == "learned" and self.model.reward_width is None:
+            raise ValueError("reward='learned': the model has no reward head (Model.reward_width is None)")
         self.seeds, self.max_steps = seeds, max_steps
         if episodes is None or isinstance(episodes, (str, os.PathLike)):
             episodes = load_episodes(episodes)
@@ -56,12 +80,26 @@ class _Dream:
         if self.episodes[0][0].shape[1:] != (h, w, c):
             raise ValueError(f"episodes: frames {self.episodes[0][0].shape[1:]}, the model takes {(h, w, c)}")
         self.cost = cost if cost is not None else (RoadCost.default() if default else None)
-        if self.cost is None:
-            raise ValueError("a model other than the default needs its RoadCost (cost=RoadCost.fit(...))")
+        if self.cost is None and self.reward_kind == "road":
+            raise ValueError("a model other than the default needs its RoadCost (cost=RoadCost.fit(...)) or reward='learned'")
         self.hz = self.model.frame_hz or 12.5
         self.low, self.high = action_bounds(self.model)
         self.frame_space = spaces.Box(0, 255, (h, w, c), np.uint8)
-        self.move_space = spaces.Box(self.low, self.high, (2,), np.float32)
+        self.move_space = (
+            spaces.Box(CARRACING_LOW, CARRACING_HIGH, (3,), np.float32)
+            if self.actions_kind == "carracing"
+            else spaces.Box(self.low, self.high, (2,), np.float32)
+        )
+        self._heads = Simulator(self.model, batch=drives) if self.reward_kind == "learned" else None
+        self._speed = np.zeros(0, np.float32)
+        self._off_for = np.zeros(0, np.int64)
+
+    def _started(self, actions: np.ndarray, drives: int):
+        """After a reset with seed ``actions`` ``(S - 1, drives, 2)``: the speed to start from
+        (the last seed action's, clipped to the model's range) and no step off the road yet."""
+        last = actions[-1, :, 0] if len(actions) else np.zeros(drives, np.float32)
+        self._speed = np.clip(last, self.low[0], self.high[0]).astype(np.float32)
+        self._off_for = np.zeros(drives, np.int64)
 
     def _seed_clip(self, rng: np.random.Generator, options: Optional[dict]):
         """Seed frames ``(S, H, W, 3)`` and the actions between them ``(S - 1, 2)``: from
@@ -95,20 +133,48 @@ class _Dream:
             raise ValueError(f"options['actions']: expected shape {between} for {len(frames)} seed frames, got {actions.shape}")
         return frames, actions
 
-    def _clip(self, actions: np.ndarray, shape: tuple) -> np.ndarray:
+    def _clip(self, actions: np.ndarray, drives: tuple) -> np.ndarray:
+        """The actions checked (shape ``(*drives, 2)``, or 3 in CarRacing's space), clipped to
+        the space, as the ``(speed, steering)`` the dream steps with ``(N, 2)``."""
+        shape = (*drives, self.move_space.shape[0])
         a = _checks.floats("action", actions, np.float32)
         if a.shape != shape:
             raise ValueError(f"action: expected shape {shape}, got {a.shape}")
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action: not finite: {a}")
-        return np.ascontiguousarray(np.clip(a, self.low, self.high))
+        a = np.clip(a, self.move_space.low, self.move_space.high).reshape(-1, shape[-1])
+        if self.actions_kind == "drive":
+            self._speed = a[:, 0].copy()
+            return np.ascontiguousarray(a)
+        from .carracing.control import speed_after
 
-    def _reward(self, codes: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        road = self.cost.predict(codes)
-        on_road = np.clip(road[:, 3], 0.0, 1.0)
-        half_width = self.frame_space.shape[1] / 2
-        reward = actions[:, 0] / self.hz * on_road - np.abs(road[:, 0]) / half_width
-        return reward.astype(np.float64), road
+        steer, gas, brake = a.T
+        # The target that speed_control answers with this gas or brake (0.06 per unit of the gap,
+        # braking past its dead band of 4), then the speed the car reaches in the decision.
+        now = self._speed
+        target = np.where(gas > 0, now + gas / 0.06, np.where(brake > 0, now - 4.0 - brake / 0.06, now))
+        moves = np.stack([now, np.clip(steer, self.low[1], self.high[1])], 1).astype(np.float32)
+        self._speed = np.clip(speed_after(now, np.maximum(target, 0.0)), self.low[0], self.high[0]).astype(np.float32)
+        return np.ascontiguousarray(moves)
+
+    def _reward(self, codes: np.ndarray, hidden: np.ndarray, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+        """Each drive's reward for the step that reached ``codes`` and ``hidden`` with
+        ``moves``, whether it ends the episode, and the step's info."""
+        if self.reward_kind == "learned":
+            head = self._heads.reward(codes, hidden)
+            reward, off_road = head[:, 0].astype(np.float64), np.clip(head[:, 1], 0.0, 1.0)
+            info = {"off_road": off_road}
+        else:
+            road = self.cost.predict(codes)
+            on_road = np.clip(road[:, 3], 0.0, 1.0)
+            half_width = self.frame_space.shape[1] / 2
+            reward = (moves[:, 0] / self.hz * on_road - np.abs(road[:, 0]) / half_width).astype(np.float64)
+            off_road, info = 1.0 - on_road, {"road": road}
+        if self.actions_kind == "carracing":
+            info["speed"] = self._speed.copy()
+        self._off_for = np.where(off_road > 0.5, self._off_for + 1, 0)
+        ended = self._off_for >= self.off_road_steps if self.off_road_steps else np.zeros(len(codes), bool)
+        return reward, ended, info
 
 
 class DreamEnv(_Dream, gymnasium.Env):
@@ -118,7 +184,8 @@ class DreamEnv(_Dream, gymnasium.Env):
     take their seed frames (a list of ``(frames, actions)``, an episodes file, or None for the
     built-in seed clip); ``seeds``: real frames before the dream starts; ``max_steps``: steps
     before truncation; ``cost``: the ``RoadCost`` the reward reads (the default model's when
-    None). ``reset(seed=, options=)`` takes ``{"frames": (S, H, W, 3), "actions": (S - 1, 2)}``
+    None); ``reward``, ``actions`` and ``off_road_steps``: see the module (a learner's options:
+    the reward head, CarRacing's actions, an end off the road). ``reset(seed=, options=)`` takes ``{"frames": (S, H, W, 3), "actions": (S - 1, 2)}``
     or ``{"episode": i, "start": t}``; without options a seeded random episode and start.
 
     >>> import gymnasium, drivesim
@@ -127,6 +194,17 @@ class DreamEnv(_Dream, gymnasium.Env):
     >>> obs.shape, obs.dtype
     ((80, 160, 3), dtype('uint8'))
     >>> obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+
+    As CarRacing to a learner, with the model's own reward and an end off the road:
+
+    >>> import numpy as np
+    >>> env = drivesim.DreamEnv(reward="learned", actions="carracing", off_road_steps=10)
+    >>> env.action_space.shape
+    (3,)
+    >>> obs, info = env.reset(seed=0)
+    >>> obs, reward, terminated, truncated, info = env.step(np.array([0.0, 0.5, 0.0], np.float32))
+    >>> sorted(info)
+    ['code', 'off_road', 'speed']
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 12.5}
@@ -140,8 +218,11 @@ class DreamEnv(_Dream, gymnasium.Env):
         render_mode: Optional[str] = None,
         threads: int = 1,
         cost: Optional[RoadCost] = None,
+        reward: str = "road",
+        actions: str = "drive",
+        off_road_steps: Optional[int] = None,
     ):
-        self._setup(model, episodes, seeds, max_steps, cost)
+        self._setup(model, episodes, seeds, max_steps, cost, reward, actions, off_road_steps)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode {render_mode!r}: only 'rgb_array'")
         self.render_mode = render_mode
@@ -159,7 +240,9 @@ class DreamEnv(_Dream, gymnasium.Env):
         super().reset(seed=_checks.seed(seed))
         frames, actions = self._seed_clip(self.np_random, options)
         self._frame = None  # until the reset succeeds: `step` then raises ResetNeeded
-        self._env.reset(np.ascontiguousarray(frames[:, None]), np.ascontiguousarray(actions[:, None], np.float32))
+        actions = np.ascontiguousarray(actions[:, None], np.float32)
+        self._env.reset(np.ascontiguousarray(frames[:, None]), actions)
+        self._started(actions, 1)
         self._frame = self._env.frames()[0]
         self._t = 0
         return self._frame, {"code": self._env.codes[0]}
@@ -167,14 +250,14 @@ class DreamEnv(_Dream, gymnasium.Env):
     def step(self, action):
         if self._frame is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        a = self._clip(action, (2,))[None]
-        self._env.step(a)
+        moves = self._clip(action, ())
+        self._env.step(moves)
         self._t += 1
         codes = self._env.codes
-        reward, road = self._reward(codes, a)
+        reward, ended, info = self._reward(codes, self._env.hidden, moves)
         self._frame = self._env.frames()[0]
-        info = {"code": codes[0], "road": road[0]}
-        return self._frame, float(reward[0]), False, self._t >= self.max_steps, info
+        info = {"code": codes[0], **{k: v[0] for k, v in info.items()}}
+        return self._frame, float(reward[0]), bool(ended[0]), self._t >= self.max_steps, info
 
     def render(self):
         """The current dreamed frame, ``(80, 160, 3)`` uint8 (``render_mode="rgb_array"``)."""
@@ -189,7 +272,9 @@ class DreamVectorEnv(_Dream, gymnasium.vector.VectorEnv):
     has no crash), so the autoreset mode is ``NEXT_STEP`` and all drives reset together: the
     step after the one that returned ``truncated`` starts every drive from new seed frames and
     returns zero rewards. ``reset(options=)`` takes per-drive ``frames`` ``(S, N, H, W, 3)`` and
-    ``actions`` ``(S - 1, N, 2)``.
+    ``actions`` ``(S - 1, N, 2)``. ``reward`` and ``actions`` as ``DreamEnv``'s; an end off the
+    road would need each drive reset on its own, which the batch cannot: a learner that wants
+    ``off_road_steps`` takes gymnasium's (or its library's) vector of ``DreamEnv``.
 
     >>> import numpy as np, drivesim
     >>> envs = drivesim.DreamVectorEnv(4)
@@ -215,9 +300,11 @@ class DreamVectorEnv(_Dream, gymnasium.vector.VectorEnv):
         render_mode: Optional[str] = None,
         threads: int = 1,
         cost: Optional[RoadCost] = None,
+        reward: str = "road",
+        actions: str = "drive",
     ):
         num_envs = _checks.integer("num_envs", num_envs, 1)
-        self._setup(model, episodes, seeds, max_steps, cost)
+        self._setup(model, episodes, seeds, max_steps, cost, reward, actions, drives=num_envs)
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode {render_mode!r}: only 'rgb_array'")
         self.num_envs = num_envs
@@ -252,7 +339,9 @@ class DreamVectorEnv(_Dream, gymnasium.vector.VectorEnv):
             frames = np.stack([f for f, _ in clips], axis=1)
             actions = np.stack([a for _, a in clips], axis=1)
         self._frames = None  # until the reset succeeds: `step` then raises ResetNeeded
-        self._env.reset(np.ascontiguousarray(frames), np.ascontiguousarray(actions, np.float32))
+        actions = np.ascontiguousarray(actions, np.float32)
+        self._env.reset(np.ascontiguousarray(frames), actions)
+        self._started(actions, self.num_envs)
         self._frames = self._env.frames()
         self._t, self._needs_reset = 0, False
         return self._frames, {}
@@ -264,20 +353,27 @@ class DreamVectorEnv(_Dream, gymnasium.vector.VectorEnv):
         if self._needs_reset:
             obs, _ = self.reset()
             return obs, np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), {}
-        a = self._clip(actions, (n, 2))
-        self._env.step(a)
+        moves = self._clip(actions, (n,))
+        self._env.step(moves)
         self._t += 1
-        reward, road = self._reward(self._env.codes, a)
+        reward, _, info = self._reward(self._env.codes, self._env.hidden, moves)
         self._frames = self._env.frames()
         self._needs_reset = self._t >= self.max_steps
         truncated = np.full(n, self._needs_reset)
-        return self._frames, reward, np.zeros(n, bool), truncated, {"road": road}
+        return self._frames, reward, np.zeros(n, bool), truncated, info
 
     def render(self):
         """The drives' current frames, ``(num_envs, 80, 160, 3)`` uint8."""
         if self.render_mode != "rgb_array" or self._frames is None:
             return None
         return self._frames.copy()
+
+
+def _choice(name: str, value: Any, choices: tuple) -> str:
+    """``value`` if it is one of ``choices`` (ValueError otherwise)."""
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"{name}: expected one of {', '.join(map(repr, choices))}, got {value!r}")
+    return value
 
 
 def _options(options: Any) -> dict:

@@ -98,3 +98,81 @@ def test_dream_vector_env(clip):
     sobs, srew, *_ = single.step(a[0])
     np.testing.assert_array_equal(vobs[1], sobs)
     assert vrew[1] == srew
+
+
+def test_dream_env_learned_reward_is_the_heads():
+    env = drivesim.DreamEnv(reward="learned", max_steps=5)
+    env.reset(seed=3)
+    sim = drivesim.Simulator(env.model)
+    for _ in range(3):
+        _, reward, _, _, info = env.step(np.array([40.0, 0.1], np.float32))
+        head = sim.reward(env._env.codes, env._env.hidden)
+        assert reward == float(head[0, 0]) and info["off_road"] == np.clip(head[0, 1], 0, 1)
+
+
+def test_dream_env_takes_carracing_actions():
+    # Gas, steering and brake move the dream as the (speed, steering) they stand for: the speed
+    # the car reaches under speed_control, from the last seed action's speed.
+    from drivesim.carracing.control import speed_after
+
+    racing = drivesim.DreamEnv(actions="carracing", max_steps=20)
+    plain = drivesim.DreamEnv(max_steps=20)
+    assert racing.action_space.shape == (3,) and check_env(racing, skip_render_check=True) is None
+    _, info = racing.reset(seed=4)
+    plain.reset(seed=4)
+    speed = float(racing._speed[0])  # the last seed action's
+    for steer, gas, brake in [(0.3, 0.6, 0.0), (-0.2, 0.0, 0.0), (0.0, 0.0, 0.5), (1.5, 2.0, -1.0)]:
+        obs, *_, info = racing.step(np.array([steer, gas, brake], np.float32))
+        expected, *_ = plain.step(np.array([speed, np.clip(steer, -1, 1)], np.float32))
+        assert np.array_equal(obs, expected)
+        gas, brake = np.clip(gas, 0, 1), np.clip(brake, 0, 1)
+        target = speed + gas / 0.06 if gas > 0 else (speed - 4 - brake / 0.06 if brake > 0 else speed)
+        speed = float(np.clip(speed_after(speed, max(target, 0.0)), racing.low[0], racing.high[0]))
+        assert info["speed"] == pytest.approx(speed, abs=1e-4)
+    with pytest.raises(ValueError, match="shape"):
+        racing.step(np.array([0.0, 40.0], np.float32))
+
+
+def test_dream_env_ends_off_the_road():
+    # Steering hard right with gas takes the dream's car off the road: the episode ends after
+    # `off_road_steps` steps in a row there; driving straight it does not.
+    env = drivesim.DreamEnv(actions="carracing", off_road_steps=3, max_steps=40)
+    env.reset(seed=1)
+    off, steps = 0, 0
+    for steps in range(1, 41):
+        _, _, terminated, truncated, info = env.step(np.array([1.0, 0.6, 0.0], np.float32))
+        off = off + 1 if info["road"][3] < 0.5 else 0
+        assert terminated == (off >= 3)
+        if terminated or truncated:
+            break
+    assert terminated and steps < 40
+    env.reset(seed=1)
+    for _ in range(10):
+        _, _, terminated, *_ = env.step(np.array([0.0, 0.2, 0.0], np.float32))
+        assert not terminated
+
+
+def test_dream_options_are_checked():
+    for bad in [dict(reward="real"), dict(actions="keyboard"), dict(off_road_steps=0), dict(reward=1)]:
+        with pytest.raises((ValueError, TypeError)):
+            drivesim.DreamEnv(**bad)
+    with pytest.raises(TypeError):
+        drivesim.DreamVectorEnv(2, off_road_steps=3)
+
+
+def test_dream_vector_env_learned_and_carracing():
+    envs = drivesim.DreamVectorEnv(3, reward="learned", actions="carracing", max_steps=3)
+    envs.reset(seed=0)
+    single = drivesim.DreamEnv(reward="learned", actions="carracing", max_steps=3)
+    _, rewards, _, _, info = envs.step(np.tile(np.array([0.1, 0.5, 0.0], np.float32), (3, 1)))
+    assert rewards.shape == (3,) and info["off_road"].shape == (3,) and info["speed"].shape == (3,)
+    assert envs.single_action_space.shape == (3,) and single.action_space.shape == (3,)
+
+
+def test_dream_docstrings_run():
+    import doctest
+
+    import drivesim.dream
+
+    failed, tried = doctest.testmod(drivesim.dream, raise_on_error=False)
+    assert tried >= 10 and failed == 0
