@@ -76,7 +76,14 @@ pub(crate) const SPANS: usize = 64;
 /// The [`SPANS`] ranges of `len` values (the last ones shorter or empty).
 #[cfg(feature = "train")]
 pub(crate) fn spans(len: usize) -> [Range<usize>; SPANS] {
-    let step = len.div_ceil(SPANS).max(1);
+    spans_of_at_least(len, 1)
+}
+
+/// [`spans`] of at least `least` values each (fewer, then): a pass that reads every row of a
+/// batch for its span of columns reads whole cache lines and vectors.
+#[cfg(feature = "train")]
+pub(crate) fn spans_of_at_least(len: usize, least: usize) -> [Range<usize>; SPANS] {
+    let step = len.div_ceil(SPANS).max(least).max(1);
     core::array::from_fn(|i| (i * step).min(len)..((i + 1) * step).min(len))
 }
 

@@ -3,7 +3,7 @@
 //! fixed by the items alone, so the bits do not change with the threads), and its passes over
 //! items and over columns.
 
-use crate::pool::{spans, Exec, Parts, SPANS};
+use crate::pool::{spans, spans_of_at_least, Exec, Parts, SPANS};
 use drivesim_kernels::{dense_rows, dense_weight_grad_rows, Activation, Matrix, OutputParts, OC_ALIGN};
 
 /// `y = act(W x + b)` over a batch, shared by the threads in a grid: ranges of whole panels of
@@ -126,11 +126,14 @@ pub(super) fn weight_grad(
     });
 }
 
+/// Columns of a span of [`column_sums`] at least.
+pub(super) const SUM_COLUMNS: usize = 64;
+
 /// `sums[c] = Σ_k dy[k][c]` (a bias's gradient), the items added in order for each column,
-/// threads taking spans of the columns.
+/// threads taking spans of at least [`SUM_COLUMNS`] columns.
 pub(super) fn column_sums(exec: Exec<'_>, dy: &[f32], sums: &mut [f32]) {
     let cols = sums.len();
-    let spans = spans(cols);
+    let spans = spans_of_at_least(cols, SUM_COLUMNS);
     let parts = Parts::spans(sums, &spans);
     exec.run(&|| {
         while let Some((i, sums)) = parts.take() {

@@ -2,8 +2,8 @@
 //! the products and passes of `bptt.rs` over the window's steps, as `threads.rs` shares them.
 
 use super::plan::TransitionPlan;
-use super::threads::{grad_blocks, product_grid, row_parts, row_run};
-use crate::pool::spans;
+use super::threads::{grad_blocks, product_grid, row_parts, row_run, SUM_COLUMNS};
+use crate::pool::{spans, spans_of_at_least};
 use crate::train::work::{panel_units, StepWork};
 use crate::Result;
 use alloc::vec::Vec;
@@ -69,7 +69,10 @@ impl TransitionPlan {
                 let adds = spans(Matrix::packed_len(rows, cols)).map(|s| (s.len() * blocks) as u64);
                 w.part("partial gradients added", adds);
             }
-            w.part("passes over items", spans(rows).map(|s| (s.len() * items) as u64));
+            w.part(
+                "passes over items",
+                spans_of_at_least(rows, SUM_COLUMNS).map(|s| (s.len() * items) as u64),
+            );
         }
         // The norm for clipping and Adam, a span at a time; the transposed packings made again
         // on one thread.
