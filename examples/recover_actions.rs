@@ -37,7 +37,7 @@ const DEFAULT_STD: [f32; 2] = [11.2, 0.23];
 struct Args {
     #[arg(long, default_value = "weights/default.safetensors")]
     weights: PathBuf,
-    /// Episodes the model never saw (weights/tool record writes them)
+    /// Episodes the model never saw (python -m drivesim record writes them)
     #[arg(long)]
     episodes: PathBuf,
     /// Where the plots go

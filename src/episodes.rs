@@ -1,4 +1,4 @@
-//! Recorded driving, as written by `weights/record.py` and `weights/convert_comma.py`
+//! Recorded driving, as written by the Python package (`drivesim.carracing.record`, `drivesim.comma`)
 //! (format: `weights/TRAINING_FILES.md`, "Episodes format"): seed frames for rollouts and data for
 //! training.
 

@@ -80,7 +80,7 @@ fn bad_episode_files_are_rejected() {
     ));
 }
 
-/// `weights/record.py` and `convert_comma.py` write `.safetensors.gz` by default.
+/// `drivesim.carracing.record` and `drivesim.comma` write `.safetensors.gz` by default.
 #[test]
 fn gzipped_episodes_load() {
     use flate2::{write::GzEncoder, Compression};

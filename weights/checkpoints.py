@@ -18,10 +18,8 @@ import os
 import numpy as np
 import torch
 
-import package
+from drivesim import _files
 from distributed import world
-
-_files = package.load("_files.py")
 
 FORMAT = "drivesim train.py fit checkpoint 1"
 # Arguments that do not change what the run computes: a resumed run may change them (the

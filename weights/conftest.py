@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-import episodes
+from drivesim import episodes
 
 
 @pytest.fixture

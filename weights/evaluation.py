@@ -7,9 +7,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-import episodes
-import probe
-import probe_real
+from drivesim import episodes
+from drivesim import probe
+from drivesim.carracing import probe_real
 from model import load_drivesim
 from futures import road_tracking, sampled_futures, steering_probe, texture
 from sequences import SEQ, TEACHER, encode, predict

@@ -2,7 +2,7 @@
 episodes (`train eval` reports them under `futures` in eval.json; docs/fidelity.md):
 
 - the steering probe (probe.py): 5 seed codes from real frames, then 30 fed-back steps with
-  constant steering, the road's centre in the 30th generated frame (probe_real.py measures the
+  constant steering, the road's centre in the 30th generated frame (drivesim.carracing.probe_real measures the
   same in the real environment);
 - sampled futures (a transition that samples: the spread head or the texture net, temperature 1): windows every 5 frames, 5
   seed codes then 30 steps under the recorded actions, 16 sampled futures each: the best of the
@@ -16,7 +16,7 @@ episodes (`train eval` reports them under `futures` in eval.json; docs/fidelity.
 import numpy as np
 import torch
 
-import probe
+from drivesim import probe
 from sequences import TEACHER, predict
 
 HORIZON, FUTURES, TRACKED = 30, 16, 5

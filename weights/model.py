@@ -18,10 +18,8 @@ from safetensors import safe_open
 from torch import nn
 from safetensors.torch import load_file, save
 
-import package
-from episodes import sort_metadata
-
-_files = package.load("_files.py")
+from drivesim import _files
+from drivesim.episodes import sort_metadata
 
 CONFIG_KEY = "drivesim.config"
 # What each action input means and the range it was trained on: a JSON array of

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-import episodes
+from drivesim import episodes
 
 torch = pytest.importorskip("torch")
 
@@ -151,7 +151,7 @@ def test_texture_baselines_fit_a_linear_dream_and_copy_the_last_seed():
 
 
 def test_the_probe_against_the_real_car_gives_gaps_and_ratios():
-    import probe
+    from drivesim import probe
 
     def figures(right_way, left, right):
         return dict(right_way=right_way, symmetry=right / left if left and right else None,
@@ -171,7 +171,7 @@ def test_the_probe_against_the_real_car_gives_gaps_and_ratios():
 def test_the_real_probe_is_computed_once_per_data_file(tmp_path, monkeypatch):
     """`probe_real.cached` reuses `DATA.probe-real.json` for the same bytes, and computes again
     when the file changes."""
-    probe_real = pytest.importorskip("probe_real")  # needs gymnasium's CarRacing
+    from drivesim.carracing import probe_real
     runs = []
     monkeypatch.setattr(probe_real, "real_probe", lambda path, workers: runs.append(path) or {"5": len(runs)})
     data = tmp_path / "held_out.safetensors.gz"

@@ -188,7 +188,7 @@ ACTIONS = [dict(name="speed", unit="m/s", mean=1.0, std=2.0, min=-3.0, max=4.0),
 
 def reward_episodes(path, lengths=(6, 8, 10), seed=0, rewards=True):
     """Episodes of random 16x32 frames, with random rewards (or none)."""
-    import episodes
+    from drivesim import episodes
 
     rng = np.random.default_rng(seed)
     n = sum(lengths)
@@ -300,7 +300,7 @@ def test_heads_command_refuses_episodes_without_rewards(head_files, tmp_path, ca
 
 
 def test_the_examples_are_the_states_along_each_drive(head_files):
-    import episodes
+    from drivesim import episodes
     import train_heads
 
     weights, data = head_files
@@ -389,7 +389,7 @@ def test_heads_command_trains_the_value_on_dreams(head_files, dream_weights, tmp
 
 
 def test_the_dreams_start_from_the_real_states_and_follow_on(head_files, dream_weights):
-    import episodes
+    from drivesim import episodes
     import train_heads
 
     model, cfg = load_drivesim(dream_weights)

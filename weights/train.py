@@ -49,8 +49,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-import episodes
-import package
+from drivesim import _files, episodes
 import train_heads
 import train_texture
 from checkpoints import Checkpoints
@@ -59,8 +58,6 @@ from model import Config, DriveSim, save_drivesim
 from reference_step import step
 from sequences import SEQ, TEACHER, encode, noise_factor, sharpen_noise, train_transition
 from vae_gan import ADAM_VAE_GAN, LOSS_WEIGHTS, Discriminator, train_vae_gan
-
-_files = package.load("_files.py")
 
 
 def fit(args):
@@ -178,7 +175,7 @@ def main(argv=None):
     e.add_argument("--reference", help="episodes the model trained on: futures made of their real codes "
                    "as a baseline for the sampled futures (futures.real_futures)")
     e.add_argument("--probe-real", action="store_true", help="also the steering probe of the real car on the same "
-                   "starts (probe_real.py; computed once per --data, cached beside it) and the dream's gaps to it")
+                   "starts (drivesim.carracing.probe_real; computed once per --data, cached beside it) and the dream's gaps to it")
     e.add_argument("--workers", type=int, default=os.cpu_count(), help="processes for --probe-real's first run")
     s = sub.add_parser("step", help="one training step on a batch file (the Rust step's reference)")
     s.add_argument("--stage", required=True, choices=["transition", "vae-gan"])

@@ -1,5 +1,5 @@
 """`train.py heads`: the reward head or the value head of a weight file, trained on episodes that
-carry the env's rewards (`weights/tool record` and `dagger` write them): the PyTorch twin of the
+carry the env's rewards (`python -m drivesim record` and `dagger` write them): the PyTorch twin of the
 Rust `train heads` (examples/train/heads.rs, with regression.rs's fit and drives.rs's split).
 
 The episodes (and, unless --no-mirror, their mirror images: frames flipped left to right, the
@@ -31,7 +31,7 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file
 
-import episodes
+from drivesim import episodes
 from heads import HeadTrainer, lambda_returns
 from model import (ACTIONS_KEY, CONFIG_KEY, DISCOUNT_KEY, DISCRIMINATOR, FRAME_HZ_KEY, Head, check_discount,
                    load_drivesim, save_drivesim)
@@ -144,7 +144,7 @@ def cosine_lr(base: float, step: int, steps: int) -> float:
 def encode_view(model, data: episodes.Episodes, mirrored: bool):
     """Every frame's code (the encoder's mean), of the frames as they are or flipped left to
     right, and the actions with the steering negated in a mirror (examples/common.rs's
-    `encode_view`, episodes.py's `with_mirror_images`)."""
+    `encode_view`, drivesim.episodes' `with_mirror_images`)."""
     codes = []
     for s in range(0, len(data.frames), ENCODE_BATCH):
         frames = data.frames[s:s + ENCODE_BATCH]
@@ -173,7 +173,7 @@ def load_episodes(path, cfg, what: str, rewards: bool = True) -> episodes.Episod
     data = episodes.read(path)
     if rewards and data.rewards is None:
         raise ValueError(f"{what} {path}: episodes without rewards (`reward`, `on_road`): record them "
-                         "again with `weights/tool record` (or `dagger`), which writes them")
+                         "again with `python -m drivesim record` (or `dagger`), which writes them")
     h, w, c = data.frames.shape[1:]
     if (h, w, c) != (cfg.height, cfg.width, cfg.channels) or cfg.action_dim != 2:
         raise ValueError(f"{what} {path}: {h}x{w}x{c} frames with 2 actions, the model takes "

@@ -39,13 +39,11 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-import package
+from drivesim import _files
 from model import Texture, load_drivesim
 from sequences import TEACHER
 from train_heads import Source, encode_view, load_episodes
 from vae_gan import Discriminator
-
-_files = package.load("_files.py")
 CHECKPOINT_FORMAT = "drivesim train.py texture checkpoint 1"
 # Samples per window of the --bestof term.
 BEST_OF = 8

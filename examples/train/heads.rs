@@ -1,5 +1,5 @@
 //! `train heads`: the reward head or the value head, on episodes that carry the env's rewards
-//! (`weights/tool record` and `dagger` write them). Encodes the episodes (and their mirror
+//! (`python -m drivesim record` and `dagger` write them). Encodes the episodes (and their mirror
 //! images), steps the transition along each drive for the states the heads read, trains the
 //! head, reports its held-out error before and after, and writes the weights with it.
 //!

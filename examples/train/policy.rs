@@ -17,7 +17,7 @@ use std::time::Instant;
 #[derive(Parser)]
 #[command(mut_args = data_help(&[
     ("weights", "Weight file to start from (its encoder and transition give the policy's input)"),
-    ("episodes", "Episodes of the driver to clone (weights/tool record writes them)"),
+    ("episodes", "Episodes of the driver to clone (python -m drivesim record writes them)"),
     ("heldout", "Episodes to evaluate on; without it, the last --holdout episodes of --episodes"),
     ("holdout", "Episodes of --episodes held out when there is no --heldout file"),
     ("out", "Where to write the weights with the trained policy"),

@@ -14,7 +14,7 @@ use std::time::Instant;
 #[derive(Parser)]
 #[command(mut_args = data_help(&[
     ("weights", "Weight file to start from (its encoder encodes the episodes)"),
-    ("episodes", "Episodes to train on (weights/tool record writes them)"),
+    ("episodes", "Episodes to train on (python -m drivesim record writes them)"),
     ("heldout", "Episodes to evaluate on; without it, the last --holdout episodes of --episodes"),
     ("holdout", "Episodes of --episodes held out when there is no --heldout file"),
     ("out", "Where to write the trained weights"),

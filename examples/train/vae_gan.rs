@@ -19,7 +19,7 @@ use std::time::Instant;
         "Weight file to start from: its encoder, generator and discriminator (`discriminator.*`, ",
         "seeded random ones if it has none); resume an interrupted run from its --out",
     )),
-    ("episodes", "Episodes to train on (weights/tool record writes them)"),
+    ("episodes", "Episodes to train on (python -m drivesim record writes them)"),
     ("heldout", "Episodes to measure reconstruction on; without it, the last --holdout episodes of --episodes"),
     ("out", "Where to write the trained weights (every --every steps, and at the end)"),
 ]))]

@@ -174,7 +174,7 @@ def main(argv=None):
     from ._drivesim import Model, Simulator, load_episodes
 
     p = argparse.ArgumentParser(prog="python -m drivesim.road", description="Fit a RoadCost for a model on recorded episodes.")
-    p.add_argument("--episodes", required=True, help="episodes file to fit on (weights/tool record writes them)")
+    p.add_argument("--episodes", required=True, help="episodes file to fit on (python -m drivesim record writes them)")
     p.add_argument("--heldout", help="episodes file to report the fit's R^2 on")
     p.add_argument("--weights", help="weight file (default: the built-in model)")
     p.add_argument("--out", required=True, help="where to write the cost (.npz)")

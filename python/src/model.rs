@@ -184,7 +184,7 @@ impl PyModel {
 /// Recorded driving: a list of `(frames, actions)` per episode, frames `uint8` of shape
 /// `(T, height, width, 3)` and actions `float32` of shape `(T, 2)` (speed, steering in effect at
 /// each frame). Reads an episodes file (`.safetensors`, or gzipped `.safetensors.gz` as
-/// `weights/tool record` writes them), or the built-in seed clip when `path` is None.
+/// `python -m drivesim record` writes them), or the built-in seed clip when `path` is None.
 #[pyfunction]
 #[pyo3(signature = (path=None))]
 pub fn load_episodes<'py>(

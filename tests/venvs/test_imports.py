@@ -3,8 +3,8 @@ virtualenv that runs it: the scan that catches a missing install step before a f
 
 `./test` makes one virtualenv per list in this folder (and the package's own from its wheel);
 VENVS below says what each one runs, as `./test` runs it. From those files the scan follows every
-import (plain, `from`, inside functions, `pytest.importorskip`, and `package.load("...")` of the
-package's modules by path) through the checkout's own modules, and checks that each third-party
+import (plain, `from`, inside functions, `pytest.importorskip`) through the checkout's own modules
+(the package's where the virtualenv has it installed), and checks that each third-party
 module it reaches is provided by that virtualenv's requirements, unless the virtualenv is meant
 to go without it (its tests skip themselves: `may_skip`).
 
@@ -22,36 +22,33 @@ ROOT = Path(__file__).resolve().parents[2]
 PACKAGE = ROOT / "python" / "drivesim"
 
 # Each virtualenv ./test makes: its requirement lists (files; `pyproject:EXTRA` is the package's
-# dependencies plus that extra, what installing the wheel as `wheel[EXTRA]` brings), the files it
+# dependencies plus those extras (`pyproject:A,B`), what installing the wheel as `wheel[A,B]`
+# brings), the files it
 # runs (globs from the root), and the third-party modules whose absence there is intended.
 VENVS = {
     "data": {
         "requirements": ["tests/venvs/data.txt"],
-        "runs": ["weights/test_data.py", "weights/episodes.py", "tests/venvs/test_imports.py", "tests/test_layout.py"],
-        "may_skip": {"torch", "gymnasium", "Box2D", "pygame", "PIL", "onnx", "onnxruntime", "drivesim"},
+        "runs": ["tests/venvs/test_imports.py", "tests/test_layout.py"],
+        "may_skip": set(),
     },
     "torch": {
-        "requirements": ["tests/venvs/torch.txt"],
-        "runs": ["weights/test_model.py", "weights/test_train.py", "weights/test_resume.py", "weights/test_data.py",
+        "requirements": ["tests/venvs/torch.txt", "pyproject:carracing,comma"],
+        "runs": ["weights/test_model.py", "weights/test_train.py", "weights/test_resume.py", "weights/test_evaluation.py",
                  "weights/test_futures.py", "weights/test_heads.py", "weights/test_texture.py", "weights/fixtures.py"],
-        # carracing/view.py, loaded by path, shrinks frames with Pillow where the package is absent.
-        "may_skip": {"drivesim"},
+        "may_skip": set(),
     },
     "package": {
         "requirements": ["pyproject:test", "tests/venvs/package.txt"],
-        "runs": ["python/tests/*.py", "weights/test_data.py", "weights/test_expert.py", "weights/test_dagger.py",
-                 "weights/test_speed_model.py", "weights/test_failures.py"],
-        # weights/test_data.py's PyTorch tests are deselected there (`-k "record or driver"`).
+        "runs": ["python/tests/*.py"],
         "may_skip": {"torch"},
     },
     # The machine's python3 drives the play page in Chromium: the standard library alone.
     "host": {"requirements": [], "runs": ["tests/browser/*.py"], "may_skip": set()},
     # `weights/tool setup`'s weights/.venv, which runs every tool in weights/.
     "tool": {
-        "requirements": ["weights/requirements.txt", "weights/requirements-data.txt"],
+        "requirements": ["weights/requirements.txt", "weights/requirements-data.txt", "pyproject:carracing,comma"],
         "runs": ["weights/*.py"],
-        # dagger drives the package's agents: it needs the package installed (weights/README.md).
-        "may_skip": {"drivesim"},
+        "may_skip": set(),
     },
 }
 
@@ -99,14 +96,17 @@ def read_requirements(path):
     return modules
 
 
-def read_pyproject(extra):
+def read_pyproject(extras):
     try:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10
         pytest.skip("reading pyproject.toml needs Python >= 3.11 (tomllib)")
     project = tomllib.loads((ROOT / "python" / "pyproject.toml").read_text())["project"]
     modules = set()
-    for requirement in project["dependencies"] + project["optional-dependencies"][extra]:
+    requirements = list(project["dependencies"])
+    for extra in extras.split(","):
+        requirements += project["optional-dependencies"][extra]
+    for requirement in requirements:
         modules |= modules_of(requirement)
     return modules
 
@@ -122,24 +122,20 @@ def provided(venv):
 
 
 def imports_of(path):
-    """(module, level, by_path) of every import in the file, `pytest.importorskip("m")` and
-    `package.load("rel.py")` (the package's module loaded by path: ("drivesim.rel", 0, True))
-    included."""
+    """(module, level) of every import in the file, `pytest.importorskip("m")` included."""
     found = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
-            found += [(alias.name, 0, False) for alias in node.names]
+            found += [(alias.name, 0) for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
-            found.append((node.module or "", node.level, False))
+            found.append((node.module or "", node.level))
             if node.level and not node.module:  # `from . import a, b`
-                found += [(alias.name, node.level, False) for alias in node.names]
+                found += [(alias.name, node.level) for alias in node.names]
         elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.args
               and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
             owner = node.func.value.id if isinstance(node.func.value, ast.Name) else None
             if (owner, node.func.attr) == ("pytest", "importorskip"):
-                found.append((node.args[0].value, 0, False))
-            elif (owner, node.func.attr) == ("package", "load"):
-                found.append(("drivesim." + node.args[0].value.removesuffix(".py").replace("/", "."), 0, True))
+                found.append((node.args[0].value, 0))
     return found
 
 
@@ -167,25 +163,22 @@ def third_party(venv):
         if path in seen:
             continue
         seen.add(path)
-        for module, level, by_path in imports_of(path):
+        for module, level in imports_of(path):
             if level:  # relative: inside python/drivesim
                 base = path.parent
                 for _ in range(level - 1):
                     base = base.parent
-                target = package_file(".".join(("drivesim",) + base.relative_to(PACKAGE).parts + ((module,) if module else ())))
-                # Loaded by path (weights/package.py), the package's __init__.py never runs.
-                if package_installed or target != PACKAGE / "__init__.py":
-                    queue.append(target)
+                queue.append(package_file(".".join(("drivesim",) + base.relative_to(PACKAGE).parts
+                                                   + ((module,) if module else ()))))
                 continue
             top = module.split(".")[0]
             if top in stdlib or top == "__future__":
                 continue
             if (path.parent / f"{top}.py").is_file():  # a neighbour: weights/model.py, conftest.py
                 queue.append(path.parent / f"{top}.py")
-            elif by_path or (top == "drivesim" and package_installed):
+            elif top == "drivesim" and package_installed:
                 queue.append(package_file(module))
-                if not by_path:
-                    reached.setdefault(top, []).append(path)
+                reached.setdefault(top, []).append(path)
             else:
                 reached.setdefault(top, []).append(path)
     return reached

@@ -6,7 +6,7 @@ perturbed copies of it, in the dream, scored by the model's learned reward and v
 grid scored by the hand-fitted ``RoadCost``.
 
 ``ClonedAgent`` ("cloned") drives as its teacher did: behavioural cloning (the default's policy:
-the privileged expert and three DAgger rounds, ``weights/dagger.py``), the policy in the weight
+the privileged expert and three DAgger rounds, ``drivesim.carracing.dagger``), the policy in the weight
 file (``Simulator.act``, trained by ``train policy``) reading the code of the frame
 seen now and the transition's hidden state stepped along the drive, and giving the steering and
 the speed to drive at (through the same speed controller).

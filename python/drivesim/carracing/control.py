@@ -30,7 +30,7 @@ def speed_control(speed: float, target: float) -> tuple[float, float]:
 
 
 #: How the car's speed answers ``speed_control`` in one decision (4 frames), fitted on the clones'
-#: drives of tracks 6000-6001 and 6005 (``weights/speed_model.py``): it gains at most
+#: drives of tracks 6000-6001 and 6005 (``python -m drivesim speed-model``): it gains at most
 #: ``ACCELERATION`` units/s, a ``GAIN`` of the gap below that; it keeps its speed while the
 #: target is at most ``BRAKE_DEAD`` below it (``speed_control``'s dead band) and reaches a target
 #: further below within the decision.

@@ -1,10 +1,9 @@
 """What the models see of gymnasium's CarRacing, and how tracks are named: one implementation
-for the recorder (``weights/record.py`` loads this file by path) and the agents.
+for the recorder (``drivesim.carracing.record``) and the agents.
 
-This module needs only numpy, pygame and Pillow (no drivesim): the recorder runs it without
-the package installed. With the package, ``observe`` reads the env's surface in place and
-shrinks it in the extension (``box_shrink``, Pillow's box filter byte for byte): about 0.2 ms
-where copying the surface to Pillow takes 10-15 ms; without it, Pillow, the reference.
+``observe`` reads the env's surface in place and shrinks it in the extension (``box_shrink``,
+Pillow's box filter byte for byte): about 0.2 ms where copying the surface to Pillow takes
+10-15 ms; Pillow (``observe_reference``) is its oracle and serves surfaces of other layouts.
 """
 
 import argparse
@@ -13,16 +12,12 @@ import math
 
 import numpy as np
 
+from .._drivesim import box_shrink
+
 HEIGHT, WIDTH = 80, 160
 # The env draws on a 1000x800 surface (car near (500, 600), dashboard below row 700).
 # This 2:1 crop keeps the car and 450 px of road ahead; it shrinks exactly 6.25x to 160x80.
 CROP = (0, 150, 1000, 650)
-
-
-try:
-    from drivesim._drivesim import box_shrink
-except ImportError:  # the recorder, run without the package: Pillow alone
-    box_shrink = None
 
 
 def observe(env) -> np.ndarray:
@@ -34,7 +29,7 @@ def observe(env) -> np.ndarray:
         raise ValueError("observe: the env has not drawn a frame yet: call reset() and step() first")
     x0, y0, x1, y1 = CROP
     width, height = surf.get_size()
-    if box_shrink is not None and surf.get_pitch() == 4 * width and (x0, x1) == (0, width):
+    if surf.get_pitch() == 4 * width and (x0, x1) == (0, width):
         # The surface's rows in place (whole rows: a contiguous block), 4 bytes a pixel; its
         # byte order from the channels' shifts (little-endian).
         pixels = np.frombuffer(surf.get_buffer(), np.uint8).reshape(height, width, 4)

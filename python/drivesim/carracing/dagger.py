@@ -1,7 +1,7 @@
 """DAgger: recovery data for the cloned driver, labelled by the expert (Ross et al., 2011).
 
 Round 0 clones the policy on the expert's own episodes (``--data``, recorded by
-``weights/tool record --driver expert``). Each later round k:
+``python -m drivesim record --driver expert``). Each later round k:
 
 1. the round k-1 policy drives real CarRacing through ``make_agent("cloned", weights=...)``
    and ``observe``, on tracks of its own (``--per-round`` tracks from ``--tracks``);
@@ -27,7 +27,7 @@ stopped (the evaluation resumes per track). Needs the ``drivesim`` package with 
 (``pip install "./python[carracing]"``) and the trainer (``cargo build --release -p
 drivesim-examples --features train --example train``).
 
-  weights/tool dagger --data data/expert.safetensors.gz --rounds 4 --tracks 4000-4099 \\
+  python -m drivesim dagger --data data/expert.safetensors.gz --rounds 4 --tracks 4000-4099 \\
       --per-round 16 --heldout 5000-5019 --dir runs/dagger --workers 2
 """
 
@@ -42,12 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-import episodes
-import package
-import record
-
-_files = package.load("_files.py")
-HERE = Path(__file__).resolve().parent
+from .. import _files, episodes
+from . import record
 
 
 # Decision to decision correlation of `--noise`'s steering offset (about 5 decisions, 0.4 s).
@@ -82,7 +78,7 @@ def drive_labelled(job):
     warm-up) and the env's reward over the drive."""
     weights, seed, frames, noise = job
     import gymnasium
-    from drivesim import carracing
+    from .. import carracing
 
     agent = carracing.make_agent("cloned", weights=str(weights))
     env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
@@ -174,8 +170,8 @@ def run_round(args, k):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, required=True, help="the expert's episodes (record --driver expert)")
-    p.add_argument("--base", type=Path, default=HERE / "default.safetensors",
-                   help="the model whose encoder and transition the policy reads")
+    p.add_argument("--base", type=Path, default=Path("weights/default.safetensors"),
+                   help="the model whose encoder and transition the policy reads (default: the repository's)")
     p.add_argument("--rounds", type=int, default=4, help="rounds after round 0 (the expert's data alone)")
     p.add_argument("--tracks", type=record.parse_seeds, required=True, help="tracks the rounds drive")
     p.add_argument("--per-round", type=int, default=16, help="tracks a round drives")
@@ -184,7 +180,8 @@ def main(argv=None):
     p.add_argument("--holdout", type=int, default=2, help="episodes train policy holds out")
     p.add_argument("--steps", type=int, default=4000, help="train policy's steps")
     p.add_argument("--workers", type=int, default=os.cpu_count(), help="processes (and trainer threads)")
-    p.add_argument("--trainer", type=Path, default=HERE.parent / "target/release/examples/train")
+    p.add_argument("--trainer", type=Path, default=Path("target/release/examples/train"),
+                   help="the crate's train example (default: built in the repository, run from its root)")
     p.add_argument("--dir", type=Path, required=True, help="where rounds are written (resumable)")
     p.add_argument("--noise", type=float, default=0.0,
                    help="standard deviation of the steering offset added while a round drives (DART)")

@@ -1,16 +1,15 @@
-"""The steering probe (issue 31), shared by the dream's (futures.py) and the real
-environment's (probe_real.py): PROBE_STARTS starts evenly spaced over held-out episodes, each
-the last of SEEDS consecutive frames; from there PROBE_STEPS steps at the start's speed with
-constant steering -x, 0 and +x (x in PROBE_STEER); in the last frame, the road's centre (the
-mean column of the road pixels of the top PROBE_ROWS rows). The road moves the right way where
-left steering's centre is right of right steering's; the symmetry is (centre at 0 - centre at
-+x) / (centre at -x - centre at 0), means over the starts whose three frames all show road."""
+"""The steering probe (issue 31), shared by the dream's (weights/futures.py) and the real
+environment's (drivesim.carracing.probe_real): PROBE_STARTS starts evenly spaced over held-out
+episodes, each the last of SEEDS consecutive frames; from there PROBE_STEPS steps at the start's
+speed with constant steering -x, 0 and +x (x in PROBE_STEER); in the last frame, the road's
+centre (the mean column of the road pixels of the top PROBE_ROWS rows). The road moves the right
+way where left steering's centre is right of right steering's; the symmetry is (centre at 0 -
+centre at +x) / (centre at -x - centre at 0), means over the starts whose three frames all show
+road."""
 
 import numpy as np
 
-import package
-
-road = package.load("road.py")
+from . import road
 
 SEEDS, PROBE_STARTS, PROBE_STEPS, PROBE_STEER, PROBE_ROWS = 5, 50, 30, (0.3, 0.6), 60
 # Steps after which the road's centre is also read (the issue's figures are at PROBE_STEPS):

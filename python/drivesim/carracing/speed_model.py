@@ -7,7 +7,7 @@ be stepped with the speed the car would have, not with the target (``carracing.c
 decision on the road, compares the speed a decision later with what the model says and with the
 target itself (what the planners stepped their dreams with before):
 
-  weights/tool speed-model --weights W --seeds 6000-6001 6005
+  python -m drivesim speed-model --weights W --seeds 6000-6001 6005
 
 It prints the change of speed against the gap to the target, by band, and both RMS errors.
 """
@@ -21,7 +21,7 @@ os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 
 import numpy as np
 
-import record
+from . import record
 
 BANDS = [(-60, -10), (-10, -4), (-4, 0), (0, 4), (4, 10), (10, 20), (20, 40), (40, 100)]
 
@@ -30,9 +30,9 @@ def drive(weights, seeds: list, frames: int = 1000) -> np.ndarray:
     """Rows (speed, target, speed a decision later) of the decisions on the road, ``frames`` env
     frames a track at most."""
     import gymnasium
-    from drivesim import Model
-    from drivesim.carracing.agents import ClonedAgent
-    from drivesim.carracing.view import decision_steps, observe, speed
+    from .._drivesim import Model
+    from .agents import ClonedAgent
+    from .view import decision_steps, observe, speed
 
     agent, rows = ClonedAgent(Model.load(weights)), []
     for seed in seeds:
@@ -60,7 +60,7 @@ def drive(weights, seeds: list, frames: int = 1000) -> np.ndarray:
 
 def rms_errors(rows: np.ndarray) -> tuple[float, float]:
     """The RMS error of the speed a decision later: the model's, and the target's."""
-    from drivesim.carracing.control import speed_after
+    from .control import speed_after
 
     speed, target, later = rows.T
     rms = lambda x: float(np.sqrt(np.mean(np.square(x))))
@@ -68,7 +68,7 @@ def rms_errors(rows: np.ndarray) -> tuple[float, float]:
 
 
 def main(argv=None) -> int:
-    from drivesim.carracing.control import speed_after
+    from .control import speed_after
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--weights", help="weight file with a policy (default: the built-in model)")

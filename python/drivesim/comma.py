@@ -1,4 +1,4 @@
-"""Convert comma.ai research dataset drives into an episodes file (see episodes.py).
+"""Convert comma.ai research dataset drives into an episodes file (see drivesim.episodes).
 
 The dataset keeps each drive as a pair of HDF5 files with the same name:
   camera/NAME.h5  X              uint8 [N, 3, 160, 320]  frames at 20 Hz
@@ -11,7 +11,7 @@ Each frame gets the mean speed and steering of the log rows that point at it. Ro
 last frame are ignored. Frames left without a row split the drive into separate episodes,
 so every episode is continuous in time. Steering stays in degrees, speed in m/s.
 
-  weights/tool convert-comma camera/2016-01-30--11-24-51.h5 ... --stride 4 --out comma.safetensors.gz
+  python -m drivesim convert-comma camera/2016-01-30--11-24-51.h5 ... --stride 4 --out comma.safetensors.gz
 """
 
 import argparse
@@ -21,7 +21,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-import episodes
+from . import episodes
 
 LOG_KEYS = ("cam1_ptr", "speed", "steering_angle")
 MAX_STEERING = 200.0  # degrees; larger values are sensor glitches
@@ -116,7 +116,7 @@ def convert_drive(camera_path, stride=1, min_frames=15):
 
 def fail(message):
     """One line on stderr and exit status 2, as argparse does for bad arguments."""
-    print(f"convert_comma: error: {message}", file=sys.stderr)
+    print(f"python -m drivesim convert-comma: error: {message}", file=sys.stderr)
     sys.exit(2)
 
 

@@ -1,13 +1,13 @@
-"""The steering probe (probe.py) in the real environment: what a perfect dream would show.
+"""The steering probe (drivesim.probe) in the real environment: what a perfect dream would show.
 
-For each of the probe's starts in a recorded episodes file (`weights/tool record` writes the
+For each of the probe's starts in a recorded episodes file (`python -m drivesim record` writes the
 seeds and the driver in its metadata), the recording is replayed from its seed (the scripted
 driver and CarRacing are deterministic) to the start's last seed frame; then the car steers
 -x, 0 or +x for 30 frames, its gas and brake holding the start's speed, and the probe reads the
 road's centre after 5, 10 and 30 frames, as `train eval` does in the dream's. Prints and writes
 (--out) the right-way share and the symmetry for each x and number of steps:
 
-  weights/tool probe-real --data held_out.safetensors.gz [--workers 2] [--out probe.json]
+  python -m drivesim probe-real --data held_out.safetensors.gz [--workers 2] [--out probe.json]
 
 It is slow (the env's physics for every branch from its episode's start), so `cached` keeps
 the figures beside the data, `DATA.probe-real.json`, keyed by the file's SHA-256 and the probe's
@@ -25,13 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-import episodes
-import package
-import probe
-import record
-from record import car_racing
-
-_files = package.load("_files.py")
+from .. import _files, episodes, probe
+from . import record
+from .record import car_racing
 
 
 def steps(env, action, n, draw_last):
@@ -72,7 +68,7 @@ def real_probe(path, workers):
     """The probe's figures in the real env for the recording `path` (see the module)."""
     data, meta = episodes.read(path), episodes.metadata(path)
     if "seeds" not in meta or "driver" not in meta:
-        raise ValueError(f"{path}: no `seeds` and `driver` metadata (weights/tool record writes them)")
+        raise ValueError(f"{path}: no `seeds` and `driver` metadata (python -m drivesim record writes them)")
     seeds = [int(s) for s in meta["seeds"].split(",")]
     bounds = data.bounds()
     jobs = []
@@ -114,7 +110,7 @@ def cached(path, workers, log=print):
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", required=True, help="episodes file recorded by weights/tool record")
+    p.add_argument("--data", required=True, help="episodes file recorded by python -m drivesim record")
     p.add_argument("--workers", type=int, default=os.cpu_count())
     p.add_argument("--out", help="JSON file to write the figures to")
     args = p.parse_args(argv)

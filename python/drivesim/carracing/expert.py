@@ -1,4 +1,4 @@
-"""The `expert` driver: a privileged racing-pace teacher for CarRacing (see record.py).
+"""The `expert` driver: a privileged racing-pace teacher for CarRacing (see drivesim.carracing.record).
 
 It reads what no agent may: the track's centre line, the car's position, velocity and wheel
 speeds. Before the first step it plans a speed profile along the whole lap, the way a racing

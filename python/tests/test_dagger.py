@@ -1,4 +1,4 @@
-"""DAgger end to end (dagger.py): a short round, and its resume after a kill. Needs the drivesim
+"""DAgger end to end (drivesim.carracing.dagger): a short round, and its resume after a kill. Needs the drivesim
 package with CarRacing and the trainer (`cargo build --release -p drivesim-examples --features
 train --example train`): skipped without them."""
 
@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import episodes
+from drivesim import episodes
 
-pytest.importorskip("drivesim")
-record = pytest.importorskip("record")
-TRAINER = Path(__file__).resolve().parent.parent / "target/release/examples/train"
+pytest.importorskip("Box2D")
+from drivesim.carracing import record  # noqa: E402 (after the skip: it needs Box2D)
+
+TRAINER = Path(__file__).resolve().parents[2] / "target/release/examples/train"
 if not TRAINER.exists():
     pytest.skip("no trainer built (cargo build --release -p drivesim-examples --features train --example train)",
                 allow_module_level=True)
@@ -32,7 +33,7 @@ def expert_data(tmp_path_factory):
 
 
 def command(data, out):
-    return [sys.executable, str(Path(__file__).with_name("dagger.py")), "--data", str(data), "--rounds", "1",
+    return [sys.executable, "-m", "drivesim", "dagger", "--trainer", str(TRAINER), "--base", str(TRAINER.parents[3] / "weights/default.safetensors"), "--data", str(data), "--rounds", "1",
             "--tracks", "4000", "--per-round", "1", "--heldout", "5000", "--frames", "100", "--steps", "30",
             "--holdout", "1", "--workers", "1", "--dir", str(out)]
 
@@ -60,7 +61,7 @@ def test_a_short_round_end_to_end_and_its_resume_after_a_kill(expert_data, tmp_p
 
 
 def test_steering_noise_is_a_seeded_ar1_sequence_of_its_deviation():
-    import dagger
+    from drivesim.carracing import dagger
     from itertools import islice
     assert list(islice(dagger.steering_noise(0.0, 4), 50)) == [0.0] * 50
     draws = np.array(list(islice(dagger.steering_noise(0.1, 4), 20000)))
@@ -71,8 +72,8 @@ def test_steering_noise_is_a_seeded_ar1_sequence_of_its_deviation():
 
 
 def test_noise_moves_the_applied_and_recorded_steering_by_the_offset():
-    import dagger
-    weights = Path(__file__).with_name("default.safetensors")
+    from drivesim.carracing import dagger
+    weights = Path(__file__).resolve().parents[2] / "weights/default.safetensors"
     plain, _ = dagger.drive_labelled((weights, 4000, 100, 0.0))
     noisy, _ = dagger.drive_labelled((weights, 4000, 100, 0.3))
     first = next(dagger.steering_noise(0.3, 4000))

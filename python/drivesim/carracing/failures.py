@@ -4,7 +4,7 @@ gain), a pull to one side (a bias), unsteady hands (noise), late hands (a delay)
 bends (the target speed scaled), and the spins, grass and recoveries that follow. The data a
 world model needs to foresee the car leaving the road (docs/judging.md, the rank probe).
 
-  weights/tool failures --tracks 12000-12031 --per-track 3 --dir runs/failures \\
+  python -m drivesim failures --tracks 12000-12031 --per-track 3 --dir runs/failures \\
       --out data/failures.safetensors.gz --workers 2
 
 `training_family()` is a family of its own, not the rank probe's (`drivesim.carracing.rank.FAMILY`): other
@@ -24,13 +24,13 @@ from multiprocessing import Pool
 
 import numpy as np
 
-import episodes
-import record
-from record import parse_seeds
+from .. import episodes
+from . import record
+from .view import parse_seeds
 
 
 def training_family():
-    from drivesim.carracing.rank import Driver
+    from .rank import Driver
 
     return [
         Driver("clone"),
@@ -55,9 +55,9 @@ def drive(job):
     global _model
     seed, index, frames, weights = job
     import gymnasium
-    from drivesim import Model
-    from drivesim.carracing import observe, speed
-    from drivesim.carracing.rank import ChangedAgent
+    from .._drivesim import Model
+    from . import observe, speed
+    from .rank import ChangedAgent
 
     if _model is None:
         _model = Model.load(weights)
@@ -129,7 +129,7 @@ def main(argv=None):
                       flush=True)
     parts = [episodes.read(kept(j, args.dir)) for j in jobs if os.path.exists(kept(j, args.dir))]
     data = episodes.Episodes.concat(parts)
-    episodes.write(args.out, data, {"source": "gymnasium CarRacing-v3, the cloned policy changed (weights/failures.py)",
+    episodes.write(args.out, data, {"source": "gymnasium CarRacing-v3, the cloned policy changed (drivesim.carracing.failures)",
                                     "seeds": ",".join(map(str, args.tracks)), "frame_hz": "12.5"})
     off = 1.0 - float(np.mean(data.rewards["on_road"]))
     print(f"wrote {args.out}: {len(parts)} episodes, {len(data.frames)} frames, {off:.0%} of them off the road")

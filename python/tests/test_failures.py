@@ -1,14 +1,13 @@
-"""weights/failures.py: the cloned driver changed, recorded as episodes with rewards (needs the
+"""drivesim.carracing.failures: the cloned driver changed, recorded as episodes with rewards (needs the
 drivesim package and CarRacing: skipped without them)."""
 
 import numpy as np
 import pytest
 
-import episodes
+from drivesim import episodes
 
-pytest.importorskip("drivesim")
 pytest.importorskip("Box2D")
-import failures  # noqa: E402 (after the skips: it needs the package's rank probe)
+from drivesim.carracing import failures  # noqa: E402 (after the skip: it needs Box2D)
 
 
 def test_the_training_family_is_not_the_probes():

@@ -19,11 +19,12 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from safetensors.numpy import load, save
+try:
+    from safetensors.numpy import load, save
+except ImportError as error:  # an extra, not a dependency of the simulator
+    raise ImportError("drivesim.episodes needs safetensors: pip install 'drivesim[data]'") from error
 
-import package
-
-_files = package.load("_files.py")
+from . import _files
 
 
 class EpisodesError(ValueError):

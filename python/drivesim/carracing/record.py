@@ -1,4 +1,4 @@
-"""Record CarRacing driving as an episodes file (see episodes.py).
+"""Record CarRacing driving as an episodes file (see drivesim.episodes).
 
 A scripted driver follows the track centre line with pure pursuit; `--driver` picks its style:
 
@@ -34,8 +34,8 @@ A scripted driver follows the track centre line with pure pursuit; `--driver` pi
 `--colours random` redraws the road and grass colours for every episode (gymnasium's
 `domain_randomize`); `mixed` does so for every other seed.
 
-  weights/tool record --seeds 0-39 --frames 600 --out data/train.safetensors.gz
-  weights/tool record --seeds 100-139 --driver varied --colours mixed --out data/varied.safetensors.gz
+  python -m drivesim record --seeds 0-39 --frames 600 --out data/train.safetensors.gz
+  python -m drivesim record --seeds 100-139 --driver varied --colours mixed --out data/varied.safetensors.gz
 """
 
 import argparse
@@ -50,13 +50,10 @@ os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 import numpy as np
 from gymnasium.envs.box2d import car_racing
 
-import episodes
-import expert
-import package
+from .. import episodes
+from . import expert, view
 
 
-# The models' view of CarRacing, shared with the Python package's agents.
-view = package.load("carracing/view.py")
 HEIGHT, WIDTH = view.HEIGHT, view.WIDTH
 WARMUP_STEPS = 60  # the env zooms in during its first second; skip it
 GAIN = 1.5  # steering per radian between heading and aim point
