@@ -1,5 +1,5 @@
 //! Times encode, generate and one transition step (from a given code, and fed back) and prints one
-//! machine-readable line per measurement (read by `weights/compare.py`), plus the FMA peak
+//! machine-readable line per measurement (read by `weights/drivesim_reference/compare.py`), plus the FMA peak
 //! of this core per vector width.
 //!
 //! ```text
@@ -10,7 +10,7 @@
 //! ```
 //! Built with `--features train`, the network `train_transition` is one training step of the
 //! transition (`drivesim::train`) on a batch of windows of 15 codes (read by
-//! `weights/compare_train.py`), and `train_vae_gan` one VAE-GAN step of the encoder, generator
+//! `weights/drivesim_reference/compare_train.py`), and `train_vae_gan` one VAE-GAN step of the encoder, generator
 //! and discriminator on a batch of frames (`--base N` sets the base channels, 64 by default).
 //! Lines: `isa level=avx2`, `peak width=256 threads=1 gflops=…` (for 1 and each `--threads`
 //! count: the FMA peak of that many threads at once), and
@@ -22,7 +22,7 @@
 //! With `--serve` it times nothing by itself: after the peaks it prints `ready`, then reads
 //! requests `NETWORK BATCH THREADS` from standard input, one per line, and answers each with
 //! its `result` line, so that a caller can interleave drivesim's measurements with other
-//! runtimes' on a noisy machine (`weights/compare.py` does).
+//! runtimes' on a noisy machine (`weights/drivesim_reference/compare.py` does).
 
 #[path = "../benches/common/mod.rs"]
 mod common;
@@ -62,7 +62,7 @@ const PLANNER_STEPS: usize = 10;
 const TRAIN: &str = "train_transition";
 /// One VAE-GAN training step on `batch` frames (`--features train`).
 const TRAIN_VAE_GAN: &str = "train_vae_gan";
-/// Codes per training window, as `weights/train.py`.
+/// Codes per training window, as `weights/drivesim_reference/train.py`.
 #[cfg(feature = "train")]
 const WINDOW: usize = 15;
 

@@ -6,7 +6,7 @@
 //! own and the hidden state the step left: `code = A h' + a + T([temperature * ε | h'])`, `T` a
 //! two-layer tanh network of the heads' shape ([`crate::HeadKind`]; `ε` in the code's place,
 //! `z_dim` standard normal draws of [`crate::sampling`]'s generator). It is trained
-//! adversarially (`weights/train.py texture`): critics of its generated frames, of its codes
+//! adversarially (`weights/drivesim_reference/train.py texture`): critics of its generated frames, of its codes
 //! with the hidden state and of its fed-back codes judge it against the recorded drives, so that
 //! its samples are frames a discriminator cannot tell from the road's (docs/history/next_second.md).
 //!

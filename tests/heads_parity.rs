@@ -1,5 +1,5 @@
 //! The head trainer's steps and the value head's λ-returns against PyTorch's
-//! (`weights/heads.py`; `weights/fixtures.py` wrote `heads_f32.train.safetensors`): a reward
+//! (`weights/drivesim_reference/heads.py`; `weights/drivesim_reference/fixtures.py` wrote `heads_f32.train.safetensors`): a reward
 //! head fine-tuned from the fixture's tensors for three Adam steps, each loss and the final
 //! tensors within 1e-5 of PyTorch's, and one drive's returns within 1e-6.
 #![cfg(feature = "train")]

@@ -1,5 +1,5 @@
 //! Every forward pass agrees with the PyTorch reference of the same weights
-//! (`weights/fixtures.py` wrote the fixtures), on every instruction set this CPU has.
+//! (`weights/drivesim_reference/fixtures.py` wrote the fixtures), on every instruction set this CPU has.
 
 mod common;
 

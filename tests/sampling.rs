@@ -175,7 +175,7 @@ fn a_texture_net_samples_in_the_spreads_place() {
 
 #[test]
 fn the_texture_net_is_read_as_pytorch_writes_it() {
-    // weights/fixtures.py's texture_f32: a net whose noise columns are zero, so that a sample
+    // weights/drivesim_reference/fixtures.py's texture_f32: a net whose noise columns are zero, so that a sample
     // is the mean plus its offset of h alone, at any temperature and seed.
     let model = Model::load(fixture_path("texture_f32.safetensors")).unwrap();
     let io = Io::open("texture_f32.io.safetensors");

@@ -1,5 +1,5 @@
 //! The transition trainer (`--features train`): every step against PyTorch's
-//! (`weights/fixtures.py` wrote `NAME.train.safetensors` with `weights/train.py`'s step), the
+//! (`weights/drivesim_reference/fixtures.py` wrote `NAME.train.safetensors` with `weights/drivesim_reference/train.py`'s step), the
 //! action gradient against finite differences, bit-identical results across thread counts,
 //! and typed errors for bad input.
 #![cfg(feature = "train")]

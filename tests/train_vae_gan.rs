@@ -1,6 +1,6 @@
-//! The VAE-GAN trainer (`--features train`) against PyTorch: `weights/fixtures.py` wrote
+//! The VAE-GAN trainer (`--features train`) against PyTorch: `weights/drivesim_reference/fixtures.py` wrote
 //! `NAME.gan.safetensors` (weights with a discriminator) and `NAME.gan.io.safetensors` (a batch,
-//! `weights/vae_gan.py`'s `vae_gan_step` losses, gradients and updated tensors, and the tensors
+//! `weights/drivesim_reference/vae_gan.py`'s `vae_gan_step` losses, gradients and updated tensors, and the tensors
 //! after five steps on the batch).
 #![cfg(feature = "train")]
 
@@ -182,7 +182,7 @@ fn five_steps_match_pytorch() {
     for name in GAN_FIXTURES {
         let f = fixture(name);
         let steps: usize = f.io.metadata("steps").parse().unwrap();
-        // A tenth of the training rate: see `GAN_STEPS_LR` in weights/fixtures.py.
+        // A tenth of the training rate: see `GAN_STEPS_LR` in weights/drivesim_reference/fixtures.py.
         let lr: f32 = f.io.metadata("steps_lr").parse().unwrap();
         let mut trainer = f.trainer(Isa::best());
         let (pytorch, exact) = (f.io.values("losses"), f.io.values("f64.losses"));

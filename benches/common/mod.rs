@@ -99,7 +99,7 @@ pub fn train_transition_flops(c: &Config, window: usize) -> u64 {
 }
 
 /// FLOPs of one VAE-GAN training step per frame of the batch (`drivesim::train`'s and
-/// `weights/train.py`'s step), every convolution counted by [`conv_flops`] (direct-equivalent,
+/// `weights/drivesim_reference/train.py`'s step), every convolution counted by [`conv_flops`] (direct-equivalent,
 /// the discriminator has the encoder's shapes): forward, the encoder (once), the generator on
 /// reconstructions and prior samples, the discriminator six times (real frames twice, the
 /// two fakes twice); backward, the discriminator's loss (weights and data gradients but the

@@ -18,12 +18,12 @@
 //! cargo run --release --features train --example train -- step --stage transition|vae-gan \
 //!     --weights W.safetensors --batch B.safetensors --out O.safetensors [--lr ...] [--teacher 5] [--clip 1.0]
 //! ```
-//! `vae-gan` trains the encoder and generator with a discriminator as `weights/train.py fit`'s
+//! `vae-gan` trains the encoder and generator with a discriminator as `weights/drivesim_reference/train.py fit`'s
 //! first stage does, measures held-out reconstruction PSNR every `--every` steps, and writes
 //! the weights (discriminator included, so a run resumes from its `--out`; Adam's moments
 //! start again). `fit` runs both stages, as `weights/tool train fit` does.
 //! `transition` encodes the episodes with the crate's encoder, trains (or fine-tunes) the
-//! transition on windows of 15 codes as `weights/train.py` does, reports the held-out latent
+//! transition on windows of 15 codes as `weights/drivesim_reference/train.py` does, reports the held-out latent
 //! error before and after, and writes a weight file `Model::load` reads. `step` is the
 //! verification mode: one step on a given batch, writing the loss, every gradient and the
 //! updated tensors (the file formats are in `weights/TRAINING_FILES.md`), as

@@ -122,7 +122,7 @@ fn frames(episodes: &Episodes, c: &Config, what: &str) -> Result<Vec<f32>, Strin
 }
 
 /// Mean PSNR in dB of reconstructions (encoder mean, then generator) of `frames` by the
-/// weights `bytes`, on the 0-255 scale as `weights/train.py` measures it; and the
+/// weights `bytes`, on the 0-255 scale as `weights/drivesim_reference/train.py` measures it; and the
 /// reconstructions.
 fn psnr(bytes: &[u8], frames: &[f32], threads: usize) -> Result<(f64, Vec<f32>), String> {
     let model = Model::from_bytes(bytes).map_err(|e| e.to_string())?;

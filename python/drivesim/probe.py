@@ -1,4 +1,4 @@
-"""The steering probe (issue 31), shared by the dream's (weights/futures.py) and the real
+"""The steering probe (issue 31), shared by the dream's (weights/drivesim_reference/futures.py) and the real
 environment's (drivesim.carracing.probe_real): PROBE_STARTS starts evenly spaced over held-out
 episodes, each the last of SEEDS consecutive frames; from there PROBE_STEPS steps at the start's
 speed with constant steering -x, 0 and +x (x in PROBE_STEER); in the last frame, the road's

@@ -34,7 +34,7 @@ def road_mask(frames: np.ndarray) -> np.ndarray:
 def centre(frame: np.ndarray, rows: int = 60) -> float | None:
     """The mean column of the road pixels in the top ``rows`` rows of one uint8 frame
     ``(H, W, 3)``, or None where they show no road: the steering probe's road centre
-    (``weights/futures.py``)."""
+    (``weights/drivesim_reference/futures.py``)."""
     xs = np.nonzero(road_mask(frame[:rows]))[1]
     return float(xs.mean()) if len(xs) else None
 

@@ -22,7 +22,7 @@
 //! [`drivesim_kernels::dense_data_grad`] for the VAE-GAN's large dense layers,
 //! [`drivesim_kernels::conv_weight_grad`],
 //! [`drivesim_kernels::activation_backward`], [`drivesim_kernels::norm`]). Each step agrees with
-//! PyTorch's (`weights/train.py`, checked by the fixtures of `tests/train.rs` and
+//! PyTorch's (`weights/drivesim_reference/train.py`, checked by the fixtures of `tests/train.rs` and
 //! `tests/train_vae_gan.rs`), and threads change no bit of it.
 
 mod adam;

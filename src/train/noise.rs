@@ -1,7 +1,7 @@
 //! The correlation of the sampled noise across the code's dimensions (`transition.L`,
 //! [`crate::sampling`]): fitted once a transition with a spread head is trained, from its
 //! one-step errors on the training drives, scaled by the spread it predicted for them.
-//! `weights/sequences.py`'s `noise_factor` fits the same, step for step.
+//! `weights/drivesim_reference/sequences.py`'s `noise_factor` fits the same, step for step.
 
 use crate::plan::Plan;
 use crate::pool::Exec;
@@ -84,7 +84,7 @@ pub fn fit_noise_factor(model: &Model, drives: &[(&[f32], &[f32])]) -> Result<Ve
 /// [`fit_noise_factor`]'s) sharpened: the Cholesky factor of its correlation `L Lᵀ` raised to
 /// `power` and scaled back to unit diagonal, so that each dimension's spread stays the head's
 /// and the noise gathers in the directions the one-step errors share most (power 1 gives the
-/// factor back as it is). `weights/sequences.py`'s `sharpen_noise` computes the same.
+/// factor back as it is). `weights/drivesim_reference/sequences.py`'s `sharpen_noise` computes the same.
 ///
 /// The trade-off it moves along, measured on held-out drivers (docs/history/next_second.md): at power
 /// 2 the best of 16 sampled futures at 30 steps comes nearer what happened (0.94-0.97 of the

@@ -32,7 +32,7 @@ pub const TINY: drivesim::Config = drivesim::Config {
     ..drivesim::Config::COMMA
 };
 
-/// The PyTorch fixtures (`weights/fixtures.py`); `spread_f32`'s transition has the spread head.
+/// The PyTorch fixtures (`weights/drivesim_reference/fixtures.py`); `spread_f32`'s transition has the spread head.
 pub const FIXTURES: [&str; 6] = [
     "small_f32",
     "small_f16",
@@ -57,7 +57,7 @@ pub fn tolerance(name: &str) -> f32 {
     }
 }
 
-/// The float32 tensors of `NAME.io.safetensors`, written by `weights/fixtures.py`.
+/// The float32 tensors of `NAME.io.safetensors`, written by `weights/drivesim_reference/fixtures.py`.
 pub struct Io {
     bytes: Vec<u8>,
 }

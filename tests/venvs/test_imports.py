@@ -20,6 +20,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGE = ROOT / "python" / "drivesim"
+# The checkout's other package, run from its folder (`weights/tool`, ./test): the PyTorch reference.
+REFERENCE = "drivesim_reference"
 
 # Each virtualenv ./test makes: its requirement lists (files; `pyproject:EXTRA` is the package's
 # dependencies plus those extras (`pyproject:A,B`), what installing the wheel as `wheel[A,B]`
@@ -33,8 +35,7 @@ VENVS = {
     },
     "torch": {
         "requirements": ["tests/venvs/torch.txt", "pyproject:carracing,comma"],
-        "runs": ["weights/test_model.py", "weights/test_train.py", "weights/test_resume.py", "weights/test_evaluation.py",
-                 "weights/test_futures.py", "weights/test_heads.py", "weights/test_texture.py", "weights/fixtures.py"],
+        "runs": ["weights/tests/*.py", "weights/drivesim_reference/fixtures.py"],
         "may_skip": set(),
     },
     "package": {
@@ -47,7 +48,7 @@ VENVS = {
     # `weights/tool setup`'s weights/.venv, which runs every tool in weights/.
     "tool": {
         "requirements": ["weights/requirements.txt", "weights/requirements-data.txt", "pyproject:carracing,comma"],
-        "runs": ["weights/*.py"],
+        "runs": ["weights/drivesim_reference/*.py", "weights/tests/*.py"],
         "may_skip": set(),
     },
 }
@@ -131,6 +132,8 @@ def imports_of(path):
             found.append((node.module or "", node.level))
             if node.level and not node.module:  # `from . import a, b`
                 found += [(alias.name, node.level) for alias in node.names]
+            elif not node.level:  # `from package import module`: the names may be modules
+                found += [(f"{node.module}.{alias.name}", 0) for alias in node.names]
         elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.args
               and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
             owner = node.func.value.id if isinstance(node.func.value, ast.Name) else None
@@ -174,7 +177,11 @@ def third_party(venv):
             top = module.split(".")[0]
             if top in stdlib or top == "__future__":
                 continue
-            if (path.parent / f"{top}.py").is_file():  # a neighbour: weights/model.py, conftest.py
+            if top == REFERENCE:  # weights/drivesim_reference: its module, or its __init__.py
+                parts = module.split(".")[1:]
+                target = ROOT.joinpath("weights", REFERENCE, *parts).with_suffix(".py") if parts else None
+                queue.append(target if target and target.is_file() else ROOT / "weights" / REFERENCE / "__init__.py")
+            elif (path.parent / f"{top}.py").is_file():  # a neighbour: a test's helper, conftest.py
                 queue.append(path.parent / f"{top}.py")
             elif top == "drivesim" and package_installed:
                 queue.append(package_file(module))

@@ -1,5 +1,5 @@
 //! Training the transition model, `h' = tanh(W h + V z + U c + b)`, `z' = A h' + a`, as
-//! `weights/train.py` does: windows of codes, the first inputs teacher-forced and the later ones
+//! `weights/drivesim_reference/train.py` does: windows of codes, the first inputs teacher-forced and the later ones
 //! the model's own previous prediction, mean squared error over every prediction,
 //! back-propagation through time, gradient-norm clipping and Adam.
 //!

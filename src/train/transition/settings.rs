@@ -3,12 +3,12 @@
 use crate::train::adam::Adam;
 use crate::{Error, Result};
 
-/// How a [`TransitionTrainer`](super::TransitionTrainer) trains: `weights/train.py`'s choices by
+/// How a [`TransitionTrainer`](super::TransitionTrainer) trains: `weights/drivesim_reference/train.py`'s choices by
 /// default.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TransitionSettings {
     /// Inputs taken from the data at the start of each window (at least 1); later inputs are
-    /// the model's own previous prediction. The paper and `weights/train.py`: 5 of 15.
+    /// the model's own previous prediction. The paper and `weights/drivesim_reference/train.py`: 5 of 15.
     pub teacher: usize,
     /// Back-propagate through the fed-back predictions too. The paper stops the gradient
     /// there (PyTorch's `.detach()`, `false`); the hidden state carries it through time either

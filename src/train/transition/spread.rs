@@ -5,7 +5,7 @@
 //! made from true codes (the teacher-forced ones: their error is one step's innovation, which a
 //! sampled rollout adds at every step; a fed-back prediction's error is the drift of the mean,
 //! which sampling would add again and again). The mean and the hidden states enter as constants
-//! (`weights/sequences.py`'s `spread_loss` detaches them): the head learns the error the mean
+//! (`weights/drivesim_reference/sequences.py`'s `spread_loss` detaches them): the head learns the error the mean
 //! makes, and the mean trains as without a head.
 
 use super::plan::Dims;

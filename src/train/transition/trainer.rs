@@ -164,7 +164,7 @@ impl<'a> TransitionTrainer<'a> {
         &self.settings
     }
 
-    /// Trains on actions normalised as `(c - mean) / std` (as `weights/train.py` does, so that
+    /// Trains on actions normalised as `(c - mean) / std` (as `weights/drivesim_reference/train.py` does, so that
     /// speed in metres per second and steering in [-1, 1] weigh alike), while every method
     /// keeps taking and returning raw actions: the model's `U` and `b` are rewritten for
     /// normalised actions here and folded back in [`TransitionTrainer::tensors`]. Resets Adam.
@@ -227,7 +227,7 @@ impl<'a> TransitionTrainer<'a> {
         self.backward(codes, batch, Backward::Weights)?;
         let [_, grads, ..] = cut_ref(self.memory.floats_ref(), &self.plan.lens);
         // The norm that clipping scales by is the mean's alone: the spread head's loss is one of
-        // its own, and Adam bounds its steps (`weights/sequences.py`'s `transition_step`).
+        // its own, and Adam bounds its steps (`weights/drivesim_reference/sequences.py`'s `transition_step`).
         let grads = &grads[..self.plan.dims.clipped()];
         let exec = Exec {
             isa: self.isa,

@@ -1,5 +1,5 @@
 //! Training the encoder and generator as a VAE-GAN (Larsen et al.), exactly as
-//! `weights/vae_gan.py`'s `vae_gan_step`: a discriminator (the encoder's mirror, a logit on top)
+//! `weights/drivesim_reference/vae_gan.py`'s `vae_gan_step`: a discriminator (the encoder's mirror, a logit on top)
 //! learns to tell real frames from reconstructions and prior samples; the encoder minimises a
 //! KL prior plus the reconstruction error measured on the discriminator's third-convolution
 //! features (relative to their spread) and in pixels; the generator minimises the same

@@ -16,10 +16,10 @@ use alloc::vec::Vec;
 use drivesim_kernels::pack::conv_matrix_from_torch;
 use drivesim_kernels::{Isa, Matrix};
 
-/// The learning rate of `weights/train.py fit`'s VAE-GAN.
+/// The learning rate of `weights/drivesim_reference/train.py fit`'s VAE-GAN.
 pub const VAE_GAN_LR: f32 = 2e-4;
 
-/// The loss weights and optimiser of the VAE-GAN (`weights/train.py fit`'s defaults).
+/// The loss weights and optimiser of the VAE-GAN (`weights/drivesim_reference/train.py fit`'s defaults).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct VaeGanSettings {
     /// Weight of the KL prior in the encoder's loss.

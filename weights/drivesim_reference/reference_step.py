@@ -4,10 +4,10 @@ reference (weights/TRAINING_FILES.md)."""
 import torch
 import torch.distributed as dist
 
-from distributed import globalise_batch_norms, share, start_distributed, world
-from model import load_discriminator, load_drivesim
-from sequences import transition_step
-from vae_gan import ADAM_VAE_GAN, Discriminator, to_input, vae_gan_step
+from drivesim_reference.distributed import globalise_batch_norms, share, start_distributed, world
+from drivesim_reference.model import load_discriminator, load_drivesim
+from drivesim_reference.sequences import transition_step
+from drivesim_reference.vae_gan import ADAM_VAE_GAN, Discriminator, to_input, vae_gan_step
 
 
 def step(args):

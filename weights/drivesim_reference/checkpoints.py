@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from drivesim import _files
-from distributed import world
+from drivesim_reference.distributed import world
 
 FORMAT = "drivesim train.py fit checkpoint 1"
 # Arguments that do not change what the run computes: a resumed run may change them (the

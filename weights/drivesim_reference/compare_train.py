@@ -38,8 +38,8 @@ from pathlib import Path
 
 import torch
 
-from compare import ROOT, Drivesim, cpu_info, median_ms, spread
-from model import Config, DriveSim, Transition
+from drivesim_reference.compare import ROOT, Drivesim, cpu_info, median_ms, spread
+from drivesim_reference.model import Config, DriveSim, Transition
 
 WINDOW, TEACHER = 15, 5
 # name: (base channels, z, hidden)
@@ -67,7 +67,7 @@ class TorchStep:
 
     @staticmethod
     def transition(name: str, batch: int):
-        from sequences import transition_step
+        from drivesim_reference.sequences import transition_step
 
         tr = Transition(config(name))
         opt = torch.optim.Adam(tr.parameters(), lr=1e-4)
@@ -77,7 +77,7 @@ class TorchStep:
 
     @staticmethod
     def vae_gan(name: str, batch: int):
-        from vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
+        from drivesim_reference.vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
 
         cfg = config(name)
         model, dis = DriveSim(cfg).train(), Discriminator(cfg).train()
@@ -159,7 +159,7 @@ def main() -> int:
             for b in batches:
                 rust = [str(binary), "--z", str(z), "--hidden", str(hidden), "--base", str(base), "--networks", net,
                         "--batch", str(b), "--threads", "1", "--seconds", "1"]
-                python = [sys.executable, str(Path(__file__)), "--stage", a.stage, "--torch-only", name, str(b),
+                python = [sys.executable, "-m", "drivesim_reference.compare_train", "--stage", a.stage, "--torch-only", name, str(b),
                           "--seconds", "1"]
                 memory[(name, b)] = (peak_rss_mib(rust), peak_rss_mib(python))
 

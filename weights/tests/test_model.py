@@ -10,8 +10,8 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from export import export_onnx
-from model import CONFIG_KEY, DTYPES, Config, DriveSim, load_drivesim, save_drivesim
+from drivesim_reference.export import export_onnx
+from drivesim_reference.model import CONFIG_KEY, DTYPES, Config, DriveSim, load_drivesim, save_drivesim
 
 CFG = Config(16, 32, 2, 3, z_dim=5, hidden_dim=7, action_dim=3)
 
@@ -49,7 +49,7 @@ def test_round_trip(model, tmp_path, dtype):
 def test_a_failed_save_leaves_the_old_file_whole(model, tmp_path, monkeypatch):
     """A save that fails as the data is flushed (a full disk) leaves the old weights loadable,
     and no temporary file beside them."""
-    import model as model_module
+    from drivesim_reference import model as model_module
 
     path = tmp_path / "m.safetensors"
     save_drivesim(model, CFG, path)
@@ -118,7 +118,7 @@ def test_the_optional_networks_load_and_round_trip(tmp_path):
         assert torch.equal(a, b), name
     h = torch.randn(2, CFG.hidden_dim)
     assert torch.equal(loaded.transition.log_sigma(h), h @ full.transition.S.T + full.transition.s)
-    default, _ = load_drivesim(Path(__file__).parent / "default.safetensors")
+    default, _ = load_drivesim(Path(__file__).resolve().parents[1] / "default.safetensors")
     assert default.transition.spread and default.policy.hidden.out_features == 64
     path = tmp_path / "plain.safetensors"
     save_drivesim(DriveSim(CFG).eval(), CFG, path)
@@ -129,7 +129,7 @@ def test_the_optional_networks_load_and_round_trip(tmp_path):
 def test_a_sharpened_noise_factor_keeps_unit_spreads_and_gathers_the_correlation():
     """sequences.sharpen_noise: power 1 gives the factor back; power 2 is the Cholesky factor of
     the correlation squared, back to unit diagonal: fewer directions carry the noise."""
-    from sequences import sharpen_noise
+    from drivesim_reference.sequences import sharpen_noise
 
     torch.manual_seed(5)
     mix = torch.randn(40, 6) @ torch.randn(6, 6)
@@ -158,7 +158,7 @@ def test_a_sharpened_noise_factor_keeps_unit_spreads_and_gathers_the_correlation
 def test_the_noise_factor_round_trips_and_correlates_the_samples(tmp_path):
     """`transition.L` (sequences.noise_factor) is saved and loaded with the spread head, and a
     sampled prediction draws `L @ eps`: with L's rows swapped, the same draws land swapped."""
-    from sequences import noise_factor, predict
+    from drivesim_reference.sequences import noise_factor, predict
 
     torch.manual_seed(4)
     model = DriveSim(CFG, spread=True).eval()

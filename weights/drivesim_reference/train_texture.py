@@ -40,10 +40,10 @@ from torch import nn
 from torch.nn import functional as F
 
 from drivesim import _files
-from model import Texture, load_drivesim
-from sequences import TEACHER
-from train_heads import Source, encode_view, load_episodes
-from vae_gan import Discriminator
+from drivesim_reference.model import Texture, load_drivesim
+from drivesim_reference.sequences import TEACHER
+from drivesim_reference.train_heads import Source, encode_view, load_episodes
+from drivesim_reference.vae_gan import Discriminator
 CHECKPOINT_FORMAT = "drivesim train.py texture checkpoint 1"
 # Samples per window of the --bestof term.
 BEST_OF = 8

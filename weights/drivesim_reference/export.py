@@ -22,7 +22,7 @@ import torch
 from safetensors import safe_open
 from torch import nn
 
-from model import ACTIONS_KEY, DTYPES, Config, DriveSim, from_state_dict, load_drivesim, save_drivesim
+from drivesim_reference.model import ACTIONS_KEY, DTYPES, Config, DriveSim, from_state_dict, load_drivesim, save_drivesim
 
 OPSET = 17
 

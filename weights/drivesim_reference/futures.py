@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from drivesim import probe
-from sequences import TEACHER, predict
+from drivesim_reference.sequences import TEACHER, predict
 
 HORIZON, FUTURES, TRACKED = 30, 16, 5
 # Texture: the fed-back steps read; CarRacing's grass (102, 204, 102) and its patches'

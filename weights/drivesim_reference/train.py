@@ -50,14 +50,14 @@ import torch
 import torch.distributed as dist
 
 from drivesim import _files, episodes
-import train_heads
-import train_texture
-from checkpoints import Checkpoints
-from distributed import globalise_batch_norms, start_distributed, world
-from model import Config, DriveSim, save_drivesim
-from reference_step import step
-from sequences import SEQ, TEACHER, encode, noise_factor, sharpen_noise, train_transition
-from vae_gan import ADAM_VAE_GAN, LOSS_WEIGHTS, Discriminator, train_vae_gan
+from drivesim_reference import train_heads
+from drivesim_reference import train_texture
+from drivesim_reference.checkpoints import Checkpoints
+from drivesim_reference.distributed import globalise_batch_norms, start_distributed, world
+from drivesim_reference.model import Config, DriveSim, save_drivesim
+from drivesim_reference.reference_step import step
+from drivesim_reference.sequences import SEQ, TEACHER, encode, noise_factor, sharpen_noise, train_transition
+from drivesim_reference.vae_gan import ADAM_VAE_GAN, LOSS_WEIGHTS, Discriminator, train_vae_gan
 
 
 def fit(args):
@@ -126,7 +126,7 @@ def fit(args):
 
 def evaluate(args):
     """`eval` (evaluation.py), imported here: its real-car probe needs gymnasium, the trainers do not."""
-    from evaluation import evaluate as run
+    from drivesim_reference.evaluation import evaluate as run
 
     run(args)
 

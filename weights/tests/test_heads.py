@@ -1,5 +1,5 @@
 """The heads' reference training (heads.py) and the heads in the weight format (model.py):
-weights/tool -m pytest test_heads.py"""
+weights/tool -m pytest tests/test_heads.py"""
 
 import json
 
@@ -9,8 +9,8 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from heads import HeadTrainer, lambda_returns, train_step
-from model import DISCOUNT_KEY, Config, DriveSim, Head, Policy, from_state_dict, load_drivesim, save_drivesim
+from drivesim_reference.heads import HeadTrainer, lambda_returns, train_step
+from drivesim_reference.model import DISCOUNT_KEY, Config, DriveSim, Head, Policy, from_state_dict, load_drivesim, save_drivesim
 
 CFG = Config(16, 32, 2, 3, z_dim=5, hidden_dim=7, action_dim=3)
 
@@ -167,7 +167,7 @@ def test_a_head_missing_a_tensor_or_a_bad_discount_is_refused(tmp_path):
 def test_the_committed_heads_fixture_is_reproduced(tmp_path):
     """tests/fixtures/heads_f32.train.safetensors, regenerated (fixtures.py --check's test, for
     this fixture alone: a second)."""
-    import fixtures
+    from drivesim_reference import fixtures
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -204,7 +204,7 @@ def reward_episodes(path, lengths=(6, 8, 10), seed=0, rewards=True):
 def head_files(tmp_path):
     """An f16 weight file with a policy, action metadata, a frame rate and a discriminator, and
     three episodes (6, 8 and 10 frames) with rewards."""
-    from vae_gan import Discriminator
+    from drivesim_reference.vae_gan import Discriminator
 
     torch.manual_seed(11)
     weights = tmp_path / "w.safetensors"
@@ -214,7 +214,7 @@ def head_files(tmp_path):
 
 
 def run_heads(capsys, weights, data, out, *more):
-    import train
+    from drivesim_reference import train
 
     train.main(["heads", "--weights", str(weights), "--episodes", str(data), "--out", str(out), "--steps", "12",
                 "--batch", "5", "--width", "3", "--refresh", "5", *more])
@@ -278,7 +278,7 @@ def test_heads_command_is_seeded(head_files, tmp_path, capsys):
 
 
 def test_heads_command_refuses_episodes_without_rewards(head_files, tmp_path, capsys):
-    import train
+    from drivesim_reference import train
 
     weights, data = head_files
     bare = reward_episodes(tmp_path / "bare.safetensors", rewards=False)
@@ -301,7 +301,7 @@ def test_heads_command_refuses_episodes_without_rewards(head_files, tmp_path, ca
 
 def test_the_examples_are_the_states_along_each_drive(head_files):
     from drivesim import episodes
-    import train_heads
+    from drivesim_reference import train_heads
 
     weights, data = head_files
     model, cfg = load_drivesim(weights)
@@ -336,7 +336,7 @@ def test_the_examples_are_the_states_along_each_drive(head_files):
 def test_the_order_is_the_rust_commands():
     """Order's draws are examples/train/regression.rs's (its SplitMix64 shuffles, written out
     one by one here as in the Rust), across passes and batches that straddle them."""
-    import train_heads
+    from drivesim_reference import train_heads
 
     mask = (1 << 64) - 1
 
@@ -390,7 +390,7 @@ def test_heads_command_trains_the_value_on_dreams(head_files, dream_weights, tmp
 
 def test_the_dreams_start_from_the_real_states_and_follow_on(head_files, dream_weights):
     from drivesim import episodes
-    import train_heads
+    from drivesim_reference import train_heads
 
     model, cfg = load_drivesim(dream_weights)
     drives = train_heads.views(model, episodes.read(head_files[1]), no_mirror=False)[:2]
@@ -426,8 +426,8 @@ def test_the_dreams_start_from_the_real_states_and_follow_on(head_files, dream_w
 
 
 def test_dreams_are_refused_without_a_policy_a_reward_head_or_a_spread(head_files, tmp_path, capsys):
-    import train
-    import train_heads
+    from drivesim_reference import train
+    from drivesim_reference import train_heads
 
     weights, data = head_files  # a policy, no reward head, no spread head
     for more, match in ((["--dream-steps", "2"], "need the model's policy and reward head"),

@@ -7,13 +7,13 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from model import DriveSim, save_drivesim
-from sequences import predict
+from drivesim_reference.model import DriveSim, save_drivesim
+from drivesim_reference.sequences import predict
 from test_heads import ACTIONS, HEAD_CFG, reward_episodes
 
 
 def run(weights, data, out, *more):
-    import train
+    from drivesim_reference import train
 
     train.main(["texture", "--weights", str(weights), "--episodes", str(data), "--out", str(out), "--steps", "6",
                 "--batch", "3", "--fed", "2", "--frames", "1", "--width", "4", "--device", "cpu", *more])

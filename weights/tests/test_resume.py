@@ -12,9 +12,10 @@ from pathlib import Path
 import pytest
 import torch
 
-import train
+from drivesim_reference import train
 
-HERE = Path(__file__).resolve().parent
+# weights/: the package drivesim_reference runs from here whether or not it is installed.
+HERE = Path(__file__).resolve().parents[1]
 TWO_PROCESSES = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
 
 
@@ -26,7 +27,7 @@ def fit_args(data, vae_steps, transition_steps):
 
 def start(launcher, args):
     # A session of its own, so that no signal of the test's reaches the run but the kill.
-    return subprocess.Popen([*launcher, "train.py", *args], cwd=HERE, env=dict(os.environ, OMP_NUM_THREADS="1"),
+    return subprocess.Popen([*launcher, "-m", "drivesim_reference.train", *args], cwd=HERE, env=dict(os.environ, OMP_NUM_THREADS="1"),
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
 
 

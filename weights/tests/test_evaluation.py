@@ -11,7 +11,7 @@ from drivesim import episodes
 
 def test_road_offset_finds_a_grey_band():
     pytest.importorskip("torch")
-    import evaluation
+    from drivesim_reference import evaluation
 
     frame = np.zeros((80, 160, 3), np.uint8)
     frame[..., 1] = 200  # grass
@@ -30,9 +30,9 @@ def test_road_offset_finds_a_grey_band():
 def test_fit_and_eval_tiny(tmp_path):
     """A few steps of both training phases and the evaluation, on a tiny model and data set."""
     torch = pytest.importorskip("torch")
-    import sequences
-    import train
-    from model import load_drivesim
+    from drivesim_reference import sequences
+    from drivesim_reference import train
+    from drivesim_reference.model import load_drivesim
 
     rng = np.random.default_rng(1)
     data = episodes.Episodes(
@@ -94,9 +94,9 @@ def test_action_normalisation_is_folded_into_u_and_b():
     """After training, the transition on raw actions equals the trained one on normalised actions."""
     torch = pytest.importorskip("torch")
     import argparse
-    import sequences
-    from checkpoints import Checkpoints
-    from model import Config, DriveSim
+    from drivesim_reference import sequences
+    from drivesim_reference.checkpoints import Checkpoints
+    from drivesim_reference.model import Config, DriveSim
 
     torch.manual_seed(0)
     cfg = Config(height=16, width=16, channels=3, base_channels=2, z_dim=4, hidden_dim=6)

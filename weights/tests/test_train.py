@@ -1,4 +1,4 @@
-"""The training steps and fit, in one process and under torchrun: weights/tool -m pytest test_train.py"""
+"""The training steps and fit, in one process and under torchrun: weights/tool -m pytest tests/test_train.py"""
 
 import os
 import subprocess
@@ -9,12 +9,13 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-import train
-from sequences import predict, transition_step
-from vae_gan import Discriminator, vae_gan_step
-from model import Config, DriveSim, save_drivesim
+from drivesim_reference import train
+from drivesim_reference.sequences import predict, transition_step
+from drivesim_reference.vae_gan import Discriminator, vae_gan_step
+from drivesim_reference.model import Config, DriveSim, save_drivesim
 
-HERE = Path(__file__).resolve().parent
+# weights/: the package drivesim_reference runs from here whether or not it is installed.
+HERE = Path(__file__).resolve().parents[1]
 
 CFG = Config(16, 32, 2, 3, z_dim=5, hidden_dim=7, action_dim=3)
 
@@ -154,7 +155,7 @@ def test_vae_gan_encoder_gradient_is_its_losss_derivative():
 
 def torchrun(*args):
     """train.py ARGS in two processes on the CPU (gloo), as torchrun runs it on several GPUs."""
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "train.py", *args]
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "-m", "drivesim_reference.train", *args]
     done = subprocess.run(cmd, cwd=HERE, env=dict(os.environ, OMP_NUM_THREADS="1"), capture_output=True, text=True,
                           timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]

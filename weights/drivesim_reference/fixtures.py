@@ -26,12 +26,12 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from heads import HeadTrainer, lambda_returns
-from model import CONFIG_KEY, Config, DriveSim, Head, load_discriminator, load_drivesim, save_drivesim
-from sequences import noise_factor, sharpen_noise, transition_step
-from vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
+from drivesim_reference.heads import HeadTrainer, lambda_returns
+from drivesim_reference.model import CONFIG_KEY, Config, DriveSim, Head, load_discriminator, load_drivesim, save_drivesim
+from drivesim_reference.sequences import noise_factor, sharpen_noise, transition_step
+from drivesim_reference.vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
 
-OUT = Path(__file__).resolve().parent.parent / "tests" / "fixtures"
+OUT = Path(__file__).resolve().parents[2] / "tests" / "fixtures"
 RTOL = 1e-6
 # The convolutions followed by BatchNorm, whose bias gradients are zero in exact arithmetic.
 BEFORE_NORM = re.compile(r"\.(conv[123]|convs\.[123]|deconv[123])\.bias$")

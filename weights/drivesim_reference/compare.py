@@ -45,9 +45,9 @@ from pathlib import Path
 
 import torch
 
-from model import Config, DriveSim, save_drivesim
+from drivesim_reference.model import Config, DriveSim, save_drivesim
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 NETWORKS = ("encode", "generate", "transition")
 # Timed for drivesim alone: a transition step fed the previous step's prediction, as in a rollout,
 # which drivesim recognises and runs with `V A` folded into `W` (the peers' graphs take the code).

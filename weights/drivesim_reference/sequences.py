@@ -9,9 +9,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from checkpoints import restore_random
-from distributed import average_gradients, share
-from vae_gan import to_input
+from drivesim_reference.checkpoints import restore_random
+from drivesim_reference.distributed import average_gradients, share
+from drivesim_reference.vae_gan import to_input
 
 SEQ, TEACHER = 15, 5  # transition sequences: 15 frames, the first 5 from the encoder
 

@@ -10,10 +10,10 @@ from PIL import Image
 from drivesim import episodes
 from drivesim import probe
 from drivesim.carracing import probe_real
-from model import load_drivesim
-from futures import road_tracking, sampled_futures, steering_probe, texture
-from sequences import SEQ, TEACHER, encode, predict
-from vae_gan import psnr, to_image, to_input
+from drivesim_reference.model import load_drivesim
+from drivesim_reference.futures import road_tracking, sampled_futures, steering_probe, texture
+from drivesim_reference.sequences import SEQ, TEACHER, encode, predict
+from drivesim_reference.vae_gan import psnr, to_image, to_input
 
 STEER = 0.6  # constant steering of the steering-response test, well inside the recorded range
 

@@ -9,7 +9,7 @@ torch = pytest.importorskip("torch")
 
 
 def test_frechet_distance_of_gaussians():
-    from futures import frechet
+    from drivesim_reference.futures import frechet
 
     g = torch.Generator().manual_seed(0)
     a = torch.randn(4000, 3, generator=g, dtype=torch.float64)
@@ -21,7 +21,7 @@ def test_frechet_distance_of_gaussians():
 
 
 def test_real_futures_find_the_window_itself_in_a_reference_that_holds_it():
-    from futures import FUTURES, real_futures
+    from drivesim_reference.futures import FUTURES, real_futures
 
     g = torch.Generator().manual_seed(0)
     ref_z, ref_c = torch.randn(200, 35, 6, generator=g), torch.randn(200, 34, 2, generator=g)
@@ -58,7 +58,7 @@ class Dream:
 
 
 def test_road_tracking_compares_each_road_move_with_the_recorded_one():
-    from futures import road_tracking
+    from drivesim_reference.futures import road_tracking
 
     n = 30
     frames = np.zeros((n, 80, 160, 3), np.uint8)
@@ -96,7 +96,7 @@ def carracing_frames(n):
 
 
 def test_texture_figures_count_patch_and_kerb_pixels():
-    from futures import texture_figures
+    from drivesim_reference.futures import texture_figures
 
     frames = carracing_frames(12)
     grass = 60 * 140 - 32  # the top 60 rows but the road and the kerb
@@ -108,7 +108,7 @@ def test_texture_figures_count_patch_and_kerb_pixels():
 
 
 def test_texture_follows_the_dream_against_the_recording():
-    from futures import TEXTURE_STEPS, texture
+    from drivesim_reference.futures import TEXTURE_STEPS, texture
 
     n = 80
     frames = carracing_frames(n)
@@ -126,7 +126,7 @@ def test_texture_follows_the_dream_against_the_recording():
 
 
 def test_texture_baselines_fit_a_linear_dream_and_copy_the_last_seed():
-    from futures import TEACHER, futures_windows, linear_predictor, linear_rollout, texture
+    from drivesim_reference.futures import TEACHER, futures_windows, linear_predictor, linear_rollout, texture
 
     n = 80
     frames = carracing_frames(n)

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from model import Head
+from drivesim_reference.model import Head
 
 
 def lambda_returns(rewards, next_values, discount: float, lam: float):

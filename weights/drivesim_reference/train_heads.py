@@ -32,10 +32,10 @@ from safetensors import safe_open
 from safetensors.torch import load_file
 
 from drivesim import episodes
-from heads import HeadTrainer, lambda_returns
-from model import (ACTIONS_KEY, CONFIG_KEY, DISCOUNT_KEY, DISCRIMINATOR, FRAME_HZ_KEY, Head, check_discount,
+from drivesim_reference.heads import HeadTrainer, lambda_returns
+from drivesim_reference.model import (ACTIONS_KEY, CONFIG_KEY, DISCOUNT_KEY, DISCRIMINATOR, FRAME_HZ_KEY, Head, check_discount,
                    load_drivesim, save_drivesim)
-from vae_gan import to_input
+from drivesim_reference.vae_gan import to_input
 
 ENCODE_BATCH = 256
 

@@ -13,9 +13,9 @@ import torch.distributed as dist
 from torch import nn
 from torch.nn import functional as F
 
-from checkpoints import restore_random
-from distributed import average_gradients, global_var, share, world
-from model import LEAK, _conv
+from drivesim_reference.checkpoints import restore_random
+from drivesim_reference.distributed import average_gradients, global_var, share, world
+from drivesim_reference.model import LEAK, _conv
 
 
 class Discriminator(nn.Module):
