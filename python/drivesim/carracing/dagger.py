@@ -86,25 +86,14 @@ def drive_labelled(job):
     car_env = env.unwrapped
     teacher = record.Driver(car_env.track, None, "expert")
     seconds = agent.frame_skip / record.car_racing.FPS
-    out = {"frames": [], "actions": [], "labels": [], "reward": [], "tiles": [], "on_road": []}
-    total, done, offsets = 0.0, False, steering_noise(noise, seed)
-    while not done:
-        view, speed = carracing.observe(env), carracing.speed(env)
-        label, _, _ = teacher.act(car_env.car, seconds)  # keeps its place on the track, too
-        action = agent.act(view, speed)
-        learn = agent.decisions > agent.warmup  # the warm-up's zoom frames are no example
-        if learn:
-            action = perturb(agent, action, next(offsets))
-            out["frames"].append(view)
-            out["actions"].append((speed, action[0]))
-            out["labels"].append((teacher.target, label[0]))
-            out["on_road"].append(record.wheel_on_road(car_env.car))
-        reward, tiles, done = record.decision(env, action, agent.frame_skip)
-        total += reward
-        if learn:
-            out["reward"].append(reward)
-            out["tiles"].append(tiles)
-    env.close()
+    offsets = steering_noise(noise, seed)
+
+    def expert_label():
+        steering, _, _ = teacher.act(car_env.car, seconds)
+        return teacher.target, steering[0]
+
+    out, total = record.drive_agent(env, agent, label=expert_label,
+                                    adjust=lambda action: perturb(agent, action, next(offsets)))
     if not out["frames"]:
         return None, total
     return record.one_episode(out, np.array(out["labels"], np.float32)), total

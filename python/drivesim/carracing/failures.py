@@ -56,7 +56,6 @@ def drive(job):
     seed, index, frames, weights = job
     import gymnasium
     from .._drivesim import Model
-    from . import observe, speed
     from .rank import ChangedAgent
 
     if _model is None:
@@ -65,23 +64,7 @@ def drive(job):
     env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
     env.reset(seed=seed)
     agent.reset()
-    car = env.unwrapped
-    out = {"frames": [], "actions": [], "reward": [], "tiles": [], "on_road": []}
-    total, done = 0.0, False
-    while not done:
-        view, now = observe(env), speed(env)
-        action = agent.act(view, now)
-        keep = agent.decisions > agent.warmup  # the warm-up's zoom frames are no example
-        if keep:
-            out["frames"].append(view)
-            out["actions"].append((now, action[0]))
-            out["on_road"].append(record.wheel_on_road(car.car))
-        reward, tiles, done = record.decision(env, action, agent.frame_skip)
-        total += reward
-        if keep:
-            out["reward"].append(reward)
-            out["tiles"].append(tiles)
-    env.close()
+    out, total = record.drive_agent(env, agent)
     if not out["frames"]:
         return seed, index, None, total, 1.0
     return seed, index, record.one_episode(out), total, 1.0 - float(np.mean(out["on_road"]))

@@ -227,6 +227,38 @@ def decision(env, action, frame_skip):
     return reward, car.tile_visited_count - tiles, False
 
 
+def drive_agent(env, agent, label=None, adjust=None):
+    """``agent`` (a reset agent of ``drivesim.carracing``) drives ``env`` (reset) to the end of the
+    episode; every decision after the agent's warm-up (its zoom frames are no example) is
+    recorded. ``label()``, called at every decision before the agent acts, gives that decision's
+    label (the expert's, which keeps its place on the track so); ``adjust(action)`` changes a
+    recorded decision's action before it is applied. Returns the drive's lists (`one_episode`'s
+    ``out``, with "labels" where ``label`` is given) and the env's reward over the whole drive."""
+    out = {"frames": [], "actions": [], "reward": [], "tiles": [], "on_road": []}
+    if label is not None:
+        out["labels"] = []
+    total, done = 0.0, False
+    while not done:
+        frame, now = view.observe(env), view.speed(env)
+        labelled = label() if label is not None else None
+        action = agent.act(frame, now)
+        keep = agent.decisions > agent.warmup
+        if keep:
+            action = adjust(action) if adjust is not None else action
+            out["frames"].append(frame)
+            out["actions"].append((now, action[0]))
+            out["on_road"].append(wheel_on_road(env.unwrapped.car))
+            if label is not None:
+                out["labels"].append(labelled)
+        reward, tiles, done = decision(env, action, agent.frame_skip)
+        total += reward
+        if keep:
+            out["reward"].append(reward)
+            out["tiles"].append(tiles)
+    env.close()
+    return out, total
+
+
 def one_episode(out, labels=None):
     """An `episodes.Episodes` of one episode from a drive's lists: ``out`` holds "frames",
     "actions" and every name of `episodes.REWARDS`, one entry a decision."""
