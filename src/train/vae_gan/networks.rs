@@ -16,6 +16,7 @@ use crate::weights::Init;
 use crate::weights::{RandomSource, TensorSource, WeightDtype};
 use crate::{Config, Error, Result};
 use alloc::format;
+#[cfg(feature = "std")]
 use alloc::string::String;
 use alloc::vec::Vec;
 use core::ops::Range;
