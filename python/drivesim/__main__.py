@@ -14,6 +14,8 @@ import sys
 COMMANDS = {
     "evaluate": ("drivesim.carracing.__main__", "score agents on real CarRacing tracks (python -m drivesim.carracing)"),
     "rank": ("drivesim.carracing.rank", "the rank probe: a family of drivers scored in the real env and in the dream"),
+    "dream-train": ("drivesim.carracing.dream_train", "learn a driver inside the dream: CMA-ES on the world model's reward alone"),
+    "dream-curve": ("drivesim.carracing.dream_curve", "the dream's return against the real score of a dream-train run's controllers"),
     "record": ("drivesim.carracing.record", "record CarRacing driving by a scripted driver as an episodes file"),
     "dagger": ("drivesim.carracing.dagger", "DAgger rounds: the cloned driver drives, the expert labels, the policy is cloned again"),
     "failures": ("drivesim.carracing.failures", "failure data: the cloned driver changed (gain, bias, speed, noise, delay), recorded"),

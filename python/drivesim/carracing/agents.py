@@ -11,6 +11,9 @@ file (``Simulator.act``, trained by ``train policy``) reading the code of the fr
 seen now and the transition's hidden state stepped along the drive, and giving the steering and
 the speed to drive at (through the same speed controller).
 
+``DreamtAgent`` ("dreamt", ``dreamt.py``) drives with a controller learnt inside the dream
+(``python -m drivesim dream-train``), read from ``controller=FILE``.
+
 ``ReactiveAgent`` ("reactive") is the baseline without the models: the proportional steering
 and the speed controller alone.
 
@@ -27,7 +30,7 @@ from typing import Optional
 import numpy as np
 
 from .. import _checks
-from .._drivesim import Model, Simulator
+from .._drivesim import Model
 from ..road import measure
 from .control import (  # noqa: F401 (re-exported: the agents' building blocks)
     FRAME_SHAPE,
@@ -40,6 +43,8 @@ from .control import (  # noqa: F401 (re-exported: the agents' building blocks)
     target_speed,
     warmup_action,
 )
+from .cloned import ClonedAgent
+from .dreamt import DreamtAgent
 from .mpc import MPCAgent
 from .road_mpc import RoadMPCAgent
 
@@ -87,61 +92,11 @@ class ReactiveAgent:
         return np.array([proportional_steering(road), gas, brake], np.float32)
 
 
-class ClonedAgent(ModelAgent):
-    """Behavioural cloning: the model's policy (``Model.policy_width`` is not None) drives.
-    ``act(frame, speed)`` encodes the view, asks the policy for the speed to drive at and the
-    steering from the code and the transition's hidden state, then steps the transition with
-    the code and the action taken (the speedometer's speed and that steering), as the policy's
-    training data was built. Deterministic; about 4 ms per decision on one thread."""
-
-    def __init__(self, model: Optional[Model] = None, threads: int = 1):
-        self.model = model if model is not None else Model.load()
-        if self.model.policy_width is None:
-            raise ValueError("the model has no policy (policy.* tensors): train one with `train policy`")
-        self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
-        self.reset()
-
-    def reset(self) -> None:
-        """Forgets the drive: call at every new episode."""
-        self.h = np.zeros(self.model.hidden_dim, np.float32)
-        self.decisions = 0
-        self.last_state: Optional[tuple] = None  # (z, h, speed) of the last decision
-
-    def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
-        target, steer = self.decide(z)
-        self.last_state = (z, self.h, speed)
-        _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
-        gas, brake = speed_control(speed, target)
-        return np.array([steer, gas, brake], np.float32)
-
-    def decide(self, z: np.ndarray) -> tuple:
-        """The speed to drive at and the steering (in [-1, 1]) for the code ``z`` of the frame
-        seen now and the drive's hidden state: where a variant of the clone changes how it drives
-        (``rank.ChangedAgent``)."""
-        target, steer = (float(v) for v in self.sim.act(z, self.h))
-        return target, float(np.clip(steer, -1.0, 1.0))
-
-    def imagine(self, steps: int = 8) -> Optional[np.ndarray]:
-        """The policy driving on in the dream from the last decision, ``steps`` steps:
-        ``(steps, 80, 160, 3)`` uint8 frames (for pictures, not for driving; the dream's speed
-        is the one the car would reach, ``control.speed_after``). ``steps``: an integer >= 1."""
-        steps = _checks.integer("steps", steps, 1)
-        if self.last_state is None:
-            return None
-        z, h, speed = self.last_state
-        codes = []
-        for _ in range(steps):
-            target, steer = (float(v) for v in self.sim.act(z, h))
-            z, h = self.sim.transition(z, h, np.array([speed, steer], np.float32))
-            speed = float(speed_after(speed, target))
-            codes.append(z)
-        return np.stack([self.sim.generate(code) for code in codes])
-
-
 AGENTS = {
     "mpc": MPCAgent,
     "mpc-road": RoadMPCAgent,
     "cloned": ClonedAgent,
+    "dreamt": DreamtAgent,
     "reactive": ReactiveAgent,
     "random": RandomAgent,
 }
@@ -150,14 +105,14 @@ AGENTS = {
 def make_agent(name: str, weights: Optional[str] = None, threads: int = 1, **options):
     """An agent by name: ``"mpc"`` (planning in the simulator with the learned heads),
     ``"mpc-road"`` (the grid planner with the hand-fitted road cost), ``"cloned"`` (the policy in
-    the weight file), or the baselines without the models, ``"reactive"`` and ``"random"``.
+    the weight file), ``"dreamt"`` (a controller learnt in the dream: ``controller=FILE``), or the baselines without the models, ``"reactive"`` and ``"random"``.
     ``weights``: a weight file (the built-in default model when None; for ``"mpc-road"``,
     another model also needs ``cost=RoadCost...``). ``options`` are the agent's (``MPCAgent``
     and ``RoadMPCAgent`` say which they take); ValueError or TypeError for an option out of
     range or of the wrong kind."""
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}: one of {', '.join(sorted(AGENTS))}")
-    if name not in ("mpc", "mpc-road", "cloned"):
+    if name not in ("mpc", "mpc-road", "cloned", "dreamt"):
         return AGENTS[name](**options)
     model = Model.load(weights)
     return AGENTS[name](model=model, threads=threads, **options)

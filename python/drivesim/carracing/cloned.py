@@ -1,0 +1,69 @@
+"""The cloned driver: the model's policy (behavioural cloning, then DAgger) drives; what the
+drivers that step the transition on the view's codes share (``dreamt.DreamtAgent``,
+``rank.ChangedAgent``)."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .. import _checks
+from .._drivesim import Model, Simulator
+from .control import ModelAgent, speed_after, speed_control
+
+
+class ClonedAgent(ModelAgent):
+    """Behavioural cloning: the model's policy (``Model.policy_width`` is not None) drives.
+    ``act(frame, speed)`` encodes the view, asks the policy for the speed to drive at and the
+    steering from the code and the transition's hidden state, then steps the transition with
+    the code and the action taken (the speedometer's speed and that steering), as the policy's
+    training data was built. Deterministic; about 4 ms per decision on one thread."""
+
+    def __init__(self, model: Optional[Model] = None, threads: int = 1):
+        self.model = model if model is not None else Model.load()
+        if self.model.policy_width is None:
+            raise ValueError("the model has no policy (policy.* tensors): train one with `train policy`")
+        self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
+        self.reset()
+
+    def reset(self) -> None:
+        """Forgets the drive: call at every new episode."""
+        self.h = np.zeros(self.model.hidden_dim, np.float32)
+        self.decisions = 0
+        self.last_state: Optional[tuple] = None  # (z, h, speed) of the last decision
+
+    def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
+        target, steer = self.decide(z)
+        self.last_state = (z, self.h, speed)
+        _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
+        gas, brake = speed_control(speed, target)
+        return np.array([steer, gas, brake], np.float32)
+
+    def decide(self, z: np.ndarray) -> tuple:
+        """The speed to drive at and the steering (in [-1, 1]) for the code ``z`` of the frame
+        seen now and the drive's hidden state: where a variant of the clone changes how it drives
+        (``rank.ChangedAgent``)."""
+        return self.choose(z, self.h)
+
+    def choose(self, z: np.ndarray, h: np.ndarray) -> tuple:
+        """The speed to drive at and the steering for a code and a hidden state: the policy's
+        (``dreamt.DreamtAgent``'s controller's), in the drive and in what it imagines."""
+        target, steer = (float(v) for v in self.sim.act(z, h))
+        return target, float(np.clip(steer, -1.0, 1.0))
+
+    def imagine(self, steps: int = 8) -> Optional[np.ndarray]:
+        """The policy driving on in the dream from the last decision, ``steps`` steps:
+        ``(steps, 80, 160, 3)`` uint8 frames (for pictures, not for driving; the dream's speed
+        is the one the car would reach, ``control.speed_after``). ``steps``: an integer >= 1."""
+        steps = _checks.integer("steps", steps, 1)
+        if self.last_state is None:
+            return None
+        z, h, speed = self.last_state
+        codes = []
+        for _ in range(steps):
+            target, steer = self.choose(z, h)
+            z, h = self.sim.transition(z, h, np.array([speed, steer], np.float32))
+            speed = float(speed_after(speed, target))
+            codes.append(z)
+        return np.stack([self.sim.generate(code) for code in codes])

@@ -1,0 +1,188 @@
+"""A driver learnt inside the dream (issue 60): the controller, its rollouts in the dream, and the
+agent that drives the real CarRacing with it. ``dream_train`` trains it.
+
+The controller reads what the cloned policy reads, the code ``z`` of the frame seen now and the
+transition's hidden state ``h``, through a fixed projection onto the first ``K`` principal
+components of ``[z, h]`` over real states (a small controller, as World Models' linear one):
+
+    f = P (([z, h] - centre) / scale)        K features of unit variance; P, centre, scale fixed
+    u = W [f, 1]                             W: 2 x (K + 1), what training learns
+    fresh:  target = low + (high - low) sigmoid(u_0),   steering = tanh(u_1)
+    cloned: target = clone's + SPEED_STEP u_0 (>= 0),   steering = clone's + u_1   (in [-1, 1])
+
+``fresh`` never sees an expert's label; ``cloned`` starts from the cloned policy (W = 0 is the
+clone) and only adds to it. The target speed drives ``speed_control`` as the clone's does.
+
+A controller file (``.npz``): ``centre`` and ``scale`` ``[z_dim + hidden_dim]``, ``projection``
+``[K, z_dim + hidden_dim]``, ``weights`` ``[2, K + 1]`` (float64), ``base`` ("fresh" or
+"cloned"), ``speeds`` ``[2]`` (the target's range), ``generation`` (int64).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Optional
+
+import numpy as np
+
+from .. import _checks
+from .._drivesim import Model, Simulator
+from .._files import atomic_write
+from .cloned import ClonedAgent
+from .control import speed_after
+
+BASES = ("fresh", "cloned")
+#: Target speed per unit of ``u_0`` added to the clone's (``cloned``).
+SPEED_STEP = 10.0
+
+
+class Controller:
+    """The projection and the weights of a controller (see the module); ``weights`` may hold a
+    population, ``[P, 2, K + 1]``, for a batch of drives."""
+
+    def __init__(self, centre, scale, projection, weights, base: str = "fresh", speeds=(10.0, 58.8),
+                 generation: int = 0):
+        self.centre = np.asarray(centre, np.float32)
+        self.scale = np.asarray(scale, np.float32)
+        self.projection = np.asarray(projection, np.float32)
+        self.weights = np.asarray(weights, np.float64)
+        self.base, self.generation = base, int(generation)
+        self.speeds = np.asarray(speeds, np.float64)
+        k, d = self.projection.shape
+        if (self.centre.shape != (d,) or self.scale.shape != (d,) or self.weights.shape[-2:] != (2, k + 1)
+                or self.speeds.shape != (2,) or base not in BASES):
+            raise ValueError(f"a controller whose parts disagree: projection {self.projection.shape}, centre "
+                             f"{self.centre.shape}, scale {self.scale.shape}, weights {self.weights.shape}, base {base!r}")
+        for name in ("centre", "scale", "projection", "weights", "speeds"):
+            if not np.isfinite(getattr(self, name)).all():
+                raise ValueError(f"controller: {name} is not finite")
+        if (self.scale <= 0).any() or not 0 <= self.speeds[0] < self.speeds[1]:
+            raise ValueError("controller: scales must be positive and the speeds a range")
+
+    @classmethod
+    def fit(cls, z: np.ndarray, h: np.ndarray, features: int, base: str, speeds) -> "Controller":
+        """A controller of weights 0 whose projection is fitted on real states ``z``, ``h``."""
+        x = np.concatenate([z, h], axis=1).astype(np.float64)
+        centre, scale = x.mean(axis=0), x.std(axis=0) + 1e-6
+        standard = (x - centre) / scale
+        values, vectors = np.linalg.eigh(standard.T @ standard / len(x))
+        # The largest components first, each scaled to unit variance over the states: a
+        # weight of 1 moves u by one standard deviation of its feature.
+        order = np.argsort(values)[::-1][:features]
+        projection = vectors[:, order].T / np.sqrt(np.maximum(values[order], 1e-12))[:, None]
+        return cls(centre, scale, projection, np.zeros((2, features + 1)), base, speeds)
+
+    @property
+    def size(self) -> int:
+        """The numbers training learns: ``2 (K + 1)``."""
+        return 2 * (self.projection.shape[0] + 1)
+
+    def features(self, z: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """``[N, K + 1]``: the projected states and a 1."""
+        x = (np.concatenate([z, h], axis=-1) - self.centre) / self.scale
+        f = x @ self.projection.T
+        return np.concatenate([f, np.ones(f.shape[:-1] + (1,), f.dtype)], axis=-1).astype(np.float64)
+
+    def decide(self, features: np.ndarray, clone: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(target speeds, steering)`` for ``features`` ``[..., K + 1]`` (``[P, S, K + 1]`` with
+        a population's weights): ``clone`` the cloned policy's actions there (``cloned``)."""
+        u = np.einsum("...jk,...sk->...sj", self.weights, features) if self.weights.ndim == 3 \
+            else features @ self.weights.T
+        low, high = self.speeds
+        if self.base == "fresh":
+            return low + (high - low) / (1 + np.exp(-u[..., 0])), np.tanh(u[..., 1])
+        clone = np.asarray(clone, np.float64).reshape(u.shape)
+        return (np.maximum(clone[..., 0] + SPEED_STEP * u[..., 0], 0.0),
+                np.clip(clone[..., 1] + u[..., 1], -1.0, 1.0))
+
+    def with_weights(self, weights: np.ndarray, generation: int) -> "Controller":
+        return Controller(self.centre, self.scale, self.projection, weights, self.base, self.speeds, generation)
+
+    def save(self, path) -> None:
+        with atomic_write(path) as f:
+            np.savez(f, centre=self.centre, scale=self.scale, projection=self.projection, weights=self.weights,
+                     base=np.array(self.base), speeds=self.speeds, generation=np.int64(self.generation))
+
+    @classmethod
+    def load(cls, path) -> "Controller":
+        """A controller file (ValueError naming the file for what is not one)."""
+        try:
+            with np.load(os.fspath(path), allow_pickle=False) as f:
+                parts = {k: f[k] for k in ("centre", "scale", "projection", "weights", "base", "speeds", "generation")}
+        except (OSError, KeyError, ValueError, EOFError) as error:
+            raise ValueError(f"{path}: not a controller file ({error})") from None
+        if parts["weights"].ndim != 2:
+            raise ValueError(f"{path}: a controller holds one set of weights")
+        try:
+            return cls(parts["centre"], parts["scale"], parts["projection"], parts["weights"], str(parts["base"]),
+                       parts["speeds"], int(parts["generation"]))
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
+
+
+def speed_range(model: Model) -> tuple[float, float]:
+    """The target speeds a fresh controller chooses from: 10 to the model's top speed."""
+    specs = model.actions
+    return 10.0, float(specs[0]["max"]) if specs else 58.8
+
+
+def rollout(world: Simulator, controller: Controller, starts: dict, horizon: int, first_step: int = 0,
+            off_road_steps: int = 0, use_value: bool = False, off_road_cost: float = 0.0
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Every controller of the population (``controller.weights`` ``[P, 2, K + 1]``) from every
+    start (``starts``: ``z``, ``h``, ``speed``, S each), ``horizon`` decisions, in one batch of
+    P x S drives on ``world`` (sampled where its sampling is on: every controller's drive from a
+    start meets the same noise, that of the start's item at step ``first_step + t``):
+    ``(returns, off-road chances)`` ``[P, S]``. The reward head's rewards are
+    summed, less ``off_road_cost`` times the off-road chance of each decision; with
+    ``off_road_steps`` a drive earns nothing once its off-road chance has been above one half
+    that many decisions in a row; ``use_value`` adds the value head at the horizon to the
+    drives still going."""
+    p, s = controller.weights.shape[0], len(starts["speed"])
+    z = np.ascontiguousarray(np.tile(starts["z"], (p, 1)), np.float32)
+    h = np.ascontiguousarray(np.tile(starts["h"], (p, 1)), np.float32)
+    v = np.tile(starts["speed"], p).astype(np.float32)
+    total, off, off_for = np.zeros(p * s), np.zeros(p * s), np.zeros(p * s, np.int64)
+    going = np.ones(p * s, bool)
+    for step in range(horizon):
+        f = controller.features(z, h).reshape(p, s, -1)
+        clone = world.act(z, h) if controller.base == "cloned" else None
+        target, steer = (a.reshape(-1) for a in controller.decide(f, clone))
+        action = np.ascontiguousarray(np.stack([v, steer], 1), np.float32)
+        z, h = world.transition(z, h, action)
+        if world.sampling[0] > 0:  # each controller's S drives as items 0..S-1: the same noise for each
+            z = np.concatenate([world.sample(h[i:i + s], first_step + step, z[i:i + s]) for i in range(0, p * s, s)])
+        v = speed_after(v, target).astype(np.float32)
+        reward = world.reward(z, h)
+        total += np.where(going, reward[:, 0] - off_road_cost * reward[:, 1], 0.0)
+        off += reward[:, 1]
+        if off_road_steps:
+            off_for = np.where(reward[:, 1] > 0.5, off_for + 1, 0)
+            going &= off_for < off_road_steps
+    if use_value:
+        total += np.where(going, world.value(z, h)[:, 0], 0.0)
+    return total.reshape(p, s), (off / horizon).reshape(p, s)
+
+
+class DreamtAgent(ClonedAgent):
+    """The driver learnt in the dream: ``controller`` (a controller file) decides from the code
+    of the view and the transition's hidden state, which steps as the cloned agent's does."""
+
+    def __init__(self, model: Optional[Model] = None, threads: int = 1, controller=None):
+        if controller is None:
+            raise ValueError("dreamt: give controller=FILE (python -m drivesim dream-train writes one)")
+        self.controller = controller if isinstance(controller, Controller) else Controller.load(controller)
+        self.model = model if model is not None else Model.load()
+        if self.controller.base == "cloned" and self.model.policy_width is None:
+            raise ValueError("a controller on the cloned policy needs a model with a policy")
+        if self.controller.centre.shape != (self.model.z_dim + self.model.hidden_dim,):
+            raise ValueError(f"the controller reads {self.controller.centre.shape[0]} numbers; the model's [z, h] "
+                             f"has {self.model.z_dim + self.model.hidden_dim}")
+        self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
+        self.reset()
+
+    def choose(self, z: np.ndarray, h: np.ndarray) -> tuple:
+        f = self.controller.features(z[None], h[None])
+        clone = self.sim.act(z, h)[None] if self.controller.base == "cloned" else None
+        target, steer = self.controller.decide(f, clone)
+        return float(target[0]), float(steer[0])
