@@ -35,7 +35,7 @@ def starts_file(tmp_path_factory):
 def controller(model, base="fresh", features=4, seed=0):
     rng = np.random.default_rng(seed)
     z, h = rng.standard_normal((50, model.z_dim)), rng.standard_normal((50, model.hidden_dim))
-    return Controller.fit(z, h, features, base, (10.0, 58.8))
+    return Controller.fit(z, h, features, base, (10.0, 58.8) if base == "fresh" else (10.0, 1.0))
 
 
 def test_a_zero_controller_on_the_clone_drives_as_the_clone(model):
@@ -66,6 +66,8 @@ def test_controller_files_round_trip_and_bad_ones_are_named(model, tmp_path):
         Controller.load(tmp_path / "junk.npz")
     with pytest.raises(ValueError, match="disagree"):
         Controller(c.centre, c.scale, c.projection, np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="limits 5.0, 3.0"):
+        Controller(c.centre, c.scale, c.projection, c.weights, "cloned", (5.0, 3.0))
     small = Controller(np.zeros(3), np.ones(3), np.eye(3)[:2], np.zeros((2, 3)))
     with pytest.raises(ValueError, match="reads 3 numbers"):
         make_agent("dreamt", controller=small)
@@ -89,7 +91,8 @@ def test_a_population_meets_the_same_dream_from_the_same_starts(model):
 def arguments(starts, out, generations):
     return SimpleNamespace(world=None, starts=starts, dir=out, generations=generations, population=4,
                            starts_per_generation=3, horizon=4, temperature=1.0, off_road_steps=2, off_road_cost=1.0,
-                           value=True, base="fresh", features=3, sigma=0.5, seed=1, save_every=2, threads=1)
+                           value=True, base="fresh", limits=None, features=3, sigma=0.5, seed=1, save_every=2,
+                           threads=1)
 
 
 def test_a_run_stopped_and_started_again_ends_with_the_same_bytes(starts_file, tmp_path):

@@ -24,7 +24,7 @@ import numpy as np
 
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
-from .dreamt import Controller, rollout, speed_range
+from .dreamt import Controller, default_limits, rollout
 from .view import parse_seeds
 
 #: Starts of the fixed set every controller's dream return is measured on.
@@ -76,7 +76,8 @@ def main(argv=None) -> int:
     world = Model.load(None if run["world"] in (None, "None") else run["world"])
     with np.load(args.dir / "states.npz") as f:
         states = {k: f[k] for k in ("z", "h", "speed")}
-    start = Controller.fit(states["z"], states["h"], run["features"], run["base"], speed_range(world))
+    limits = run.get("limits") or default_limits(world, run["base"])
+    start = Controller.fit(states["z"], states["h"], run["features"], run["base"], limits)
     saved = {int(path.stem.split("_")[1]): path for path in args.dir.glob("controller_*.npz")}
     rows = []
     for generation in [0] + sorted(g for g in saved if g % args.every == 0):

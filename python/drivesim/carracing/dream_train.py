@@ -13,7 +13,8 @@ the generation) and tells CMA-ES the mean returns. The guards against a dream th
 exploited are switches: ``--temperature`` (0: the mean dream), ``--horizon`` (short drives from
 real starts), ``--off-road-steps`` (a drive off the road that long earns nothing more),
 ``--off-road-cost`` (the off-road chance paid for at every decision), ``--value`` (the value
-head at the horizon).
+head at the horizon), and for a controller on the cloned policy ``--limits`` (the largest change
+it may make to the clone's target speed and steering: a trust region).
 
 ``DIR`` holds ``states.npz`` (the real states, made once), ``state.npz`` (CMA-ES after the last
 generation done, written atomically), ``log.jsonl`` (a line a generation: the population's mean
@@ -39,7 +40,7 @@ from .. import episodes
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from ..cmaes import CMAES
-from .dreamt import BASES, Controller, rollout, speed_range
+from .dreamt import BASES, Controller, default_limits, rollout
 
 #: Decisions of an episode before a start may be drawn (the hidden state has seen a second).
 SETTLE = 12
@@ -80,7 +81,7 @@ def settings(args) -> dict:
     """What a run's bytes depend on: a resumed run must be given the same (``--generations`` may
     grow: a run goes on to the new count)."""
     keys = ("world", "starts", "population", "starts_per_generation", "horizon", "temperature",
-            "off_road_steps", "off_road_cost", "value", "base", "features", "sigma", "seed")
+            "off_road_steps", "off_road_cost", "value", "base", "limits", "features", "sigma", "seed")
     return {k: str(getattr(args, k)) if isinstance(getattr(args, k), Path) else getattr(args, k) for k in keys}
 
 
@@ -109,7 +110,8 @@ def train(args, log=print) -> Controller:
             np.savez(f, **real_states(world, args.starts, args.threads))
     with np.load(out / "states.npz") as f:
         states = {k: f[k] for k in ("z", "h", "speed")}
-    base = Controller.fit(states["z"], states["h"], args.features, args.base, speed_range(world))
+    limits = args.limits or default_limits(world, args.base)
+    base = Controller.fit(states["z"], states["h"], args.features, args.base, limits)
     if (out / "state.npz").exists():
         with np.load(out / "state.npz") as f:
             es = CMAES.from_state(f)
@@ -152,6 +154,17 @@ def train(args, log=print) -> Controller:
     return final
 
 
+def pair(text: str) -> list:
+    """``A,B`` as two finite numbers."""
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two numbers A,B, got {text!r}") from None
+    if not (np.isfinite(a) and np.isfinite(b)):
+        raise argparse.ArgumentTypeError(f"expected finite numbers, got {text!r}")
+    return [a, b]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--world", type=Path, default=None, help="the world model's weight file (default: the built-in)")
@@ -167,6 +180,9 @@ def main(argv=None) -> int:
                    help="subtracted from a decision's reward per unit of its off-road chance")
     p.add_argument("--value", action="store_true", help="add the value head at the horizon")
     p.add_argument("--base", choices=BASES, default="fresh", help="fresh, or on top of the cloned policy")
+    p.add_argument("--limits", type=pair, default=None, metavar="A,B",
+                   help="fresh: the target speeds' range (default 10 to the model's top speed); cloned: the "
+                        "largest change of target speed and of steering (default 10,1)")
     p.add_argument("--features", type=int, default=32, help="principal components of [z, h] the controller reads")
     p.add_argument("--sigma", type=float, default=0.1, help="CMA-ES's first step size")
     p.add_argument("--seed", type=int, default=0)

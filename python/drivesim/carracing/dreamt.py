@@ -7,15 +7,18 @@ components of ``[z, h]`` over real states (a small controller, as World Models' 
 
     f = P (([z, h] - centre) / scale)        K features of unit variance; P, centre, scale fixed
     u = W [f, 1]                             W: 2 x (K + 1), what training learns
-    fresh:  target = low + (high - low) sigmoid(u_0),   steering = tanh(u_1)
-    cloned: target = clone's + SPEED_STEP u_0 (>= 0),   steering = clone's + u_1   (in [-1, 1])
+    fresh:  target = a + (b - a) sigmoid(u_0),           steering = tanh(u_1)
+    cloned: target = clone's + a tanh(u_0) (>= 0),       steering = clone's + b tanh(u_1)  (in [-1, 1])
+
+with ``(a, b)`` the controller's ``limits``: a fresh one's range of target speeds, or the largest
+change a controller on the clone makes to its target speed and its steering (a trust region).
 
 ``fresh`` never sees an expert's label; ``cloned`` starts from the cloned policy (W = 0 is the
 clone) and only adds to it. The target speed drives ``speed_control`` as the clone's does.
 
 A controller file (``.npz``): ``centre`` and ``scale`` ``[z_dim + hidden_dim]``, ``projection``
 ``[K, z_dim + hidden_dim]``, ``weights`` ``[2, K + 1]`` (float64), ``base`` ("fresh" or
-"cloned"), ``speeds`` ``[2]`` (the target's range), ``generation`` (int64).
+"cloned"), ``limits`` ``[2]``, ``generation`` (int64).
 """
 
 from __future__ import annotations
@@ -32,35 +35,40 @@ from .cloned import ClonedAgent
 from .control import speed_after
 
 BASES = ("fresh", "cloned")
-#: Target speed per unit of ``u_0`` added to the clone's (``cloned``).
-SPEED_STEP = 10.0
+#: A controller on the clone's ``limits`` unless told: up to 10 units/s of target speed and the
+#: whole steering range.
+CLONE_LIMITS = (10.0, 1.0)
 
 
 class Controller:
     """The projection and the weights of a controller (see the module); ``weights`` may hold a
     population, ``[P, 2, K + 1]``, for a batch of drives."""
 
-    def __init__(self, centre, scale, projection, weights, base: str = "fresh", speeds=(10.0, 58.8),
+    def __init__(self, centre, scale, projection, weights, base: str = "fresh", limits=(10.0, 58.8),
                  generation: int = 0):
         self.centre = np.asarray(centre, np.float32)
         self.scale = np.asarray(scale, np.float32)
         self.projection = np.asarray(projection, np.float32)
         self.weights = np.asarray(weights, np.float64)
         self.base, self.generation = base, int(generation)
-        self.speeds = np.asarray(speeds, np.float64)
+        self.limits = np.asarray(limits, np.float64)
         k, d = self.projection.shape
         if (self.centre.shape != (d,) or self.scale.shape != (d,) or self.weights.shape[-2:] != (2, k + 1)
-                or self.speeds.shape != (2,) or base not in BASES):
+                or self.limits.shape != (2,) or base not in BASES):
             raise ValueError(f"a controller whose parts disagree: projection {self.projection.shape}, centre "
                              f"{self.centre.shape}, scale {self.scale.shape}, weights {self.weights.shape}, base {base!r}")
-        for name in ("centre", "scale", "projection", "weights", "speeds"):
+        for name in ("centre", "scale", "projection", "weights", "limits"):
             if not np.isfinite(getattr(self, name)).all():
                 raise ValueError(f"controller: {name} is not finite")
-        if (self.scale <= 0).any() or not 0 <= self.speeds[0] < self.speeds[1]:
-            raise ValueError("controller: scales must be positive and the speeds a range")
+        if (self.scale <= 0).any():
+            raise ValueError("controller: scales must be positive")
+        a, b = self.limits
+        if not (0 <= a < b if base == "fresh" else a >= 0 and 0 <= b <= 2):
+            raise ValueError(f"controller: limits {a}, {b}: a fresh one's are a range of speeds, a cloned one's "
+                             "a largest change of speed (>= 0) and of steering (0 to 2)")
 
     @classmethod
-    def fit(cls, z: np.ndarray, h: np.ndarray, features: int, base: str, speeds) -> "Controller":
+    def fit(cls, z: np.ndarray, h: np.ndarray, features: int, base: str, limits) -> "Controller":
         """A controller of weights 0 whose projection is fitted on real states ``z``, ``h``."""
         x = np.concatenate([z, h], axis=1).astype(np.float64)
         centre, scale = x.mean(axis=0), x.std(axis=0) + 1e-6
@@ -70,7 +78,7 @@ class Controller:
         # weight of 1 moves u by one standard deviation of its feature.
         order = np.argsort(values)[::-1][:features]
         projection = vectors[:, order].T / np.sqrt(np.maximum(values[order], 1e-12))[:, None]
-        return cls(centre, scale, projection, np.zeros((2, features + 1)), base, speeds)
+        return cls(centre, scale, projection, np.zeros((2, features + 1)), base, limits)
 
     @property
     def size(self) -> int:
@@ -88,40 +96,43 @@ class Controller:
         a population's weights): ``clone`` the cloned policy's actions there (``cloned``)."""
         u = np.einsum("...jk,...sk->...sj", self.weights, features) if self.weights.ndim == 3 \
             else features @ self.weights.T
-        low, high = self.speeds
+        a, b = self.limits
         if self.base == "fresh":
-            return low + (high - low) / (1 + np.exp(-u[..., 0])), np.tanh(u[..., 1])
+            return a + (b - a) / (1 + np.exp(-u[..., 0])), np.tanh(u[..., 1])
         clone = np.asarray(clone, np.float64).reshape(u.shape)
-        return (np.maximum(clone[..., 0] + SPEED_STEP * u[..., 0], 0.0),
-                np.clip(clone[..., 1] + u[..., 1], -1.0, 1.0))
+        return (np.maximum(clone[..., 0] + a * np.tanh(u[..., 0]), 0.0),
+                np.clip(clone[..., 1] + b * np.tanh(u[..., 1]), -1.0, 1.0))
 
     def with_weights(self, weights: np.ndarray, generation: int) -> "Controller":
-        return Controller(self.centre, self.scale, self.projection, weights, self.base, self.speeds, generation)
+        return Controller(self.centre, self.scale, self.projection, weights, self.base, self.limits, generation)
 
     def save(self, path) -> None:
         with atomic_write(path) as f:
             np.savez(f, centre=self.centre, scale=self.scale, projection=self.projection, weights=self.weights,
-                     base=np.array(self.base), speeds=self.speeds, generation=np.int64(self.generation))
+                     base=np.array(self.base), limits=self.limits, generation=np.int64(self.generation))
 
     @classmethod
     def load(cls, path) -> "Controller":
         """A controller file (ValueError naming the file for what is not one)."""
         try:
             with np.load(os.fspath(path), allow_pickle=False) as f:
-                parts = {k: f[k] for k in ("centre", "scale", "projection", "weights", "base", "speeds", "generation")}
+                parts = {k: f[k] for k in ("centre", "scale", "projection", "weights", "base", "limits", "generation")}
         except (OSError, KeyError, ValueError, EOFError) as error:
             raise ValueError(f"{path}: not a controller file ({error})") from None
         if parts["weights"].ndim != 2:
             raise ValueError(f"{path}: a controller holds one set of weights")
         try:
             return cls(parts["centre"], parts["scale"], parts["projection"], parts["weights"], str(parts["base"]),
-                       parts["speeds"], int(parts["generation"]))
+                       parts["limits"], int(parts["generation"]))
         except ValueError as error:
             raise ValueError(f"{path}: {error}") from None
 
 
-def speed_range(model: Model) -> tuple[float, float]:
-    """The target speeds a fresh controller chooses from: 10 to the model's top speed."""
+def default_limits(model: Model, base: str) -> tuple[float, float]:
+    """A fresh controller's target speeds, 10 to the model's top speed; a cloned one's
+    ``CLONE_LIMITS``."""
+    if base == "cloned":
+        return CLONE_LIMITS
     specs = model.actions
     return 10.0, float(specs[0]["max"]) if specs else 58.8
 
