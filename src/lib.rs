@@ -6,8 +6,10 @@
 //! transition with encoded frames and feeding its predictions back hallucinates video that a
 //! controller can drive.
 //!
-//! - [`Model`] loads weights exported from PyTorch as safetensors (`weights/README.md` gives
-//!   the format) and packs them for the kernels once.
+//! - [`Model`] loads weights exported from PyTorch as safetensors and packs them for the
+//!   kernels once. Every file format is stated in one place, the repository's `weights/`:
+//!   the weight contract in `weights/README.md`, the episodes, checkpoint, fixture and
+//!   step files in `weights/TRAINING_FILES.md`.
 //! - [`Simulator`] allocates every buffer up front, as its [`Plan`] computed (an unaffordable
 //!   plan is an error, never an abort); encoding, stepping and generating allocate nothing,
 //!   and give the same bits whatever the thread count, batch or call history.
