@@ -73,19 +73,28 @@ def test_controller_files_round_trip_and_bad_ones_are_named(model, tmp_path):
         make_agent("dreamt", controller=small)
 
 
-def test_a_population_meets_the_same_dream_from_the_same_starts(model):
+def test_a_population_is_rolled_in_one_batch_from_the_same_starts(model):
     sim = drivesim.Simulator(model, batch=3 * 4)
-    sim.set_sampling(1.0, 9)
     rng = np.random.default_rng(2)
     starts = {"z": rng.standard_normal((4, model.z_dim)).astype(np.float32),
               "h": np.zeros((4, model.hidden_dim), np.float32), "speed": np.full(4, 30.0, np.float32)}
     c = controller(model)
     w = rng.standard_normal(c.weights.shape)
     population = c.with_weights(np.stack([w, w, -w]), 0)
-    returns, off_road = rollout(sim, population, starts, 6, off_road_steps=2, use_value=True)
+    returns, off_road = rollout(sim, population, starts, 6, off_road_steps=2, use_value=True, off_road_cost=1.0)
     assert returns.shape == off_road.shape == (3, 4)
     assert np.array_equal(returns[0], returns[1]) and not np.array_equal(returns[0], returns[2])
     assert np.all((0 <= off_road) & (off_road <= 1))
+    # One controller alone, step by step, is the population's first row: the batch changes no bit.
+    alone = drivesim.Simulator(model, batch=4)
+    assert np.array_equal(rollout(alone, c.with_weights(w[None], 0), starts, 6, 0, 2, True, 1.0)[0][0], returns[0])
+    # Sampled: the same draws for the same seed.
+    sim.set_sampling(1.0, 9)
+    sampled = rollout(sim, population, starts, 6)[0]
+    sim.set_sampling(1.0, 9)
+    assert np.array_equal(sampled, rollout(sim, population, starts, 6)[0])
+    sim.set_sampling(0.0, 9)
+    assert not np.array_equal(sampled, rollout(sim, population, starts, 6)[0])
 
 
 def arguments(starts, out, generations):

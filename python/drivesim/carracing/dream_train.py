@@ -129,7 +129,7 @@ def train(args, log=print) -> Controller:
         population = base.with_weights(np.concatenate([candidates, es.mean[None]]).reshape(-1, 2, args.features + 1), g)
         if args.temperature > 0:
             sim.set_sampling(args.temperature, args.seed * 1_000_003 + g)
-        # The population and the distribution's mean, from the same starts and the same noise.
+        # The population and the distribution's mean, from the same starts.
         returns, off_road = rollout(sim, population, starts, args.horizon, 0, args.off_road_steps, args.value,
                                     args.off_road_cost)
         fitness = returns.mean(axis=1)

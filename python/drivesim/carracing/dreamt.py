@@ -142,9 +142,9 @@ def rollout(world: Simulator, controller: Controller, starts: dict, horizon: int
             ) -> tuple[np.ndarray, np.ndarray]:
     """Every controller of the population (``controller.weights`` ``[P, 2, K + 1]``) from every
     start (``starts``: ``z``, ``h``, ``speed``, S each), ``horizon`` decisions, in one batch of
-    P x S drives on ``world`` (sampled where its sampling is on: every controller's drive from a
-    start meets the same noise, that of the start's item at step ``first_step + t``):
-    ``(returns, off-road chances)`` ``[P, S]``. The reward head's rewards are
+    P x S drives on ``world`` (sampled where its sampling is on, the noise of each drive's item
+    at step ``first_step + t``; every controller starts from the same states, each meets noise of
+    its own): ``(returns, off-road chances)`` ``[P, S]``. The reward head's rewards are
     summed, less ``off_road_cost`` times the off-road chance of each decision; with
     ``off_road_steps`` a drive earns nothing once its off-road chance has been above one half
     that many decisions in a row; ``use_value`` adds the value head at the horizon to the
@@ -161,8 +161,8 @@ def rollout(world: Simulator, controller: Controller, starts: dict, horizon: int
         target, steer = (a.reshape(-1) for a in controller.decide(f, clone))
         action = np.ascontiguousarray(np.stack([v, steer], 1), np.float32)
         z, h = world.transition(z, h, action)
-        if world.sampling[0] > 0:  # each controller's S drives as items 0..S-1: the same noise for each
-            z = np.concatenate([world.sample(h[i:i + s], first_step + step, z[i:i + s]) for i in range(0, p * s, s)])
+        if world.sampling[0] > 0:
+            z = world.sample(h, first_step + step, z)
         v = speed_after(v, target).astype(np.float32)
         reward = world.reward(z, h)
         total += np.where(going, reward[:, 0] - off_road_cost * reward[:, 1], 0.0)
