@@ -16,6 +16,7 @@ COMMANDS = {
     "rank": ("drivesim.carracing.rank", "the rank probe: a family of drivers scored in the real env and in the dream"),
     "dream-train": ("drivesim.carracing.dream_train", "learn a driver inside the dream: CMA-ES on the world model's reward alone"),
     "dream-curve": ("drivesim.carracing.dream_curve", "the dream's return against the real score of a dream-train run's controllers"),
+    "sb3": ("drivesim.carracing.sb3", "PPO (stable-baselines3) trained in the dream unchanged, and scored on the real track"),
     "record": ("drivesim.carracing.record", "record CarRacing driving by a scripted driver as an episodes file"),
     "dagger": ("drivesim.carracing.dagger", "DAgger rounds: the cloned driver drives, the expert labels, the policy is cloned again"),
     "failures": ("drivesim.carracing.failures", "failure data: the cloned driver changed (gain, bias, speed, noise, delay), recorded"),
