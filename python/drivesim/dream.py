@@ -21,7 +21,7 @@ vector env takes the first two):
   [0, 1] x [0, 1]``. The dream is stepped with the steering and the car's speed, which moves as
   ``carracing.control.speed_after`` says the car answers the gas and brake that
   ``speed_control`` would give for some target (from the last seed action's speed;
-  ``info["speed"]``).
+  ``info["speed"]``); with both pressed, the brake.
 - ``off_road_steps=N``: the episode terminates once the car has been off the road for ``N``
   steps in a row (the off-road chance above one half: the reward head's, or one less the road's
   share under the car by the ``RoadCost``).
@@ -150,9 +150,11 @@ class _Dream:
 
         steer, gas, brake = a.T
         # The target that speed_control answers with this gas or brake (0.06 per unit of the gap,
-        # braking past its dead band of 4), then the speed the car reaches in the decision.
+        # braking past its dead band of 4), then the speed the car reaches in the decision. The
+        # brake wins where both are pressed, as on the real car (from 0 for 100 frames at gas 0.6:
+        # 72 units/s without the brake, 37.5 with 0.1 of it, 4.9 with 0.3).
         now = self._speed
-        target = np.where(gas > 0, now + gas / 0.06, np.where(brake > 0, now - 4.0 - brake / 0.06, now))
+        target = np.where(brake > 0, now - 4.0 - brake / 0.06, np.where(gas > 0, now + gas / 0.06, now))
         moves = np.stack([now, np.clip(steer, self.low[1], self.high[1])], 1).astype(np.float32)
         self._speed = np.clip(speed_after(now, np.maximum(target, 0.0)), self.low[0], self.high[0]).astype(np.float32)
         return np.ascontiguousarray(moves)

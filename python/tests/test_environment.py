@@ -121,12 +121,13 @@ def test_dream_env_takes_carracing_actions():
     _, info = racing.reset(seed=4)
     plain.reset(seed=4)
     speed = float(racing._speed[0])  # the last seed action's
-    for steer, gas, brake in [(0.3, 0.6, 0.0), (-0.2, 0.0, 0.0), (0.0, 0.0, 0.5), (1.5, 2.0, -1.0)]:
+    for steer, gas, brake in [(0.3, 0.6, 0.0), (-0.2, 0.0, 0.0), (0.0, 0.0, 0.5), (1.5, 2.0, -1.0), (0.0, 1.0, 0.3)]:
         obs, *_, info = racing.step(np.array([steer, gas, brake], np.float32))
         expected, *_ = plain.step(np.array([speed, np.clip(steer, -1, 1)], np.float32))
         assert np.array_equal(obs, expected)
         gas, brake = np.clip(gas, 0, 1), np.clip(brake, 0, 1)
-        target = speed + gas / 0.06 if gas > 0 else (speed - 4 - brake / 0.06 if brake > 0 else speed)
+        # The brake wins where both are pressed (the last action: the real car stops).
+        target = speed - 4 - brake / 0.06 if brake > 0 else (speed + gas / 0.06 if gas > 0 else speed)
         speed = float(np.clip(speed_after(speed, max(target, 0.0)), racing.low[0], racing.high[0]))
         assert info["speed"] == pytest.approx(speed, abs=1e-4)
     with pytest.raises(ValueError, match="shape"):
