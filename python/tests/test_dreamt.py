@@ -87,7 +87,7 @@ def test_a_population_is_rolled_in_one_batch_from_the_same_starts(model):
     assert np.all((0 <= off_road) & (off_road <= 1))
     # One controller alone, step by step, is the population's first row: the batch changes no bit.
     alone = drivesim.Simulator(model, batch=4)
-    assert np.array_equal(rollout(alone, c.with_weights(w[None], 0), starts, 6, 0, 2, True, 1.0)[0][0], returns[0])
+    assert np.array_equal(rollout(alone, c.with_weights(w[None], 0), starts, 6, 2, True, 1.0)[0][0], returns[0])
     # Sampled: the same draws for the same seed.
     sim.set_sampling(1.0, 9)
     sampled = rollout(sim, population, starts, 6)[0]

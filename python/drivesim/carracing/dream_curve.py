@@ -41,7 +41,7 @@ def dream_return(world: Model, run: dict, states: dict, controller: Controller, 
     if run["temperature"] > 0:
         sim.set_sampling(run["temperature"], 0)
     returns, off_road = rollout(sim, controller.with_weights(controller.weights[None], controller.generation), starts,
-                                run["horizon"], 0, run["off_road_steps"], run["value"], run.get("off_road_cost", 0.0))
+                                run["horizon"], run["off_road_steps"], run["value"], run.get("off_road_cost", 0.0))
     return float(returns.mean()), float(off_road.mean())
 
 

@@ -130,7 +130,7 @@ def train(args, log=print) -> Controller:
         if args.temperature > 0:
             sim.set_sampling(args.temperature, args.seed * 1_000_003 + g)
         # The population and the distribution's mean, from the same starts.
-        returns, off_road = rollout(sim, population, starts, args.horizon, 0, args.off_road_steps, args.value,
+        returns, off_road = rollout(sim, population, starts, args.horizon, args.off_road_steps, args.value,
                                     args.off_road_cost)
         fitness = returns.mean(axis=1)
         es.tell(candidates, -fitness[:-1])

@@ -137,14 +137,12 @@ def default_limits(model: Model, base: str) -> tuple[float, float]:
     return 10.0, float(specs[0]["max"]) if specs else 58.8
 
 
-def rollout(world: Simulator, controller: Controller, starts: dict, horizon: int, first_step: int = 0,
-            off_road_steps: int = 0, use_value: bool = False, off_road_cost: float = 0.0
-            ) -> tuple[np.ndarray, np.ndarray]:
+def rollout(world: Simulator, controller: Controller, starts: dict, horizon: int, off_road_steps: int = 0,
+            use_value: bool = False, off_road_cost: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Every controller of the population (``controller.weights`` ``[P, 2, K + 1]``) from every
     start (``starts``: ``z``, ``h``, ``speed``, S each), ``horizon`` decisions, in one batch of
     P x S drives on ``world`` (sampled where its sampling is on, the noise of each drive's item
-    at step ``first_step + t``; every controller starts from the same states, each meets noise of
-    its own): ``(returns, off-road chances)`` ``[P, S]``. The reward head's rewards are
+    at step ``t``; every controller starts from the same states, each meets noise of its own): ``(returns, off-road chances)`` ``[P, S]``. The reward head's rewards are
     summed, less ``off_road_cost`` times the off-road chance of each decision; with
     ``off_road_steps`` a drive earns nothing once its off-road chance has been above one half
     that many decisions in a row; ``use_value`` adds the value head at the horizon to the
@@ -162,7 +160,7 @@ def rollout(world: Simulator, controller: Controller, starts: dict, horizon: int
         action = np.ascontiguousarray(np.stack([v, steer], 1), np.float32)
         z, h = world.transition(z, h, action)
         if world.sampling[0] > 0:
-            z = world.sample(h, first_step + step, z)
+            z = world.sample(h, step, z)
         v = speed_after(v, target).astype(np.float32)
         reward = world.reward(z, h)
         total += np.where(going, reward[:, 0] - off_road_cost * reward[:, 1], 0.0)
