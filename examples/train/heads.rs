@@ -14,7 +14,7 @@ use crate::common::Encoded;
 use crate::dreams::{dream, Dreams};
 use crate::drives::split;
 use crate::files::read;
-use crate::regression::{fit, predict, rms_errors, Examples, FitFlags, Refresh};
+use crate::regression::{fit, predict, rms_errors, write_trained, Examples, FitFlags, Refresh};
 use clap::{Parser, ValueEnum};
 use drivesim::train::{lambda_returns, HeadTrainer, TrainedOn};
 use drivesim::{HeadKind, Model, Simulator};
@@ -64,13 +64,11 @@ pub struct HeadsArgs {
 impl HeadsArgs {
     /// The arguments that decide the run (and so its checkpoints).
     fn run_arguments(&self) -> String {
-        let (d, f) = (&self.data, &self.fit);
-        format!(
-            "weights {:?} episodes {:?} heldout {:?} holdout {} head {} steps {} batch {} lr {} width {} discount {} lambda {} refresh {} dream_steps {} dream_every {} no_mirror {} restart {} seed {}",
-            d.weights, d.episodes, d.heldout, d.holdout, self.kind().name(), f.steps, f.batch, f.lr,
-            f.width, self.discount, self.lambda, self.refresh, self.dream_steps, self.dream_every, d.no_mirror,
-            f.restart, f.seed
-        )
+        let own = format!(
+            " discount {} lambda {} refresh {} dream_steps {} dream_every {}",
+            self.discount, self.lambda, self.refresh, self.dream_steps, self.dream_every
+        );
+        self.fit.run_arguments(&self.data, Some(self.kind().name()), &own)
     }
 
     fn kind(&self) -> HeadKind {
@@ -276,11 +274,5 @@ pub fn heads(args: &HeadsArgs) -> Result<(), String> {
         targets: &mut refresh_targets,
     });
     fit(&mut trainer, &mut examples, &run, refresh)?;
-    let written = trainer.weight_file(&bytes, trained_on).map_err(|e| e.to_string())?;
-    let trained = Model::from_bytes(&written).map_err(|e| e.to_string())?;
-    println!("trained in {:.1} s", start.elapsed().as_secs_f64());
-    report(&trained, "after")?;
-    crate::files::write_atomically(&args.data.out, &written)?;
-    println!("wrote {}", args.data.out.display());
-    Ok(())
+    write_trained(&trainer, &bytes, trained_on, start, report, &args.data.out)
 }

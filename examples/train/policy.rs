@@ -7,7 +7,7 @@ use crate::args::{data_help, Data};
 use crate::common::Encoded;
 use crate::drives::split;
 use crate::files::read;
-use crate::regression::{fit, rms_errors, Examples, FitFlags};
+use crate::regression::{fit, rms_errors, write_trained, Examples, FitFlags};
 use clap::Parser;
 use drivesim::train::{HeadTrainer, TrainedOn};
 use drivesim::HeadKind;
@@ -36,12 +36,8 @@ impl PolicyArgs {
     /// The arguments that decide the run (and so its checkpoints): all but the threads, which
     /// change no bit, and the checkpointing itself.
     fn run_arguments(&self) -> String {
-        let (d, f) = (&self.data, &self.fit);
-        format!(
-            "weights {:?} episodes {:?} heldout {:?} holdout {} steps {} batch {} lr {} width {} lead {} no_mirror {} restart {} seed {}",
-            d.weights, d.episodes, d.heldout, d.holdout, f.steps, f.batch, f.lr, f.width, self.lead,
-            d.no_mirror, f.restart, f.seed
-        )
+        self.fit
+            .run_arguments(&self.data, None, &format!(" lead {}", self.lead))
     }
 }
 
@@ -115,13 +111,5 @@ pub fn policy(args: &PolicyArgs) -> Result<(), String> {
     let run = args.fit.run("policy", args.run_arguments());
     let start = Instant::now();
     fit(&mut trainer, &mut train, &run, None)?;
-    let written = trainer
-        .weight_file(&bytes, TrainedOn::default())
-        .map_err(|e| e.to_string())?;
-    let trained = Model::from_bytes(&written).map_err(|e| e.to_string())?;
-    println!("trained in {:.1} s", start.elapsed().as_secs_f64());
-    report(&trained, "after")?;
-    crate::files::write_atomically(&args.data.out, &written)?;
-    println!("wrote {}", args.data.out.display());
-    Ok(())
+    write_trained(&trainer, &bytes, TrainedOn::default(), start, report, &args.data.out)
 }

@@ -1,10 +1,13 @@
 //! Fitting a head on examples (`train policy`, `train heads`): batches drawn in a seeded order,
 //! Adam at a cosine learning rate, checkpoints a killed run resumes from bit for bit.
 
+use crate::args::Data;
 use crate::checkpoint::Checkpointing;
 use crate::common::bar;
-use drivesim::train::{cosine_lr, HeadSettings, HeadTrainer};
+use drivesim::train::{cosine_lr, HeadSettings, HeadTrainer, TrainedOn};
 use drivesim::{HeadKind, Model, Simulator};
+use std::path::Path;
+use std::time::Instant;
 
 /// A head's examples: its input `[z | h]` per example and `outputs` targets per example.
 pub struct Examples {
@@ -122,6 +125,19 @@ impl FitFlags {
         }
     }
 
+    /// The arguments that decide a run (and so its checkpoints): the data, these flags and
+    /// the command's own (`head`, before the flags, and `own`, after them); not the threads,
+    /// which change no bit, nor the checkpointing itself. The words are those checkpoints
+    /// already written hold: changing them would refuse every old checkpoint.
+    pub fn run_arguments(&self, data: &Data, head: Option<&str>, own: &str) -> String {
+        let (d, head) = (data, head.map(|h| format!(" head {h}")).unwrap_or_default());
+        format!(
+            "weights {:?} episodes {:?} heldout {:?} holdout {}{head} steps {} batch {} lr {} width {}{own} no_mirror {} restart {} seed {}",
+            d.weights, d.episodes, d.heldout, d.holdout, self.steps, self.batch, self.lr, self.width,
+            d.no_mirror, self.restart, self.seed
+        )
+    }
+
     /// How `command`'s fit runs, `arguments` deciding its checkpoints.
     pub fn run<'a>(&'a self, command: &'a str, arguments: String) -> Run<'a> {
         Run {
@@ -158,6 +174,25 @@ pub struct Refresh<'a> {
 
 /// Trains `trainer` on `examples` for `run.steps` Adam steps (from a checkpoint, with
 /// `--resume`). Prints the loss every 500 steps in the progress bar.
+/// The fit's end: the trained head into the weight file `bytes` (its `trained_on` recorded),
+/// `report` on the trained model ("after"), the file written atomically to `out`.
+pub fn write_trained(
+    trainer: &HeadTrainer,
+    bytes: &[u8],
+    trained_on: TrainedOn,
+    started: Instant,
+    mut report: impl FnMut(&Model, &str) -> Result<(), String>,
+    out: &Path,
+) -> Result<(), String> {
+    let written = trainer.weight_file(bytes, trained_on).map_err(|e| e.to_string())?;
+    let trained = Model::from_bytes(&written).map_err(|e| e.to_string())?;
+    println!("trained in {:.1} s", started.elapsed().as_secs_f64());
+    report(&trained, "after")?;
+    crate::files::write_atomically(out, &written)?;
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
 pub fn fit(
     trainer: &mut HeadTrainer,
     examples: &mut Examples,

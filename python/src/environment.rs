@@ -166,16 +166,9 @@ impl PyEnvironment {
         let (actions, lead) = f32_items(actions, "actions", &[2], &[c.action_dim])?;
         let (steps, n) = (lead[0], lead[1]);
         let actions = slice(&actions);
-        let shape = [steps, n, c.height, c.width, c.channels];
-        codes_and_frames(
-            py,
-            kind,
-            &c,
-            &[steps, n, c.z_dim],
-            frames.then_some(&shape[..]),
-            scratch,
-            |codes, f| env.rollout_candidates(drive, n, actions, codes, f),
-        )
+        codes_and_frames(py, kind, &c, &[steps, n], frames, scratch, |codes, f| {
+            env.rollout_candidates(drive, n, actions, codes, f)
+        })
     }
 }
 

@@ -100,29 +100,31 @@ where
     }
 }
 
-/// The codes `run` writes into a new array of `codes_shape`, and when `frames_shape` is given
-/// the frames it writes too (as `frames_out` returns them): the codes alone, or
-/// `(codes, frames)`. `run` runs with the interpreter released, after every allocation.
+/// The codes `run` writes into a new array `(*lead, z_dim)`, and with `frames` the frames it
+/// writes too, `(*lead, height, width, channels)` (as `frames_out` returns them): the codes
+/// alone, or `(codes, frames)`. `run` runs with the interpreter released, after every allocation.
 pub fn codes_and_frames<'py, F>(
     py: Python<'py>,
     kind: FrameType,
     config: &Config,
-    codes_shape: &[usize],
-    frames_shape: Option<&[usize]>,
+    lead: &[usize],
+    frames: bool,
     scratch: &mut Vec<f32>,
     run: F,
 ) -> PyResult<Bound<'py, PyAny>>
 where
     F: FnOnce(&mut [f32], Option<&mut [f32]>) -> drivesim::Result<()> + Send,
 {
-    let codes = new_array::<f32>(py, codes_shape, "the codes")?;
+    let with = |tail: &[usize]| [lead, tail].concat();
+    let codes = new_array::<f32>(py, &with(&[config.z_dim]), "the codes")?;
     // SAFETY: the array was just created here and no other reference to it exists.
     let codes_out = unsafe { codes.as_slice_mut() }.expect("a new array is contiguous");
-    let Some(shape) = frames_shape else {
+    if !frames {
         py.detach(|| run(codes_out, None)).map_err(to_py)?;
         return Ok(codes.into_any());
-    };
-    let frames = frames_out(py, kind, config, shape, scratch, |f| run(codes_out, Some(f)))?;
+    }
+    let shape = with(&[config.height, config.width, config.channels]);
+    let frames = frames_out(py, kind, config, &shape, scratch, |f| run(codes_out, Some(f)))?;
     Ok((codes, frames).into_pyobject(py)?.into_any())
 }
 

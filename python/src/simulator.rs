@@ -286,16 +286,9 @@ impl PySimulator {
         let mut seed_scratch = Vec::new();
         let seeds = seeds.floats(&c, &mut seed_scratch)?;
         let actions = slice(&actions);
-        let shape = [steps, c.height, c.width, c.channels];
-        codes_and_frames(
-            py,
-            kind,
-            &c,
-            &[steps, c.z_dim],
-            frames.then_some(&shape[..]),
-            scratch,
-            |codes, f| sim.rollout(seeds, actions, codes, f),
-        )
+        codes_and_frames(py, kind, &c, &[steps], frames, scratch, |codes, f| {
+            sim.rollout(seeds, actions, codes, f)
+        })
     }
 
     /// Rolls out `N` candidate action sequences at once from one state: the planner's building
@@ -320,16 +313,9 @@ impl PySimulator {
         let c = *sim.config();
         let (h, z, actions, steps, n) = candidates(&c, h, actions, z)?;
         let (h, z, actions) = (slice(&h), z.as_ref().map(slice), slice(&actions));
-        let shape = [steps, n, c.height, c.width, c.channels];
-        codes_and_frames(
-            py,
-            kind,
-            &c,
-            &[steps, n, c.z_dim],
-            frames.then_some(&shape[..]),
-            scratch,
-            |codes, f| sim.rollout_candidates(h, z, n, actions, codes, f),
-        )
+        codes_and_frames(py, kind, &c, &[steps, n], frames, scratch, |codes, f| {
+            sim.rollout_candidates(h, z, n, actions, codes, f)
+        })
     }
 
     /// `rollout_candidates` (codes only) with the reward and value heads read after every step

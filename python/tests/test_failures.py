@@ -10,11 +10,12 @@ pytest.importorskip("Box2D")
 from drivesim.carracing import failures  # noqa: E402 (after the skip: it needs Box2D)
 
 
-def test_the_training_family_is_not_the_probes():
+def test_the_training_families_are_not_the_probes():
     from drivesim.carracing.rank import FAMILY
 
     probe = {(d.gain, d.bias, d.speed, d.noise, d.delay) for d in FAMILY[1:]}
-    mine = [(d.gain, d.bias, d.speed, d.noise, d.delay) for d in failures.training_family()[1:]]
+    mine = [(d.gain, d.bias, d.speed, d.noise, d.delay)
+            for family in failures.FAMILIES.values() for d in family() if d.name != "clone"]
     assert len(set(mine)) == len(mine) and not probe & set(mine)
 
 
@@ -38,3 +39,12 @@ def test_drives_recorded_and_resumed(tmp_path, capsys):
     again = episodes.read(out)
     np.testing.assert_array_equal(again.frames, data.frames)
     np.testing.assert_array_equal(again.actions, data.actions)
+
+
+def test_another_family_kept_apart(tmp_path):
+    kept = tmp_path / "drives"
+    args = ["--family", "fast", "--tracks", "5", "--per-track", "1", "--frames", "80", "--dir", str(kept),
+            "--out", str(tmp_path / "fast.safetensors.gz"), "--workers", "1"]
+    assert failures.main(args) == 0
+    assert [p.name for p in kept.iterdir()] == ["5_fast_0.safetensors.gz"]
+    assert episodes.metadata(kept / "5_fast_0.safetensors.gz")["driver"] == failures.fast_family()[0].name

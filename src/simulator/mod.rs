@@ -123,6 +123,14 @@ impl<M: Borrow<Model>> Simulator<M> {
         self
     }
 
+    /// What planning again keeps: the model, the kernels and the sampling. The rest (the old
+    /// buffers and threads) is dropped on return.
+    #[cfg(feature = "std")]
+    fn into_kept(self) -> (M, Isa, Sampling) {
+        let Simulator { model, isa, sampling, .. } = self;
+        (model, isa, sampling)
+    }
+
     /// Shares the work of each call among `threads` threads (the caller's included), started
     /// here once and kept until the simulator is dropped. Calls still allocate nothing.
     ///
@@ -141,29 +149,8 @@ impl<M: Borrow<Model>> Simulator<M> {
             1 => None,
             n => Some(Pool::new(n)?),
         };
-        // The old buffers go before the new ones are allocated.
-        let Simulator {
-            model,
-            isa,
-            pool: old_pool,
-            encoder,
-            generator,
-            transition,
-            rollout_h,
-            rollout_z,
-            head_hidden,
-            sampling,
-            plan: _,
-        } = self;
-        drop((
-            old_pool,
-            encoder,
-            generator,
-            transition,
-            rollout_h,
-            rollout_z,
-            head_hidden,
-        ));
+        // The old buffers go (at the end of `into_kept`) before the new ones are allocated.
+        let (model, isa, sampling) = self.into_kept();
         let mut sim = Simulator::from_plan(model, plan, pool)?.with_isa(isa);
         sim.sampling = sampling;
         Ok(sim)

@@ -45,6 +45,25 @@ def training_family():
     ]
 
 
+def fast_family():
+    """Drivers that fail at pace: too fast into bends (alone, and with too little or too much
+    steering, a pull, unsteady hands), and late hands whose oscillation grows. None is one of
+    the probe's."""
+    from .rank import Driver
+
+    return [
+        Driver("speed 1.35", speed=1.35), Driver("speed 1.55", speed=1.55), Driver("speed 1.75", speed=1.75),
+        Driver("speed 1.4, gain 0.7", speed=1.4, gain=0.7), Driver("speed 1.25, gain 1.6", speed=1.25, gain=1.6),
+        Driver("speed 1.35, bias +0.1", speed=1.35, bias=0.1), Driver("speed 1.3, noise 0.4", speed=1.3, noise=0.4),
+        Driver("delay 3, speed 1.15", delay=3, speed=1.15), Driver("delay 6", delay=6),
+        Driver("delay 1, gain 1.8", delay=1, gain=1.8),
+    ]
+
+
+#: The families `--family` names: the first is the default.
+FAMILIES = {"changes": training_family, "fast": fast_family}
+
+
 _model = None  # this worker's model, loaded at its first drive
 
 
@@ -53,14 +72,14 @@ def drive(job):
     or None when no decision passed the warm-up, the env's reward, the share of decisions off the
     road)."""
     global _model
-    seed, index, frames, weights = job
+    seed, family, index, frames, weights = job
     import gymnasium
     from .._drivesim import Model
     from .rank import ChangedAgent
 
     if _model is None:
         _model = Model.load(weights)
-    agent = ChangedAgent(training_family()[index], seed=seed * 1000 + index, model=_model)
+    agent = ChangedAgent(FAMILIES[family]()[index], seed=seed * 1000 + index, model=_model)
     env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
     env.reset(seed=seed)
     agent.reset()
@@ -71,24 +90,28 @@ def drive(job):
 
 
 def kept(job, directory):
-    seed, index, _, _ = job
-    return os.path.join(directory, f"{seed}_{index}.safetensors.gz")
+    seed, family, index, _, _ = job
+    # The default family's drives keep the names they had before there were other families.
+    name = f"{seed}_{index}" if family == "changes" else f"{seed}_{family}_{index}"
+    return os.path.join(directory, name + ".safetensors.gz")
 
 
 def drive_and_keep(args):
     job, directory = args
     path = kept(job, directory)
     if os.path.exists(path):
-        return job[0], job[1], None, None, None
+        return job[0], job[2], None, None, None
     seed, index, data, total, off = drive(job)
     if data is not None:
-        episodes.write(path, data, {"frame_hz": "12.5", "driver": training_family()[index].name, "seed": str(seed)})
+        episodes.write(path, data, {"frame_hz": "12.5", "driver": FAMILIES[job[1]]()[index].name, "seed": str(seed)})
     return seed, index, data, total, off
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--tracks", type=parse_seeds, required=True, help="track seeds, e.g. 12000-12031")
+    p.add_argument("--family", choices=list(FAMILIES), default="changes",
+                   help="the drivers: changes (one or two things changed) or fast (too fast, late hands)")
     p.add_argument("--per-track", type=int, default=3, help="drivers of the family on each track")
     p.add_argument("--frames", type=int, default=1000, help="env frames per drive")
     p.add_argument("--weights", help="weight file whose policy drives (default: the package's built-in model)")
@@ -98,9 +121,9 @@ def main(argv=None):
     args = p.parse_args(argv)
     if min(args.per_track, args.frames, args.workers) < 1:
         p.error("--per-track, --frames and --workers must be positive")
-    family = training_family()
+    family = FAMILIES[args.family]()
     os.makedirs(args.dir, exist_ok=True)
-    jobs = [(seed, (k * args.per_track + j) % len(family), args.frames, args.weights)
+    jobs = [(seed, args.family, (k * args.per_track + j) % len(family), args.frames, args.weights)
             for k, seed in enumerate(args.tracks) for j in range(args.per_track)]
     with Pool(min(args.workers, len(jobs))) as pool:
         for seed, index, data, total, off in pool.imap_unordered(drive_and_keep, [(j, args.dir) for j in jobs]):
@@ -112,7 +135,7 @@ def main(argv=None):
                       flush=True)
     parts = [episodes.read(kept(j, args.dir)) for j in jobs if os.path.exists(kept(j, args.dir))]
     data = episodes.Episodes.concat(parts)
-    episodes.write(args.out, data, {"source": "gymnasium CarRacing-v3, the cloned policy changed (drivesim.carracing.failures)",
+    episodes.write(args.out, data, {"source": f"gymnasium CarRacing-v3, the cloned policy changed (drivesim.carracing.failures, {args.family})",
                                     "seeds": ",".join(map(str, args.tracks)), "frame_hz": "12.5"})
     off = 1.0 - float(np.mean(data.rewards["on_road"]))
     print(f"wrote {args.out}: {len(parts)} episodes, {len(data.frames)} frames, {off:.0%} of them off the road")
