@@ -261,3 +261,30 @@ def read(path):
                         tensors.get("labels"))
     except EpisodesError as e:
         raise EpisodesError(f"{path}: {e}") from e
+
+
+def join(paths, out):
+    """The episodes of ``paths``, in order, written to ``out`` as one file (rewards kept only if
+    every file has them, labels if any: ``Episodes.concat``). The held-out episodes a trainer
+    takes from the end (``--holdout N``) are then the last file's last ones. Returns the joined
+    ``Episodes``."""
+    data = Episodes.concat([read(p) for p in paths])
+    sources = [metadata(p).get("source", Path(p).name) for p in paths]
+    write(out, data, {"source": " + ".join(sources), "joined": ",".join(Path(p).name for p in paths)})
+    return data
+
+
+def main(argv=None):
+    """``python -m drivesim join --out OUT IN...``: episodes files joined into one."""
+    import argparse
+
+    p = argparse.ArgumentParser(description="Join episodes files into one, in the order given.")
+    p.add_argument("inputs", nargs="+", help="episodes files (.safetensors or .safetensors.gz)")
+    p.add_argument("--out", required=True, help="the joined file (.gz: gzipped)")
+    args = p.parse_args(argv)
+    try:
+        data = join(args.inputs, args.out)
+    except (EpisodesError, OSError) as e:
+        p.exit(2, f"{p.prog}: error: {e}\n")
+    print(f"wrote {args.out}: {len(data.episode_starts)} episodes, {len(data.frames)} frames")
+    return 0

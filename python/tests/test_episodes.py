@@ -115,3 +115,19 @@ def test_mirror_images_flip_the_frames_and_negate_the_steering():
     assert np.array_equal(both.actions[n:, 0], data.actions[:, 0])
     assert np.array_equal(both.actions[n:, 1], -data.actions[:, 1])
     assert np.array_equal(both.with_mirror_images().frames[3 * n:], data.frames)  # twice: the original
+
+
+def test_join_keeps_the_order_and_says_what_was_joined(tmp_path, capsys):
+    a, b = make_episodes(), make_episodes(n=5, starts=(0, 2, 3))
+    episodes.write(tmp_path / "a.safetensors", a, {"source": "first"})
+    episodes.write(tmp_path / "b.safetensors.gz", b)
+    out = tmp_path / "ab.safetensors.gz"
+    assert episodes.main([str(tmp_path / "a.safetensors"), str(tmp_path / "b.safetensors.gz"), "--out", str(out)]) == 0
+    assert "5 episodes, 11 frames" in capsys.readouterr().out
+    joined = episodes.read(out)
+    np.testing.assert_array_equal(joined.frames, np.concatenate([a.frames, b.frames]))
+    np.testing.assert_array_equal(joined.episode_starts, [0, 4, 6, 8, 9])
+    assert episodes.metadata(out) == {"source": "first + b.safetensors.gz", "joined": "a.safetensors,b.safetensors.gz"}
+    with pytest.raises(SystemExit):  # a file that is not there: an error, no file written
+        episodes.main([str(tmp_path / "nope.safetensors"), "--out", str(tmp_path / "x.safetensors")])
+    assert not (tmp_path / "x.safetensors").exists()

@@ -89,6 +89,8 @@ def test_the_dream_batch_and_the_value_at_the_horizon():
     plain = rank.dream(sim, sim, family, starts, 6, 0, False)
     valued = rank.dream(sim, sim, family, starts, 6, 0, True)
     assert plain["return"].shape == plain["off_road"].shape == (2, 3)
+    assert plain["steer"].shape == (2, 3, 6) and np.all(np.abs(plain["steer"]) <= 1)
+    assert np.all(plain["steer"][1] >= plain["steer"][0] - 1e-6)  # the bias pulls right (clipped at 1)
     assert np.isfinite(plain["return"]).all() and ((0 <= plain["off_road"]) & (plain["off_road"] <= 1)).all()
     assert not np.allclose(plain["return"][0], plain["return"][1])
     assert not np.allclose(valued["return"], plain["return"])
@@ -108,6 +110,16 @@ def test_spearman_and_regret():
     assert s["favourite"] == "b"
     assert s["regret_at_1"] == pytest.approx(1.0)
     assert s["off_road_gap"] == pytest.approx(0.25)
+
+
+def test_road_memory_is_the_correlation_step_by_step():
+    rng = np.random.default_rng(3)
+    real = rng.standard_normal((50, 4))
+    dreamt = real.copy()
+    dreamt[:, 2] = rng.standard_normal(50)  # the dream's road parts from the real one at step 3
+    dreamt[:, 3] = 0.0  # and stops varying
+    memory = rank.road_memory(dreamt, real)
+    assert memory[:2] == pytest.approx([1.0, 1.0]) and abs(memory[2]) < 0.4 and np.isnan(memory[3])
 
 
 def test_start_decisions_leave_the_horizon_and_refuse_a_short_drive():
@@ -141,6 +153,7 @@ def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
         assert np.isfinite([d["real"], d["dream"], d["real_off_road"], d["dream_off_road"]]).all()
         assert 0 <= d["dream_off_road"] <= 1 and 0 <= d["real_off_road"] <= 1
     assert len(report["per_track"]["real"][0]) == 2
+    assert len(report["road_memory"]) == 4 and report["road_memory"][0] == pytest.approx(1.0, abs=1e-5)
 
     # Killed once the first drives are kept, then run again: the same report.
     killed = tmp_path / "killed"

@@ -15,7 +15,10 @@ head's rewards are summed (its off-road chance averaged). ``--value`` adds the v
 horizon. The report: each driver's real score and off-road share beside its dream return and
 off-road chance; the Spearman rank correlation between the two over the family (and per track,
 averaged), regret@1 (the real score lost by picking the dream's favourite, as a share of the
-range between the best and the worst driver) and the Pearson correlation of the means.
+range between the best and the worst driver) and the Pearson correlation of the means; and the
+dream's road memory: how well the unchanged driver's steering in the dream follows its real
+steering from the same starts, decision by decision (the policy steers by the road it sees, so
+the correlation falls where the dream's road stops being the real one).
 
 ``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
 ``--weights`` and step its transition for their own memory): a world model is judged without
@@ -183,7 +186,8 @@ def starts_of(drive: dict, world: Simulator, hidden_dim: int, count: int, horizo
     """``count`` starts in the behaviour drive ``drive`` (``drive_SEED.npz``): the code, the
     driver's hidden state and the speed at each, and the world model's hidden state there, its
     transition stepped along the drive from the decision the driver's started (the same state
-    where the world is the driver's own model)."""
+    where the world is the driver's own model); and the steering the drive applied over the
+    ``horizon`` decisions from each (``steer``, what `road_memory` compares)."""
     first, n = int(drive["first"]), len(drive["speed"])
     at = [d - first for d in start_decisions(first + n, count, horizon, first)]
     h_world = np.zeros((1, hidden_dim), np.float32)
@@ -193,13 +197,15 @@ def starts_of(drive: dict, world: Simulator, hidden_dim: int, count: int, horizo
         action = np.array([[drive["speed"][t], drive["steer"][t]]], np.float32)
         _, h_world = world.transition(np.ascontiguousarray(drive["z"][t:t + 1]), h_world, action)
     return {"z": drive["z"][at], "h": drive["h"][at], "speed": drive["speed"][at],
-            "h_world": np.stack([hidden[t] for t in at])}
+            "h_world": np.stack([hidden[t] for t in at]),
+            "steer": np.stack([drive["steer"][t:t + horizon] for t in at])}
 
 
 def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horizon: int, seed: int,
           use_value: bool) -> dict:
-    """Every driver from every start, ``horizon`` decisions, in one batch: ``(return, off-road
-    chance)`` per driver, each ``(starts,)``. The drivers' policy reads the codes the world
+    """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` and
+    ``off_road`` (its chance, averaged) ``(drivers, starts)``, and ``steer``, the steering
+    applied, ``(drivers, starts, horizon)``. The drivers' policy reads the codes the world
     predicts, and their hidden states step on their own model's transition (as a real drive
     steps them on the codes of what the car sees); the world's transition predicts the codes,
     its reward head scores them."""
@@ -209,9 +215,10 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     v = np.tile(starts["speed"], n).astype(np.float32)
     drivers = [d for d in family for _ in range(k)]
     changes = Changes(drivers, [seed * 1000 + i for i in range(n * k)])
-    total, off = np.zeros(n * k), np.zeros(n * k)
+    total, off, steers = np.zeros(n * k), np.zeros(n * k), np.zeros((n * k, horizon), np.float32)
     for step in range(horizon):
         target, steer = changes(driver.act(z, h)).T
+        steers[:, step] = steer
         action = np.ascontiguousarray(np.stack([v, steer], 1), np.float32)
         _, h = driver.transition(z, h, action)
         z, h_world = world.transition(z, h_world, action)
@@ -223,7 +230,19 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
         off += reward[:, 1]
     if use_value:
         total += world.value(z, h_world)[:, 0]
-    return {"return": total.reshape(n, k), "off_road": (off / horizon).reshape(n, k)}
+    return {"return": total.reshape(n, k), "off_road": (off / horizon).reshape(n, k),
+            "steer": steers.reshape(n, k, horizon)}
+
+
+def road_memory(dreamt: np.ndarray, real: np.ndarray) -> list:
+    """How far ahead the dream knows the road: the correlation, step by step, of the unchanged
+    driver's steering in the dream with its real steering from the same starts (``(starts,
+    horizon)`` each; the policy steers by the road it sees, so where the dream's road is not the
+    real one the two part). NaN at a step where either does not vary."""
+    out = []
+    for a, b in zip(dreamt.T, real.T):
+        out.append(float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else float("nan"))
+    return out
 
 
 def ranks(x: np.ndarray) -> np.ndarray:
@@ -276,16 +295,21 @@ def report(args, results: list) -> dict:
     real = {(r["driver"], r["seed"]): r for r in results}
     shape = (len(family), len(seeds))
     real_score, real_off, dream_return, dream_off = (np.zeros(shape) for _ in range(4))
+    steer_dreamt, steer_real = [], []
     start = time.perf_counter()
     for t, seed in enumerate(seeds):
         with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
             starts = starts_of({k: f[k] for k in f.files}, world, world_model.hidden_dim, args.starts, args.horizon)
         d = dream(driver, world, family, starts, args.horizon, seed, args.value)
         dream_return[:, t], dream_off[:, t] = d["return"].mean(1), d["off_road"].mean(1)
+        steer_dreamt.append(d["steer"][0])
+        steer_real.append(starts["steer"])
         for i in range(len(family)):
             real_score[i, t], real_off[i, t] = real[i, seed]["reward"], real[i, seed]["off_road"]
     seconds = time.perf_counter() - start
     out = summary(family, real_score, real_off, dream_return, dream_off)
+    if family[0] == Driver(family[0].name):  # unchanged: its real drive is the behaviour drive
+        out["road_memory"] = road_memory(np.concatenate(steer_dreamt), np.concatenate(steer_real))
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
                value=args.value, frames=args.frames, weights=args.weights, world=args.world,
                dream_decisions_per_second=len(family) * args.starts * args.horizon * len(seeds) / seconds,
@@ -302,6 +326,10 @@ def print_report(out: dict) -> None:
           f"regret@1 {out['regret_at_1']:.2f} (the dream's favourite: {out['favourite']}); Pearson {out['pearson']:+.2f}; "
           f"the largest off-road gap {out['off_road_gap']:.2f}; {len(out['seeds'])} tracks, {out['starts']} starts, "
           f"horizon {out['horizon']}; {out['dream_decisions_per_second']:.0f} dream decisions a second")
+    if "road_memory" in out:
+        steps = [s for s in (1, 3, 5, 8, 10, 20, 40) if s <= len(out["road_memory"])]
+        print(f"road memory (the unchanged driver's steering, dream against real, correlation after N decisions): "
+              + ", ".join(f"{s}: {out['road_memory'][s - 1]:+.2f}" for s in steps))
 
 
 def main(argv=None) -> int:
