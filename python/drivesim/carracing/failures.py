@@ -7,6 +7,10 @@ world model needs to foresee the car leaving the road (docs/judging.md, the rank
   python -m drivesim failures --tracks 12000-12031 --per-track 3 --dir runs/failures \\
       --out data/failures.safetensors.gz --workers 2
 
+`--family fast` (`fast_family()`) records drivers that fail at pace instead: too fast into bends,
+alone and with too little or too much steering, and late hands; its drives are kept as
+`DIR/SEED_fast_DRIVER.safetensors.gz`. `python -m drivesim join` puts the files together.
+
 `training_family()` is a family of its own, not the rank probe's (`drivesim.carracing.rank.FAMILY`): other
 gains, biases, speeds, noise and delays, so that the probe's drivers stay drivers the model never
 saw. Track k is driven by `--per-track` drivers of the family in turn (driver (k * per_track + j)
