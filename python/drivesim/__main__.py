@@ -23,6 +23,7 @@ COMMANDS = {
     "speed-model": ("drivesim.carracing.speed_model", "how the car's speed answers speed_control (the planners' speed model)"),
     "probe-real": ("drivesim.carracing.probe_real", "the steering probe in the real CarRacing (what a perfect dream would show)"),
     "join": ("drivesim.episodes", "join episodes files into one (the last file's episodes last: a trainer's --holdout)"),
+    "relabel": ("drivesim.relabel", "label episodes with a teacher's policy (a policy carried to another world model)"),
     "road-cost": ("drivesim.road", "fit a RoadCost for a model on recorded episodes"),
     "convert-comma": ("drivesim.comma", "convert comma.ai research dataset drives (HDF5) to an episodes file"),
 }
