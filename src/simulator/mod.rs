@@ -127,7 +127,9 @@ impl<M: Borrow<Model>> Simulator<M> {
     /// buffers and threads) is dropped on return.
     #[cfg(feature = "std")]
     fn into_kept(self) -> (M, Isa, Sampling) {
-        let Simulator { model, isa, sampling, .. } = self;
+        let Simulator {
+            model, isa, sampling, ..
+        } = self;
         (model, isa, sampling)
     }
 
