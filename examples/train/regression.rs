@@ -172,8 +172,6 @@ pub struct Refresh<'a> {
     pub targets: &'a mut dyn FnMut(&HeadTrainer, &mut Examples) -> Result<(), String>,
 }
 
-/// Trains `trainer` on `examples` for `run.steps` Adam steps (from a checkpoint, with
-/// `--resume`). Prints the loss every 500 steps in the progress bar.
 /// The fit's end: the trained head into the weight file `bytes` (its `trained_on` recorded),
 /// `report` on the trained model ("after"), the file written atomically to `out`.
 pub fn write_trained(
@@ -193,6 +191,8 @@ pub fn write_trained(
     Ok(())
 }
 
+/// Trains `trainer` on `examples` for `run.steps` Adam steps (from a checkpoint, with
+/// `--resume`). Prints the loss every 500 steps in the progress bar.
 pub fn fit(
     trainer: &mut HeadTrainer,
     examples: &mut Examples,
