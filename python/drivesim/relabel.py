@@ -52,10 +52,12 @@ def main(argv=None) -> int:
     p.add_argument("--teacher", help="weight file whose policy labels (default: the built-in model)")
     p.add_argument("--threads", type=int, default=os.cpu_count(), help="threads that encode the frames")
     args = p.parse_args(argv)
+    if args.threads < 1:
+        p.error("--threads must be positive")
     try:
         teacher = Model.load(args.teacher)
         data = episodes.read(args.episodes)
-        data.labels = labels(teacher, data, threads=max(1, args.threads))
+        data.labels = labels(teacher, data, threads=args.threads)
         episodes.write(args.out, data, {**episodes.metadata(args.episodes),
                                         "labels": f"the policy of {args.teacher or 'the built-in model'}"})
     except (OSError, ValueError) as e:  # EpisodesError is a ValueError

@@ -52,3 +52,10 @@ def test_a_teacher_without_a_policy_is_an_error_and_writes_nothing(tmp_path):
         relabel.main([str(tmp_path / "in.safetensors"), "--out", str(tmp_path / "x.safetensors"),
                       "--teacher", fixture("small_f32.safetensors")])
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_threads_below_one_are_refused(tmp_path):
+    episodes.write(tmp_path / "in.safetensors", _data())
+    with pytest.raises(SystemExit):
+        relabel.main([str(tmp_path / "in.safetensors"), "--out", str(tmp_path / "x.safetensors"), "--threads", "0"])
+    assert not (tmp_path / "x.safetensors").exists()

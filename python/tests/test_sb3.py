@@ -39,3 +39,8 @@ def test_the_policy_drives_after_the_warm_up_within_carracing_s_actions():
 def test_without_stable_baselines3_the_error_says_what_to_install(tmp_path):
     with pytest.raises(ImportError, match="pip install stable-baselines3"):
         main(["score", "--policy", str(tmp_path / "p.zip"), "--seeds", "1"])
+
+
+def test_score_refuses_frames_below_one(tmp_path):
+    with pytest.raises(SystemExit):
+        main(["score", "--policy", str(tmp_path / "p.zip"), "--seeds", "1", "--frames", "0"])

@@ -142,11 +142,11 @@ def rollout(world: Simulator, controller: Controller, starts: dict, horizon: int
     """Every controller of the population (``controller.weights`` ``[P, 2, K + 1]``) from every
     start (``starts``: ``z``, ``h``, ``speed``, S each), ``horizon`` decisions, in one batch of
     P x S drives on ``world`` (sampled where its sampling is on, the noise of each drive's item
-    at step ``t``; every controller starts from the same states, each meets noise of its own): ``(returns, off-road chances)`` ``[P, S]``. The reward head's rewards are
-    summed, less ``off_road_cost`` times the off-road chance of each decision; with
-    ``off_road_steps`` a drive earns nothing once its off-road chance has been above one half
-    that many decisions in a row; ``use_value`` adds the value head at the horizon to the
-    drives still going."""
+    at step ``t``; every controller starts from the same states, each meets noise of its own):
+    ``(returns, off-road chances)`` ``[P, S]``. The reward head's rewards are summed, less
+    ``off_road_cost`` times the off-road chance of each decision; with ``off_road_steps`` a
+    drive earns nothing once its off-road chance has been above one half that many decisions
+    in a row; ``use_value`` adds the value head at the horizon to the drives still going."""
     p, s = controller.weights.shape[0], len(starts["speed"])
     z = np.ascontiguousarray(np.tile(starts["z"], (p, 1)), np.float32)
     h = np.ascontiguousarray(np.tile(starts["h"], (p, 1)), np.float32)

@@ -112,6 +112,8 @@ def main(argv=None) -> int:
             p.error("--steps, --envs, --max-steps and --off-road-steps must be positive, --seed not negative")
         train(args)
     else:
+        if args.frames < 1:
+            p.error("--frames must be positive")
         score(args)
     return 0
 
