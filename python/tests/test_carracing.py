@@ -143,3 +143,25 @@ def test_planner_dreams_at_the_speed_the_car_reaches(model, clip):
     for t in range(1, len(speeds)):
         assert speeds[t] == pytest.approx(float(speed_after(speeds[t - 1], targets[t - 1])))
     assert speeds[1] < targets[0]
+
+
+def test_guarded_planner_keeps_the_policy_where_the_dream_keeps_it_on_the_road(clip):
+    """``guard``: below the policy's own plan's off-road chance the planner weighs the
+    candidates as without it; above it, it acts exactly as the cloned driver."""
+    frames, actions = clip
+
+    def drive(agent):
+        agent.warmup = 0
+        return np.array([agent.act(f, float(a[0])) for f, a in zip(frames, actions)])
+
+    plain = drive(carracing.make_agent("mpc"))
+    never = carracing.make_agent("mpc", guard=0.0)
+    np.testing.assert_array_equal(drive(never), plain)
+    assert never.guarded == 0
+    always = carracing.make_agent("mpc", guard=1.0)
+    kept = drive(always)
+    assert always.guarded == always.planned == len(frames) and always.departures == 0
+    np.testing.assert_array_equal(kept, drive(carracing.make_agent("cloned")))
+    assert not np.array_equal(kept, plain)  # the candidates do move the plain planner
+    with pytest.raises(ValueError, match="guard"):
+        carracing.make_agent("mpc", guard=1.5)

@@ -209,7 +209,7 @@ def test_road_and_helpers(codes, frames, figures, ridge, road_figures, speed, ta
 
 AGENT_OPTIONS = {
     "mpc": ["candidates", "horizon", "futures", "temperature", "steer_noise", "speed_noise", "smooth", "w_off",
-            "spread", "seed", "max_speed"],
+            "spread", "seed", "max_speed", "guard"],
     "mpc-road": ["candidates", "horizon", "iterations", "context", "skip", "max_speed", "road_scale", "search", "w_off",
             "w_prior", "correct"],
     "cloned": ["threads"],

@@ -15,6 +15,11 @@ dream that prefers no candidate leaves the policy's action as it is). It is repl
 decision. ``departures`` counts the decisions where the applied action left the policy's own by
 more than ``DEPART_STEER`` in steering or ``DEPART_SPEED`` in target speed, ``changes`` sums the
 differences (target speed, steering) over the ``planned`` decisions.
+
+With ``guard`` the planner is a safety net: where the dream gives the policy's own plan (the
+unperturbed candidate, over its futures) a mean off-road chance below ``guard``, the policy's
+action is applied as it is, and the candidates weigh in only where the dream says the policy's
+plan leaves the road. ``guarded`` counts the decisions kept so.
 """
 
 from __future__ import annotations
@@ -53,7 +58,8 @@ class MPCAgent(ModelAgent):
     1000; ``w_off`` 0 to 1e6; ``spread`` above 0, at most 1e6; ``smooth`` from 0 to 0.99 (the noise's correlation from one
     decision to the next); ``max_speed`` the fastest target speed planned, above the model's
     trained minimum and at most ``SPEED_MAX`` (None: the model's trained range, where the
-    policy's own targets are clipped too).
+    policy's own targets are clipped too); ``guard`` None (always weigh the candidates) or an
+    off-road chance from 0 to 1 (see the module).
     """
 
     def __init__(
@@ -71,6 +77,7 @@ class MPCAgent(ModelAgent):
         spread: float = 2.0,
         seed: int = 0,
         max_speed: Optional[float] = None,
+        guard: Optional[float] = None,
     ):
         count, number = _checks.integer, _checks.number
         self.candidates, self.horizon = count("candidates", candidates, 2, 1024), count("horizon", horizon, 1, 100)
@@ -81,6 +88,7 @@ class MPCAgent(ModelAgent):
         self.steer_noise, self.speed_noise = number("steer_noise", steer_noise, 0.0, 10.0), number("speed_noise", speed_noise, 0.0, 1000.0)
         self.smooth, self.w_off = number("smooth", smooth, 0.0, 0.99), number("w_off", w_off, 0.0, 1e6)
         self.spread = number("spread", spread, 0.0, 1e6, above=True)
+        self.guard = None if guard is None else number("guard", guard, 0.0, 1.0)
         self.model = model if model is not None else Model.load()
         missing = [n for n in ("policy", "reward", "value") if getattr(self.model, f"{n}_width") is None]
         if missing or self.model.discount is None:
@@ -107,7 +115,7 @@ class MPCAgent(ModelAgent):
     def reset(self) -> None:
         """Forgets the drive: call at every new episode."""
         self.h = np.zeros(self.model.hidden_dim, np.float32)
-        self.decisions = self.planned = self.departures = 0
+        self.decisions = self.planned = self.departures = self.guarded = 0
         self.changes = np.zeros(2)  # summed |plan - policy|: target speed, steering
         self.rng = np.random.default_rng(self.seed)
         self.last_state: Optional[tuple] = None  # (z, h) the last plan started from
@@ -152,6 +160,11 @@ class MPCAgent(ModelAgent):
         actions = np.repeat(actions, self.futures, axis=1).astype(np.float32)  # futures side by side
         self.sim.set_sampling(self.temperature, self.seed * 1_000_003 + self.decisions)
         _, rewards, values = self.sim.rollout_candidates_scored(h, actions, z=z)
+        if self.guard is not None and rewards[:, : self.futures, 1].mean() < self.guard:
+            # The dream keeps the policy's own plan on the road: no reason to depart from it.
+            self.guarded += 1
+            return float(np.clip(steers[0], -1.0, 1.0)), float(np.clip(targets[0], *self.speed_range)), \
+                actions[:, 0], np.array([targets[0], steers[0]])
         gain = rewards[..., 0] - self.w_off * rewards[..., 1]  # (H, K * F)
         score = self.weights @ gain + self.tail * values[-1]
         score = score.reshape(self.candidates, self.futures).mean(axis=1)

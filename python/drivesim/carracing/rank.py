@@ -48,7 +48,8 @@ from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from .agents import ClonedAgent
 from .control import SPEED_MAX, speed_after
-from .view import decision_steps, observe, parse_seeds, speed
+from . import rank_real
+from .view import parse_seeds
 
 
 @dataclass(frozen=True)
@@ -122,32 +123,6 @@ class ChangedAgent(ClonedAgent):
         return float(target), float(steer)
 
 
-def drive_real(agent: ChangedAgent, seed: int, frames: int, keep_states: bool) -> tuple[dict, list]:
-    """One real drive: its figures, and (``keep_states``) every decision after the warm-up in
-    order: ``(z, h, speed, steering applied)``, the code seen, the driver's hidden state before
-    the decision, the speedometer and what the transition was stepped with."""
-    import gymnasium
-
-    env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
-    env.reset(seed=seed)
-    agent.reset()
-    car, total, decisions, off, states, done = env.unwrapped, 0.0, 0, 0, [], False
-    while not done:
-        action = agent.act(observe(env), speed(env))
-        if keep_states and agent.decisions > agent.warmup:
-            z, h, v = agent.last_state
-            states.append((z.copy(), h.copy(), v, float(action[0])))
-        decisions += 1
-        off += not any(len(w.tiles) > 0 for w in car.car.wheels)
-        for _, reward, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
-            total += float(reward)
-            done = terminated or truncated
-            if done:
-                break
-    env.close()
-    return {"reward": round(total, 2), "off_road": round(off / decisions, 4), "decisions": decisions}, states
-
-
 def start_decisions(decisions: int, starts: int, horizon: int, warmup: int) -> list:
     """Evenly spaced decisions of a drive ``decisions`` long, after the warm-up, each at least
     ``horizon`` before the end (a lap finished early ends the drive early)."""
@@ -160,26 +135,53 @@ def start_decisions(decisions: int, starts: int, horizon: int, warmup: int) -> l
 _model = None  # this process's model, loaded at its first job
 
 
-def real_job(job) -> dict:
-    """One driver on one track: read from ``--out`` when an earlier run drove it."""
+def process_model(weights):
+    """This process's model of ``weights`` (loaded once: the jobs of a run share one file)."""
     global _model
+    if _model is None:
+        _model = Model.load(weights)
+    return _model
+
+
+def dream_row_seed(seed: int, index: int, start: int, starts: int) -> int:
+    """The steering noise's seed of driver ``index`` from start ``start`` of track ``seed``: the
+    dream's row and the real window share it."""
+    return seed * 1000 + index * starts + start
+
+
+def kept_actions(drive: str) -> bool:
+    """Whether the behaviour drive ``drive`` (``drive_SEED.npz``) kept its actions."""
+    with np.load(drive) as f:
+        return "actions" in f.files
+
+
+def real_job(job) -> dict:
+    """One driver on one track: read from ``--out`` when an earlier run drove it (the behaviour
+    drive again where ``--windows`` needs the actions an older run did not keep)."""
     args, index, seed = job
     path = os.path.join(args.out, "real", f"{index}_{seed}.json")
-    if os.path.exists(path):
+    drive = os.path.join(args.out, f"drive_{seed}.npz")
+    if os.path.exists(path) and not (index == 0 and args.windows and not kept_actions(drive)):
         with open(path) as f:
             return json.load(f)
-    if _model is None:
-        _model = Model.load(args.weights)
-    agent = ChangedAgent(args.family[index], seed=seed * 1000 + index, model=_model)
-    figures, states = drive_real(agent, seed, args.frames, keep_states=index == 0)
+    agent = ChangedAgent(args.family[index], seed=seed * 1000 + index, model=process_model(args.weights))
+    figures, states, trace = rank_real.drive_real(agent, seed, args.frames, keep_states=index == 0)
     figures.update(driver=index, seed=seed)
     if index == 0:  # the behaviour drive: the dream's starts are states of it
         z, h, v, steer = (np.stack([s[i] for s in states]).astype(np.float32) for i in range(4))
-        with atomic_write(os.path.join(args.out, f"drive_{seed}.npz")) as f:
-            np.savez(f, z=z, h=h, speed=v, steer=steer, first=np.int64(agent.warmup))
+        with atomic_write(drive) as f:
+            np.savez(f, z=z, h=h, speed=v, steer=steer, first=np.int64(agent.warmup), **trace)
     with atomic_write(path) as f:
         f.write(json.dumps(figures).encode())
     return figures
+
+
+def window_starts(drive: dict, count: int, horizon: int) -> tuple[list, list]:
+    """The ``count`` starts in the behaviour drive ``drive`` (``drive_SEED.npz``): their
+    decisions in the drive, and their indices in its kept states (which begin after the warm-up)."""
+    first = int(drive["first"])
+    decisions = start_decisions(first + len(drive["speed"]), count, horizon, first)
+    return decisions, [d - first for d in decisions]
 
 
 def starts_of(drive: dict, world: Simulator, hidden_dim: int, count: int, horizon: int) -> dict:
@@ -188,8 +190,7 @@ def starts_of(drive: dict, world: Simulator, hidden_dim: int, count: int, horizo
     transition stepped along the drive from the decision the driver's started (the same state
     where the world is the driver's own model); and the steering the drive applied over the
     ``horizon`` decisions from each (``steer``, what `road_memory` compares)."""
-    first, n = int(drive["first"]), len(drive["speed"])
-    at = [d - first for d in start_decisions(first + n, count, horizon, first)]
+    _, at = window_starts(drive, count, horizon)
     h_world = np.zeros((1, hidden_dim), np.float32)
     hidden = []
     for t in range(max(at) + 1):
@@ -203,9 +204,10 @@ def starts_of(drive: dict, world: Simulator, hidden_dim: int, count: int, horizo
 
 def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horizon: int, seed: int,
           use_value: bool) -> dict:
-    """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` and
-    ``off_road`` (its chance, averaged) ``(drivers, starts)``, and ``steer``, the steering
-    applied, ``(drivers, starts, horizon)``. The drivers' policy reads the codes the world
+    """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` (with the
+    value at the horizon where ``use_value``), ``rewards`` (without it) and ``off_road`` (its
+    chance, averaged) ``(drivers, starts)``, and ``steer``, the steering applied, ``(drivers,
+    starts, horizon)``. The drivers' policy reads the codes the world
     predicts, and their hidden states step on their own model's transition (as a real drive
     steps them on the codes of what the car sees); the world's transition predicts the codes,
     its reward head scores them."""
@@ -214,7 +216,7 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     z, h, h_world = tile(starts["z"]), tile(starts["h"]), tile(starts["h_world"])
     v = np.tile(starts["speed"], n).astype(np.float32)
     drivers = [d for d in family for _ in range(k)]
-    changes = Changes(drivers, [seed * 1000 + i for i in range(n * k)])
+    changes = Changes(drivers, [dream_row_seed(seed, i, j, k) for i in range(n) for j in range(k)])
     total, off, steers = np.zeros(n * k), np.zeros(n * k), np.zeros((n * k, horizon), np.float32)
     for step in range(horizon):
         target, steer = changes(driver.act(z, h)).T
@@ -228,9 +230,8 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
         reward = world.reward(z, h_world)
         total += reward[:, 0]
         off += reward[:, 1]
-    if use_value:
-        total += world.value(z, h_world)[:, 0]
-    return {"return": total.reshape(n, k), "off_road": (off / horizon).reshape(n, k),
+    tail = world.value(z, h_world)[:, 0] if use_value else 0.0
+    return {"return": (total + tail).reshape(n, k), "rewards": total.reshape(n, k), "off_road": (off / horizon).reshape(n, k),
             "steer": steers.reshape(n, k, horizon)}
 
 
@@ -283,8 +284,10 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
     }
 
 
-def report(args, results: list) -> dict:
-    """The dream's side for every track (from the starts the real drives left), then the figures."""
+def report(args, results: list, windowed: list) -> dict:
+    """The dream's side for every track (from the starts the real drives left), then the figures:
+    against the whole real drives, and (``windowed``, ``rank_real.window_job``'s) against the real
+    windows from the same starts (``windows``: the dream's rewards without the value)."""
     family, seeds = args.family, args.seeds
     batch = len(family) * args.starts
     driver = Simulator(Model.load(args.weights), batch=batch, threads=args.threads)
@@ -294,7 +297,7 @@ def report(args, results: list) -> dict:
         world.set_sampling(args.temperature, 0)
     real = {(r["driver"], r["seed"]): r for r in results}
     shape = (len(family), len(seeds))
-    real_score, real_off, dream_return, dream_off = (np.zeros(shape) for _ in range(4))
+    real_score, real_off, dream_return, dream_off, dream_rewards = (np.zeros(shape) for _ in range(5))
     steer_dreamt, steer_real = [], []
     start = time.perf_counter()
     for t, seed in enumerate(seeds):
@@ -302,12 +305,21 @@ def report(args, results: list) -> dict:
             starts = starts_of({k: f[k] for k in f.files}, world, world_model.hidden_dim, args.starts, args.horizon)
         d = dream(driver, world, family, starts, args.horizon, seed, args.value)
         dream_return[:, t], dream_off[:, t] = d["return"].mean(1), d["off_road"].mean(1)
+        dream_rewards[:, t] = d["rewards"].mean(1)
         steer_dreamt.append(d["steer"][0])
         steer_real.append(starts["steer"])
         for i in range(len(family)):
             real_score[i, t], real_off[i, t] = real[i, seed]["reward"], real[i, seed]["off_road"]
     seconds = time.perf_counter() - start
     out = summary(family, real_score, real_off, dream_return, dream_off)
+    if windowed:
+        got = {(w["driver"], w["seed"]): w for w in windowed}
+        win_return, win_off = np.zeros(shape), np.zeros(shape)
+        for t, seed in enumerate(seeds):
+            for i in range(len(family)):
+                win_return[i, t], win_off[i, t] = np.mean(got[i, seed]["return"]), np.mean(got[i, seed]["off_road"])
+        out["windows"] = summary(family, win_return, win_off, dream_rewards, dream_off)
+        out["windows"]["per_track"] = {"real": win_return.tolist(), "dream": dream_rewards.tolist()}
     if family[0] == Driver(family[0].name):  # unchanged: its real drive is the behaviour drive
         out["road_memory"] = road_memory(np.concatenate(steer_dreamt), np.concatenate(steer_real))
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
@@ -326,6 +338,16 @@ def print_report(out: dict) -> None:
           f"regret@1 {out['regret_at_1']:.2f} (the dream's favourite: {out['favourite']}); Pearson {out['pearson']:+.2f}; "
           f"the largest off-road gap {out['off_road_gap']:.2f}; {len(out['seeds'])} tracks, {out['starts']} starts, "
           f"horizon {out['horizon']}; {out['dream_decisions_per_second']:.0f} dream decisions a second")
+    if "windows" in out:
+        w = out["windows"]
+        print(f"\nthe same starts in the real env, {out['horizon']} decisions each (the dream without the value):")
+        print(f"{'driver':24} {'real':>8} {'off road':>8} {'dream':>8} {'off road':>8}")
+        for d in w["drivers"]:
+            print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_off_road']:8.1%} {d['dream']:8.1f} "
+                  f"{d['dream_off_road']:8.1%}")
+        print(f"windows: Spearman {w['spearman']:+.2f} ({w['spearman_per_track']:+.2f} per track); regret@1 "
+              f"{w['regret_at_1']:.2f} ({w['favourite']}); Pearson {w['pearson']:+.2f}; the largest off-road gap "
+              f"{w['off_road_gap']:.2f}")
     if "road_memory" in out:
         steps = [s for s in (1, 3, 5, 8, 10, 20, 40) if s <= len(out["road_memory"])]
         print(f"road memory (the unchanged driver's steering, dream against real, correlation after N decisions): "
@@ -348,6 +370,8 @@ def main(argv=None) -> int:
     p.add_argument("--frames", type=int, default=1000, help="env frames per real drive (CarRacing-v3: 1000)")
     p.add_argument("--workers", type=int, default=1, help="real drives at once, each in its own process")
     p.add_argument("--threads", type=int, default=1, help="threads of the dream's simulator")
+    p.add_argument("--windows", action="store_true",
+                   help="also drive every driver in the real env from the dream's starts, --horizon decisions")
     p.add_argument("--report", default="rank.json", help="the report's file name in --out")
     args = p.parse_args(argv)
     if min(args.horizon, args.starts, args.frames, args.workers, args.threads) < 1 or not args.temperature >= 0:
@@ -368,13 +392,20 @@ def main(argv=None) -> int:
     os.makedirs(os.path.join(args.out, "real"), exist_ok=True)
     # Each track's unchanged driver first: its drive leaves the dream's starts.
     jobs = [(args, i, seed) for i in range(len(args.family)) for seed in args.seeds]
-    results, started = [], time.perf_counter()
+    results, windowed, started = [], [], time.perf_counter()
     with multiprocessing.Pool(min(args.workers, len(jobs))) if args.workers > 1 else contextlib.nullcontext() as pool:
         for r in (pool.imap_unordered(real_job, jobs) if pool else map(real_job, jobs)):
             results.append(r)
             print(f"[{len(results)}/{len(jobs)}, {time.perf_counter() - started:.0f} s] {args.family[r['driver']].name} "
                   f"on track {r['seed']}: {r['reward']:.1f}, off the road {r['off_road']:.1%}", flush=True)
-    out = report(args, results)
+        if args.windows:  # the behaviour drives are all kept now
+            os.makedirs(rank_real.windows_dir(args), exist_ok=True)
+            for w in (pool.imap_unordered(rank_real.window_job, jobs) if pool else map(rank_real.window_job, jobs)):
+                windowed.append(w)
+                print(f"[windows {len(windowed)}/{len(jobs)}, {time.perf_counter() - started:.0f} s] "
+                      f"{args.family[w['driver']].name} on track {w['seed']}: {np.mean(w['return']):.1f} a window, "
+                      f"off the road {np.mean(w['off_road']):.1%}", flush=True)
+    out = report(args, results, windowed)
     with atomic_write(os.path.join(args.out, args.report)) as f:
         f.write(json.dumps(out, indent=1).encode())
     print_report(out)

@@ -1,0 +1,135 @@
+"""The rank probe's real side (``python -m drivesim.carracing.rank``): a driver's whole drive of
+a track, and (``--windows``) every driver driven in gymnasium's CarRacing from the same starts,
+for the same horizon, as in the dream.
+
+The dream rolls each driver ``--horizon`` decisions from states of the unchanged driver's real
+drive. A whole real drive is another experiment: a driver that leaves the road at the first
+sharp bend is on the grass for most of its lap, while a window of the dream may hold no such
+bend. Here the real car is put where the dream starts: the track is reset and the behaviour
+drive's actions replayed up to the start (CarRacing is deterministic: the same actions from the
+same seed give the same car, frame for frame, which the tests check), the driver takes over
+with the behaviour drive's hidden state there, and drives ``horizon`` decisions. Each window
+gives the env's reward summed and the share of its decisions with no wheel on the road; its
+steering noise is seeded as the dream's row for the same driver and start.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+from .._files import atomic_write
+from .view import decision_steps, observe, speed, unseen
+
+
+def drive_real(agent, seed: int, frames: int, keep_states: bool) -> tuple[dict, list, dict]:
+    """One real drive: its figures; (``keep_states``) every decision after the warm-up in order,
+    ``(z, h, speed, steering applied)``: the code seen, the driver's hidden state before the
+    decision, the speedometer and what the transition was stepped with; and every decision's
+    ``actions`` (the env's), ``rewards`` and ``off`` (no wheel on the road), warm-up included:
+    what ``replay`` replays and its tests check against."""
+    import gymnasium
+
+    env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
+    env.reset(seed=seed)
+    agent.reset()
+    total, states, done = 0.0, [], False
+    trace = {"actions": [], "rewards": [], "off": []}
+    while not done:
+        action = agent.act(observe(env), speed(env))
+        if keep_states and agent.decisions > agent.warmup:
+            z, h, v = agent.last_state
+            states.append((z.copy(), h.copy(), v, float(action[0])))
+        trace["off"].append(not on_road(env))
+        reward = 0.0
+        for _, r, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
+            reward += float(r)
+            done = terminated or truncated
+            if done:
+                break
+        total += reward
+        trace["actions"].append(action)
+        trace["rewards"].append(reward)
+    env.close()
+    decisions = len(trace["off"])
+    figures = {"reward": round(total, 2), "off_road": round(sum(trace["off"]) / decisions, 4), "decisions": decisions}
+    return figures, states, {k: np.array(v, np.float32) for k, v in trace.items()}
+
+
+def replay(env, actions: np.ndarray, frame_skip: int) -> None:
+    """Steps the env, just reset, through ``actions`` (one a decision, ``(D, 3)``), drawing only
+    the last decision's last frame (what ``observe`` reads next)."""
+    for i, action in enumerate(actions):
+        if i + 1 < len(actions):
+            with unseen(env):
+                for _ in range(frame_skip):
+                    env.step(action)
+        else:
+            for _ in decision_steps(env, action, frame_skip):
+                pass
+
+
+def on_road(env) -> bool:
+    """Whether a wheel of the car touches a road tile."""
+    return any(len(w.tiles) > 0 for w in env.unwrapped.car.wheels)
+
+
+def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int) -> tuple[list, list]:
+    """``agent`` (a ``rank.ChangedAgent``, just reset) takes over the env ``decisions`` decisions
+    into the drive with hidden state ``h`` and drives ``horizon`` decisions (fewer where the
+    episode ends): each decision's reward and whether the car was off the road as it decided."""
+    agent.decisions, agent.h = decisions, np.array(h, np.float32)  # past the warm-up, the drive's memory
+    rewards, off = [], []
+    for _ in range(horizon):
+        action = agent.act(observe(env), speed(env))
+        off.append(not on_road(env))
+        total, done = 0.0, False
+        for _, reward, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
+            total += float(reward)
+            done = terminated or truncated
+            if done:
+                break
+        rewards.append(total)
+        if done:
+            break
+    return rewards, off
+
+
+def windows_dir(args) -> str:
+    """Where the windows of ``args.horizon`` and ``args.starts`` are kept (``--out``'s)."""
+    return os.path.join(args.out, f"windows_{args.horizon}x{args.starts}")
+
+
+def window_job(job) -> dict:
+    """One driver's windows on one track (``rank.window_starts``): their returns and off-road
+    shares, read from ``--out`` when an earlier run drove them."""
+    import gymnasium
+
+    from . import rank
+
+    args, index, seed = job
+    path = os.path.join(windows_dir(args), f"{index}_{seed}.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            return json.load(f)
+    with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
+        drive = {k: f[k] for k in f.files}
+    starts, at = rank.window_starts(drive, args.starts, args.horizon)
+    agent = rank.ChangedAgent(args.family[index], seed=0, model=rank.process_model(args.weights))
+    env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
+    returns, off_road = [], []
+    for j, (decision, t) in enumerate(zip(starts, at)):
+        agent.seed = rank.dream_row_seed(seed, index, j, len(starts))
+        agent.reset()
+        env.reset(seed=seed)
+        replay(env, drive["actions"][:decision], agent.frame_skip)
+        rewards, off = drive_window(env, agent, drive["h"][t], decision, args.horizon)
+        returns.append(float(np.sum(rewards)))
+        off_road.append(float(np.mean(off)))
+    env.close()
+    out = {"driver": index, "seed": seed, "return": returns, "off_road": off_road}
+    with atomic_write(path) as f:
+        f.write(json.dumps(out).encode())
+    return out

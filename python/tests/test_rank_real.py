@@ -1,0 +1,66 @@
+"""The rank probe's real windows (``rank --windows``, ``drivesim.carracing.rank_real``): the env
+replayed to a start is the car the behaviour drive had there, and a window of the unchanged
+driver is that drive's own stretch, reward for reward."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import drivesim
+from drivesim.carracing import rank, rank_real
+
+
+def test_a_window_of_the_unchanged_driver_is_its_drive_reward_for_reward():
+    pytest.importorskip("Box2D")
+    import gymnasium
+
+    model = drivesim.Model.load()
+    agent = rank.ChangedAgent(rank.FAMILY[0], seed=0, model=model)
+    _, states, trace = rank_real.drive_real(agent, 3, 240, keep_states=True)
+    assert trace["actions"].shape == (60, 3) and len(trace["rewards"]) == len(trace["off"]) == 60
+    env = gymnasium.make("CarRacing-v3", max_episode_steps=240)
+    for start, horizon in ((agent.warmup + 3, 10), (40, 20)):
+        env.reset(seed=3)
+        rank_real.replay(env, trace["actions"][:start], agent.frame_skip)
+        agent.reset()
+        rewards, off = rank_real.drive_window(env, agent, states[start - agent.warmup][1], start, horizon)
+        np.testing.assert_allclose(rewards, trace["rewards"][start:start + horizon], atol=1e-4)
+        np.testing.assert_array_equal(off, trace["off"][start:start + horizon].astype(bool))
+    # Another driver from the same state drives elsewhere.
+    biased = rank.ChangedAgent(rank.Driver("b", bias=0.6), seed=0, model=model)
+    env.reset(seed=3)
+    rank_real.replay(env, trace["actions"][:20], agent.frame_skip)
+    rewards, _ = rank_real.drive_window(env, biased, states[20 - agent.warmup][1], 20, 20)
+    assert not np.allclose(rewards, trace["rewards"][20:40], atol=1e-4)
+    env.close()
+
+
+def test_the_probe_with_windows_end_to_end(tmp_path):
+    pytest.importorskip("Box2D")
+    command = [sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "3,4", "--out", str(tmp_path), "--family",
+               "small", "--frames", "160", "--horizon", "4", "--starts", "2", "--windows"]
+    run = subprocess.run(command, check=True, capture_output=True, text=True, timeout=600)
+    assert "windows: Spearman" in run.stdout
+    report = json.loads((tmp_path / "rank.json").read_text())
+    windows = report["windows"]
+    assert [d["driver"]["name"] for d in windows["drivers"]] == [d.name for d in rank.SMALL]
+    for d in windows["drivers"]:
+        assert np.isfinite([d["real"], d["dream"]]).all() and 0 <= d["real_off_road"] <= 1
+    # The unchanged driver's windows are its behaviour drive's stretches.
+    for t, seed in enumerate((3, 4)):
+        with np.load(tmp_path / f"drive_{seed}.npz") as f:
+            drive = {k: f[k] for k in f.files}
+        decisions, _ = rank.window_starts(drive, 2, 4)
+        kept = np.mean([drive["rewards"][d:d + 4].sum() for d in decisions])
+        assert windows["per_track"]["real"][0][t] == pytest.approx(kept, abs=1e-3)
+    # A behaviour drive kept without its actions (an older run) is driven again.
+    with np.load(tmp_path / "drive_3.npz") as f:
+        old = {k: f[k] for k in f.files if k not in ("actions", "rewards", "off")}
+    np.savez(tmp_path / "drive_3.npz", **old)
+    subprocess.run(command, check=True, capture_output=True, timeout=600)
+    with np.load(tmp_path / "drive_3.npz") as f:
+        assert "actions" in f.files
+    assert json.loads((tmp_path / "rank.json").read_text())["windows"] == windows
