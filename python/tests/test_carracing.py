@@ -148,13 +148,16 @@ def test_planner_dreams_at_the_speed_the_car_reaches(model, clip):
 def test_guarded_planner_keeps_the_policy_where_the_dream_keeps_it_on_the_road(clip):
     """``guard``: below the policy's own plan's off-road chance the planner weighs the
     candidates as without it; above it, it acts exactly as the cloned driver."""
+    from drivesim.carracing.__main__ import option
+
     frames, actions = clip
 
     def drive(agent):
         agent.warmup = 0
         return np.array([agent.act(f, float(a[0])) for f, a in zip(frames, actions)])
 
-    plain = drive(carracing.make_agent("mpc"))
+    assert carracing.make_agent("mpc").guard == 0.05 and option("guard=none") == ("guard", None)
+    plain = drive(carracing.make_agent("mpc", guard=None))
     never = carracing.make_agent("mpc", guard=0.0)
     np.testing.assert_array_equal(drive(never), plain)
     assert never.guarded == 0

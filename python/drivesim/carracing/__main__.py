@@ -170,10 +170,13 @@ def main(argv=None) -> int:
 
 
 def option(text: str) -> tuple:
-    """``NAME=VALUE`` as ``(name, value)``, the value an int or a float where it reads as one."""
+    """``NAME=VALUE`` as ``(name, value)``, the value an int or a float where it reads as one,
+    None for ``none`` (an option turned off: ``--set guard=none``)."""
     name, sep, value = text.partition("=")
     if not sep or not name:
         raise argparse.ArgumentTypeError(f"expected NAME=VALUE, got {text!r}")
+    if value.lower() == "none":
+        return name, None
     for kind in (int, float):
         try:
             return name, kind(value)

@@ -16,10 +16,13 @@ decision. ``departures`` counts the decisions where the applied action left the 
 more than ``DEPART_STEER`` in steering or ``DEPART_SPEED`` in target speed, ``changes`` sums the
 differences (target speed, steering) over the ``planned`` decisions.
 
-With ``guard`` the planner is a safety net: where the dream gives the policy's own plan (the
+The planner is a safety net (``guard``): where the dream gives the policy's own plan (the
 unperturbed candidate, over its futures) a mean off-road chance below ``guard``, the policy's
 action is applied as it is, and the candidates weigh in only where the dream says the policy's
-plan leaves the road. ``guarded`` counts the decisions kept so.
+plan leaves the road. ``guarded`` counts the decisions kept so. Without it the candidates' small
+moves change a lap the policy drives well into another, and on a few tracks into a spin: on the
+100 held-out tracks 17000-17099, ``guard=None`` lost more than 30 points to the policy alone on 5
+tracks (down to 275), ``guard=0.05`` on none, and kept the one rescue (``docs/carracing.md``).
 """
 
 from __future__ import annotations
@@ -58,8 +61,8 @@ class MPCAgent(ModelAgent):
     1000; ``w_off`` 0 to 1e6; ``spread`` above 0, at most 1e6; ``smooth`` from 0 to 0.99 (the noise's correlation from one
     decision to the next); ``max_speed`` the fastest target speed planned, above the model's
     trained minimum and at most ``SPEED_MAX`` (None: the model's trained range, where the
-    policy's own targets are clipped too); ``guard`` None (always weigh the candidates) or an
-    off-road chance from 0 to 1 (see the module).
+    policy's own targets are clipped too); ``guard`` an off-road chance from 0 to 1 (see the
+    module; 0.05, set before it was measured) or None (always weigh the candidates).
     """
 
     def __init__(
@@ -77,7 +80,7 @@ class MPCAgent(ModelAgent):
         spread: float = 2.0,
         seed: int = 0,
         max_speed: Optional[float] = None,
-        guard: Optional[float] = None,
+        guard: Optional[float] = 0.05,
     ):
         count, number = _checks.integer, _checks.number
         self.candidates, self.horizon = count("candidates", candidates, 2, 1024), count("horizon", horizon, 1, 100)
