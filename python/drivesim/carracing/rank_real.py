@@ -15,13 +15,15 @@ steering noise is seeded as the dream's row for the same driver and start.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 
 import numpy as np
 
 from .._files import atomic_write
-from .view import decision_steps, observe, speed, unseen
+from .record import decision, wheel_on_road
+from .view import observe, speed, unseen
 
 
 def drive_real(agent, seed: int, frames: int, keep_states: bool) -> tuple[dict, list, dict]:
@@ -42,13 +44,8 @@ def drive_real(agent, seed: int, frames: int, keep_states: bool) -> tuple[dict, 
         if keep_states and agent.decisions > agent.warmup:
             z, h, v = agent.last_state
             states.append((z.copy(), h.copy(), v, float(action[0])))
-        trace["off"].append(not on_road(env))
-        reward = 0.0
-        for _, r, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
-            reward += float(r)
-            done = terminated or truncated
-            if done:
-                break
+        trace["off"].append(not wheel_on_road(env.unwrapped.car))
+        reward, _, done = decision(env, action, agent.frame_skip)
         total += reward
         trace["actions"].append(action)
         trace["rewards"].append(reward)
@@ -62,18 +59,8 @@ def replay(env, actions: np.ndarray, frame_skip: int) -> None:
     """Steps the env, just reset, through ``actions`` (one a decision, ``(D, 3)``), drawing only
     the last decision's last frame (what ``observe`` reads next)."""
     for i, action in enumerate(actions):
-        if i + 1 < len(actions):
-            with unseen(env):
-                for _ in range(frame_skip):
-                    env.step(action)
-        else:
-            for _ in decision_steps(env, action, frame_skip):
-                pass
-
-
-def on_road(env) -> bool:
-    """Whether a wheel of the car touches a road tile."""
-    return any(len(w.tiles) > 0 for w in env.unwrapped.car.wheels)
+        with unseen(env) if i + 1 < len(actions) else contextlib.nullcontext():
+            decision(env, action, frame_skip)
 
 
 def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int) -> tuple[list, list]:
@@ -84,14 +71,9 @@ def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int) -> tup
     rewards, off = [], []
     for _ in range(horizon):
         action = agent.act(observe(env), speed(env))
-        off.append(not on_road(env))
-        total, done = 0.0, False
-        for _, reward, terminated, truncated, _ in decision_steps(env, action, agent.frame_skip):
-            total += float(reward)
-            done = terminated or truncated
-            if done:
-                break
-        rewards.append(total)
+        off.append(not wheel_on_road(env.unwrapped.car))
+        reward, _, done = decision(env, action, agent.frame_skip)
+        rewards.append(reward)
         if done:
             break
     return rewards, off
@@ -120,12 +102,12 @@ def window_job(job) -> dict:
     agent = rank.ChangedAgent(args.family[index], seed=0, model=rank.process_model(args.weights))
     env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
     returns, off_road = [], []
-    for j, (decision, t) in enumerate(zip(starts, at)):
+    for j, (start, t) in enumerate(zip(starts, at)):
         agent.seed = rank.dream_row_seed(seed, index, j, len(starts))
         agent.reset()
         env.reset(seed=seed)
-        replay(env, drive["actions"][:decision], agent.frame_skip)
-        rewards, off = drive_window(env, agent, drive["h"][t], decision, args.horizon)
+        replay(env, drive["actions"][:start], agent.frame_skip)
+        rewards, off = drive_window(env, agent, drive["h"][t], start, args.horizon)
         returns.append(float(np.sum(rewards)))
         off_road.append(float(np.mean(off)))
     env.close()
