@@ -12,6 +12,9 @@
 //!   env's reward for that decision and the chance that the car is off the road there.
 //! - The **value** head (`value.*`): the discounted return from a state under the driving
 //!   policy, the discount per decision in the file's `drivesim.discount` metadata.
+//! - The **pace** head (`pace.*`): the speed a faster driver would drive at from the state (the
+//!   expert at racing pace, learnt by `train policy --pace` from DAgger's labels), read where
+//!   the policy is at the top of its trained speed range ([`crate::Simulator::pace`]).
 //!
 //! The planner reads the last two in its rollouts ([`crate::Simulator::rollout_candidates_scored`]).
 
@@ -32,27 +35,32 @@ pub enum HeadKind {
     Reward,
     /// One output: the discounted return from the state.
     Value,
+    /// One output: the speed to drive at, at racing pace (the model's speed units, read clamped
+    /// to at least 0).
+    Pace,
 }
 
 impl HeadKind {
     /// Every head, in the order a weight file is read.
-    pub const ALL: [HeadKind; 3] = [HeadKind::Policy, HeadKind::Reward, HeadKind::Value];
+    pub const ALL: [HeadKind; 4] = [HeadKind::Policy, HeadKind::Reward, HeadKind::Value, HeadKind::Pace];
 
-    /// The head's name: `policy`, `reward` or `value`.
+    /// The head's name: `policy`, `reward`, `value` or `pace`.
     pub fn name(self) -> &'static str {
         match self {
             HeadKind::Policy => "policy",
             HeadKind::Reward => "reward",
             HeadKind::Value => "value",
+            HeadKind::Pace => "pace",
         }
     }
 
-    /// The prefix of its tensors in a weight file (`policy.`, `reward.`, `value.`).
+    /// The prefix of its tensors in a weight file (`policy.`, `reward.`, `value.`, `pace.`).
     pub fn prefix(self) -> &'static str {
         match self {
             HeadKind::Policy => "policy.",
             HeadKind::Reward => "reward.",
             HeadKind::Value => "value.",
+            HeadKind::Pace => "pace.",
         }
     }
 
@@ -61,7 +69,7 @@ impl HeadKind {
         match self {
             HeadKind::Policy => config.action_dim,
             HeadKind::Reward => 2,
-            HeadKind::Value => 1,
+            HeadKind::Value | HeadKind::Pace => 1,
         }
     }
 }

@@ -29,6 +29,8 @@ pub struct Model {
     /// The reward and value heads, where the file has them (`reward.*`, `value.*`).
     pub(crate) reward: Option<Head>,
     pub(crate) value: Option<Head>,
+    /// The pace head, where the file has it (`pace.*`).
+    pub(crate) pace: Option<Head>,
 }
 
 impl Model {
@@ -75,6 +77,7 @@ impl Model {
             policy: Head::load(&config, src, HeadKind::Policy)?,
             reward: Head::load(&config, src, HeadKind::Reward)?,
             value: Head::load(&config, src, HeadKind::Value)?,
+            pace: Head::load(&config, src, HeadKind::Pace)?,
             config,
         };
         src.finish()?;
@@ -148,6 +151,7 @@ impl Model {
             HeadKind::Policy => self.policy.as_ref(),
             HeadKind::Reward => self.reward.as_ref(),
             HeadKind::Value => self.value.as_ref(),
+            HeadKind::Pace => self.pace.as_ref(),
         }
     }
 
@@ -193,6 +197,7 @@ impl core::fmt::Debug for Model {
             .field("policy_width", &self.policy_width())
             .field("reward_width", &self.head_width(HeadKind::Reward))
             .field("value_width", &self.head_width(HeadKind::Value))
+            .field("pace_width", &self.head_width(HeadKind::Pace))
             .finish_non_exhaustive()
     }
 }

@@ -1,5 +1,6 @@
-//! The reward and value heads (`reward.*`, `value.*`): read back as the trainer wrote them,
-//! run by `Simulator::reward` / `value` as a scalar f64 reference of the network computes them,
+//! The reward, value and pace heads (`reward.*`, `value.*`, `pace.*`): read back as the trainer
+//! wrote them, run by `Simulator::reward` / `value` / `pace` as a scalar f64 reference of the
+//! network computes them,
 //! read in candidate rollouts with the bits of a step-by-step rollout whatever the batch or
 //! threads; their trainer and its λ-returns; typed errors.
 #![cfg(feature = "train")]
@@ -21,13 +22,19 @@ fn settings(width: usize, seed: u64) -> HeadSettings {
     }
 }
 
-/// The small random model with a reward head (width 20) and a value head (width 11, discount
-/// 0.97), each trained a few steps so that its output layer is not the draw's.
+/// The small random model with a reward head (width 20), a value head (width 11, discount
+/// 0.97) and a pace head (width 9, around -0.5 so that the clamp at 0 is met), each trained a
+/// few steps so that its output layer is not the draw's.
 fn file_with_heads() -> Vec<u8> {
     let mut bytes = random_weight_file(&SMALL, 5).unwrap();
-    for (kind, width, discount) in [(HeadKind::Reward, 20, None), (HeadKind::Value, 11, Some(0.97))] {
+    let heads = [
+        (HeadKind::Reward, 20, None, 1.0),
+        (HeadKind::Value, 11, Some(0.97), 1.0),
+        (HeadKind::Pace, 9, None, -0.5),
+    ];
+    for (kind, width, discount, mean) in heads {
         let model = Model::from_bytes(&bytes).unwrap();
-        let units = vec![(1.0, 2.0); kind.outputs(&SMALL)];
+        let units = vec![(mean, 2.0); kind.outputs(&SMALL)];
         let mut trainer = HeadTrainer::with_units(&model, kind, &units, settings(width, 3)).unwrap();
         for step in 0..3 {
             let targets = values(40 + step, 8 * units.len(), 3.0);
@@ -78,14 +85,16 @@ fn heads_read_back_and_match_the_scalar_reference() {
     let model = Model::from_bytes(&file).unwrap();
     assert_eq!(model.head_width(HeadKind::Reward), Some(20));
     assert_eq!(model.head_width(HeadKind::Value), Some(11));
+    assert_eq!(model.head_width(HeadKind::Pace), Some(9));
     assert_eq!((model.policy_width(), model.discount()), (None, Some(0.97)));
     let n = 5;
     let (z, h) = (values(1, n * SMALL.z_dim, 1.0), values(2, n * SMALL.hidden_dim, 1.0));
     let mut sim = Simulator::with_batch(&model, n).unwrap();
-    let (mut rewards, mut value) = (vec![0.0; 2 * n], vec![0.0; n]);
+    let (mut rewards, mut value, mut pace) = (vec![0.0; 2 * n], vec![0.0; n], vec![0.0; n]);
     sim.reward(&z, &h, &mut rewards).unwrap();
     sim.value(&z, &h, &mut value).unwrap();
-    let (mut expected_rewards, mut expected_values) = (Vec::new(), Vec::new());
+    sim.pace(&z, &h, &mut pace).unwrap();
+    let (mut expected_rewards, mut expected_values, mut raw_pace) = (Vec::new(), Vec::new(), Vec::new());
     for i in 0..n {
         let x: Vec<f32> = [
             &z[i * SMALL.z_dim..][..SMALL.z_dim],
@@ -95,7 +104,18 @@ fn heads_read_back_and_match_the_scalar_reference() {
         let r = reference(&file, "reward.", &x);
         expected_rewards.extend([r[0] as f32, r[1].clamp(0.0, 1.0) as f32]);
         expected_values.push(reference(&file, "value.", &x)[0] as f32);
+        raw_pace.push(reference(&file, "pace.", &x)[0] as f32);
     }
+    let expected_pace: Vec<f32> = raw_pace.iter().map(|v| v.max(0.0)).collect();
+    assert!(
+        relative_error(&pace, &expected_pace) < 1e-5,
+        "{pace:?} against {expected_pace:?}"
+    );
+    // Speeds on both sides of 0: the clamp is tested, and only where it applies.
+    assert!(
+        raw_pace.iter().any(|&v| v < 0.0) && raw_pace.iter().any(|&v| v > 0.0),
+        "{raw_pace:?}"
+    );
     assert!(
         relative_error(&rewards, &expected_rewards) < 1e-5,
         "{rewards:?} against {expected_rewards:?}"
@@ -178,6 +198,10 @@ fn models_without_heads_and_bad_buffers_are_typed_errors() {
     assert!(matches!(
         sim.value(&z, &h, &mut out[..1]),
         Err(Error::NoHead { head: "value" })
+    ));
+    assert!(matches!(
+        sim.pace(&z, &h, &mut out[..1]),
+        Err(Error::NoHead { head: "pace" })
     ));
     let (actions, mut codes) = (vec![10.0; 2 * 4 * 2], vec![0.0; 2 * 4 * SMALL.z_dim]);
     let (mut rewards, mut values) = (vec![0.0; 16], vec![0.0; 8]);

@@ -66,6 +66,7 @@ pub fn predict(model: &Model, kind: HeadKind, examples: &Examples) -> Result<Vec
             HeadKind::Policy => sim.act(&z, &h, o),
             HeadKind::Reward => sim.reward(&z, &h, o),
             HeadKind::Value => sim.value(&z, &h, o),
+            HeadKind::Pace => sim.pace(&z, &h, o),
         }
         .map_err(|e| e.to_string())?;
     }

@@ -53,6 +53,9 @@ class Model:
     def value_width(self) -> Optional[int]:
         """Units of the value head's hidden layer (``Simulator.value``), or None."""
     @property
+    def pace_width(self) -> Optional[int]:
+        """Units of the pace head's hidden layer (``Simulator.pace``), or None."""
+    @property
     def discount(self) -> Optional[float]:
         """The value head's discount per decision (``drivesim.discount``), or None."""
     @property
@@ -133,6 +136,9 @@ class Simulator:
     def value(self, z: F32, h: F32) -> F32:
         """The value head's discounted returns ``(N, 1)`` from states ``z``, ``h``; ValueError
         for a model without the head."""
+    def pace(self, z: F32, h: F32) -> F32:
+        """The pace head's speeds ``(N, 1)`` (at least 0) from the states ``act`` reads;
+        ValueError for a model without the head."""
     def rollout(self, seed_frames: Frames, actions: F32, frames: bool = False, dtype: DType = ...) -> Any:
         """``(S, H, W, 3)`` seeds and ``(S - 1 + T, 2)`` actions: codes ``(T, z_dim)``, or
         ``(codes, frames)`` with ``frames=True``."""

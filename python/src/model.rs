@@ -122,6 +122,12 @@ impl PyModel {
         self.inner.head_width(drivesim::HeadKind::Value)
     }
 
+    /// Units of the hidden layer of the pace head (`Simulator.pace`), or None.
+    #[getter]
+    fn pace_width(&self) -> Option<usize> {
+        self.inner.head_width(drivesim::HeadKind::Pace)
+    }
+
     /// The discount per decision of the value head's returns (the file's `drivesim.discount`),
     /// or None when the file does not say.
     #[getter]

@@ -256,6 +256,19 @@ impl PySimulator {
         self.head(py, HeadKind::Value, z, h)
     }
 
+    /// The pace head (`Model.pace_width`; ValueError without one): the speed a faster driver
+    /// would drive at from each state `z` `(N, z_dim)`, `h` `(N, hidden_dim)` (the states
+    /// `act` reads), as `(N, 1)` float32 in the model's speed units, at least 0; one state
+    /// without the leading N gives `(1,)`.
+    fn pace<'py>(
+        &self,
+        py: Python<'py>,
+        z: &Bound<'py, PyAny>,
+        h: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        self.head(py, HeadKind::Pace, z, h)
+    }
+
     /// A dream from seed frames: `seed_frames` `(S, height, width, 3)` and `actions`
     /// `(S - 1 + T, 2)` (the actions between the seeds, then one per predicted step) give the
     /// `T` predicted codes `(T, z_dim)`; with `frames=True`, also the generated frames
@@ -376,6 +389,7 @@ impl PySimulator {
             HeadKind::Policy => sim.act(z, h, out),
             HeadKind::Reward => sim.reward(z, h, out),
             HeadKind::Value => sim.value(z, h, out),
+            HeadKind::Pace => sim.pace(z, h, out),
         })
     }
 

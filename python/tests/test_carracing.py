@@ -33,6 +33,12 @@ def test_unknown_agent():
 def test_speed_control():
     assert carracing.speed_control(10.0, 40.0)[0] > 0
     assert carracing.speed_control(60.0, 20.0)[1] > 0
+    # With the steering: TURN_GAS of the gas off at full lock, none straight ahead, the brake kept.
+    assert carracing.speed_control(10.0, 40.0, 0.0) == carracing.speed_control(10.0, 40.0)
+    assert carracing.speed_control(10.0, 40.0, -1.0)[0] == pytest.approx(0.5 * carracing.speed_control(10.0, 40.0)[0])
+    assert carracing.speed_control(60.0, 20.0, 0.7) == carracing.speed_control(60.0, 20.0)
+    with pytest.raises(ValueError, match="steer"):
+        carracing.speed_control(10.0, 40.0, 1.5)
 
 
 def test_observe_is_the_recorded_view():
@@ -82,7 +88,7 @@ def test_baselines_act_in_range(clip):
 
 def test_cloned_agent_is_the_policy_stepped_along_the_drive(model, clip):
     frames, actions = clip
-    agent = carracing.make_agent("cloned")
+    agent = carracing.make_agent("cloned", pace=None)
     agent.warmup = 0
     sim = drivesim.Simulator(model)
     h = np.zeros(model.hidden_dim, np.float32)
@@ -99,6 +105,47 @@ def test_cloned_agent_is_the_policy_stepped_along_the_drive(model, clip):
     assert agent.imagine(3).shape == (3, 80, 160, 3)
     agent.reset()
     assert agent.imagine() is None and not agent.h.any()
+
+
+def test_cloned_agent_at_racing_pace(model, clip):
+    """The default drives at the pace head's speed where the policy's is at the top of its range
+    (at most ``pace``), at the lower of the two below it, with the steering's gas rule."""
+    from drivesim.carracing.cloned import AT_THE_TOP, PACE
+
+    frames, actions = clip
+    assert model.pace_width == 192
+    agent = carracing.make_agent("cloned")
+    assert agent.pace == PACE
+    agent.warmup = 0
+    sim = drivesim.Simulator(model)
+    h = np.zeros(model.hidden_dim, np.float32)
+    top = model.actions[0]["max"]
+    for frame, recorded in zip(frames, actions):
+        speed = float(recorded[0])
+        action = agent.act(frame, speed)
+        z = sim.encode(frame)
+        target, steer = sim.act(z, h)
+        pace = float(sim.pace(z, h)[0])
+        paced = min(pace if target >= top - AT_THE_TOP else min(pace, float(target)), PACE)
+        _, h = sim.transition(z, h, np.array([speed, steer], np.float32))
+        np.testing.assert_array_equal(action[0], np.float32(steer))
+        np.testing.assert_array_equal(action[1:], np.float32(carracing.speed_control(speed, paced, float(steer))))
+    # Each branch of the rule on the last state: at the top (the boundary included) the pace
+    # head's speed, below it the lower of the two, never above the cap.
+    free = carracing.make_agent("cloned", pace=1e4)
+    free.h, pace = h, float(sim.pace(z, h)[0])
+    assert free.paced(z, top) == free.paced(z, top - AT_THE_TOP) == pace > top
+    assert free.paced(z, top - 2 * AT_THE_TOP) == top - 2 * AT_THE_TOP and free.paced(z, 10.0) == 10.0
+    agent.h = h
+    assert agent.paced(z, top) == min(pace, PACE)
+    # A slower cap changes the drive; pace=None is the policy alone; a model without the head
+    # drives at its policy's speed whatever the option.
+    slow = carracing.make_agent("cloned", pace=30.0)
+    slow.warmup = 0
+    assert any(slow.act(f, float(a[0]))[1] != agent.act(f, float(a[0]))[1] for f, a in zip(frames, actions))
+    for bad, error in ((0.0, ValueError), (-5.0, ValueError), (float("nan"), ValueError), ("fast", TypeError)):
+        with pytest.raises(error, match="pace"):
+            carracing.make_agent("cloned", pace=bad)
 
 
 def test_cloned_agent_needs_a_policy():
@@ -164,7 +211,9 @@ def test_guarded_planner_keeps_the_policy_where_the_dream_keeps_it_on_the_road(c
     always = carracing.make_agent("mpc", guard=1.0)
     kept = drive(always)
     assert always.guarded == always.planned == len(frames) and always.departures == 0
-    np.testing.assert_array_equal(kept, drive(carracing.make_agent("cloned")))
+    np.testing.assert_array_equal(kept, drive(carracing.make_agent("cloned")))  # racing pace included
+    unpaced = carracing.make_agent("mpc", guard=1.0, pace=None)
+    np.testing.assert_array_equal(drive(unpaced), drive(carracing.make_agent("cloned", pace=None)))
     assert not np.array_equal(kept, plain)  # the candidates do move the plain planner
     with pytest.raises(ValueError, match="guard"):
         carracing.make_agent("mpc", guard=1.5)

@@ -202,6 +202,7 @@ def test_road_and_helpers(codes, frames, figures, ridge, road_figures, speed, ta
         fitted = road.RoadCost.fit(codes, figures, ridge)
         call(fitted.predict, ZV)
     call(carracing.speed_control, speed, target, shape=lambda out: len(out) == 2)
+    call(carracing.speed_control, speed, target, target, shape=lambda out: len(out) == 2)
     call(agents.proportional_steering, road_figures)
     call(agents.target_speed, road_figures, speed, 80.0)
     np.testing.assert_array_equal(COST.predict(ZV), COST.predict(ZV))
@@ -209,10 +210,10 @@ def test_road_and_helpers(codes, frames, figures, ridge, road_figures, speed, ta
 
 AGENT_OPTIONS = {
     "mpc": ["candidates", "horizon", "futures", "temperature", "steer_noise", "speed_noise", "smooth", "w_off",
-            "spread", "seed", "max_speed", "guard"],
+            "spread", "seed", "max_speed", "guard", "pace"],
     "mpc-road": ["candidates", "horizon", "iterations", "context", "skip", "max_speed", "road_scale", "search", "w_off",
             "w_prior", "correct"],
-    "cloned": ["threads"],
+    "cloned": ["threads", "pace"],
     "reactive": ["max_speed"],
     "random": ["seed"],
 }

@@ -10,8 +10,14 @@ from drivesim import carracing
 
 
 def test_the_default_has_its_heads(model):
-    assert model.reward_width == 64 and model.value_width == 64
+    assert model.reward_width == 64 and model.value_width == 64 and model.pace_width == 192
     assert 0 < model.discount < 1
+    sim = drivesim.Simulator(model, batch=3)
+    z = np.random.default_rng(1).normal(size=(3, model.z_dim)).astype(np.float32)
+    h = np.random.default_rng(2).uniform(-1, 1, size=(3, model.hidden_dim)).astype(np.float32)
+    pace = sim.pace(z, h)
+    assert pace.shape == (3, 1) and pace.dtype == np.float32 and (pace >= 0).all()
+    np.testing.assert_array_equal(sim.pace(z[1], h[1]), pace[1])
 
 
 def test_scored_candidates_are_their_own_rollouts_scored(model, clip):
@@ -51,6 +57,9 @@ def test_heads_raise_typed_errors(model):
         sim.reward(z, h)
     with pytest.raises(ValueError, match="no value head"):
         sim.value(z, h)
+    with pytest.raises(ValueError, match="no pace head"):
+        sim.pace(z, h)
+    assert plain.pace_width is None
     with pytest.raises(ValueError, match="no reward head"):
         sim.rollout_candidates_scored(h, np.zeros((2, 2, 2), np.float32), z=z)
     with pytest.raises(ValueError, match="reward, value"):

@@ -44,8 +44,27 @@ impl<M: Borrow<Model>> Simulator<M> {
         self.run_head(HeadKind::Value, z, h, out)
     }
 
-    /// The checks and the run of [`Simulator::act`], [`Simulator::reward`] and
-    /// [`Simulator::value`].
+    /// The pace head's speed for each state `[z | h]` (`pace.*` tensors): the speed a faster
+    /// driver would drive at from the frame encoded as `z` with the drive's hidden state `h`
+    /// (the same state [`Simulator::act`] reads), in the model's speed units, clamped to at
+    /// least 0 and not to the policy's trained range. The cloned driver drives at it where its
+    /// own target speed is at the top of that range (`python/drivesim/carracing/cloned.py`).
+    /// A model without the head is [`Error::NoHead`].
+    ///
+    /// ```
+    /// let model = drivesim::Model::load("weights/default.safetensors")?;
+    /// let mut sim = drivesim::Simulator::new(&model)?;
+    /// let (z, h, mut speed) = (vec![0.0; 128], vec![0.0; 256], [0.0]);
+    /// sim.pace(&z, &h, &mut speed)?;
+    /// assert!(speed[0] >= 0.0);
+    /// # Ok::<(), drivesim::Error>(())
+    /// ```
+    pub fn pace(&mut self, z: &[f32], h: &[f32], out: &mut [f32]) -> Result<()> {
+        self.run_head(HeadKind::Pace, z, h, out)
+    }
+
+    /// The checks and the run of [`Simulator::act`], [`Simulator::reward`],
+    /// [`Simulator::value`] and [`Simulator::pace`].
     fn run_head(&mut self, kind: HeadKind, z: &[f32], h: &[f32], out: &mut [f32]) -> Result<()> {
         let model = self.model.borrow();
         let c = *model.config();
@@ -91,11 +110,12 @@ pub(super) fn output_name(kind: HeadKind) -> &'static str {
         HeadKind::Policy => "actions",
         HeadKind::Reward => "rewards",
         HeadKind::Value => "values",
+        HeadKind::Pace => "speeds",
     }
 }
 
 /// A head's outputs brought into their range: the policy's actions into the model's trained
-/// ranges, the reward head's off-road chances into [0, 1].
+/// ranges, the reward head's off-road chances into [0, 1], the pace's speeds to at least 0.
 pub(super) fn bound(model: &Model, kind: HeadKind, out: &mut [f32]) {
     match (kind, model.actions()) {
         (HeadKind::Policy, Some(specs)) => {
@@ -106,6 +126,7 @@ pub(super) fn bound(model: &Model, kind: HeadKind, out: &mut [f32]) {
             }
         }
         (HeadKind::Reward, _) => out.iter_mut().skip(1).step_by(2).for_each(|p| *p = p.clamp(0.0, 1.0)),
+        (HeadKind::Pace, _) => out.iter_mut().for_each(|v| *v = v.max(0.0)),
         _ => {}
     }
 }

@@ -34,6 +34,7 @@ fn state_magic(kind: HeadKind) -> &'static [u8; 8] {
         HeadKind::Policy => b"DSPOLI01",
         HeadKind::Reward => b"DSREWA01",
         HeadKind::Value => b"DSVALU01",
+        HeadKind::Pace => b"DSPACE01",
     }
 }
 
@@ -85,13 +86,15 @@ pub struct HeadTrainer {
 
 impl HeadTrainer {
     /// A trainer for `model`'s head of `kind` (or a new one). The policy trains in the model's
-    /// action statistics (a model without `drivesim.actions` metadata in the actions' own
-    /// units), the other heads in their outputs' own units: give them better ones with
+    /// action statistics and the pace in its speed's (a model without `drivesim.actions`
+    /// metadata in the outputs' own units), the other heads in their outputs' own units: give them better ones with
     /// [`HeadTrainer::with_units`].
     pub fn new(model: &Model, kind: HeadKind, settings: HeadSettings) -> Result<HeadTrainer> {
         let outputs = kind.outputs(model.config());
         let units: Vec<(f32, f32)> = match (kind, model.actions()) {
             (HeadKind::Policy, Some(specs)) => specs.iter().map(|s| (s.mean, s.std)).collect(),
+            // The pace is a speed: trained in the speed's statistics.
+            (HeadKind::Pace, Some(specs)) => vec![(specs[0].mean, specs[0].std)],
             _ => vec![(0.0, 1.0); outputs],
         };
         HeadTrainer::with_units(model, kind, &units, settings)

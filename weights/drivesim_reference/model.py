@@ -206,13 +206,13 @@ class Transition(nn.Module):
 TEXTURE = "transition.texture."
 # The optional heads on `[z | h]` (the crate's `HeadKind`), in the order a weight file is read:
 # name -> outputs (None: the config's action_dim).
-HEADS = {"policy": None, "reward": 2, "value": 1}
+HEADS = {"policy": None, "reward": 2, "value": 1, "pace": 1}
 # The discount per decision of a value head's returns: a decimal string above 0 and below 1.
 DISCOUNT_KEY = "drivesim.discount"
 
 
 def head_outputs(cfg: Config, kind: str) -> int:
-    """Outputs of the head `kind` ("policy", "reward" or "value")."""
+    """Outputs of the head `kind` ("policy", "reward", "value" or "pace")."""
     if kind not in HEADS:
         raise ValueError(f"unknown head {kind!r}; expected one of {sorted(HEADS)}")
     return cfg.action_dim if HEADS[kind] is None else HEADS[kind]
@@ -234,7 +234,9 @@ class Head(nn.Module):
       crate clips it to the trained ranges);
     - "reward": the env's reward for the decision that led to the state, and the chance that
       the car is off the road there (the crate reads it clamped to [0, 1]);
-    - "value": the discounted return from the state (the discount in `drivesim.discount`)."""
+    - "value": the discounted return from the state (the discount in `drivesim.discount`);
+    - "pace": the speed a faster driver would drive at from the state (`Simulator::pace`,
+      `train policy --pace`; the crate reads it clamped to at least 0)."""
 
     def __init__(self, cfg: Config, width: int, kind: str = "policy", outputs: int | None = None):
         super().__init__()
@@ -244,7 +246,7 @@ class Head(nn.Module):
 
     @property
     def prefix(self) -> str:
-        """Its tensors' prefix in a weight file: "policy.", "reward." or "value."."""
+        """Its tensors' prefix in a weight file: "policy.", "reward.", "value." or "pace."."""
         return self.kind + "."
 
     @property
@@ -286,12 +288,13 @@ class Policy(Head):
 
 class DriveSim(nn.Module):
     """The three networks; with `spread`, the transition's spread head; with `policy_width`,
-    `reward_width`, `value_width`, the heads of those widths (all optional in a weight file);
+    `reward_width`, `value_width`, `pace_width`, the heads of those widths (all optional in a weight file);
     `discount` the value head's (metadata `drivesim.discount`, kept by a load and a save)."""
 
     def __init__(self, cfg: Config, spread: bool = False, policy_width: int | None = None,
                  reward_width: int | None = None, value_width: int | None = None,
-                 discount: float | None = None, texture_width: int | None = None):
+                 discount: float | None = None, texture_width: int | None = None,
+                 pace_width: int | None = None):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg)
@@ -299,7 +302,7 @@ class DriveSim(nn.Module):
         self.transition = Transition(cfg, spread, texture_width)
         if policy_width is not None:
             self.policy = Policy(cfg, policy_width)
-        for kind, width in (("reward", reward_width), ("value", value_width)):
+        for kind, width in (("reward", reward_width), ("value", value_width), ("pace", pace_width)):
             if width is not None:
                 setattr(self, kind, Head(cfg, width, kind))
         self.discount = None if discount is None else check_discount(discount)

@@ -113,10 +113,10 @@ def test_the_trainer_refuses_bad_units():
 
 def test_the_heads_round_trip_through_the_loader(tmp_path):
     torch.manual_seed(5)
-    full = DriveSim(CFG, policy_width=4, reward_width=5, value_width=3, discount=0.95).eval()
+    full = DriveSim(CFG, policy_width=4, reward_width=5, value_width=3, discount=0.95, pace_width=2).eval()
     assert isinstance(full.policy, Policy) and isinstance(full.policy, Head)
     assert [(k, h.prefix, h.width, h.outputs) for k, h in full.heads().items()] == [
-        ("policy", "policy.", 4, 3), ("reward", "reward.", 5, 2), ("value", "value.", 3, 1)]
+        ("policy", "policy.", 4, 3), ("reward", "reward.", 5, 2), ("value", "value.", 3, 1), ("pace", "pace.", 2, 1)]
     path = tmp_path / "heads.safetensors"
     save_drivesim(full, CFG, path)
     with safe_open(str(path), "pt") as f:
@@ -130,6 +130,7 @@ def test_the_heads_round_trip_through_the_loader(tmp_path):
         assert torch.equal(loaded.state_dict()[name], value), name
     z, h = torch.randn(2, CFG.z_dim), torch.randn(2, CFG.hidden_dim)
     assert torch.equal(loaded.value(z, h), full.value(z, h)) and loaded.reward(z, h).shape == (2, 2)
+    assert torch.equal(loaded.pace(z, h), full.pace(z, h))
     # A load and a save keep the discount (export.py's round trip); a file without one has none.
     again = tmp_path / "again.safetensors"
     save_drivesim(loaded, CFG, again)

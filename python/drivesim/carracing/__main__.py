@@ -112,7 +112,8 @@ def track(job) -> dict:
     r, rows = drive(_agent, seed, args.frames, pictures=bool(args.out))
     if "departed" in r and not args.no_policy_alone:
         if _policy is None:
-            _policy = make_agent("cloned", weights=args.weights, threads=args.threads)
+            # the policy the planner departs from, at its own speed
+            _policy = make_agent("cloned", weights=args.weights, threads=args.threads, pace=None)
         r["policy_alone"] = drive(_policy, seed, args.frames)[0]["reward"]
     if args.out:
         write_gif(os.path.join(args.out, f"track_{seed}.gif"), rows, 12.5)

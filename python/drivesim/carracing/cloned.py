@@ -13,17 +13,47 @@ from .._drivesim import Model, Simulator
 from .control import ModelAgent, speed_after, speed_control
 
 
+#: ``ClonedAgent``'s default ``pace``: the top speed at the pace head's speed (units/s). Chosen
+#: on tuning tracks 5020-5119 (72: no track under 880; 80: one spin), docs/carracing.md.
+PACE = 72.0
+#: How far below the top of its trained speed range the policy's speed counts as at the top.
+AT_THE_TOP = 1.0
+
+
+def racing_pace(sim: Simulator, z: np.ndarray, h: np.ndarray, target: float, top: float, cap: float) -> float:
+    """The speed to drive at for the policy's ``target`` at the state ``(z, h)``: the pace head's
+    (``sim.pace``) where ``target`` is at ``top``, the top of the policy's trained speed range
+    (within ``AT_THE_TOP``), the lower of the two below it, at most ``cap``."""
+    pace = float(sim.pace(z, h)[0])
+    return min(pace if target >= top - AT_THE_TOP else min(pace, target), cap)
+
+
+def top_speed(model: Model) -> float:
+    """The top of the policy's trained speed range (``drivesim.actions``; inf without it)."""
+    return model.actions[0]["max"] if model.actions else np.inf
+
+
 class ClonedAgent(ModelAgent):
     """Behavioural cloning: the model's policy (``Model.policy_width`` is not None) drives.
     ``act(frame, speed)`` encodes the view, asks the policy for the speed to drive at and the
     steering from the code and the transition's hidden state, then steps the transition with
     the code and the action taken (the speedometer's speed and that steering), as the policy's
-    training data was built. Deterministic; about 4 ms per decision on one thread."""
+    training data was built. Deterministic; about 4 ms per decision on one thread.
 
-    def __init__(self, model: Optional[Model] = None, threads: int = 1):
+    **Racing pace**: where the model has a pace head (``Model.pace_width``, the default's has
+    one) and ``pace`` is a speed, the policy still steers, and where its own speed is at the top
+    of its trained range (the road ahead is clear to it) the car drives at the pace head's
+    speed, at most ``pace`` (where the policy slows for a bend, at the lower of the two), with
+    less gas the more the wheels are turned (``speed_control``'s ``steer``). ``pace=None``
+    drives at the policy's speed alone, as before the head."""
+
+    def __init__(self, model: Optional[Model] = None, threads: int = 1, pace: Optional[float] = PACE):
         self.model = model if model is not None else Model.load()
         if self.model.policy_width is None:
             raise ValueError("the model has no policy (policy.* tensors): train one with `train policy`")
+        self.pace = None if pace is None else _checks.number("pace", pace, 0.0, above=True)
+        if self.model.pace_width is None:
+            self.pace = None
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 
@@ -35,10 +65,18 @@ class ClonedAgent(ModelAgent):
 
     def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
         target, steer = self.decide(z)
+        paced = self.pace is not None
+        if paced:
+            target = self.paced(z, target)
         self.last_state = (z, self.h, speed)
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
-        gas, brake = speed_control(speed, target)
+        gas, brake = speed_control(speed, target, steer if paced else None)
         return np.array([steer, gas, brake], np.float32)
+
+    def paced(self, z: np.ndarray, target: float) -> float:
+        """The speed to drive at with the pace head, for the policy's ``target`` at the code
+        ``z`` and the drive's hidden state (the class says how)."""
+        return racing_pace(self.sim, z, self.h, target, top_speed(self.model), self.pace)
 
     def decide(self, z: np.ndarray) -> tuple:
         """The speed to drive at and the steering (in [-1, 1]) for the code ``z`` of the frame

@@ -20,12 +20,21 @@ def check_inputs(frame: np.ndarray, speed: float, shape: tuple = FRAME_SHAPE) ->
     return _checks.frame(frame, shape), _checks.number("speed", speed, 0.0, SPEED_MAX)
 
 
-def speed_control(speed: float, target: float) -> tuple[float, float]:
+#: The share of the gas ``speed_control`` takes off at full lock, given the steering (the
+#: expert's traction rule, ``expert.TURN_GAS``): full gas with the wheels turned spins the car.
+TURN_GAS = 0.5
+
+
+def speed_control(speed: float, target: float, steer: Optional[float] = None) -> tuple[float, float]:
     """``(gas, brake)`` that bring ``speed`` to ``target`` (Box2D units/s; finite numbers,
-    ValueError otherwise)."""
+    ValueError otherwise). With ``steer`` (the steering applied, in [-1, 1]), less gas the more
+    the wheels are turned: ``TURN_GAS`` of it off at full lock (racing pace needs it)."""
     speed, target = _checks.number("speed", speed), _checks.number("target", target)
     gas = float(np.clip(0.06 * (target - speed), 0.0, 0.6))
     brake = float(np.clip(0.06 * (speed - target - 4.0), 0.0, 0.8))
+    if steer is not None:
+        steer = _checks.number("steer", steer, -1.0, 1.0)
+        gas *= max(1.0 - TURN_GAS * abs(steer), 0.1)
     return gas, brake
 
 

@@ -80,7 +80,7 @@ def drive_labelled(job):
     import gymnasium
     from .. import carracing
 
-    agent = carracing.make_agent("cloned", weights=str(weights))
+    agent = carracing.make_agent("cloned", weights=str(weights), pace=None)  # the policy being learnt drives
     env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
     env.reset(seed=seed)
     car_env = env.unwrapped

@@ -187,6 +187,7 @@ class DreamtAgent(ClonedAgent):
         if self.controller.centre.shape != (self.model.z_dim + self.model.hidden_dim,):
             raise ValueError(f"the controller reads {self.controller.centre.shape[0]} numbers; the model's [z, h] "
                              f"has {self.model.z_dim + self.model.hidden_dim}")
+        self.pace = None  # the controller gives the speed
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 

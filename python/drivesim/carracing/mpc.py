@@ -33,6 +33,7 @@ import numpy as np
 
 from .. import _checks
 from .._drivesim import Model, Simulator
+from .cloned import PACE, racing_pace, top_speed
 from .control import SPEED_MAX, ModelAgent, speed_after, speed_control, speeds_reached
 
 #: A decision departs from the policy when its steering differs by more than this...
@@ -62,7 +63,9 @@ class MPCAgent(ModelAgent):
     decision to the next); ``max_speed`` the fastest target speed planned, above the model's
     trained minimum and at most ``SPEED_MAX`` (None: the model's trained range, where the
     policy's own targets are clipped too); ``guard`` an off-road chance from 0 to 1 (see the
-    module; 0.05, set before it was measured) or None (always weigh the candidates).
+    module; 0.05, set before it was measured) or None (always weigh the candidates); ``pace``
+    as ``ClonedAgent``'s, where the guard keeps the policy's action (that decision is then the
+    cloned driver's, racing pace included; None: the policy's speed).
     """
 
     def __init__(
@@ -81,6 +84,7 @@ class MPCAgent(ModelAgent):
         seed: int = 0,
         max_speed: Optional[float] = None,
         guard: Optional[float] = 0.05,
+        pace: Optional[float] = PACE,
     ):
         count, number = _checks.integer, _checks.number
         self.candidates, self.horizon = count("candidates", candidates, 2, 1024), count("horizon", horizon, 1, 100)
@@ -92,7 +96,10 @@ class MPCAgent(ModelAgent):
         self.smooth, self.w_off = number("smooth", smooth, 0.0, 0.99), number("w_off", w_off, 0.0, 1e6)
         self.spread = number("spread", spread, 0.0, 1e6, above=True)
         self.guard = None if guard is None else number("guard", guard, 0.0, 1.0)
+        self.pace = None if pace is None else number("pace", pace, 0.0, above=True)
         self.model = model if model is not None else Model.load()
+        if self.model.pace_width is None:
+            self.pace = None
         missing = [n for n in ("policy", "reward", "value") if getattr(self.model, f"{n}_width") is None]
         if missing or self.model.discount is None:
             raise ValueError(f"mpc needs a model with its policy, reward and value heads and a discount: "
@@ -119,6 +126,7 @@ class MPCAgent(ModelAgent):
         """Forgets the drive: call at every new episode."""
         self.h = np.zeros(self.model.hidden_dim, np.float32)
         self.decisions = self.planned = self.departures = self.guarded = 0
+        self.kept = False  # whether the last plan kept the policy's action (the guard)
         self.changes = np.zeros(2)  # summed |plan - policy|: target speed, steering
         self.rng = np.random.default_rng(self.seed)
         self.last_state: Optional[tuple] = None  # (z, h) the last plan started from
@@ -166,6 +174,7 @@ class MPCAgent(ModelAgent):
         if self.guard is not None and rewards[:, : self.futures, 1].mean() < self.guard:
             # The dream keeps the policy's own plan on the road: no reason to depart from it.
             self.guarded += 1
+            self.kept = True
             return float(np.clip(steers[0], -1.0, 1.0)), float(np.clip(targets[0], *self.speed_range)), \
                 actions[:, 0], np.array([targets[0], steers[0]])
         gain = rewards[..., 0] - self.w_off * rewards[..., 1]  # (H, K * F)
@@ -182,14 +191,18 @@ class MPCAgent(ModelAgent):
         return first_steer, first_target, plan, np.array([targets[0], steers[0]])
 
     def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
+        self.kept = False
         steer, target, plan, policy = self.plan(z, self.h, speed)
         self.planned += 1
         change = np.abs([target - policy[0], steer - policy[1]])
         self.changes += change
         self.departures += bool(change[1] > DEPART_STEER or change[0] > DEPART_SPEED)
+        paced = self.kept and self.pace is not None  # the policy's action kept: as `cloned` drives it
+        if paced:
+            target = racing_pace(self.sim, z, self.h, target, top_speed(self.model), self.pace)
         self.last_state, self.last_plan = (z, self.h), plan
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
-        gas, brake = speed_control(speed, target)
+        gas, brake = speed_control(speed, target, steer if paced else None)
         return np.array([steer, gas, brake], np.float32)
 
     def imagine(self) -> Optional[np.ndarray]:

@@ -112,7 +112,7 @@ class ChangedAgent(ClonedAgent):
 
     def __init__(self, driver: Driver, seed: int, model=None, threads: int = 1):
         self.driver, self.seed = driver, seed
-        super().__init__(model, threads)
+        super().__init__(model, threads, pace=None)  # the family changes the policy's own drive
 
     def reset(self) -> None:
         super().reset()

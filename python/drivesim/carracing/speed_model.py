@@ -34,7 +34,7 @@ def drive(weights, seeds: list, frames: int = 1000) -> np.ndarray:
     from .agents import ClonedAgent
     from .view import decision_steps, observe, speed
 
-    agent, rows = ClonedAgent(Model.load(weights)), []
+    agent, rows = ClonedAgent(Model.load(weights), pace=None), []
     for seed in seeds:
         env = gymnasium.make("CarRacing-v3", max_episode_steps=frames)
         env.reset(seed=seed)
