@@ -40,7 +40,7 @@ def controller(model, base="fresh", features=4, seed=0):
 
 def test_a_zero_controller_on_the_clone_drives_as_the_clone(model):
     frames = np.random.default_rng(1).integers(0, 256, (16, 80, 160, 3), dtype=np.uint8)
-    clone = make_agent("cloned")
+    clone = make_agent("cloned", pace=None)  # the controller gives the speed: no racing pace
     dreamt = make_agent("dreamt", controller=controller(model, "cloned"))
     for i, frame in enumerate(frames):
         assert np.array_equal(clone.act(frame, 20.0 + i), dreamt.act(frame, 20.0 + i)), i

@@ -44,7 +44,7 @@ def test_the_unchanged_driver_drives_as_the_clone():
     from drivesim.carracing.agents import ClonedAgent
 
     model = drivesim.Model.load()
-    clone, unchanged, biased = ClonedAgent(model), rank.ChangedAgent(rank.FAMILY[0], 0, model), \
+    clone, unchanged, biased = ClonedAgent(model, pace=None), rank.ChangedAgent(rank.FAMILY[0], 0, model), \
         rank.ChangedAgent(rank.Driver("b", bias=0.3), 0, model)
     rng = np.random.default_rng(0)
     steer_gap = []
