@@ -64,8 +64,9 @@ class MPCAgent(ModelAgent):
     trained minimum and at most ``SPEED_MAX`` (None: the model's trained range, where the
     policy's own targets are clipped too); ``guard`` an off-road chance from 0 to 1 (see the
     module; 0.05, set before it was measured) or None (always weigh the candidates); ``pace``
-    as ``ClonedAgent``'s, where the guard keeps the policy's action (that decision is then the
-    cloned driver's, racing pace included; None: the policy's speed).
+    as ``ClonedAgent``'s: the target applied, the policy's or the plan's, goes through the
+    cloned driver's pace rule and the gas through its traction rule (so that where the guard keeps
+    the policy's action the decision is the cloned driver's; None: the policy's speed).
     """
 
     def __init__(
@@ -126,7 +127,6 @@ class MPCAgent(ModelAgent):
         """Forgets the drive: call at every new episode."""
         self.h = np.zeros(self.model.hidden_dim, np.float32)
         self.decisions = self.planned = self.departures = self.guarded = 0
-        self.kept = False  # whether the last plan kept the policy's action (the guard)
         self.changes = np.zeros(2)  # summed |plan - policy|: target speed, steering
         self.rng = np.random.default_rng(self.seed)
         self.last_state: Optional[tuple] = None  # (z, h) the last plan started from
@@ -174,7 +174,6 @@ class MPCAgent(ModelAgent):
         if self.guard is not None and rewards[:, : self.futures, 1].mean() < self.guard:
             # The dream keeps the policy's own plan on the road: no reason to depart from it.
             self.guarded += 1
-            self.kept = True
             return float(np.clip(steers[0], -1.0, 1.0)), float(np.clip(targets[0], *self.speed_range)), \
                 actions[:, 0], np.array([targets[0], steers[0]])
         gain = rewards[..., 0] - self.w_off * rewards[..., 1]  # (H, K * F)
@@ -191,13 +190,14 @@ class MPCAgent(ModelAgent):
         return first_steer, first_target, plan, np.array([targets[0], steers[0]])
 
     def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
-        self.kept = False
         steer, target, plan, policy = self.plan(z, self.h, speed)
         self.planned += 1
         change = np.abs([target - policy[0], steer - policy[1]])
         self.changes += change
         self.departures += bool(change[1] > DEPART_STEER or change[0] > DEPART_SPEED)
-        paced = self.kept and self.pace is not None  # the policy's action kept: as `cloned` drives it
+        # The target, the policy's or the plan's, through the cloned driver's pace rule: where the
+        # guard keeps the policy's action, the decision is the cloned driver's.
+        paced = self.pace is not None
         if paced:
             target = racing_pace(self.sim, z, self.h, target, top_speed(self.model), self.pace)
         self.last_state, self.last_plan = (z, self.h), plan
