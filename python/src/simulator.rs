@@ -256,10 +256,8 @@ impl PySimulator {
         self.head(py, HeadKind::Value, z, h)
     }
 
-    /// The pace head (`Model.pace_width`; ValueError without one): the speed a faster driver
-    /// would drive at from each state `z` `(N, z_dim)`, `h` `(N, hidden_dim)` (the states
-    /// `act` reads), as `(N, 1)` float32 in the model's speed units, at least 0; one state
-    /// without the leading N gives `(1,)`.
+    /// The pace head (`Model.pace_width`; ValueError without one): the racing speed from the
+    /// states `act` reads, `(N, 1)` float32 (speed units, at least 0), or `(1,)` for one state.
     fn pace<'py>(
         &self,
         py: Python<'py>,
