@@ -16,7 +16,7 @@
 //!   expert at racing pace, learnt by `train policy --pace` from DAgger's labels), read where
 //!   the policy is at the top of its trained speed range ([`crate::Simulator::pace`]).
 //!
-//! The planner reads the last two in its rollouts ([`crate::Simulator::rollout_candidates_scored`]).
+//! The planner reads the reward and value heads in its rollouts ([`crate::Simulator::rollout_candidates_scored`]).
 
 use crate::layers::DenseLayer;
 use crate::pool::Exec;
