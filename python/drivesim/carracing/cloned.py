@@ -33,6 +33,23 @@ def top_speed(model: Model) -> float:
     return model.actions[0]["max"] if model.actions else np.inf
 
 
+def pace_option(model: Model, pace: Optional[float]) -> Optional[float]:
+    """An agent's ``pace`` option checked (a speed above 0, or None), and None where ``model``
+    has no pace head: such a model drives at its policy's speed."""
+    pace = None if pace is None else _checks.number("pace", pace, 0.0, above=True)
+    return pace if model.pace_width is not None else None
+
+
+def paced_control(sim: Simulator, z: np.ndarray, h: np.ndarray, speed: float, target: float, steer: float,
+                  top: float, pace: Optional[float]) -> tuple[float, float]:
+    """``(gas, brake)`` for the ``target`` an agent chose at the state ``(z, h)``: with ``pace``,
+    through ``racing_pace`` and ``speed_control``'s traction rule for ``steer``; without, the
+    plain ``speed_control``."""
+    if pace is None:
+        return speed_control(speed, target)
+    return speed_control(speed, racing_pace(sim, z, h, target, top, pace), steer)
+
+
 class ClonedAgent(ModelAgent):
     """Behavioural cloning: the model's policy (``Model.policy_width`` is not None) drives.
     ``act(frame, speed)`` encodes the view, asks the policy for the speed to drive at and the
@@ -51,9 +68,7 @@ class ClonedAgent(ModelAgent):
         self.model = model if model is not None else Model.load()
         if self.model.policy_width is None:
             raise ValueError("the model has no policy (policy.* tensors): train one with `train policy`")
-        self.pace = None if pace is None else _checks.number("pace", pace, 0.0, above=True)
-        if self.model.pace_width is None:
-            self.pace = None
+        self.pace, self.top = pace_option(self.model, pace), top_speed(self.model)
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 
@@ -65,18 +80,15 @@ class ClonedAgent(ModelAgent):
 
     def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
         target, steer = self.decide(z)
-        paced = self.pace is not None
-        if paced:
-            target = self.paced(z, target)
+        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace)
         self.last_state = (z, self.h, speed)
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
-        gas, brake = speed_control(speed, target, steer if paced else None)
         return np.array([steer, gas, brake], np.float32)
 
     def paced(self, z: np.ndarray, target: float) -> float:
         """The speed to drive at with the pace head, for the policy's ``target`` at the code
         ``z`` and the drive's hidden state (the class says how)."""
-        return racing_pace(self.sim, z, self.h, target, top_speed(self.model), self.pace)
+        return racing_pace(self.sim, z, self.h, target, self.top, self.pace)
 
     def decide(self, z: np.ndarray) -> tuple:
         """The speed to drive at and the steering (in [-1, 1]) for the code ``z`` of the frame

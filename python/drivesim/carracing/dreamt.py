@@ -31,7 +31,7 @@ import numpy as np
 from .. import _checks
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
-from .cloned import ClonedAgent
+from .cloned import ClonedAgent, top_speed
 from .control import speed_after
 
 BASES = ("fresh", "cloned")
@@ -187,7 +187,7 @@ class DreamtAgent(ClonedAgent):
         if self.controller.centre.shape != (self.model.z_dim + self.model.hidden_dim,):
             raise ValueError(f"the controller reads {self.controller.centre.shape[0]} numbers; the model's [z, h] "
                              f"has {self.model.z_dim + self.model.hidden_dim}")
-        self.pace = None  # the controller gives the speed
+        self.pace, self.top = None, top_speed(self.model)  # the controller gives the speed
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 

@@ -33,8 +33,8 @@ import numpy as np
 
 from .. import _checks
 from .._drivesim import Model, Simulator
-from .cloned import PACE, racing_pace, top_speed
-from .control import SPEED_MAX, ModelAgent, speed_after, speed_control, speeds_reached
+from .cloned import PACE, pace_option, paced_control, top_speed
+from .control import SPEED_MAX, ModelAgent, speed_after, speeds_reached
 
 #: A decision departs from the policy when its steering differs by more than this...
 DEPART_STEER = 0.05
@@ -97,10 +97,8 @@ class MPCAgent(ModelAgent):
         self.smooth, self.w_off = number("smooth", smooth, 0.0, 0.99), number("w_off", w_off, 0.0, 1e6)
         self.spread = number("spread", spread, 0.0, 1e6, above=True)
         self.guard = None if guard is None else number("guard", guard, 0.0, 1.0)
-        self.pace = None if pace is None else number("pace", pace, 0.0, above=True)
         self.model = model if model is not None else Model.load()
-        if self.model.pace_width is None:
-            self.pace = None
+        self.pace, self.top = pace_option(self.model, pace), top_speed(self.model)
         missing = [n for n in ("policy", "reward", "value") if getattr(self.model, f"{n}_width") is None]
         if missing or self.model.discount is None:
             raise ValueError(f"mpc needs a model with its policy, reward and value heads and a discount: "
@@ -197,12 +195,9 @@ class MPCAgent(ModelAgent):
         self.departures += bool(change[1] > DEPART_STEER or change[0] > DEPART_SPEED)
         # The target, the policy's or the plan's, through the cloned driver's pace rule: where the
         # guard keeps the policy's action, the decision is the cloned driver's.
-        paced = self.pace is not None
-        if paced:
-            target = racing_pace(self.sim, z, self.h, target, top_speed(self.model), self.pace)
+        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace)
         self.last_state, self.last_plan = (z, self.h), plan
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
-        gas, brake = speed_control(speed, target, steer if paced else None)
         return np.array([steer, gas, brake], np.float32)
 
     def imagine(self) -> Optional[np.ndarray]:
