@@ -21,6 +21,7 @@ COMMANDS = {
     "dagger": ("drivesim.carracing.dagger", "DAgger rounds: the cloned driver drives, the expert labels, the policy is cloned again"),
     "failures": ("drivesim.carracing.failures", "failure data: the cloned driver changed (gain, bias, speed, noise, delay), recorded"),
     "speed-model": ("drivesim.carracing.speed_model", "how the car's speed answers speed_control (the planners' speed model)"),
+    "grip": ("drivesim.carracing.grip", "the grip envelope: the fastest a recorded driver goes at each amount of steering"),
     "probe-real": ("drivesim.carracing.probe_real", "the steering probe in the real CarRacing (what a perfect dream would show)"),
     "join": ("drivesim.episodes", "join episodes files into one (the last file's episodes last: a trainer's --holdout)"),
     "relabel": ("drivesim.relabel", "label episodes with a teacher's policy (a policy carried to another world model)"),

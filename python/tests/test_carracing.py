@@ -109,13 +109,15 @@ def test_cloned_agent_is_the_policy_stepped_along_the_drive(model, clip):
 
 def test_cloned_agent_at_racing_pace(model, clip):
     """The default drives at the pace head's speed where the policy's is at the top of its range
-    (at most ``pace``), at the lower of the two below it, with the steering's gas rule."""
-    from drivesim.carracing.cloned import AT_THE_TOP, PACE
+    (at most ``pace``), at the lower of the two below it, under the grip envelope where that is
+    faster than the policy, with the steering's gas rule."""
+    from drivesim.carracing.cloned import AT_THE_TOP, GRIP, PACE
+    from drivesim.carracing.control import grip_speed
 
     frames, actions = clip
     assert model.pace_width == 192
     agent = carracing.make_agent("cloned")
-    assert agent.pace == PACE
+    assert agent.pace == PACE and agent.grip == GRIP == 1.0
     agent.warmup = 0
     sim = drivesim.Simulator(model)
     h = np.zeros(model.hidden_dim, np.float32)
@@ -127,17 +129,24 @@ def test_cloned_agent_at_racing_pace(model, clip):
         target, steer = sim.act(z, h)
         pace = float(sim.pace(z, h)[0])
         paced = min(pace if target >= top - AT_THE_TOP else min(pace, float(target)), PACE)
+        if paced > target:
+            paced = min(paced, grip_speed(float(steer)))
         _, h = sim.transition(z, h, np.array([speed, steer], np.float32))
         np.testing.assert_array_equal(action[0], np.float32(steer))
         np.testing.assert_array_equal(action[1:], np.float32(carracing.speed_control(speed, paced, float(steer))))
     # Each branch of the rule on the last state: at the top (the boundary included) the pace
     # head's speed, below it the lower of the two, never above the cap.
-    free = carracing.make_agent("cloned", pace=1e4)
+    free = carracing.make_agent("cloned", pace=1e4, grip=None)
     free.h, pace = h, float(sim.pace(z, h)[0])
     assert free.paced(z, top) == free.paced(z, top - AT_THE_TOP) == pace > top
     assert free.paced(z, top - 2 * AT_THE_TOP) == top - 2 * AT_THE_TOP and free.paced(z, 10.0) == 10.0
     agent.h = h
     assert agent.paced(z, top) == min(pace, PACE)
+    # The grip envelope: steered hard, no faster than the expert ever drove so steered (the
+    # policy's own speed kept where that is lower); steered straight, the pace head's.
+    assert pace > grip_speed(0.5) and agent.paced(z, top, steer=0.5) == grip_speed(0.5) == agent.paced(z, top, -0.5)
+    assert agent.paced(z, 40.0, steer=0.5) == min(pace, 40.0)
+    assert carracing.make_agent("cloned", grip=0.5, pace=1e4).paced(z, 10.0, steer=1.0) == 10.0
     # A slower cap changes the drive; pace=None is the policy alone; a model without the head
     # drives at its policy's speed whatever the option.
     slow = carracing.make_agent("cloned", pace=30.0)
@@ -146,6 +155,72 @@ def test_cloned_agent_at_racing_pace(model, clip):
     for bad, error in ((0.0, ValueError), (-5.0, ValueError), (float("nan"), ValueError), ("fast", TypeError)):
         with pytest.raises(error, match="pace"):
             carracing.make_agent("cloned", pace=bad)
+    for name in ("cloned", "mpc"):
+        for bad, error in ((0.4, ValueError), (2.5, ValueError), (float("inf"), ValueError), ("firm", TypeError)):
+            with pytest.raises(error, match="grip"):
+                carracing.make_agent(name, grip=bad)
+
+
+def test_grip_envelope():
+    """The expert's grip envelope: slower the harder the wheels are turned, the same either way,
+    the bins' speeds at their centres and the ends held; the steering checked."""
+    from drivesim.carracing.control import GRIP_SPEED, GRIP_STEER, grip_speed
+
+    assert list(GRIP_SPEED) == sorted(GRIP_SPEED, reverse=True) and list(GRIP_STEER) == sorted(GRIP_STEER)
+    assert [grip_speed(s) for s in GRIP_STEER] == list(GRIP_SPEED)
+    assert grip_speed(0.0) == GRIP_SPEED[0] and grip_speed(-1.0) == grip_speed(1.0) == GRIP_SPEED[-1]
+    assert grip_speed(0.3) == grip_speed(-0.3) and GRIP_SPEED[4] < grip_speed(0.3) < GRIP_SPEED[3]
+    for bad, error in ((1.5, ValueError), (float("nan"), ValueError), (None, TypeError)):
+        with pytest.raises(error, match="steer"):
+            grip_speed(bad)
+
+
+def test_wheelspin_traction_control():
+    """Gas that did not make a slow car faster is cut, then held low for ``HOLD`` decisions;
+    gas that did, a fast car, or gas too light to spin the wheels are left alone."""
+    from drivesim.carracing.control import Wheelspin
+
+    spin = Wheelspin()
+    assert [spin.gas(s, 0.6) for s in (10.0, 14.0, 18.0)] == [0.6, 0.6, 0.6] and spin.spins == 0
+    assert spin.gas(18.2, 0.6) == 0.0 and spin.spins == 1  # no faster under full gas: spinning
+    held = [spin.gas(18.0 + k, 0.6) for k in range(Wheelspin.HOLD)]
+    assert held == [Wheelspin.HOLD_GAS] * Wheelspin.HOLD and spin.gas(50.0, 0.6) == 0.6
+    assert spin.gas(45.0, 0.6) == 0.6 and spin.gas(45.0, 0.6) == 0.6  # a fast car: no wheelspin
+    spin.reset()
+    assert spin.gas(10.0, 0.1) == 0.1 and spin.gas(10.0, 0.1) == 0.1 and spin.spins == 0
+    # Held gas that still gains nothing is a wheelspin again: cut, and the hold starts over.
+    spin.reset()
+    assert [spin.gas(20.0, 0.6), spin.gas(20.0, 0.6), spin.gas(20.1, 0.6), spin.gas(20.2, 0.6)] == [0.6, 0.0, 0.2, 0.0]
+    for name in ("cloned", "mpc"):
+        assert carracing.make_agent(name).traction is not None
+        assert carracing.make_agent(name, traction=False).traction is None
+        assert carracing.make_agent(name, pace=None).traction is None  # the policy's own speed: as before
+        for bad, error in ((2, ValueError), (0.5, ValueError), ("on", TypeError), (None, TypeError)):
+            with pytest.raises(error, match="traction"):
+                carracing.make_agent(name, traction=bad)
+
+
+def test_grip_envelope_fit(tmp_path, capsys):
+    """``python -m drivesim grip``: a high percentile of the speed per bin of |steer|, falling as
+    the steering grows, sparse bins left out; what it prints is what control.py holds."""
+    from drivesim.carracing import grip
+
+    rng = np.random.default_rng(0)
+    steer = rng.uniform(-0.2, 0.2, 4000)  # two bins' worth and more: 0-0.05, 0.05-0.1, 0.1-0.2
+    speed = 80.0 - 100.0 * np.abs(steer) * rng.uniform(0.0, 1.0, 4000) ** 0.01
+    centres, speeds, counts = grip.envelope(np.stack([speed, steer], 1), quantile=100.0)
+    assert centres == (0.025, 0.075, 0.15) and sum(counts) == 4000
+    assert speeds[0] == pytest.approx(80.0, abs=0.5) and speeds[2] == pytest.approx(70.0, abs=0.5)
+    # A faster bin past a slower one is held to the slower's speed; too few decisions: no bin.
+    rows = np.array([[50.0, 0.01]] * 30 + [[60.0, 0.07]] * 30 + [[99.0, 0.9]] * 5)
+    assert grip.envelope(rows) == ((0.025, 0.075), (50.0, 50.0), (30, 30))
+    for bad in (np.zeros((5, 3)), np.array([[np.nan, 0.0]] * 30), rows[-5:]):
+        with pytest.raises(ValueError):
+            grip.envelope(bad)
+    with pytest.raises(ValueError, match="quantile"):
+        grip.envelope(rows, quantile=0.0)
+    with pytest.raises(SystemExit, match="grip: .*no such file"):
+        grip.main(["--episodes", str(tmp_path / "missing.safetensors.gz")])
 
 
 def test_cloned_agent_needs_a_policy():

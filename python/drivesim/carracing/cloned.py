@@ -10,7 +10,7 @@ import numpy as np
 
 from .. import _checks
 from .._drivesim import Model, Simulator
-from .control import ModelAgent, speed_after, speed_control
+from .control import ModelAgent, Wheelspin, grip_speed, speed_after, speed_control
 
 
 #: ``ClonedAgent``'s default ``pace``: the top speed at the pace head's speed (units/s). Chosen
@@ -18,14 +18,23 @@ from .control import ModelAgent, speed_after, speed_control
 PACE = 72.0
 #: How far below the top of its trained speed range the policy's speed counts as at the top.
 AT_THE_TOP = 1.0
+#: ``ClonedAgent``'s default ``grip``: the share of the expert's grip envelope
+#: (``control.grip_speed``) that racing pace stays under where it drives faster than the policy.
+GRIP = 1.0
 
 
-def racing_pace(sim: Simulator, z: np.ndarray, h: np.ndarray, target: float, top: float, cap: float) -> float:
-    """The speed to drive at for the policy's ``target`` at the state ``(z, h)``: the pace head's
-    (``sim.pace``) where ``target`` is at ``top``, the top of the policy's trained speed range
-    (within ``AT_THE_TOP``), the lower of the two below it, at most ``cap``."""
+def racing_pace(sim: Simulator, z: np.ndarray, h: np.ndarray, target: float, top: float, cap: float,
+                steer: float = 0.0, grip: Optional[float] = None) -> float:
+    """The speed to drive at for the policy's ``target`` and ``steer`` at the state ``(z, h)``:
+    the pace head's (``sim.pace``) where ``target`` is at ``top``, the top of the policy's trained
+    speed range (within ``AT_THE_TOP``), the lower of the two below it, at most ``cap``; and where
+    that is above ``target``, at most ``grip`` times the expert's grip envelope at ``steer``
+    (None: no envelope)."""
     pace = float(sim.pace(z, h)[0])
-    return min(pace if target >= top - AT_THE_TOP else min(pace, target), cap)
+    paced = min(pace if target >= top - AT_THE_TOP else min(pace, target), cap)
+    if grip is not None and paced > target:
+        paced = min(paced, grip * grip_speed(steer))
+    return paced
 
 
 def top_speed(model: Model) -> float:
@@ -40,14 +49,28 @@ def pace_option(model: Model, pace: Optional[float]) -> Optional[float]:
     return pace if model.pace_width is not None else None
 
 
+def grip_option(grip: Optional[float]) -> Optional[float]:
+    """An agent's ``grip`` option checked: a share of the grip envelope from 0.5 to 2, or None."""
+    return None if grip is None else _checks.number("grip", grip, 0.5, 2.0)
+
+
+def traction_option(traction, pace: Optional[float]) -> Optional[Wheelspin]:
+    """An agent's ``traction`` option checked (True or False, 1 or 0): its traction control
+    (``control.Wheelspin``) at racing pace, None without it or without ``pace``."""
+    if not isinstance(traction, (bool, int, np.integer)) or traction not in (0, 1):
+        raise (ValueError if isinstance(traction, (int, float, np.number)) else TypeError)(
+            f"traction: expected True or False, got {traction!r}")
+    return Wheelspin() if traction and pace is not None else None
+
+
 def paced_control(sim: Simulator, z: np.ndarray, h: np.ndarray, speed: float, target: float, steer: float,
-                  top: float, pace: Optional[float]) -> tuple[float, float]:
+                  top: float, pace: Optional[float], grip: Optional[float] = None) -> tuple[float, float]:
     """``(gas, brake)`` for the ``target`` an agent chose at the state ``(z, h)``: with ``pace``,
-    through ``racing_pace`` and ``speed_control``'s traction rule for ``steer``; without, the
-    plain ``speed_control``."""
+    through ``racing_pace`` (with ``grip``) and ``speed_control``'s traction rule for ``steer``;
+    without, the plain ``speed_control``."""
     if pace is None:
         return speed_control(speed, target)
-    return speed_control(speed, racing_pace(sim, z, h, target, top, pace), steer)
+    return speed_control(speed, racing_pace(sim, z, h, target, top, pace, steer, grip), steer)
 
 
 class ClonedAgent(ModelAgent):
@@ -61,14 +84,20 @@ class ClonedAgent(ModelAgent):
     one) and ``pace`` is a speed, the policy still steers, and where its own speed is at the top
     of its trained range (the road ahead is clear to it) the car drives at the pace head's
     speed, at most ``pace`` (where the policy slows for a bend, at the lower of the two), with
-    less gas the more the wheels are turned (``speed_control``'s ``steer``). ``pace=None``
-    drives at the policy's speed alone, as before the head."""
+    less gas the more the wheels are turned (``speed_control``'s ``steer``), and never faster
+    than the policy where that is past ``grip`` times the expert's grip envelope for the steering
+    (``control.grip_speed``: a car steered harder than the expert ever does at that speed slides
+    off and spins). ``pace=None`` drives at the policy's speed alone, as before the head;
+    ``grip=None`` paces without the envelope; ``traction`` (at racing pace) cuts the gas where the
+    wheels spin (``control.Wheelspin``)."""
 
-    def __init__(self, model: Optional[Model] = None, threads: int = 1, pace: Optional[float] = PACE):
+    def __init__(self, model: Optional[Model] = None, threads: int = 1, pace: Optional[float] = PACE,
+                 grip: Optional[float] = GRIP, traction: bool = True):
         self.model = model if model is not None else Model.load()
         if self.model.policy_width is None:
             raise ValueError("the model has no policy (policy.* tensors): train one with `train policy`")
         self.pace, self.top = pace_option(self.model, pace), top_speed(self.model)
+        self.grip, self.traction = grip_option(grip), traction_option(traction, self.pace)
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 
@@ -77,18 +106,22 @@ class ClonedAgent(ModelAgent):
         self.h = np.zeros(self.model.hidden_dim, np.float32)
         self.decisions = 0
         self.last_state: Optional[tuple] = None  # (z, h, speed) of the last decision
+        if self.traction is not None:
+            self.traction.reset()
 
     def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
         target, steer = self.decide(z)
-        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace)
+        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace, self.grip)
+        if self.traction is not None:
+            gas = self.traction.gas(speed, gas)
         self.last_state = (z, self.h, speed)
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
         return np.array([steer, gas, brake], np.float32)
 
-    def paced(self, z: np.ndarray, target: float) -> float:
-        """The speed to drive at with the pace head, for the policy's ``target`` at the code
-        ``z`` and the drive's hidden state (the class says how)."""
-        return racing_pace(self.sim, z, self.h, target, self.top, self.pace)
+    def paced(self, z: np.ndarray, target: float, steer: float = 0.0) -> float:
+        """The speed to drive at with the pace head, for the policy's ``target`` and ``steer`` at
+        the code ``z`` and the drive's hidden state (the class says how)."""
+        return racing_pace(self.sim, z, self.h, target, self.top, self.pace, steer, self.grip)
 
     def decide(self, z: np.ndarray) -> tuple:
         """The speed to drive at and the steering (in [-1, 1]) for the code ``z`` of the frame

@@ -38,6 +38,54 @@ def speed_control(speed: float, target: float, steer: Optional[float] = None) ->
     return gas, brake
 
 
+#: The expert's grip envelope: the fastest it drives (the 99th percentile of its recorded speed,
+#: units/s) at each amount of steering (``|steer|``, the centres of the bins), from its 12,800
+#: racing-pace decisions (``python -m drivesim grip --episodes data/expert.safetensors.gz``).
+#: Past it the car slides off and spins: racing pace keeps under it (``cloned.racing_pace``).
+GRIP_STEER = (0.025, 0.075, 0.15, 0.25, 0.375, 0.525, 0.7, 0.9)
+GRIP_SPEED = (95.3, 83.8, 68.8, 57.5, 54.3, 54.2, 49.8, 45.2)
+
+
+def grip_speed(steer: float) -> float:
+    """The grip envelope's speed (``GRIP_SPEED``) at the steering ``steer`` (in [-1, 1]; its
+    size counts), interpolated between the bins, the ends held."""
+    steer = _checks.number("steer", steer, -1.0, 1.0)
+    return float(np.interp(abs(steer), GRIP_STEER, GRIP_SPEED))
+
+
+class Wheelspin:
+    """Traction control from the speedometer: gas that did not make a slow car faster means its
+    rear wheels spin (after a slide, the car turns circles on the spot, on the grass or the road,
+    for as long as the gas stays on). Then the gas is cut for a decision and held at most
+    ``HOLD_GAS`` for ``HOLD`` decisions, so that the wheels grip and the car stops turning. One
+    per drive: ``reset()`` at every episode, ``gas(speed, gas)`` at every decision."""
+
+    #: Gas at least this, with the speed under ``BELOW`` rising less than ``RISE`` units/s in a
+    #: decision, is a wheelspin (the car gains 2-6 units/s a decision under such gas when it grips).
+    GAS, RISE, BELOW = 0.2, 0.5, 40.0
+    #: Decisions the gas is held low after a wheelspin, and how low.
+    HOLD, HOLD_GAS = 25, 0.2
+
+    def __init__(self):
+        self.reset()
+
+    def reset(self) -> None:
+        self.last: Optional[tuple] = None  # (speed, gas) of the last decision
+        self.held = 0
+        self.spins = 0
+
+    def gas(self, speed: float, gas: float) -> float:
+        """The gas to apply at ``speed`` for the ``gas`` asked."""
+        if self.last is not None:
+            last_speed, last_gas = self.last
+            if last_gas >= self.GAS and speed - last_speed < self.RISE and speed < self.BELOW:
+                gas, self.held, self.spins = 0.0, self.HOLD, self.spins + 1
+            elif self.held > 0:
+                gas, self.held = min(gas, self.HOLD_GAS), self.held - 1
+        self.last = (speed, gas)
+        return gas
+
+
 #: How the car's speed answers ``speed_control`` in one decision (4 frames), fitted on the clones'
 #: drives of tracks 6000-6001 and 6005 (``python -m drivesim speed-model``): it gains at most
 #: ``ACCELERATION`` units/s, a ``GAIN`` of the gap below that; it keeps its speed while the

@@ -187,7 +187,8 @@ class DreamtAgent(ClonedAgent):
         if self.controller.centre.shape != (self.model.z_dim + self.model.hidden_dim,):
             raise ValueError(f"the controller reads {self.controller.centre.shape[0]} numbers; the model's [z, h] "
                              f"has {self.model.z_dim + self.model.hidden_dim}")
-        self.pace, self.top = None, top_speed(self.model)  # the controller gives the speed
+        # The controller gives the speed: no racing pace, grip envelope or traction control.
+        self.pace, self.top, self.grip, self.traction = None, top_speed(self.model), None, None
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 

@@ -33,7 +33,7 @@ import numpy as np
 
 from .. import _checks
 from .._drivesim import Model, Simulator
-from .cloned import PACE, pace_option, paced_control, top_speed
+from .cloned import GRIP, PACE, grip_option, pace_option, paced_control, top_speed, traction_option
 from .control import SPEED_MAX, ModelAgent, speed_after, speeds_reached
 
 #: A decision departs from the policy when its steering differs by more than this...
@@ -66,7 +66,9 @@ class MPCAgent(ModelAgent):
     module; 0.05, set before it was measured) or None (always weigh the candidates); ``pace``
     as ``ClonedAgent``'s: the target applied, the policy's or the plan's, goes through the
     cloned driver's pace rule and the gas through its traction rule (so that where the guard keeps
-    the policy's action the decision is the cloned driver's; None: the policy's speed).
+    the policy's action the decision is the cloned driver's; None: the policy's speed); ``grip``
+    as ``ClonedAgent``'s (the share of the expert's grip envelope, 0.5 to 2, or None); ``traction``
+    as ``ClonedAgent``'s (True or False).
     """
 
     def __init__(
@@ -86,6 +88,8 @@ class MPCAgent(ModelAgent):
         max_speed: Optional[float] = None,
         guard: Optional[float] = 0.05,
         pace: Optional[float] = PACE,
+        grip: Optional[float] = GRIP,
+        traction: bool = True,
     ):
         count, number = _checks.integer, _checks.number
         self.candidates, self.horizon = count("candidates", candidates, 2, 1024), count("horizon", horizon, 1, 100)
@@ -99,6 +103,7 @@ class MPCAgent(ModelAgent):
         self.guard = None if guard is None else number("guard", guard, 0.0, 1.0)
         self.model = model if model is not None else Model.load()
         self.pace, self.top = pace_option(self.model, pace), top_speed(self.model)
+        self.grip, self.traction = grip_option(grip), traction_option(traction, self.pace)
         missing = [n for n in ("policy", "reward", "value") if getattr(self.model, f"{n}_width") is None]
         if missing or self.model.discount is None:
             raise ValueError(f"mpc needs a model with its policy, reward and value heads and a discount: "
@@ -129,6 +134,8 @@ class MPCAgent(ModelAgent):
         self.rng = np.random.default_rng(self.seed)
         self.last_state: Optional[tuple] = None  # (z, h) the last plan started from
         self.last_plan: Optional[np.ndarray] = None  # (horizon, 2) dream actions of the chosen plan
+        if self.traction is not None:
+            self.traction.reset()
 
     def prior(self, z: np.ndarray, h: np.ndarray, speed: float) -> tuple[np.ndarray, np.ndarray]:
         """The policy driving on in the dream from ``(z, h)`` at ``speed``: its target speeds and
@@ -195,7 +202,9 @@ class MPCAgent(ModelAgent):
         self.departures += bool(change[1] > DEPART_STEER or change[0] > DEPART_SPEED)
         # The target, the policy's or the plan's, through the cloned driver's pace rule: where the
         # guard keeps the policy's action, the decision is the cloned driver's.
-        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace)
+        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace, self.grip)
+        if self.traction is not None:
+            gas = self.traction.gas(speed, gas)
         self.last_state, self.last_plan = (z, self.h), plan
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
         return np.array([steer, gas, brake], np.float32)
