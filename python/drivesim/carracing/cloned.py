@@ -14,8 +14,9 @@ from .control import ModelAgent, Wheelspin, grip_speed, speed_after, speed_contr
 
 
 #: ``ClonedAgent``'s default ``pace``: the top speed at the pace head's speed (units/s). Chosen
-#: on tuning tracks 5020-5119 (72: no track under 880; 80: one spin), docs/carracing.md.
-PACE = 72.0
+#: on tuning tracks 5000-5319 with the grip envelope and the traction control (80: 917.7, none
+#: under 800; 72: 914.3; 90: 917.1, one spin), docs/carracing.md.
+PACE = 80.0
 #: How far below the top of its trained speed range the policy's speed counts as at the top.
 AT_THE_TOP = 1.0
 #: ``ClonedAgent``'s default ``grip``: the share of the expert's grip envelope
