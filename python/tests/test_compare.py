@@ -27,6 +27,8 @@ def test_compare_pairs_by_track():
     assert report.startswith("2 tracks in common")
     assert f"{d.mean():+.1f} ± {d.std(ddof=1) / np.sqrt(2):.1f} (standard error)" in report
     assert "more than 30 behind on 1 [5001]" in report and "under 800: 1" in report
+    assert "histogram of cloned: < 800: 1, 800-880: 0, 880-900: 0, 900-910: 0, 910-920: 0, 920-930: 1, >= 930: 0" in report
+    assert compare.histogram(np.array([799.9, 800.0, 929.9, 930.0, 1000.0])).endswith("920-930: 1, >= 930: 2")
     many = compare.compare({t: 900.0 + t % 7 for t in range(200)}, {t: 900.0 for t in range(200)}, block=100)
     assert "0-99 (100)" in many and "100-199 (100)" in many
     with pytest.raises(ValueError, match="no track in common"):

@@ -9,9 +9,10 @@
 
 For each file on the tracks both drove: the mean ± sd, the median, the worst track and the
 tracks under 880 and 800; then the first less the second, its mean ± standard error and
-median, the tracks where the first is ahead and where it is more than 30 behind or ahead; and,
-per hundred tracks (``--block``), each file's mean and its tracks under 880 and 800 (issue 61's
-figures: at least 915 over 100 tracks, none under 800, at most 5 under 880).
+median, the tracks where the first is ahead and where it is more than 30 behind or ahead; a
+histogram of each file's scores (``BANDS``); and, per hundred tracks (``--block``), each file's
+mean and its tracks under 880 and 800 (issue 61's figures: at least 915 over 100 tracks, none
+under 800, at most 5 under 880).
 """
 
 from __future__ import annotations
@@ -23,6 +24,17 @@ import numpy as np
 
 # A track's line: the scoring command's "  23000    916.0 ..." or the recorder's "seed 23000: 921.4".
 LINE = re.compile(r"\s*(?:seed\s+)?(\d+):?\s+(-?\d+(?:\.\d+)?)(?:\s|$)")
+
+
+#: The histogram's band edges: the failures, then a band every 10 points about the expert's level.
+BANDS = (800, 880, 900, 910, 920, 930)
+
+
+def histogram(v: np.ndarray) -> str:
+    """How many of the scores ``v`` fall in each band of ``BANDS``."""
+    counts = np.histogram(v, [-np.inf, *BANDS, np.inf])[0]
+    labels = [f"< {BANDS[0]}"] + [f"{lo}-{hi}" for lo, hi in zip(BANDS[:-1], BANDS[1:])] + [f">= {BANDS[-1]}"]
+    return ", ".join(f"{label}: {n}" for label, n in zip(labels, counts))
 
 
 def scores(text: str) -> dict:
@@ -54,6 +66,7 @@ def compare(first: dict, second: dict, names=("first", "second"), block: int = 1
     lines.append(f"  {names[0]} - {names[1]}: {d.mean():+.1f} ± {se:.1f} (standard error), median {np.median(d):+.1f}; "
                  f"ahead on {(d > 0).sum()}, level on {(d == 0).sum()}; more than 30 behind on {(d < -30).sum()} "
                  f"{[t for t, x in zip(tracks, d) if x < -30][:10]}, ahead on {(d > 30).sum()}")
+    lines += [f"  histogram of {n}: {histogram(v)}" for n, v in zip(names, (a, b))]
     starts = sorted({t // block * block for t in tracks})
     if len(starts) > 1:
         lines.append(f"  per {block} tracks: mean (under 880, under 800) of {names[0]} | {names[1]}")
