@@ -58,20 +58,24 @@ def grip_option(grip: Optional[float]) -> Optional[float]:
 def traction_option(traction, pace: Optional[float]) -> Optional[Wheelspin]:
     """An agent's ``traction`` option checked (True or False, 1 or 0): its traction control
     (``control.Wheelspin``) at racing pace, None without it or without ``pace``."""
-    if not isinstance(traction, (bool, int, np.integer)) or traction not in (0, 1):
-        raise (ValueError if isinstance(traction, (int, float, np.number)) else TypeError)(
-            f"traction: expected True or False, got {traction!r}")
+    if not isinstance(traction, (int, float, np.number)):  # bool is an int
+        raise TypeError(f"traction: expected True or False, got {type(traction).__name__}")
+    if not isinstance(traction, (int, np.integer)) or traction not in (0, 1):
+        raise ValueError(f"traction: expected True or False, got {traction!r}")
     return Wheelspin() if traction and pace is not None else None
 
 
 def paced_control(sim: Simulator, z: np.ndarray, h: np.ndarray, speed: float, target: float, steer: float,
-                  top: float, pace: Optional[float], grip: Optional[float] = None) -> tuple[float, float]:
+                  top: float, pace: Optional[float], grip: Optional[float] = None,
+                  traction: Optional[Wheelspin] = None) -> tuple[float, float]:
     """``(gas, brake)`` for the ``target`` an agent chose at the state ``(z, h)``: with ``pace``,
-    through ``racing_pace`` (with ``grip``) and ``speed_control``'s traction rule for ``steer``;
-    without, the plain ``speed_control``."""
+    through ``racing_pace`` (with ``grip``) and ``speed_control``'s traction rule for ``steer``,
+    the gas then through the drive's ``traction`` control where it has one; without, the plain
+    ``speed_control``."""
     if pace is None:
         return speed_control(speed, target)
-    return speed_control(speed, racing_pace(sim, z, h, target, top, pace, steer, grip), steer)
+    gas, brake = speed_control(speed, racing_pace(sim, z, h, target, top, pace, steer, grip), steer)
+    return (gas if traction is None else traction.gas(speed, gas)), brake
 
 
 class ClonedAgent(ModelAgent):
@@ -85,10 +89,10 @@ class ClonedAgent(ModelAgent):
     one) and ``pace`` is a speed, the policy still steers, and where its own speed is at the top
     of its trained range (the road ahead is clear to it) the car drives at the pace head's
     speed, at most ``pace`` (where the policy slows for a bend, at the lower of the two), with
-    less gas the more the wheels are turned (``speed_control``'s ``steer``), and never faster
-    than the policy where that is past ``grip`` times the expert's grip envelope for the steering
-    (``control.grip_speed``: a car steered harder than the expert ever does at that speed slides
-    off and spins). ``pace=None`` drives at the policy's speed alone, as before the head;
+    less gas the more the wheels are turned (``speed_control``'s ``steer``); where that is faster
+    than the policy's own speed, at most ``grip`` times the expert's grip envelope for the
+    steering (``control.grip_speed``: a car steered harder than the expert ever was at that speed
+    slides off and spins). ``pace=None`` drives at the policy's speed alone, as before the head;
     ``grip=None`` paces without the envelope; ``traction`` (at racing pace) cuts the gas where the
     wheels spin (``control.Wheelspin``)."""
 
@@ -112,9 +116,8 @@ class ClonedAgent(ModelAgent):
 
     def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
         target, steer = self.decide(z)
-        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace, self.grip)
-        if self.traction is not None:
-            gas = self.traction.gas(speed, gas)
+        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace, self.grip,
+                                   self.traction)
         self.last_state = (z, self.h, speed)
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
         return np.array([steer, gas, brake], np.float32)

@@ -202,9 +202,8 @@ class MPCAgent(ModelAgent):
         self.departures += bool(change[1] > DEPART_STEER or change[0] > DEPART_SPEED)
         # The target, the policy's or the plan's, through the cloned driver's pace rule: where the
         # guard keeps the policy's action, the decision is the cloned driver's.
-        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace, self.grip)
-        if self.traction is not None:
-            gas = self.traction.gas(speed, gas)
+        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace, self.grip,
+                                   self.traction)
         self.last_state, self.last_plan = (z, self.h), plan
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
         return np.array([steer, gas, brake], np.float32)
