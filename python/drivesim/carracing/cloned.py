@@ -15,7 +15,7 @@ from .control import ModelAgent, Wheelspin, grip_speed, speed_after, speed_contr
 
 #: ``ClonedAgent``'s default ``pace``: the top speed at the pace head's speed (units/s). Chosen
 #: on tuning tracks 5000-5319 with the grip envelope and the traction control (80: 917.7, none
-#: under 800; 72: 914.3; 90: 917.1, one spin), docs/carracing.md.
+#: under 800; 72: 914.3; 90: 917.2, one spin), docs/carracing.md.
 PACE = 80.0
 #: How far below the top of its trained speed range the policy's speed counts as at the top.
 AT_THE_TOP = 1.0
