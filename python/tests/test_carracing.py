@@ -292,3 +292,35 @@ def test_guarded_planner_keeps_the_policy_where_the_dream_keeps_it_on_the_road(c
     assert not np.array_equal(kept, plain)  # the candidates do move the plain planner
     with pytest.raises(ValueError, match="guard"):
         carracing.make_agent("mpc", guard=1.5)
+
+
+def test_brake_ahead_slows_before_the_bend_the_plan_steers_into():
+    """``brake_ahead``: the envelope of the sharpest steering ahead, plus what the car can shed
+    on the way there; the plan checked."""
+    from drivesim.carracing.control import GRIP_SPEED, brake_ahead, grip_speed
+
+    assert brake_ahead([0.0] * 8, 10.0) == GRIP_SPEED[0]  # a straight: the envelope's top
+    assert brake_ahead([0.0, 0.0, 0.5], 10.0) == pytest.approx(grip_speed(0.5) + 20.0)
+    assert brake_ahead([0.0, 0.0, -0.5], 0.0) == pytest.approx(grip_speed(0.5))  # either way
+    assert brake_ahead([0.9, 0.0], 10.0, grip=0.5) == pytest.approx(0.5 * grip_speed(0.9))
+    for bad, error in (([], ValueError), ([1.5], ValueError), ([[0.1]], ValueError), ([float("nan")], ValueError)):
+        with pytest.raises(error, match="steers"):
+            brake_ahead(bad, 10.0)
+    with pytest.raises(ValueError, match="decel"):
+        brake_ahead([0.1], -1.0)
+
+
+def test_anticipating_planner_drives_no_faster_than_its_plan_allows(clip):
+    """``anticipate``: the gas is never more, the brake never less, than the same planner's
+    without it, and where the plan steers ahead it slows; off by default; the option checked."""
+    frames, actions = clip
+    assert carracing.make_agent("mpc").anticipate is None
+    plain, slow = carracing.make_agent("mpc", guard=1.0), carracing.make_agent("mpc", guard=1.0, anticipate=0.0)
+    plain.warmup = slow.warmup = 0
+    a = np.array([plain.act(f, 70.0) for f in frames])
+    b = np.array([slow.act(f, 70.0) for f in frames])
+    np.testing.assert_array_equal(a[:, 0], b[:, 0])  # the steering is the policy's either way
+    assert (b[:, 1] <= a[:, 1]).all() and (b[:, 2] >= a[:, 2]).all() and (b[:, 2] > a[:, 2]).any()
+    for bad, error in ((-1.0, ValueError), (101.0, ValueError), ("fast", TypeError)):
+        with pytest.raises(error, match="anticipate"):
+            carracing.make_agent("mpc", anticipate=bad)

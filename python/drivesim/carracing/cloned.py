@@ -67,14 +67,15 @@ def traction_option(traction, pace: Optional[float]) -> Optional[Wheelspin]:
 
 def paced_control(sim: Simulator, z: np.ndarray, h: np.ndarray, speed: float, target: float, steer: float,
                   top: float, pace: Optional[float], grip: Optional[float] = None,
-                  traction: Optional[Wheelspin] = None) -> tuple[float, float]:
+                  traction: Optional[Wheelspin] = None, limit: float = np.inf) -> tuple[float, float]:
     """``(gas, brake)`` for the ``target`` an agent chose at the state ``(z, h)``: with ``pace``,
     through ``racing_pace`` (with ``grip``) and ``speed_control``'s traction rule for ``steer``,
     the gas then through the drive's ``traction`` control where it has one; without, the plain
-    ``speed_control``."""
+    ``speed_control``. Never faster than ``limit`` (a planner's ``control.brake_ahead``)."""
     if pace is None:
-        return speed_control(speed, target)
-    gas, brake = speed_control(speed, racing_pace(sim, z, h, target, top, pace, steer, grip), steer)
+        return speed_control(speed, min(target, limit))
+    paced = min(racing_pace(sim, z, h, target, top, pace, steer, grip), limit)
+    gas, brake = speed_control(speed, paced, steer)
     return (gas if traction is None else traction.gas(speed, gas)), brake
 
 

@@ -53,6 +53,19 @@ def grip_speed(steer: float) -> float:
     return float(np.interp(abs(steer), GRIP_STEER, GRIP_SPEED))
 
 
+def brake_ahead(steers, decel: float, grip: float = 1.0) -> float:
+    """The fastest speed now from which a car that slows ``decel`` units/s a decision meets each
+    steering of a plan (``steers``, one per decision from now) within ``grip`` times the grip
+    envelope: the least of ``grip * grip_speed(steers[k]) + decel * k``. A planner that sees a
+    bend ahead slows before it, where the envelope alone waits until the wheels are turned."""
+    steers = _finite("steers", steers)
+    if steers.ndim != 1 or len(steers) == 0 or (np.abs(steers) > 1.0).any():
+        raise ValueError(f"steers: expected a plan (H,) of steerings in [-1, 1], got shape {steers.shape}")
+    decel, grip = _checks.number("decel", decel, 0.0), _checks.number("grip", grip, 0.0, above=True)
+    envelope = np.interp(np.abs(steers), GRIP_STEER, GRIP_SPEED)
+    return float((grip * envelope + decel * np.arange(len(steers))).min())
+
+
 class Wheelspin:
     """Traction control from the speedometer: gas that did not make a slow car faster means its
     rear wheels spin (after a slide, the car turns circles on the spot, on the grass or the road,

@@ -34,7 +34,7 @@ import numpy as np
 from .. import _checks
 from .._drivesim import Model, Simulator
 from .cloned import GRIP, PACE, grip_option, pace_option, paced_control, top_speed, traction_option
-from .control import SPEED_MAX, ModelAgent, speed_after, speeds_reached
+from .control import SPEED_MAX, ModelAgent, brake_ahead, speed_after, speeds_reached
 
 #: A decision departs from the policy when its steering differs by more than this...
 DEPART_STEER = 0.05
@@ -68,7 +68,9 @@ class MPCAgent(ModelAgent):
     cloned driver's pace rule and the gas through its traction rule (so that where the guard keeps
     the policy's action the decision is the cloned driver's; None: the policy's speed); ``grip``
     as ``ClonedAgent``'s (the share of the expert's grip envelope, 0.5 to 2, or None); ``traction``
-    as ``ClonedAgent``'s (True or False).
+    as ``ClonedAgent``'s (True or False); ``anticipate`` None, or how fast the car slows, units/s
+    a decision (0 to 100): the speed is then never above what lets it slow to the grip envelope
+    of each steering the policy's plan in the dream holds ahead (``control.brake_ahead``).
     """
 
     def __init__(
@@ -90,6 +92,7 @@ class MPCAgent(ModelAgent):
         pace: Optional[float] = PACE,
         grip: Optional[float] = GRIP,
         traction: bool = True,
+        anticipate: Optional[float] = None,
     ):
         count, number = _checks.integer, _checks.number
         self.candidates, self.horizon = count("candidates", candidates, 2, 1024), count("horizon", horizon, 1, 100)
@@ -104,6 +107,7 @@ class MPCAgent(ModelAgent):
         self.model = model if model is not None else Model.load()
         self.pace, self.top = pace_option(self.model, pace), top_speed(self.model)
         self.grip, self.traction = grip_option(grip), traction_option(traction, self.pace)
+        self.anticipate = None if anticipate is None else number("anticipate", anticipate, 0.0, 100.0)
         missing = [n for n in ("policy", "reward", "value") if getattr(self.model, f"{n}_width") is None]
         if missing or self.model.discount is None:
             raise ValueError(f"mpc needs a model with its policy, reward and value heads and a discount: "
@@ -165,6 +169,7 @@ class MPCAgent(ModelAgent):
         """``(steer, target speed, dream actions (horizon, 2) of the weighted plan, the policy's
         first (target, steer))`` for the state ``(z, h)`` at ``speed``."""
         targets, steers = self.prior(z, h, speed)
+        self.prior_steers = steers
         # The candidates are left unclipped and their dream actions clipped: a candidate beyond a
         # limit drives as one at the limit, and the weighted mean is not pulled away from a
         # prior at the limit (the policy's target speed often is). The action applied is clipped.
@@ -202,8 +207,11 @@ class MPCAgent(ModelAgent):
         self.departures += bool(change[1] > DEPART_STEER or change[0] > DEPART_SPEED)
         # The target, the policy's or the plan's, through the cloned driver's pace rule: where the
         # guard keeps the policy's action, the decision is the cloned driver's.
+        limit = np.inf
+        if self.anticipate is not None:  # slow before the bends the policy's plan steers into
+            limit = brake_ahead(np.clip(self.prior_steers, -1.0, 1.0), self.anticipate, self.grip or 1.0)
         gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace, self.grip,
-                                   self.traction)
+                                   self.traction, limit)
         self.last_state, self.last_plan = (z, self.h), plan
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
         return np.array([steer, gas, brake], np.float32)
