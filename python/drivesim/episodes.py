@@ -223,8 +223,8 @@ def _stream_safetensors(f, tensors, metadata):
 def write(path, episodes, metadata=None):
     """Save episodes; a path ending in .gz is gzipped. metadata: optional str->str header dict.
     Atomic: a temporary file beside `path`, flushed to disk and renamed over it, so a crash or a
-    full disk leaves the old file whole (the package's `atomic_write`). Streamed: no copy of the
-    data is made in memory."""
+    full disk leaves the old file whole (the package's `atomic_write`). Streamed: the file is
+    never built in memory (a strided array, a mirror image's frames, is copied to be written)."""
     tensors = {"frames": episodes.frames, "actions": episodes.actions,
                "episode_starts": episodes.episode_starts, **(episodes.rewards or {})}
     if episodes.labels is not None:

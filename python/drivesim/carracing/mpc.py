@@ -138,6 +138,7 @@ class MPCAgent(ModelAgent):
         self.rng = np.random.default_rng(self.seed)
         self.last_state: Optional[tuple] = None  # (z, h) the last plan started from
         self.last_plan: Optional[np.ndarray] = None  # (horizon, 2) dream actions of the chosen plan
+        self.prior_steers: Optional[np.ndarray] = None  # (horizon,) the policy's plan's steering, for anticipate
         if self.traction is not None:
             self.traction.reset()
 
