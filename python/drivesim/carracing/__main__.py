@@ -68,6 +68,8 @@ def drive(agent, seed: int, frames: int = 1000, pictures: bool = False) -> tuple
         "on_road": round(on_road / decisions, 4),
         "ms_per_decision": round(1000 * seconds / decisions, 3),
     }
+    if getattr(agent, "bearings", None) is not None:
+        figures["turns"] = agent.bearings.turns
     if hasattr(agent, "departures"):  # a planner seeded by the policy
         figures["departed"] = round(agent.departures / max(agent.planned, 1), 4)
         speed_change, steer_change = agent.changes / max(agent.planned, 1)
@@ -148,13 +150,15 @@ def main(argv=None) -> int:
     jobs = [(args, seed) for seed in args.seeds]
     planner = args.agent == "mpc"
     extra = f" {'departed':>8}" + ("" if args.no_policy_alone else f" {'policy':>8}") if planner else ""
+    if args.agent in ("cloned", "mpc") and dict(args.set).get("bearings", True):
+        extra = f" {'turns':>5}" + extra
     print(f"{'track':>6} {'reward':>8} {'frames':>6} {'tiles':>6} {'on road':>7} {'ms/decision':>11}{extra}", flush=True)
     results = []
     with multiprocessing.Pool(min(args.workers, len(jobs))) if args.workers > 1 else contextlib.nullcontext() as pool:
         for r in (pool.imap(track, jobs) if pool else map(track, jobs)):
             results.append(r)
             print(f"{r['seed']:>6} {r['reward']:>8.1f} {r['frames']:>6} {r['tiles']:>6.1%} {r['on_road']:>7.1%} "
-                  f"{r['ms_per_decision']:>11.2f}" + planner_columns(r), flush=True)
+                  f"{r['ms_per_decision']:>11.2f}" + more_columns(r), flush=True)
     rewards = np.array([r["reward"] for r in results])
     ms = np.array([r["ms_per_decision"] for r in results])
     print(f"{args.agent}: {rewards.mean():.1f} ± {rewards.std():.1f} over {len(rewards)} tracks "
@@ -186,9 +190,11 @@ def option(text: str) -> tuple:
     return name, value
 
 
-def planner_columns(r: dict) -> str:
-    """A planner's per-track columns: departures from the policy, the policy alone's score."""
-    out = f" {r['departed']:>8.1%}" if "departed" in r else ""
+def more_columns(r: dict) -> str:
+    """The columns after the common ones: the times the bearings took over (``bearings.Bearings``),
+    a planner's departures from the policy and the policy alone's score."""
+    out = f" {r['turns']:>5}" if "turns" in r else ""
+    out += f" {r['departed']:>8.1%}" if "departed" in r else ""
     return out + (f" {r['policy_alone']:>8.1f}" if "policy_alone" in r else "")
 
 

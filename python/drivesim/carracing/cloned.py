@@ -10,6 +10,7 @@ import numpy as np
 
 from .. import _checks
 from .._drivesim import Model, Simulator
+from .bearings import bearings_option
 from .control import ModelAgent, Wheelspin, grip_speed, speed_after, speed_control
 
 
@@ -95,15 +96,17 @@ class ClonedAgent(ModelAgent):
     steering (``control.grip_speed``: a car steered harder than the expert ever was at that speed
     slides off and spins). ``pace=None`` drives at the policy's speed alone, as before the head;
     ``grip=None`` paces without the envelope; ``traction`` (at racing pace) cuts the gas where the
-    wheels spin (``control.Wheelspin``)."""
+    wheels spin (``control.Wheelspin``); ``bearings`` turns the car round where it drives road
+    already driven and searches for the road where it has lost it (``bearings.Bearings``)."""
 
     def __init__(self, model: Optional[Model] = None, threads: int = 1, pace: Optional[float] = PACE,
-                 grip: Optional[float] = GRIP, traction: bool = True):
+                 grip: Optional[float] = GRIP, traction: bool = True, bearings: bool = True):
         self.model = model if model is not None else Model.load()
         if self.model.policy_width is None:
             raise ValueError("the model has no policy (policy.* tensors): train one with `train policy`")
         self.pace, self.top = pace_option(self.model, pace), top_speed(self.model)
         self.grip, self.traction = grip_option(grip), traction_option(traction, self.pace)
+        self.bearings = bearings_option(bearings)
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 
@@ -112,8 +115,9 @@ class ClonedAgent(ModelAgent):
         self.h = np.zeros(self.model.hidden_dim, np.float32)
         self.decisions = 0
         self.last_state: Optional[tuple] = None  # (z, h, speed) of the last decision
-        if self.traction is not None:
-            self.traction.reset()
+        for part in (self.traction, self.bearings):
+            if part is not None:
+                part.reset()
 
     def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
         target, steer = self.decide(z)

@@ -155,8 +155,9 @@ def warmup_action(agent, speed: float) -> Optional[np.ndarray]:
 class ModelAgent:
     """What the agents that read the models share: a decision every ``frame_skip`` env frames,
     the warm-up, and ``act``'s preamble (the inputs checked against the model's view, the
-    warm-up's action, the view encoded). A subclass has ``model`` and ``sim`` and gives
-    ``drive(frame, z, speed)``: the action for the checked view, its code and the speed."""
+    warm-up's action, the view encoded) and its end (the ``bearings``' turns). A subclass has
+    ``model`` and ``sim`` and gives ``drive(frame, z, speed)``: the action for the checked view,
+    its code and the speed."""
 
     #: Env frames per decision: the models step at 12.5 Hz, CarRacing at 50.
     frame_skip = 4
@@ -164,6 +165,8 @@ class ModelAgent:
     #: first second): the zoomed-out frames are unlike anything the models saw, and the
     #: recorder starts its episodes after them.
     warmup = 12
+    #: The drive's ``bearings.Bearings`` (the agent's ``bearings`` option), or None.
+    bearings = None
 
     def act(self, frame: np.ndarray, speed: float) -> np.ndarray:
         """CarRacing's action ``[steer, gas, brake]`` for this view and speed."""
@@ -171,7 +174,10 @@ class ModelAgent:
         warming_up = warmup_action(self, speed)
         if warming_up is not None:
             return warming_up
-        return self.drive(frame, self.sim.encode(frame), speed)
+        action = self.drive(frame, self.sim.encode(frame), speed)
+        # The driver decides (and steps its memory) at every decision; while the bearings turn
+        # the car, their action is applied instead.
+        return action if self.bearings is None else self.bearings.act(frame, speed, action)
 
 
 def _road(road: np.ndarray) -> np.ndarray:

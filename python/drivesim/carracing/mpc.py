@@ -33,6 +33,7 @@ import numpy as np
 
 from .. import _checks
 from .._drivesim import Model, Simulator
+from .bearings import bearings_option
 from .cloned import GRIP, PACE, grip_option, pace_option, paced_control, top_speed, traction_option
 from .control import SPEED_MAX, ModelAgent, brake_ahead, speed_after, speeds_reached
 
@@ -70,7 +71,8 @@ class MPCAgent(ModelAgent):
     as ``ClonedAgent``'s (the share of the expert's grip envelope, 0.5 to 2, or None); ``traction``
     as ``ClonedAgent``'s (True or False); ``anticipate`` None, or how fast the car slows, units/s
     a decision (0 to 100): the speed is then never above what lets it slow to the grip envelope
-    of each steering the policy's plan in the dream holds ahead (``control.brake_ahead``).
+    of each steering the policy's plan in the dream holds ahead (``control.brake_ahead``);
+    ``bearings`` as ``ClonedAgent``'s (True or False).
     """
 
     def __init__(
@@ -93,6 +95,7 @@ class MPCAgent(ModelAgent):
         grip: Optional[float] = GRIP,
         traction: bool = True,
         anticipate: Optional[float] = None,
+        bearings: bool = True,
     ):
         count, number = _checks.integer, _checks.number
         self.candidates, self.horizon = count("candidates", candidates, 2, 1024), count("horizon", horizon, 1, 100)
@@ -108,6 +111,7 @@ class MPCAgent(ModelAgent):
         self.pace, self.top = pace_option(self.model, pace), top_speed(self.model)
         self.grip, self.traction = grip_option(grip), traction_option(traction, self.pace)
         self.anticipate = None if anticipate is None else number("anticipate", anticipate, 0.0, 100.0)
+        self.bearings = bearings_option(bearings)
         missing = [n for n in ("policy", "reward", "value") if getattr(self.model, f"{n}_width") is None]
         if missing or self.model.discount is None:
             raise ValueError(f"mpc needs a model with its policy, reward and value heads and a discount: "
@@ -139,8 +143,9 @@ class MPCAgent(ModelAgent):
         self.last_state: Optional[tuple] = None  # (z, h) the last plan started from
         self.last_plan: Optional[np.ndarray] = None  # (horizon, 2) dream actions of the chosen plan
         self.prior_steers: Optional[np.ndarray] = None  # (horizon,) the policy's plan's steering, for anticipate
-        if self.traction is not None:
-            self.traction.reset()
+        for part in (self.traction, self.bearings):
+            if part is not None:
+                part.reset()
 
     def prior(self, z: np.ndarray, h: np.ndarray, speed: float) -> tuple[np.ndarray, np.ndarray]:
         """The policy driving on in the dream from ``(z, h)`` at ``speed``: its target speeds and

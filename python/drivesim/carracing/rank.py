@@ -112,7 +112,8 @@ class ChangedAgent(ClonedAgent):
 
     def __init__(self, driver: Driver, seed: int, model=None, threads: int = 1):
         self.driver, self.seed = driver, seed
-        super().__init__(model, threads, pace=None)  # the family changes the policy's own drive
+        # The family changes the policy's own drive: no racing pace, no turns of the bearings.
+        super().__init__(model, threads, pace=None, bearings=False)
 
     def reset(self) -> None:
         super().reset()
