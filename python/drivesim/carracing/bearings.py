@@ -1,5 +1,5 @@
-"""Keeping the lap's bearings: a driver that has lost the road, or drives road it has already
-driven, turns until it sees road still to drive.
+"""Keeping the lap's bearings: a driver that has lost the road steers for the road still to
+drive, or turns until road lies ahead.
 
 CarRacing draws the road's tiles in three shades until the car touches them (the env's road
 colour plus 0, 2.55 or 5.1 per channel, by the tile's index) and every tile the car has touched
@@ -67,7 +67,7 @@ class Sight:
         # Road is grey: the channels agree (the grass's green and the kerbs' red do not; a pixel
         # blended with them at the road's edge neither).
         grey = (view.max(axis=-1) - view.min(axis=-1) <= 1) & (view[..., 0] > 60) & (view[..., 0] < 170)
-        values = np.where(grey, view[..., 0], -100)
+        values = view[..., 0]
         # The plain colour is the darkest of the road's three shades; a kerb's white blended in
         # is lighter than all three.
         plain = np.percentile(values[grey], 10) if grey.any() else 0.0

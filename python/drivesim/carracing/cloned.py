@@ -96,8 +96,8 @@ class ClonedAgent(ModelAgent):
     steering (``control.grip_speed``: a car steered harder than the expert ever was at that speed
     slides off and spins). ``pace=None`` drives at the policy's speed alone, as before the head;
     ``grip=None`` paces without the envelope; ``traction`` (at racing pace) cuts the gas where the
-    wheels spin (``control.Wheelspin``); ``bearings`` turns the car round where it drives road
-    already driven and searches for the road where it has lost it (``bearings.Bearings``)."""
+    wheels spin (``control.Wheelspin``); ``bearings``, where the car has lost the road, steers
+    for the road still to drive in sight or turns until road lies ahead (``bearings.Bearings``)."""
 
     def __init__(self, model: Optional[Model] = None, threads: int = 1, pace: Optional[float] = PACE,
                  grip: Optional[float] = GRIP, traction: bool = True, bearings: bool = True):
