@@ -34,6 +34,16 @@ def number(name: str, value: Any, low: Optional[float] = None, high: Optional[fl
     return v
 
 
+def flag(name: str, value: Any) -> bool:
+    """``value`` as a bool: True or False, or an integer 1 or 0 (TypeError for what is not a
+    number, ValueError for another number)."""
+    if not isinstance(value, (int, float, np.number)):  # bool is an int
+        raise TypeError(f"{name}: expected True or False, got {_kind(value)}")
+    if not isinstance(value, (int, np.integer)) or value not in (0, 1):
+        raise ValueError(f"{name}: expected True or False, got {value!r}")
+    return bool(value)
+
+
 def integer(name: str, value: Any, low: int = 0, high: Optional[int] = None) -> int:
     """``value`` as an int in ``[low, high]``; anything with ``__index__`` (``np.int64``)."""
     if isinstance(value, bool):

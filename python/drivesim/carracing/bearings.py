@@ -29,6 +29,7 @@ from typing import Optional
 
 import numpy as np
 
+from .. import _checks
 from .control import speed_control
 
 #: The patch of the view just ahead of the car (rows, columns of the 80x160 view): the car's
@@ -65,7 +66,8 @@ class Sight:
     def __init__(self, frame: np.ndarray):
         view = frame[: AHEAD_ROWS[1]].astype(np.int16)
         # Road is grey: the channels agree (the grass's green and the kerbs' red do not; a pixel
-        # blended with them at the road's edge neither).
+        # blended with them at the road's edge neither). Stricter than ``road.road_mask``, whose
+        # edge blends would read as a lighter shade.
         grey = (view.max(axis=-1) - view.min(axis=-1) <= 1) & (view[..., 0] > 60) & (view[..., 0] < 170)
         values = view[..., 0]
         # The plain colour is the darkest of the road's three shades; a kerb's white blended in
@@ -93,11 +95,7 @@ def steering_toward(at: tuple) -> float:
 def bearings_option(bearings) -> Optional["Bearings"]:
     """An agent's ``bearings`` option checked (True or False, 1 or 0; TypeError for what is not
     a number, ValueError for another number): a ``Bearings`` for its drives, or None."""
-    if not isinstance(bearings, (int, float, np.number)):  # bool is an int
-        raise TypeError(f"bearings: expected True or False, got {type(bearings).__name__}")
-    if not isinstance(bearings, (int, np.integer)) or bearings not in (0, 1):
-        raise ValueError(f"bearings: expected True or False, got {bearings!r}")
-    return Bearings() if bearings else None
+    return Bearings() if _checks.flag("bearings", bearings) else None
 
 
 class Bearings:

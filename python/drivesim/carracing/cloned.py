@@ -59,11 +59,7 @@ def grip_option(grip: Optional[float]) -> Optional[float]:
 def traction_option(traction, pace: Optional[float]) -> Optional[Wheelspin]:
     """An agent's ``traction`` option checked (True or False, 1 or 0): its traction control
     (``control.Wheelspin``) at racing pace, None without it or without ``pace``."""
-    if not isinstance(traction, (int, float, np.number)):  # bool is an int
-        raise TypeError(f"traction: expected True or False, got {type(traction).__name__}")
-    if not isinstance(traction, (int, np.integer)) or traction not in (0, 1):
-        raise ValueError(f"traction: expected True or False, got {traction!r}")
-    return Wheelspin() if traction and pace is not None else None
+    return Wheelspin() if _checks.flag("traction", traction) and pace is not None else None
 
 
 def paced_control(sim: Simulator, z: np.ndarray, h: np.ndarray, speed: float, target: float, steer: float,
