@@ -1,4 +1,4 @@
-"""The rank probe (``python -m drivesim.carracing.rank``): the drivers' changes, the rank figures,
+"""The rank probe (``python -m drivesim.carracing.rank``): the rank figures, the dream batch,
 and a small family on two short tracks end to end, killed and resumed to the same report."""
 
 import json
@@ -13,47 +13,7 @@ import pytest
 
 import drivesim
 from drivesim.carracing import rank
-
-
-def test_changes_apply_each_drivers_change_to_its_own_row():
-    drivers = [rank.Driver("a", gain=2.0, bias=0.1), rank.Driver("b", speed=0.5), rank.Driver("c", bias=-5.0)]
-    changes = rank.Changes(drivers, [0, 1, 2])
-    out = changes(np.array([[40.0, 0.3], [40.0, 0.3], [40.0, 0.3]], np.float32))
-    np.testing.assert_allclose(out, [[40.0, 0.7], [20.0, 0.3], [40.0, -1.0]], rtol=1e-6)
-
-
-def test_a_delay_applies_the_action_decided_that_many_decisions_before():
-    changes = rank.Changes([rank.Driver("late", delay=2), rank.Driver("now")], [0, 1])
-    applied = [changes(np.array([[10.0 * t, 0.1 * t]] * 2, np.float32)) for t in range(1, 5)]
-    # The first decision stands in for the ones before the drive.
-    np.testing.assert_allclose([a[0, 1] for a in applied], [0.1, 0.1, 0.1, 0.2], rtol=1e-6)
-    np.testing.assert_allclose([a[1, 1] for a in applied], [0.1, 0.2, 0.3, 0.4], rtol=1e-6)
-
-
-def test_noise_is_seeded_per_row():
-    def run(seeds):
-        changes = rank.Changes([rank.Driver("n", noise=0.5)] * 2, seeds)
-        return np.stack([changes(np.zeros((2, 2), np.float32)) for _ in range(5)])
-    a, b = run([3, 4]), run([3, 4])
-    np.testing.assert_array_equal(a, b)
-    assert not np.array_equal(a[:, 0], a[:, 1])
-    assert np.abs(a[..., 1]).max() <= 1.0
-
-
-def test_the_unchanged_driver_drives_as_the_clone():
-    from drivesim.carracing.agents import ClonedAgent
-
-    model = drivesim.Model.load()
-    clone, unchanged, biased = ClonedAgent(model, pace=None), rank.ChangedAgent(rank.FAMILY[0], 0, model), \
-        rank.ChangedAgent(rank.Driver("b", bias=0.3), 0, model)
-    rng = np.random.default_rng(0)
-    steer_gap = []
-    for _ in range(clone.warmup + 6):
-        frame, speed = rng.integers(0, 256, (80, 160, 3), dtype=np.uint8), float(rng.uniform(10, 40))
-        a = clone.act(frame, speed)
-        np.testing.assert_array_equal(a, unchanged.act(frame, speed))
-        steer_gap.append(biased.act(frame, speed)[0] - a[0])
-    assert steer_gap[0] == 0 and max(steer_gap) > 0  # the warm-up drives straight, then the bias shows
+from drivesim.carracing.family import FAMILY, SMALL, Driver
 
 
 def test_the_worlds_hidden_state_steps_along_the_behaviour_drive():
@@ -85,7 +45,7 @@ def test_the_dream_batch_and_the_value_at_the_horizon():
     starts = {"z": rng.standard_normal((3, model.z_dim)).astype(np.float32),
               "h": np.zeros((3, model.hidden_dim), np.float32), "speed": np.float32([30, 40, 50])}
     starts["h_world"] = starts["h"]
-    family = [rank.FAMILY[0], rank.Driver("b", bias=0.5)]
+    family = [FAMILY[0], Driver("b", bias=0.5)]
     plain = rank.dream(sim, sim, family, starts, 6, 0, False)
     valued = rank.dream(sim, sim, family, starts, 6, 0, True)
     assert plain["return"].shape == plain["off_road"].shape == (2, 3)
@@ -101,7 +61,7 @@ def test_spearman_and_regret():
     assert rank.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
     assert rank.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
     np.testing.assert_allclose(rank.ranks(np.array([5.0, 1.0, 5.0])), [1.5, 0.0, 1.5])
-    family = [rank.Driver(n) for n in "abc"]
+    family = [Driver(n) for n in "abc"]
     real = np.array([[900.0, 880.0], [100.0, 120.0], [500.0, 500.0]])
     dreamt = np.array([[1.0, 1.0], [3.0, 3.0], [2.0, 2.0]])  # ranks them backwards
     off = np.zeros((3, 2))
@@ -148,7 +108,7 @@ def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
     whole = tmp_path / "whole"
     subprocess.run(_probe(whole), check=True, capture_output=True, timeout=600)
     report = _report(whole)
-    assert [d["driver"]["name"] for d in report["drivers"]] == [d.name for d in rank.SMALL]
+    assert [d["driver"]["name"] for d in report["drivers"]] == [d.name for d in SMALL]
     for d in report["drivers"]:
         assert np.isfinite([d["real"], d["dream"], d["real_off_road"], d["dream_off_road"]]).all()
         assert 0 <= d["dream_off_road"] <= 1 and 0 <= d["real_off_road"] <= 1

@@ -11,6 +11,7 @@ import pytest
 
 import drivesim
 from drivesim.carracing import rank, rank_real
+from drivesim.carracing.family import FAMILY, SMALL, ChangedAgent, Driver
 
 
 def test_a_window_of_the_unchanged_driver_is_its_drive_reward_for_reward():
@@ -18,7 +19,7 @@ def test_a_window_of_the_unchanged_driver_is_its_drive_reward_for_reward():
     import gymnasium
 
     model = drivesim.Model.load()
-    agent = rank.ChangedAgent(rank.FAMILY[0], seed=0, model=model)
+    agent = ChangedAgent(FAMILY[0], seed=0, model=model)
     _, states, trace = rank_real.drive_real(agent, 3, 240, keep_states=True)
     assert trace["actions"].shape == (60, 3) and len(trace["rewards"]) == len(trace["off"]) == 60
     env = gymnasium.make("CarRacing-v3", max_episode_steps=240)
@@ -30,7 +31,7 @@ def test_a_window_of_the_unchanged_driver_is_its_drive_reward_for_reward():
         np.testing.assert_allclose(rewards, trace["rewards"][start:start + horizon], atol=1e-4)
         np.testing.assert_array_equal(off, trace["off"][start:start + horizon].astype(bool))
     # Another driver from the same state drives elsewhere.
-    biased = rank.ChangedAgent(rank.Driver("b", bias=0.6), seed=0, model=model)
+    biased = ChangedAgent(Driver("b", bias=0.6), seed=0, model=model)
     env.reset(seed=3)
     rank_real.replay(env, trace["actions"][:20], agent.frame_skip)
     rewards, _ = rank_real.drive_window(env, biased, states[20 - agent.warmup][1], 20, 20)
@@ -46,7 +47,7 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
     assert "windows: Spearman" in run.stdout
     report = json.loads((tmp_path / "rank.json").read_text())
     windows = report["windows"]
-    assert [d["driver"]["name"] for d in windows["drivers"]] == [d.name for d in rank.SMALL]
+    assert [d["driver"]["name"] for d in windows["drivers"]] == [d.name for d in SMALL]
     for d in windows["drivers"]:
         assert np.isfinite([d["real"], d["dream"]]).all() and 0 <= d["real_off_road"] <= 1
     # The unchanged driver's windows are its behaviour drive's stretches.

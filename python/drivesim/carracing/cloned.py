@@ -1,6 +1,6 @@
 """The cloned driver: the model's policy (behavioural cloning, then DAgger) drives; what the
 drivers that step the transition on the view's codes share (``dreamt.DreamtAgent``,
-``rank.ChangedAgent``)."""
+``family.ChangedAgent``)."""
 
 from __future__ import annotations
 
@@ -131,7 +131,7 @@ class ClonedAgent(ModelAgent):
     def decide(self, z: np.ndarray) -> tuple:
         """The speed to drive at and the steering (in [-1, 1]) for the code ``z`` of the frame
         seen now and the drive's hidden state: where a variant of the clone changes how it drives
-        (``rank.ChangedAgent``)."""
+        (``family.ChangedAgent``)."""
         return self.choose(z, self.h)
 
     def choose(self, z: np.ndarray, h: np.ndarray) -> tuple:

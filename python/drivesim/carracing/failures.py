@@ -34,7 +34,7 @@ from .view import parse_seeds
 
 
 def training_family():
-    from .rank import Driver
+    from .family import Driver
 
     return [
         Driver("clone"),
@@ -53,7 +53,7 @@ def fast_family():
     """Drivers that fail at pace: too fast into bends (alone, and with too little or too much
     steering, a pull, unsteady hands), and late hands whose oscillation grows. None is one of
     the probe's."""
-    from .rank import Driver
+    from .family import Driver
 
     return [
         Driver("speed 1.35", speed=1.35), Driver("speed 1.55", speed=1.55), Driver("speed 1.75", speed=1.75),
@@ -64,8 +64,21 @@ def fast_family():
     ]
 
 
+def holds_family():
+    """The clone at its own pace with holds (``rank.Driver.holds``): now and then a constant
+    steering for 0.16-0.64 s, whatever the road does. At 55 units/s a hold of 0.1 takes the real
+    car off the road in about 0.6 s, one of 0.25 or more in 0.5 s (the grip is spent); the slow
+    `holds` recordings (15-45 units/s) never show it. Two drivers also drive faster."""
+    from .family import Driver
+
+    return [
+        Driver("holds 0.15", holds=0.15), Driver("holds 0.3", holds=0.3), Driver("holds 0.5", holds=0.5),
+        Driver("holds 0.3, speed 1.15", holds=0.3, speed=1.15), Driver("holds 0.2, speed 0.8", holds=0.2, speed=0.8),
+    ]
+
+
 #: The families `--family` names: the first is the default.
-FAMILIES = {"changes": training_family, "fast": fast_family}
+FAMILIES = {"changes": training_family, "fast": fast_family, "holds": holds_family}
 
 
 _model = None  # this worker's model, loaded at its first drive
@@ -79,7 +92,7 @@ def drive(job):
     seed, family, index, frames, weights = job
     import gymnasium
     from .._drivesim import Model
-    from .rank import ChangedAgent
+    from .family import ChangedAgent
 
     if _model is None:
         _model = Model.load(weights)
@@ -115,7 +128,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--tracks", type=parse_seeds, required=True, help="track seeds, e.g. 12000-12031")
     p.add_argument("--family", choices=list(FAMILIES), default="changes",
-                   help="the drivers: changes (one or two things changed) or fast (too fast, late hands)")
+                   help="the drivers: changes (one or two things changed), fast (too fast, late hands) "
+                        "or holds (constant steering now and then, at the clone's pace)")
     p.add_argument("--per-track", type=int, default=3, help="drivers of the family on each track")
     p.add_argument("--frames", type=int, default=1000, help="env frames per drive")
     p.add_argument("--weights", help="weight file whose policy drives (default: the package's built-in model)")

@@ -37,7 +37,7 @@ import multiprocessing
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame draws off-screen
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
@@ -47,81 +47,10 @@ import numpy as np
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from .agents import ClonedAgent
-from .control import SPEED_MAX, speed_after
+from .control import speed_after
+from .family import FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Changes, Driver
 from . import rank_real
 from .view import parse_seeds
-
-
-@dataclass(frozen=True)
-class Driver:
-    """The cloned policy with its action changed: steering ``gain * steer + bias + noise`` (noise
-    normal with sd ``noise``, clipped to [-1, 1]), the target speed times ``speed``, and every
-    action applied ``delay`` decisions late."""
-
-    name: str
-    gain: float = 1.0
-    bias: float = 0.0
-    speed: float = 1.0
-    noise: float = 0.0
-    delay: int = 0
-
-
-FAMILY = [
-    Driver("clone"),
-    Driver("gain 0.5", gain=0.5), Driver("gain 2", gain=2.0),
-    Driver("bias -0.2", bias=-0.2), Driver("bias +0.2", bias=0.2), Driver("bias +0.4", bias=0.4),
-    Driver("speed 0.6", speed=0.6), Driver("speed 1.3", speed=1.3),
-    Driver("noise 0.3", noise=0.3), Driver("noise 0.7", noise=0.7),
-    Driver("delay 2", delay=2), Driver("delay 4", delay=4),
-    Driver("gain 1.5, speed 1.2", gain=1.5, speed=1.2),
-    Driver("bias +0.2, noise 0.3", bias=0.2, noise=0.3),
-    Driver("delay 2, speed 1.2", delay=2, speed=1.2),
-    Driver("gain 0.5, bias -0.2", gain=0.5, bias=-0.2),
-    Driver("noise 1, speed 0.8", noise=1.0, speed=0.8),
-]
-#: A family small enough for a test: the clone and two drivers it must rank apart.
-SMALL = [FAMILY[0], FAMILY[5], FAMILY[6]]
-
-
-class Changes:
-    """The drivers' changes applied to a batch of policy actions, one row per drive (each row's
-    driver, noise drawn from its own generator, delays kept per row): the same code for the real
-    drives (one row) and the dream's (a row per driver and start)."""
-
-    def __init__(self, drivers: list, seeds: list):
-        self.gain, self.bias, self.speed, self.noise = (
-            np.array([getattr(d, f) for d in drivers], np.float32) for f in ("gain", "bias", "speed", "noise"))
-        self.delay = np.array([d.delay for d in drivers], np.int64)
-        self.rngs = [np.random.default_rng(s) for s in seeds]
-        self.queue = None  # (max delay + 1, N, 2): the actions decided, newest last
-
-    def __call__(self, actions: np.ndarray) -> np.ndarray:
-        """``(N, 2)`` policy actions (target speed, steering) to the actions applied."""
-        noise = np.array([rng.standard_normal() for rng in self.rngs], np.float32) * self.noise
-        steer = np.clip(self.gain * actions[:, 1] + self.bias + noise, -1.0, 1.0)
-        target = np.clip(self.speed * actions[:, 0], 0.0, SPEED_MAX)
-        decided = np.stack([target, steer], 1).astype(np.float32)
-        if self.queue is None:  # a drive starts with its first decision already in the past
-            self.queue = np.repeat(decided[None], self.delay.max() + 1, 0)
-        self.queue = np.concatenate([self.queue[1:], decided[None]])
-        return self.queue[-1 - self.delay, np.arange(len(self.delay))]
-
-
-class ChangedAgent(ClonedAgent):
-    """``ClonedAgent`` whose every decision passes through a driver's ``Changes``."""
-
-    def __init__(self, driver: Driver, seed: int, model=None, threads: int = 1):
-        self.driver, self.seed = driver, seed
-        # The family changes the policy's own drive: no racing pace, no turns of the bearings.
-        super().__init__(model, threads, pace=None, bearings=False)
-
-    def reset(self) -> None:
-        super().reset()
-        self.changes = Changes([self.driver], [self.seed])
-
-    def decide(self, z: np.ndarray) -> tuple:
-        target, steer = self.changes(self.sim.act(z, self.h)[None])[0]
-        return float(target), float(steer)
 
 
 def start_decisions(decisions: int, starts: int, horizon: int, warmup: int) -> list:
@@ -156,11 +85,18 @@ def kept_actions(drive: str) -> bool:
         return "actions" in f.files
 
 
+def drive_name(args, index: int, seed: int) -> str:
+    """The file of driver ``index``'s drive of track ``seed`` in ``--out``: the family's name
+    first (families share ``--out`` and the behaviour drive), but for the full family, whose
+    runs kept these names before there were others."""
+    return f"{'' if args.family_name == 'all' else args.family_name + '_'}{index}_{seed}.json"
+
+
 def real_job(job) -> dict:
     """One driver on one track: read from ``--out`` when an earlier run drove it (the behaviour
     drive again where ``--windows`` needs the actions an older run did not keep)."""
     args, index, seed = job
-    path = os.path.join(args.out, "real", f"{index}_{seed}.json")
+    path = os.path.join(args.out, "real", drive_name(args, index, seed))
     drive = os.path.join(args.out, f"drive_{seed}.npz")
     if os.path.exists(path) and not (index == 0 and args.windows and not kept_actions(drive)):
         with open(path) as f:
@@ -351,7 +287,7 @@ def print_report(out: dict) -> None:
               f"{w['off_road_gap']:.2f}")
     if "road_memory" in out:
         steps = [s for s in (1, 3, 5, 8, 10, 20, 40) if s <= len(out["road_memory"])]
-        print(f"road memory (the unchanged driver's steering, dream against real, correlation after N decisions): "
+        print("road memory (the unchanged driver's steering, dream against real, correlation after N decisions): "
               + ", ".join(f"{s}: {out['road_memory'][s - 1]:+.2f}" for s in steps))
 
 
@@ -362,8 +298,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="folder for the real drives and the report (resumable)")
     p.add_argument("--weights", help="the drivers' weight file: their policy (default: the built-in model)")
     p.add_argument("--world", help="the world model's weight file: the transition and heads that dream (default: --weights)")
-    p.add_argument("--family", choices=["all", "small"], default="all",
-                   help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests)")
+    p.add_argument("--family", choices=list(FAMILIES), default="all",
+                   help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests); holds: the clone and "
+                        f"{len(HOLDS) - 1} constant steerings (with --windows --horizon 20)")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
     p.add_argument("--starts", type=int, default=7, help="starts per track")
     p.add_argument("--temperature", type=float, default=0.0, help="sampled futures (0: the mean dream)")
@@ -389,7 +326,7 @@ def main(argv=None) -> int:
             p.error(f"{flag}: {e}")
         if flag == "--weights" and model.policy_width is None:
             p.error("--weights: the model has no policy to drive with")
-    args.family = FAMILY if args.family == "all" else SMALL
+    args.family_name, args.family = args.family, FAMILIES[args.family]
     os.makedirs(os.path.join(args.out, "real"), exist_ok=True)
     # Each track's unchanged driver first: its drive leaves the dream's starts.
     jobs = [(args, i, seed) for i in range(len(args.family)) for seed in args.seeds]

@@ -22,6 +22,7 @@ import os
 import numpy as np
 
 from .._files import atomic_write
+from .family import ChangedAgent
 from .record import decision, wheel_on_road
 from .view import observe, speed, unseen
 
@@ -64,7 +65,7 @@ def replay(env, actions: np.ndarray, frame_skip: int) -> None:
 
 
 def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int) -> tuple[list, list]:
-    """``agent`` (a ``rank.ChangedAgent``, just reset) takes over the env ``decisions`` decisions
+    """``agent`` (a ``family.ChangedAgent``, just reset) takes over the env ``decisions`` decisions
     into the drive with hidden state ``h`` and drives ``horizon`` decisions (fewer where the
     episode ends): each decision's reward and whether the car was off the road as it decided."""
     agent.decisions, agent.h = decisions, np.array(h, np.float32)  # past the warm-up, the drive's memory
@@ -92,14 +93,14 @@ def window_job(job) -> dict:
     from . import rank
 
     args, index, seed = job
-    path = os.path.join(windows_dir(args), f"{index}_{seed}.json")
+    path = os.path.join(windows_dir(args), rank.drive_name(args, index, seed))
     if os.path.exists(path):
         with open(path) as f:
             return json.load(f)
     with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
         drive = {k: f[k] for k in f.files}
     starts, at = rank.window_starts(drive, args.starts, args.horizon)
-    agent = rank.ChangedAgent(args.family[index], seed=0, model=rank.process_model(args.weights))
+    agent = ChangedAgent(args.family[index], seed=0, model=rank.process_model(args.weights))
     env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
     returns, off_road = [], []
     for j, (start, t) in enumerate(zip(starts, at)):
