@@ -82,6 +82,15 @@ def test_road_memory_is_the_correlation_step_by_step():
     assert memory[:2] == pytest.approx([1.0, 1.0]) and abs(memory[2]) < 0.4 and np.isnan(memory[3])
 
 
+def test_each_familys_drives_are_kept_under_their_own_names():
+    """Families share ``--out`` (and the behaviour drive): driver 1 of ``small`` is not driver 1
+    of ``all``, so a run of one never reads the other's drives; ``all`` keeps its old names."""
+    from types import SimpleNamespace
+
+    names = {f: rank.drive_name(SimpleNamespace(family_name=f), 1, 7) for f in rank.FAMILIES}
+    assert names["all"] == "1_7.json" and len(set(names.values())) == len(names)
+
+
 def test_start_decisions_leave_the_horizon_and_refuse_a_short_drive():
     starts = rank.start_decisions(250, 7, 40, 12)
     assert len(starts) == 7 and starts[0] == 20 and starts[-1] == 250 - 40
