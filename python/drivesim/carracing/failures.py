@@ -65,10 +65,10 @@ def fast_family():
 
 
 def holds_family():
-    """The clone at its own pace with holds (``rank.Driver.holds``): now and then a constant
+    """The clone at its own pace with holds (``family.Driver.holds``): now and then a constant
     steering for 0.16-0.64 s, whatever the road does. At 55 units/s a hold of 0.1 takes the real
     car off the road in about 0.6 s, one of 0.25 or more in 0.5 s (the grip is spent); the slow
-    `holds` recordings (15-45 units/s) never show it. Two drivers also drive faster."""
+    `holds` recordings (15-45 units/s) never show it. One driver also drives faster, one slower."""
     from .family import Driver
 
     return [

@@ -71,13 +71,15 @@ class Changes:
         self.rngs = [np.random.default_rng(s) for s in seeds]
         # Each row's hold: its steering, the decisions it has left, and the decisions until the next.
         self.hold_steer, self.hold_left = np.zeros(len(drivers), np.float32), np.zeros(len(drivers), np.int64)
-        self.until_hold = np.array([rng.integers(*HOLD_EVERY, endpoint=True) if h > 0 else 0 for rng, h in zip(self.rngs, self.holds)])
+        self.until_hold = np.array([rng.integers(*HOLD_EVERY, endpoint=True) if h > 0 else 0
+                                    for rng, h in zip(self.rngs, self.holds)])
         self.queue = None  # (max delay + 1, N, 2): the actions decided, newest last
 
     def __call__(self, actions: np.ndarray) -> np.ndarray:
         """``(N, 2)`` policy actions (target speed, steering) to the actions applied."""
         noise = np.array([rng.standard_normal() for rng in self.rngs], np.float32) * self.noise
-        steer = np.where(self.hold_tick(), self.hold_steer, np.clip(self.gain * actions[:, 1] + self.bias + noise, -1.0, 1.0))
+        steer = np.clip(self.gain * actions[:, 1] + self.bias + noise, -1.0, 1.0)
+        steer = np.where(self.hold_tick(), self.hold_steer, steer)
         target = np.clip(self.speed * actions[:, 0], 0.0, SPEED_MAX)
         decided = np.stack([target, steer], 1).astype(np.float32)
         if self.queue is None:  # a drive starts with its first decision already in the past
