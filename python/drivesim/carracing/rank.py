@@ -23,9 +23,9 @@ the correlation falls where the dream's road stops being the real one).
 ``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
 ``--weights`` and step its transition for their own memory): a world model is judged without
 changing the drivers. ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another
-``--family``'s with its name first; the behaviour drive in ``drive_SEED.npz``): a run that stops resumes where it was, and another ``--world`` or
-``--horizon`` reuses the real drives; the report goes to ``rank.json`` (``--report``: another
-name).
+``--family``'s with its name first; the behaviour drive in ``drive_SEED.npz``): a run that stops
+resumes where it was, and another ``--world`` or ``--horizon`` reuses the real drives; the report
+goes to ``rank.json`` (``--report``: another name).
 """
 
 from __future__ import annotations
