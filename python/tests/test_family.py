@@ -50,6 +50,20 @@ def test_holds_hold_a_constant_steering_now_and_then_and_leave_other_rows_alone(
     np.testing.assert_array_equal(applied[:, 1], np.stack([alone(policy[:1])[0] for _ in range(400)]))
 
 
+def test_releases_take_the_hands_off_the_wheel_now_and_then():
+    drivers = [family.Driver("r", release=12), family.Driver("r+h", release=12, holds=0.3)]
+    changes = family.Changes(drivers, [7, 8])
+    applied = np.stack([changes(np.array([[40.0, 0.02]] * 2, np.float32)) for _ in range(600)])
+    released = applied[:, 0, 1] == 0.0
+    edges = np.diff(np.concatenate([[0], released.astype(int), [0]]))
+    lengths = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+    assert len(lengths) >= 12 and lengths.min() >= family.RELEASE_SHORTEST and lengths.max() <= 12
+    assert set(np.unique(applied[:, 0, 1])) == {np.float32(0.0), np.float32(0.02)}
+    # With holds too, some of the row's holds are releases and some a constant steering.
+    held = applied[:, 1, 1][applied[:, 1, 1] != np.float32(0.02)]
+    assert np.any(held == 0.0) and np.any(np.abs(held) >= 0.05)
+
+
 def test_the_unchanged_driver_drives_as_the_clone():
     from drivesim.carracing.agents import ClonedAgent
 

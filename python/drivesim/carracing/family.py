@@ -1,6 +1,6 @@
 """The changed drivers: the cloned policy with one or two things changed (steering gain, a
 steering bias, the target speed scaled, seeded steering noise, a delay, holds of a constant
-steering), the same code for a real drive (``ChangedAgent``) and for a batch of drives in the
+steering, the hands off the wheel now and then), the same code for a real drive (``ChangedAgent``) and for a batch of drives in the
 dream (``Changes``, a row per drive). The rank probe's families are here
 (``drivesim.carracing.rank``); the failure data's are its own (``drivesim.carracing.failures``).
 """
@@ -21,7 +21,10 @@ class Driver:
     normal with sd ``noise``, clipped to [-1, 1]), the target speed times ``speed``, every
     action applied ``delay`` decisions late, and (``holds`` > 0) now and then a hold: a constant
     steering of 0.05 to ``holds`` either way for ``HOLD_DECISIONS``, every ``HOLD_EVERY``
-    decisions or so, whatever the road does (what steering does at the policy's pace)."""
+    decisions or so, whatever the road does (what steering does at the policy's pace); and
+    (``release`` > 0) now and then the hands off the wheel: steering 0 for ``RELEASE_SHORTEST`` to
+    ``release`` decisions, as often as the holds (what the road does when nobody steers: it
+    bends away)."""
 
     name: str
     gain: float = 1.0
@@ -30,10 +33,13 @@ class Driver:
     noise: float = 0.0
     delay: int = 0
     holds: float = 0.0
+    release: int = 0
 
 
 #: A hold's length and the decisions between holds (drawn uniformly; 12.5 decisions a second).
 HOLD_DECISIONS, HOLD_EVERY = (2, 8), (12, 38)
+#: The shortest release of the wheel, in decisions (its longest is the driver's ``release``).
+RELEASE_SHORTEST = 4
 
 
 FAMILY = [
@@ -53,8 +59,10 @@ FAMILY = [
 SMALL = [FAMILY[0], FAMILY[5], FAMILY[6]]
 #: The clone's own pace with a constant steering from the start, whatever the road does: at 55
 #: units/s the real car leaves the road within about 7 decisions. With ``--windows --horizon 20``
-#: it measures whether the dream carries the car off the road when steering alone would.
-HOLDS = [FAMILY[0]] + [Driver(f"hold {b:+.2f}", gain=0.0, bias=b) for b in (-0.5, -0.25, -0.1, 0.1, 0.25, 0.5)]
+#: it measures whether the dream carries the car off the road when steering alone would; the last,
+#: hands off the wheel from the start, whether it does when the road bends and nobody steers.
+HOLDS = [FAMILY[0]] + [Driver(f"hold {b:+.2f}", gain=0.0, bias=b) for b in (-0.5, -0.25, -0.1, 0.1, 0.25, 0.5)] \
+    + [Driver("hands off", gain=0.0)]
 FAMILIES = {"all": FAMILY, "small": SMALL, "holds": HOLDS}
 
 
@@ -68,11 +76,12 @@ class Changes:
             np.array([getattr(d, f) for d in drivers], np.float32) for f in ("gain", "bias", "speed", "noise"))
         self.delay = np.array([d.delay for d in drivers], np.int64)
         self.holds = np.array([d.holds for d in drivers], np.float32)
+        self.release = np.array([d.release for d in drivers], np.int64)
         self.rngs = [np.random.default_rng(s) for s in seeds]
         # Each row's hold: its steering, the decisions it has left, and the decisions until the next.
         self.hold_steer, self.hold_left = np.zeros(len(drivers), np.float32), np.zeros(len(drivers), np.int64)
-        self.until_hold = np.array([rng.integers(*HOLD_EVERY, endpoint=True) if h > 0 else 0
-                                    for rng, h in zip(self.rngs, self.holds)])
+        self.until_hold = np.array([rng.integers(*HOLD_EVERY, endpoint=True) if h > 0 or r > 0 else 0
+                                    for rng, h, r in zip(self.rngs, self.holds, self.release)])
         self.queue = None  # (max delay + 1, N, 2): the actions decided, newest last
 
     def __call__(self, actions: np.ndarray) -> np.ndarray:
@@ -89,14 +98,19 @@ class Changes:
 
     def hold_tick(self) -> np.ndarray:
         """One decision of the rows' holds: which rows hold their steering now (a hold drawn where
-        one is due; only rows with holds draw, so the others' noise stays as it was)."""
-        for i in np.flatnonzero(self.holds > 0):
+        one is due, a release of the wheel where the row has releases (half of them where it has
+        holds too); only rows with holds or releases draw, so the others' noise stays as it was)."""
+        for i in np.flatnonzero((self.holds > 0) | (self.release > 0)):
             if self.hold_left[i] == 0:
                 self.until_hold[i] -= 1
                 if self.until_hold[i] <= 0:
                     rng = self.rngs[i]
-                    self.hold_steer[i] = rng.choice([-1.0, 1.0]) * rng.uniform(0.05, self.holds[i])
-                    self.hold_left[i] = rng.integers(*HOLD_DECISIONS, endpoint=True)
+                    if self.release[i] > 0 and (self.holds[i] == 0 or rng.random() < 0.5):
+                        self.hold_steer[i] = 0.0
+                        self.hold_left[i] = rng.integers(RELEASE_SHORTEST, max(RELEASE_SHORTEST, self.release[i]), endpoint=True)
+                    else:
+                        self.hold_steer[i] = rng.choice([-1.0, 1.0]) * rng.uniform(0.05, self.holds[i])
+                        self.hold_left[i] = rng.integers(*HOLD_DECISIONS, endpoint=True)
                     self.until_hold[i] = rng.integers(*HOLD_EVERY, endpoint=True)
         holding = self.hold_left > 0
         self.hold_left[holding] -= 1

@@ -300,7 +300,7 @@ def main(argv=None) -> int:
     p.add_argument("--world", help="the world model's weight file: the transition and heads that dream (default: --weights)")
     p.add_argument("--family", choices=list(FAMILIES), default="all",
                    help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests); holds: the clone and "
-                        f"{len(HOLDS) - 1} constant steerings (with --windows --horizon 20)")
+                        f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20)")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
     p.add_argument("--starts", type=int, default=7, help="starts per track")
     p.add_argument("--temperature", type=float, default=0.0, help="sampled futures (0: the mean dream)")
