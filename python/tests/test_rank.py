@@ -49,7 +49,8 @@ def test_the_dream_batch_and_the_value_at_the_horizon():
     plain = rank.dream(sim, sim, family, starts, 6, 0, False)
     valued = rank.dream(sim, sim, family, starts, 6, 0, True)
     assert plain["return"].shape == plain["off_road"].shape == (2, 3)
-    assert plain["steer"].shape == (2, 3, 6) and np.all(np.abs(plain["steer"]) <= 1)
+    assert plain["steer"].shape == plain["off_steps"].shape == (2, 3, 6) and np.all(np.abs(plain["steer"]) <= 1)
+    np.testing.assert_allclose(plain["off_steps"].mean(2), plain["off_road"])
     assert np.all(plain["steer"][1] >= plain["steer"][0] - 1e-6)  # the bias pulls right (clipped at 1)
     assert np.isfinite(plain["return"]).all() and ((0 <= plain["off_road"]) & (plain["off_road"] <= 1)).all()
     assert not np.allclose(plain["return"][0], plain["return"][1])
@@ -70,6 +71,10 @@ def test_spearman_and_regret():
     assert s["favourite"] == "b"
     assert s["regret_at_1"] == pytest.approx(1.0)
     assert s["off_road_gap"] == pytest.approx(0.25)
+
+
+def test_a_window_cut_short_keeps_its_last_flag_to_the_horizon():
+    np.testing.assert_array_equal(rank.flags_padded([[0, 1, 1, 0], [0, 1]], 4), [[0, 1, 1, 0], [0, 1, 1, 1]])
 
 
 def test_road_memory_is_the_correlation_step_by_step():

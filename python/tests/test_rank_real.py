@@ -57,6 +57,16 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
         decisions, _ = rank.window_starts(drive, 2, 4)
         kept = np.mean([drive["rewards"][d:d + 4].sum() for d in decisions])
         assert windows["per_track"]["real"][0][t] == pytest.approx(kept, abs=1e-3)
+    # Each decision's off-road share: the unchanged driver's is its drives' flags there.
+    by_decision = windows["off_by_decision"]
+    assert np.shape(by_decision["real"]) == np.shape(by_decision["dream"]) == (len(SMALL), 4)
+    assert all(0 <= x <= 1 for row in by_decision["real"] + by_decision["dream"] for x in row)
+    flags = []
+    for seed in (3, 4):
+        with np.load(tmp_path / f"drive_{seed}.npz") as f:
+            drive = {k: f[k] for k in f.files}
+        flags += [drive["off"][d:d + 4] for d in rank.window_starts(drive, 2, 4)[0]]
+    np.testing.assert_allclose(by_decision["real"][0], np.mean(flags, 0))
     # A behaviour drive kept without its actions (an older run) is driven again.
     with np.load(tmp_path / "drive_3.npz") as f:
         old = {k: f[k] for k in f.files if k not in ("actions", "rewards", "off")}
@@ -65,3 +75,9 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
     with np.load(tmp_path / "drive_3.npz") as f:
         assert "actions" in f.files
     assert json.loads((tmp_path / "rank.json").read_text())["windows"] == windows
+    # A window kept without its flags (an older run) is driven again, to the same figures.
+    path = tmp_path / "windows_4x2" / "small_1_3.json"
+    old = json.loads(path.read_text())
+    path.write_text(json.dumps({k: v for k, v in old.items() if k != "off"}))
+    subprocess.run(command, check=True, capture_output=True, timeout=600)
+    assert json.loads(path.read_text()) == old

@@ -143,8 +143,8 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
           use_value: bool) -> dict:
     """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` (with the
     value at the horizon where ``use_value``), ``rewards`` (without it) and ``off_road`` (its
-    chance, averaged) ``(drivers, starts)``, and ``steer``, the steering applied, ``(drivers,
-    starts, horizon)``. The drivers' policy reads the codes the world
+    chance, averaged) ``(drivers, starts)``, and ``steer``, the steering applied, and
+    ``off_steps``, each decision's off-road chance, ``(drivers, starts, horizon)``. The drivers' policy reads the codes the world
     predicts, and their hidden states step on their own model's transition (as a real drive
     steps them on the codes of what the car sees); the world's transition predicts the codes,
     its reward head scores them."""
@@ -154,7 +154,7 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     v = np.tile(starts["speed"], n).astype(np.float32)
     drivers = [d for d in family for _ in range(k)]
     changes = Changes(drivers, [dream_row_seed(seed, i, j, k) for i in range(n) for j in range(k)])
-    total, off, steers = np.zeros(n * k), np.zeros(n * k), np.zeros((n * k, horizon), np.float32)
+    total, steers, off = np.zeros(n * k), np.zeros((n * k, horizon), np.float32), np.zeros((n * k, horizon))
     for step in range(horizon):
         target, steer = changes(driver.act(z, h)).T
         steers[:, step] = steer
@@ -166,10 +166,17 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
         v = speed_after(v, target).astype(np.float32)
         reward = world.reward(z, h_world)
         total += reward[:, 0]
-        off += reward[:, 1]
+        off[:, step] = reward[:, 1]
     tail = world.value(z, h_world)[:, 0] if use_value else 0.0
-    return {"return": (total + tail).reshape(n, k), "rewards": total.reshape(n, k), "off_road": (off / horizon).reshape(n, k),
-            "steer": steers.reshape(n, k, horizon)}
+    return {"return": (total + tail).reshape(n, k), "rewards": total.reshape(n, k),
+            "off_road": off.mean(1).reshape(n, k), "steer": steers.reshape(n, k, horizon),
+            "off_steps": off.reshape(n, k, horizon)}
+
+
+def flags_padded(windows: list, horizon: int) -> np.ndarray:
+    """A real window's off-road flags, ``(windows, horizon)``: a window the episode's end cut
+    short keeps its last flag to the horizon (the car stays where it ended)."""
+    return np.array([w + w[-1:] * (horizon - len(w)) for w in windows], float)
 
 
 def road_memory(dreamt: np.ndarray, real: np.ndarray) -> list:
@@ -235,7 +242,7 @@ def report(args, results: list, windowed: list) -> dict:
     real = {(r["driver"], r["seed"]): r for r in results}
     shape = (len(family), len(seeds))
     real_score, real_off, dream_return, dream_off, dream_rewards = (np.zeros(shape) for _ in range(5))
-    steer_dreamt, steer_real = [], []
+    steer_dreamt, steer_real, dream_steps = [], [], []
     start = time.perf_counter()
     for t, seed in enumerate(seeds):
         with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
@@ -243,6 +250,7 @@ def report(args, results: list, windowed: list) -> dict:
         d = dream(driver, world, family, starts, args.horizon, seed, args.value)
         dream_return[:, t], dream_off[:, t] = d["return"].mean(1), d["off_road"].mean(1)
         dream_rewards[:, t] = d["rewards"].mean(1)
+        dream_steps.append(d["off_steps"])
         steer_dreamt.append(d["steer"][0])
         steer_real.append(starts["steer"])
         for i in range(len(family)):
@@ -257,6 +265,9 @@ def report(args, results: list, windowed: list) -> dict:
                 win_return[i, t], win_off[i, t] = np.mean(got[i, seed]["return"]), np.mean(got[i, seed]["off_road"])
         out["windows"] = summary(family, win_return, win_off, dream_rewards, dream_off)
         out["windows"]["per_track"] = {"real": win_return.tolist(), "dream": dream_rewards.tolist()}
+        real_steps = [[flags_padded(got[i, seed]["off"], args.horizon) for seed in seeds] for i in range(len(family))]
+        out["windows"]["off_by_decision"] = {"real": np.mean(real_steps, (1, 2)).tolist(),
+                                             "dream": np.concatenate(dream_steps, 1).mean(1).tolist()}
     if family[0] == Driver(family[0].name):  # unchanged: its real drive is the behaviour drive
         out["road_memory"] = road_memory(np.concatenate(steer_dreamt), np.concatenate(steer_real))
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
@@ -282,6 +293,11 @@ def print_report(out: dict) -> None:
         for d in w["drivers"]:
             print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_off_road']:8.1%} {d['dream']:8.1f} "
                   f"{d['dream_off_road']:8.1%}")
+        steps = [s for s in (5, 10, 20, 40) if s <= out["horizon"]]
+        print("\noff the road at decision N of the windows, real / dream:\n" + f"{'driver':24}"
+              + "".join(f"{s:>12}" for s in steps))
+        for d, real, dream in zip(w["drivers"], w["off_by_decision"]["real"], w["off_by_decision"]["dream"]):
+            print(f"{d['driver']['name']:24}" + "".join(f"{real[s - 1]:>6.0%} /{dream[s - 1]:>4.0%}" for s in steps))
         print(f"windows: Spearman {w['spearman']:+.2f} ({w['spearman_per_track']:+.2f} per track); regret@1 "
               f"{w['regret_at_1']:.2f} ({w['favourite']}); Pearson {w['pearson']:+.2f}; the largest off-road gap "
               f"{w['off_road_gap']:.2f}")

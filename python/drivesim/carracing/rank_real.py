@@ -86,8 +86,9 @@ def windows_dir(args) -> str:
 
 
 def window_job(job) -> dict:
-    """One driver's windows on one track (``rank.window_starts``): their returns and off-road
-    shares, read from ``--out`` when an earlier run drove them."""
+    """One driver's windows on one track (``rank.window_starts``): their returns, off-road shares
+    and each decision's off-road flag, read from ``--out`` when an earlier run drove them (one
+    from before the flags were kept is driven again)."""
     import gymnasium
 
     from . import rank
@@ -96,13 +97,15 @@ def window_job(job) -> dict:
     path = os.path.join(windows_dir(args), rank.drive_name(args, index, seed))
     if os.path.exists(path):
         with open(path) as f:
-            return json.load(f)
+            kept = json.load(f)
+        if "off" in kept:
+            return kept
     with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
         drive = {k: f[k] for k in f.files}
     starts, at = rank.window_starts(drive, args.starts, args.horizon)
     agent = ChangedAgent(args.family[index], seed=0, model=rank.process_model(args.weights))
     env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
-    returns, off_road = [], []
+    returns, off_road, flags = [], [], []
     for j, (start, t) in enumerate(zip(starts, at)):
         agent.seed = rank.dream_row_seed(seed, index, j, len(starts))
         agent.reset()
@@ -111,8 +114,9 @@ def window_job(job) -> dict:
         rewards, off = drive_window(env, agent, drive["h"][t], start, args.horizon)
         returns.append(float(np.sum(rewards)))
         off_road.append(float(np.mean(off)))
+        flags.append([int(o) for o in off])
     env.close()
-    out = {"driver": index, "seed": seed, "return": returns, "off_road": off_road}
+    out = {"driver": index, "seed": seed, "return": returns, "off_road": off_road, "off": flags}
     with atomic_write(path) as f:
         f.write(json.dumps(out).encode())
     return out
