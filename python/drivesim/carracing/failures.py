@@ -88,7 +88,8 @@ def release_family():
     return [
         Driver("release 10", release=10), Driver("release 16", release=16),
         Driver("release 12, holds 0.3", release=12, holds=0.3),
-        Driver("release 12, speed 1.15", release=12, speed=1.15), Driver("release 12, speed 0.8", release=12, speed=0.8),
+        Driver("release 12, speed 1.15", release=12, speed=1.15),
+        Driver("release 12, speed 0.8", release=12, speed=0.8),
     ]
 
 

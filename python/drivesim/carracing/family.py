@@ -1,8 +1,9 @@
 """The changed drivers: the cloned policy with one or two things changed (steering gain, a
 steering bias, the target speed scaled, seeded steering noise, a delay, holds of a constant
-steering, the hands off the wheel now and then), the same code for a real drive (``ChangedAgent``) and for a batch of drives in the
-dream (``Changes``, a row per drive). The rank probe's families are here
-(``drivesim.carracing.rank``); the failure data's are its own (``drivesim.carracing.failures``).
+steering, the hands off the wheel now and then), the same code for a real drive
+(``ChangedAgent``) and for a batch of drives in the dream (``Changes``, a row per drive). The
+rank probe's families are here (``drivesim.carracing.rank``); the failure data's are its own
+(``drivesim.carracing.failures``).
 """
 
 from __future__ import annotations
@@ -107,7 +108,8 @@ class Changes:
                     rng = self.rngs[i]
                     if self.release[i] > 0 and (self.holds[i] == 0 or rng.random() < 0.5):
                         self.hold_steer[i] = 0.0
-                        self.hold_left[i] = rng.integers(RELEASE_SHORTEST, max(RELEASE_SHORTEST, self.release[i]), endpoint=True)
+                        longest = max(RELEASE_SHORTEST, self.release[i])
+                        self.hold_left[i] = rng.integers(RELEASE_SHORTEST, longest, endpoint=True)
                     else:
                         self.hold_steer[i] = rng.choice([-1.0, 1.0]) * rng.uniform(0.05, self.holds[i])
                         self.hold_left[i] = rng.integers(*HOLD_DECISIONS, endpoint=True)

@@ -144,10 +144,10 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` (with the
     value at the horizon where ``use_value``), ``rewards`` (without it) and ``off_road`` (its
     chance, averaged) ``(drivers, starts)``, and ``steer``, the steering applied, and
-    ``off_steps``, each decision's off-road chance, ``(drivers, starts, horizon)``. The drivers' policy reads the codes the world
-    predicts, and their hidden states step on their own model's transition (as a real drive
-    steps them on the codes of what the car sees); the world's transition predicts the codes,
-    its reward head scores them."""
+    ``off_steps``, each decision's off-road chance, ``(drivers, starts, horizon)``. The drivers'
+    policy reads the codes the world predicts, and their hidden states step on their own model's
+    transition (as a real drive steps them on the codes of what the car sees); the world's
+    transition predicts the codes, its reward head scores them."""
     k, n = len(starts["speed"]), len(family)
     tile = lambda a: np.ascontiguousarray(np.tile(a, (n, 1)), np.float32)  # noqa: E731
     z, h, h_world = tile(starts["z"]), tile(starts["h"]), tile(starts["h_world"])
@@ -265,7 +265,8 @@ def report(args, results: list, windowed: list) -> dict:
                 win_return[i, t], win_off[i, t] = np.mean(got[i, seed]["return"]), np.mean(got[i, seed]["off_road"])
         out["windows"] = summary(family, win_return, win_off, dream_rewards, dream_off)
         out["windows"]["per_track"] = {"real": win_return.tolist(), "dream": dream_rewards.tolist()}
-        real_steps = [[flags_padded(got[i, seed]["off"], args.horizon) for seed in seeds] for i in range(len(family))]
+        real_steps = [[flags_padded(got[i, seed]["off"], args.horizon) for seed in seeds]
+                      for i in range(len(family))]
         out["windows"]["off_by_decision"] = {"real": np.mean(real_steps, (1, 2)).tolist(),
                                              "dream": np.concatenate(dream_steps, 1).mean(1).tolist()}
     if family[0] == Driver(family[0].name):  # unchanged: its real drive is the behaviour drive
