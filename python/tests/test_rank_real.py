@@ -45,6 +45,7 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
                "small", "--frames", "160", "--horizon", "4", "--starts", "2", "--windows"]
     run = subprocess.run(command, check=True, capture_output=True, text=True, timeout=600)
     assert "windows: Spearman" in run.stdout
+    assert f"off the road at decision N of the windows, real / dream:\n{'driver':24}{4:>12}\n" in run.stdout
     report = json.loads((tmp_path / "rank.json").read_text())
     windows = report["windows"]
     assert [d["driver"]["name"] for d in windows["drivers"]] == [d.name for d in SMALL]

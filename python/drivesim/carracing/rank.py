@@ -294,7 +294,7 @@ def print_report(out: dict) -> None:
         for d in w["drivers"]:
             print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_off_road']:8.1%} {d['dream']:8.1f} "
                   f"{d['dream_off_road']:8.1%}")
-        steps = [s for s in (5, 10, 20, 40) if s <= out["horizon"]]
+        steps = [s for s in (5, 10, 20) if s < out["horizon"]] + [out["horizon"]]  # the last always shown
         print("\noff the road at decision N of the windows, real / dream:\n" + f"{'driver':24}"
               + "".join(f"{s:>12}" for s in steps))
         for d, real, dream in zip(w["drivers"], w["off_by_decision"]["real"], w["off_by_decision"]["dream"]):
