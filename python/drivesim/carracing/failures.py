@@ -93,8 +93,26 @@ def release_family():
     ]
 
 
+def loop_family():
+    """Failures of the closed loop: late hands whose corrections overshoot, pulls the policy
+    corrects (or, at 0.3, cannot), and too much steering. The probe's late hands (delay 2, 4) go
+    off the road in 51-70 % of its windows after 20 decisions and L2's dream in 10-17 %; its pull
+    of +0.2 stays on in the real env (6 %) and leaves in the dream (59 %): the dream's policy
+    stops correcting. None is one of the probe's."""
+    from .family import Driver
+
+    return [
+        Driver("delay 1", delay=1), Driver("delay 3", delay=3), Driver("delay 5", delay=5),
+        Driver("delay 3, speed 0.8", delay=3, speed=0.8), Driver("delay 1, speed 1.2", delay=1, speed=1.2),
+        Driver("bias +0.1", bias=0.1), Driver("bias -0.1", bias=-0.1), Driver("bias +0.3", bias=0.3),
+        Driver("bias -0.3", bias=-0.3), Driver("bias +0.15, speed 1.1", bias=0.15, speed=1.1),
+        Driver("gain 1.7", gain=1.7), Driver("gain 2.5", gain=2.5), Driver("gain 3, speed 0.9", gain=3.0, speed=0.9),
+    ]
+
+
 #: The families `--family` names: the first is the default.
-FAMILIES = {"changes": training_family, "fast": fast_family, "holds": holds_family, "release": release_family}
+FAMILIES = {"changes": training_family, "fast": fast_family, "holds": holds_family, "release": release_family,
+            "loop": loop_family}
 
 
 _model = None  # this worker's model, loaded at its first drive
