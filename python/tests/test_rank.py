@@ -58,6 +58,23 @@ def test_the_dream_batch_and_the_value_at_the_horizon():
     np.testing.assert_array_equal(valued["off_road"], plain["off_road"])
 
 
+def test_the_world_given_the_dreams_own_inputs_open_loop_is_the_dream():
+    """``open_loop`` replays inputs without a driver: given the speeds and steerings a dream
+    stepped with, each decision's off-road chance is the dream's, bit for bit."""
+    model = drivesim.Model.load()
+    sim = drivesim.Simulator(model, batch=6)
+    rng = np.random.default_rng(3)
+    starts = {"z": rng.standard_normal((3, model.z_dim)).astype(np.float32),
+              "h": np.zeros((3, model.hidden_dim), np.float32), "speed": np.float32([30, 40, 50])}
+    starts["h_world"] = starts["h"]
+    dreamt = rank.dream(sim, sim, [FAMILY[0], Driver("b", bias=0.5)], starts, 6, 0, False)
+    given = rank.open_loop(sim, starts, np.stack([dreamt["speed"], dreamt["steer"]], -1))
+    np.testing.assert_array_equal(given, dreamt["off_steps"])
+    assert dreamt["speed"].shape == (2, 3, 6) and np.all(dreamt["speed"][:, :, 0] == starts["speed"])
+    other = rank.open_loop(sim, starts, np.stack([dreamt["speed"], -dreamt["steer"]], -1))
+    assert not np.array_equal(other, given)
+
+
 def test_spearman_and_regret():
     assert rank.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
     assert rank.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)

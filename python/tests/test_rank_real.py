@@ -27,14 +27,15 @@ def test_a_window_of_the_unchanged_driver_is_its_drive_reward_for_reward():
         env.reset(seed=3)
         rank_real.replay(env, trace["actions"][:start], agent.frame_skip)
         agent.reset()
-        rewards, off = rank_real.drive_window(env, agent, states[start - agent.warmup][1], start, horizon)
+        rewards, off, actions = rank_real.drive_window(env, agent, states[start - agent.warmup][1], start, horizon)
         np.testing.assert_allclose(rewards, trace["rewards"][start:start + horizon], atol=1e-4)
         np.testing.assert_array_equal(off, trace["off"][start:start + horizon].astype(bool))
+        np.testing.assert_allclose(np.array(actions)[:, 1], trace["actions"][start:start + horizon, 0], atol=1e-4)
     # Another driver from the same state drives elsewhere.
     biased = ChangedAgent(Driver("b", bias=0.6), seed=0, model=model)
     env.reset(seed=3)
     rank_real.replay(env, trace["actions"][:20], agent.frame_skip)
-    rewards, _ = rank_real.drive_window(env, biased, states[20 - agent.warmup][1], 20, 20)
+    rewards, _, _ = rank_real.drive_window(env, biased, states[20 - agent.warmup][1], 20, 20)
     assert not np.allclose(rewards, trace["rewards"][20:40], atol=1e-4)
     env.close()
 
@@ -45,7 +46,7 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
                "small", "--frames", "160", "--horizon", "4", "--starts", "2", "--windows"]
     run = subprocess.run(command, check=True, capture_output=True, text=True, timeout=600)
     assert "windows: Spearman" in run.stdout
-    assert f"off the road at decision N of the windows, real / dream:\n{'driver':24}{4:>12}\n" in run.stdout
+    assert f"the real window's actions (open loop):\n{'driver':24}{4:>18}\n" in run.stdout
     report = json.loads((tmp_path / "rank.json").read_text())
     windows = report["windows"]
     assert [d["driver"]["name"] for d in windows["drivers"]] == [d.name for d in SMALL]
@@ -60,13 +61,19 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
         assert windows["per_track"]["real"][0][t] == pytest.approx(kept, abs=1e-3)
     # Each decision's off-road share: the unchanged driver's is its drives' flags there.
     by_decision = windows["off_by_decision"]
-    assert np.shape(by_decision["real"]) == np.shape(by_decision["dream"]) == (len(SMALL), 4)
-    assert all(0 <= x <= 1 for row in by_decision["real"] + by_decision["dream"] for x in row)
+    assert np.shape(by_decision["real"]) == np.shape(by_decision["dream"]) == np.shape(by_decision["open_loop"]) \
+        == (len(SMALL), 4)
+    assert all(0 <= x <= 1 for kind in by_decision.values() for row in kind for x in row)
     flags = []
     for seed in (3, 4):
         with np.load(tmp_path / f"drive_{seed}.npz") as f:
             drive = {k: f[k] for k in f.files}
-        flags += [drive["off"][d:d + 4] for d in rank.window_starts(drive, 2, 4)[0]]
+        decisions, at = rank.window_starts(drive, 2, 4)
+        flags += [drive["off"][d:d + 4] for d in decisions]
+        # ... and the inputs its windows keep (for the open loop) are the drive's own.
+        kept = json.loads((tmp_path / "windows_4x2" / f"small_0_{seed}.json").read_text())["actions"]
+        np.testing.assert_allclose(kept, [np.stack([drive["speed"][t:t + 4], drive["steer"][t:t + 4]], 1) for t in at],
+                                   atol=1e-3)
     np.testing.assert_allclose(by_decision["real"][0], np.mean(flags, 0))
     # A behaviour drive kept without its actions (an older run) is driven again.
     with np.load(tmp_path / "drive_3.npz") as f:
@@ -76,9 +83,9 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
     with np.load(tmp_path / "drive_3.npz") as f:
         assert "actions" in f.files
     assert json.loads((tmp_path / "rank.json").read_text())["windows"] == windows
-    # A window kept without its flags (an older run) is driven again, to the same figures.
+    # A window kept without its flags and inputs (an older run) is driven again, to the same figures.
     path = tmp_path / "windows_4x2" / "small_1_3.json"
     old = json.loads(path.read_text())
-    path.write_text(json.dumps({k: v for k, v in old.items() if k != "off"}))
+    path.write_text(json.dumps({k: v for k, v in old.items() if k not in ("off", "actions")}))
     subprocess.run(command, check=True, capture_output=True, timeout=600)
     assert json.loads(path.read_text()) == old

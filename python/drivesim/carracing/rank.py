@@ -144,7 +144,8 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` (with the
     value at the horizon where ``use_value``), ``rewards`` (without it) and ``off_road`` (its
     chance, averaged) ``(drivers, starts)``, and ``steer``, the steering applied, and
-    ``off_steps``, each decision's off-road chance, ``(drivers, starts, horizon)``. The drivers'
+    ``off_steps``, each decision's off-road chance, and ``speed``, the speed stepped with,
+    ``(drivers, starts, horizon)``. The drivers'
     policy reads the codes the world predicts, and their hidden states step on their own model's
     transition (as a real drive steps them on the codes of what the car sees); the world's
     transition predicts the codes, its reward head scores them."""
@@ -154,10 +155,11 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     v = np.tile(starts["speed"], n).astype(np.float32)
     drivers = [d for d in family for _ in range(k)]
     changes = Changes(drivers, [dream_row_seed(seed, i, j, k) for i in range(n) for j in range(k)])
-    total, steers, off = np.zeros(n * k), np.zeros((n * k, horizon), np.float32), np.zeros((n * k, horizon))
+    total, off = np.zeros(n * k), np.zeros((n * k, horizon))
+    steers, speeds = np.zeros((n * k, horizon), np.float32), np.zeros((n * k, horizon), np.float32)
     for step in range(horizon):
         target, steer = changes(driver.act(z, h)).T
-        steers[:, step] = steer
+        steers[:, step], speeds[:, step] = steer, v
         action = np.ascontiguousarray(np.stack([v, steer], 1), np.float32)
         _, h = driver.transition(z, h, action)
         z, h_world = world.transition(z, h_world, action)
@@ -170,12 +172,31 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     tail = world.value(z, h_world)[:, 0] if use_value else 0.0
     return {"return": (total + tail).reshape(n, k), "rewards": total.reshape(n, k),
             "off_road": off.mean(1).reshape(n, k), "steer": steers.reshape(n, k, horizon),
-            "off_steps": off.reshape(n, k, horizon)}
+            "speed": speeds.reshape(n, k, horizon), "off_steps": off.reshape(n, k, horizon)}
+
+
+def open_loop(world: Simulator, starts: dict, actions: np.ndarray) -> np.ndarray:
+    """The world stepped from the starts with given inputs, no driver in the loop: ``actions``
+    ``(drivers, starts, horizon, 2)`` (the speed and the steering, a real window's) to each
+    decision's off-road chance ``(drivers, starts, horizon)``. Against `dream` it tells the
+    world's dynamics (the real actions do not take its car off the road) from its loop (they do,
+    but its own driver does not act as the real one did)."""
+    n, k, horizon, _ = actions.shape
+    tile = lambda a: np.ascontiguousarray(np.tile(a, (n, 1)), np.float32)  # noqa: E731
+    z, h_world = tile(starts["z"]), tile(starts["h_world"])
+    rows = actions.reshape(n * k, horizon, 2).astype(np.float32)
+    off = np.zeros((n * k, horizon))
+    for step in range(horizon):
+        z, h_world = world.transition(z, h_world, np.ascontiguousarray(rows[:, step]))
+        if world.sampling[0] > 0:
+            z = world.sample(h_world, step, z)
+        off[:, step] = world.reward(z, h_world)[:, 1]
+    return off.reshape(n, k, horizon)
 
 
 def flags_padded(windows: list, horizon: int) -> np.ndarray:
-    """A real window's off-road flags, ``(windows, horizon)``: a window the episode's end cut
-    short keeps its last flag to the horizon (the car stays where it ended)."""
+    """A real window's off-road flags (or inputs), ``(windows, horizon, ...)``: a window the
+    episode's end cut short keeps its last to the horizon (the car stays where it ended)."""
     return np.array([w + w[-1:] * (horizon - len(w)) for w in windows], float)
 
 
@@ -231,7 +252,8 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
 def report(args, results: list, windowed: list) -> dict:
     """The dream's side for every track (from the starts the real drives left), then the figures:
     against the whole real drives, and (``windowed``, ``rank_real.window_job``'s) against the real
-    windows from the same starts (``windows``: the dream's rewards without the value)."""
+    windows from the same starts (``windows``: the dream's rewards without the value; each
+    decision's off-road share real, dreamt, and dreamt open loop on the real windows' inputs)."""
     family, seeds = args.family, args.seeds
     batch = len(family) * args.starts
     driver = Simulator(Model.load(args.weights), batch=batch, threads=args.threads)
@@ -242,7 +264,8 @@ def report(args, results: list, windowed: list) -> dict:
     real = {(r["driver"], r["seed"]): r for r in results}
     shape = (len(family), len(seeds))
     real_score, real_off, dream_return, dream_off, dream_rewards = (np.zeros(shape) for _ in range(5))
-    steer_dreamt, steer_real, dream_steps = [], [], []
+    steer_dreamt, steer_real, dream_steps, open_steps = [], [], [], []
+    got = {(w["driver"], w["seed"]): w for w in windowed}
     start = time.perf_counter()
     for t, seed in enumerate(seeds):
         with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
@@ -251,6 +274,9 @@ def report(args, results: list, windowed: list) -> dict:
         dream_return[:, t], dream_off[:, t] = d["return"].mean(1), d["off_road"].mean(1)
         dream_rewards[:, t] = d["rewards"].mean(1)
         dream_steps.append(d["off_steps"])
+        if windowed:
+            inputs = [flags_padded(got[i, seed]["actions"], args.horizon) for i in range(len(family))]
+            open_steps.append(open_loop(world, starts, np.array(inputs)))
         steer_dreamt.append(d["steer"][0])
         steer_real.append(starts["steer"])
         for i in range(len(family)):
@@ -258,7 +284,6 @@ def report(args, results: list, windowed: list) -> dict:
     seconds = time.perf_counter() - start
     out = summary(family, real_score, real_off, dream_return, dream_off)
     if windowed:
-        got = {(w["driver"], w["seed"]): w for w in windowed}
         win_return, win_off = np.zeros(shape), np.zeros(shape)
         for t, seed in enumerate(seeds):
             for i in range(len(family)):
@@ -268,7 +293,8 @@ def report(args, results: list, windowed: list) -> dict:
         real_steps = [[flags_padded(got[i, seed]["off"], args.horizon) for seed in seeds]
                       for i in range(len(family))]
         out["windows"]["off_by_decision"] = {"real": np.mean(real_steps, (1, 2)).tolist(),
-                                             "dream": np.concatenate(dream_steps, 1).mean(1).tolist()}
+                                             "dream": np.concatenate(dream_steps, 1).mean(1).tolist(),
+                                             "open_loop": np.concatenate(open_steps, 1).mean(1).tolist()}
     if family[0] == Driver(family[0].name):  # unchanged: its real drive is the behaviour drive
         out["road_memory"] = road_memory(np.concatenate(steer_dreamt), np.concatenate(steer_real))
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
@@ -295,10 +321,12 @@ def print_report(out: dict) -> None:
             print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_off_road']:8.1%} {d['dream']:8.1f} "
                   f"{d['dream_off_road']:8.1%}")
         steps = [s for s in (5, 10, 20) if s < out["horizon"]] + [out["horizon"]]  # the last always shown
-        print("\noff the road at decision N of the windows, real / dream:\n" + f"{'driver':24}"
-              + "".join(f"{s:>12}" for s in steps))
-        for d, real, dream in zip(w["drivers"], w["off_by_decision"]["real"], w["off_by_decision"]["dream"]):
-            print(f"{d['driver']['name']:24}" + "".join(f"{real[s - 1]:>6.0%} /{dream[s - 1]:>4.0%}" for s in steps))
+        print("\noff the road at decision N of the windows, real / dream / the dream given the real window's "
+              "actions (open loop):\n" + f"{'driver':24}" + "".join(f"{s:>18}" for s in steps))
+        by = w["off_by_decision"]
+        for d, real, dream, given in zip(w["drivers"], by["real"], by["dream"], by["open_loop"]):
+            print(f"{d['driver']['name']:24}"
+                  + "".join(f"{real[s - 1]:>6.0%} /{dream[s - 1]:>4.0%} /{given[s - 1]:>4.0%}" for s in steps))
         print(f"windows: Spearman {w['spearman']:+.2f} ({w['spearman_per_track']:+.2f} per track); regret@1 "
               f"{w['regret_at_1']:.2f} ({w['favourite']}); Pearson {w['pearson']:+.2f}; the largest off-road gap "
               f"{w['off_road_gap']:.2f}")

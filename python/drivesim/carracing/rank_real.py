@@ -64,20 +64,24 @@ def replay(env, actions: np.ndarray, frame_skip: int) -> None:
             decision(env, action, frame_skip)
 
 
-def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int) -> tuple[list, list]:
+def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int) -> tuple[list, list, list]:
     """``agent`` (a ``family.ChangedAgent``, just reset) takes over the env ``decisions`` decisions
     into the drive with hidden state ``h`` and drives ``horizon`` decisions (fewer where the
-    episode ends): each decision's reward and whether the car was off the road as it decided."""
+    episode ends): each decision's reward, whether the car was off the road as it decided, and
+    the transition's input (the speed and the steering applied: what the dream is given to
+    replay the window open loop)."""
     agent.decisions, agent.h = decisions, np.array(h, np.float32)  # past the warm-up, the drive's memory
-    rewards, off = [], []
+    rewards, off, actions = [], [], []
     for _ in range(horizon):
-        action = agent.act(observe(env), speed(env))
+        now = speed(env)
+        action = agent.act(observe(env), now)
         off.append(not wheel_on_road(env.unwrapped.car))
+        actions.append([round(float(now), 4), round(float(action[0]), 4)])
         reward, _, done = decision(env, action, agent.frame_skip)
         rewards.append(reward)
         if done:
             break
-    return rewards, off
+    return rewards, off, actions
 
 
 def windows_dir(args) -> str:
@@ -86,9 +90,9 @@ def windows_dir(args) -> str:
 
 
 def window_job(job) -> dict:
-    """One driver's windows on one track (``rank.window_starts``): their returns, off-road shares
-    and each decision's off-road flag, read from ``--out`` when an earlier run drove them (one
-    from before the flags were kept is driven again)."""
+    """One driver's windows on one track (``rank.window_starts``): their returns, off-road shares,
+    each decision's off-road flag and the transition's input, read from ``--out`` when an earlier
+    run drove them (one from before the flags and inputs were kept is driven again)."""
     import gymnasium
 
     from . import rank
@@ -98,25 +102,26 @@ def window_job(job) -> dict:
     if os.path.exists(path):
         with open(path) as f:
             kept = json.load(f)
-        if "off" in kept:
+        if "actions" in kept:
             return kept
     with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
         drive = {k: f[k] for k in f.files}
     starts, at = rank.window_starts(drive, args.starts, args.horizon)
     agent = ChangedAgent(args.family[index], seed=0, model=rank.process_model(args.weights))
     env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
-    returns, off_road, flags = [], [], []
+    returns, off_road, flags, inputs = [], [], [], []
     for j, (start, t) in enumerate(zip(starts, at)):
         agent.seed = rank.dream_row_seed(seed, index, j, len(starts))
         agent.reset()
         env.reset(seed=seed)
         replay(env, drive["actions"][:start], agent.frame_skip)
-        rewards, off = drive_window(env, agent, drive["h"][t], start, args.horizon)
+        rewards, off, actions = drive_window(env, agent, drive["h"][t], start, args.horizon)
         returns.append(float(np.sum(rewards)))
         off_road.append(float(np.mean(off)))
         flags.append([int(o) for o in off])
+        inputs.append(actions)
     env.close()
-    out = {"driver": index, "seed": seed, "return": returns, "off_road": off_road, "off": flags}
+    out = {"driver": index, "seed": seed, "return": returns, "off_road": off_road, "off": flags, "actions": inputs}
     with atomic_write(path) as f:
         f.write(json.dumps(out).encode())
     return out
