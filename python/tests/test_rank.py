@@ -36,15 +36,20 @@ def test_the_worlds_hidden_state_steps_along_the_behaviour_drive():
     np.testing.assert_array_equal(starts["z"], z[at])
 
 
-def test_the_dream_batch_and_the_value_at_the_horizon():
-    """Every driver from every start in one batch: the clone and a driver biased off its line
-    differ, one row per start; the value head at the horizon adds its value to each return."""
+def three_starts(seed: int) -> tuple:
+    """A simulator for two drivers from three random starts (codes, no memory yet, three speeds)."""
     model = drivesim.Model.load()
-    sim = drivesim.Simulator(model, batch=6)
-    rng = np.random.default_rng(2)
+    rng = np.random.default_rng(seed)
     starts = {"z": rng.standard_normal((3, model.z_dim)).astype(np.float32),
               "h": np.zeros((3, model.hidden_dim), np.float32), "speed": np.float32([30, 40, 50])}
     starts["h_world"] = starts["h"]
+    return drivesim.Simulator(model, batch=6), starts
+
+
+def test_the_dream_batch_and_the_value_at_the_horizon():
+    """Every driver from every start in one batch: the clone and a driver biased off its line
+    differ, one row per start; the value head at the horizon adds its value to each return."""
+    sim, starts = three_starts(2)
     family = [FAMILY[0], Driver("b", bias=0.5)]
     plain = rank.dream(sim, sim, family, starts, 6, 0, False)
     valued = rank.dream(sim, sim, family, starts, 6, 0, True)
@@ -61,12 +66,7 @@ def test_the_dream_batch_and_the_value_at_the_horizon():
 def test_the_world_given_the_dreams_own_inputs_open_loop_is_the_dream():
     """``open_loop`` replays inputs without a driver: given the speeds and steerings a dream
     stepped with, each decision's off-road chance is the dream's, bit for bit."""
-    model = drivesim.Model.load()
-    sim = drivesim.Simulator(model, batch=6)
-    rng = np.random.default_rng(3)
-    starts = {"z": rng.standard_normal((3, model.z_dim)).astype(np.float32),
-              "h": np.zeros((3, model.hidden_dim), np.float32), "speed": np.float32([30, 40, 50])}
-    starts["h_world"] = starts["h"]
+    sim, starts = three_starts(3)
     dreamt = rank.dream(sim, sim, [FAMILY[0], Driver("b", bias=0.5)], starts, 6, 0, False)
     given = rank.open_loop(sim, starts, np.stack([dreamt["speed"], dreamt["steer"]], -1))
     np.testing.assert_array_equal(given, dreamt["off_steps"])

@@ -139,19 +139,23 @@ def starts_of(drive: dict, world: Simulator, hidden_dim: int, count: int, horizo
             "steer": np.stack([drive["steer"][t:t + horizon] for t in at])}
 
 
+def tiled(rows: np.ndarray, n: int) -> np.ndarray:
+    """The starts' rows once for each of ``n`` drivers (driver-major), as the simulator takes them."""
+    return np.ascontiguousarray(np.tile(rows, (n, 1)), np.float32)
+
+
 def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horizon: int, seed: int,
           use_value: bool) -> dict:
     """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` (with the
     value at the horizon where ``use_value``), ``rewards`` (without it) and ``off_road`` (its
     chance, averaged) ``(drivers, starts)``, and ``steer``, the steering applied, and
     ``off_steps``, each decision's off-road chance, and ``speed``, the speed stepped with,
-    ``(drivers, starts, horizon)``. The drivers'
-    policy reads the codes the world predicts, and their hidden states step on their own model's
-    transition (as a real drive steps them on the codes of what the car sees); the world's
-    transition predicts the codes, its reward head scores them."""
+    ``(drivers, starts, horizon)``. The drivers' policy reads the codes the world predicts, and
+    their hidden states step on their own model's transition (as a real drive steps them on the
+    codes of what the car sees); the world's transition predicts the codes, its reward head
+    scores them."""
     k, n = len(starts["speed"]), len(family)
-    tile = lambda a: np.ascontiguousarray(np.tile(a, (n, 1)), np.float32)  # noqa: E731
-    z, h, h_world = tile(starts["z"]), tile(starts["h"]), tile(starts["h_world"])
+    z, h, h_world = (tiled(starts[key], n) for key in ("z", "h", "h_world"))
     v = np.tile(starts["speed"], n).astype(np.float32)
     drivers = [d for d in family for _ in range(k)]
     changes = Changes(drivers, [dream_row_seed(seed, i, j, k) for i in range(n) for j in range(k)])
@@ -182,8 +186,7 @@ def open_loop(world: Simulator, starts: dict, actions: np.ndarray) -> np.ndarray
     world's dynamics (the real actions do not take its car off the road) from its loop (they do,
     but its own driver does not act as the real one did)."""
     n, k, horizon, _ = actions.shape
-    tile = lambda a: np.ascontiguousarray(np.tile(a, (n, 1)), np.float32)  # noqa: E731
-    z, h_world = tile(starts["z"]), tile(starts["h_world"])
+    z, h_world = tiled(starts["z"], n), tiled(starts["h_world"], n)
     rows = actions.reshape(n * k, horizon, 2).astype(np.float32)
     off = np.zeros((n * k, horizon))
     for step in range(horizon):
