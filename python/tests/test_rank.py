@@ -91,7 +91,7 @@ def test_spearman_and_regret():
 
 
 def test_a_window_cut_short_keeps_its_last_flag_to_the_horizon():
-    np.testing.assert_array_equal(rank.flags_padded([[0, 1, 1, 0], [0, 1]], 4), [[0, 1, 1, 0], [0, 1, 1, 1]])
+    np.testing.assert_array_equal(rank.padded_to_horizon([[0, 1, 1, 0], [0, 1]], 4), [[0, 1, 1, 0], [0, 1, 1, 1]])
 
 
 def test_road_memory_is_the_correlation_step_by_step():

@@ -197,7 +197,7 @@ def open_loop(world: Simulator, starts: dict, actions: np.ndarray) -> np.ndarray
     return off.reshape(n, k, horizon)
 
 
-def flags_padded(windows: list, horizon: int) -> np.ndarray:
+def padded_to_horizon(windows: list, horizon: int) -> np.ndarray:
     """A real window's off-road flags (or inputs), ``(windows, horizon, ...)``: a window the
     episode's end cut short keeps its last to the horizon (the car stays where it ended)."""
     return np.array([w + w[-1:] * (horizon - len(w)) for w in windows], float)
@@ -278,7 +278,7 @@ def report(args, results: list, windowed: list) -> dict:
         dream_rewards[:, t] = d["rewards"].mean(1)
         dream_steps.append(d["off_steps"])
         if windowed:
-            inputs = [flags_padded(got[i, seed]["actions"], args.horizon) for i in range(len(family))]
+            inputs = [padded_to_horizon(got[i, seed]["actions"], args.horizon) for i in range(len(family))]
             open_steps.append(open_loop(world, starts, np.array(inputs)))
         steer_dreamt.append(d["steer"][0])
         steer_real.append(starts["steer"])
@@ -293,7 +293,7 @@ def report(args, results: list, windowed: list) -> dict:
                 win_return[i, t], win_off[i, t] = np.mean(got[i, seed]["return"]), np.mean(got[i, seed]["off_road"])
         out["windows"] = summary(family, win_return, win_off, dream_rewards, dream_off)
         out["windows"]["per_track"] = {"real": win_return.tolist(), "dream": dream_rewards.tolist()}
-        real_steps = [[flags_padded(got[i, seed]["off"], args.horizon) for seed in seeds]
+        real_steps = [[padded_to_horizon(got[i, seed]["off"], args.horizon) for seed in seeds]
                       for i in range(len(family))]
         out["windows"]["off_by_decision"] = {"real": np.mean(real_steps, (1, 2)).tolist(),
                                              "dream": np.concatenate(dream_steps, 1).mean(1).tolist(),
