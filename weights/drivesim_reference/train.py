@@ -6,6 +6,7 @@
   weights/tool train step --stage transition|vae-gan --weights W.safetensors --batch B.safetensors --out O.safetensors
   weights/tool train heads --head reward|value --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors
   weights/tool train texture --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors [--device cuda]
+  weights/tool train latent --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors [--device cuda]
 
 fit: (1) VAE-GAN (vae_gan.py): encoder, generator and a discriminator. (2) The transition RNN
 (sequences.py) on encoded 15-frame sequences: 5 frames teacher forced, then 10 with its own
@@ -30,6 +31,10 @@ texture (train_texture.py): the transition's texture net, a sampler trained adve
 that sampled futures keep the road's kerbs and grass patches, added to a weight file (PyTorch
 only: the crate samples through it, it has no trainer of it).
 
+latent (train_latent.py): the transition and its texture net trained together as a conditional
+VAE, so that the futures sampled at temperature 1 draw what the state cannot know (the bend not
+yet in view): the world that ranks drivers as the real track does (docs/judging.md).
+
 eval (evaluation.py): reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
 a contact sheet of a 100-step rollout, all from frames the model never saw; and the fidelity
 figures (`fidelity` in eval.json, weights/TRAINING_FILES.md §5): PSNR percentiles, the latent error
@@ -51,7 +56,7 @@ import torch.distributed as dist
 
 from drivesim import _files, episodes
 from drivesim_reference import train_heads
-from drivesim_reference import train_texture
+from drivesim_reference import train_latent, train_texture
 from drivesim_reference.checkpoints import Checkpoints
 from drivesim_reference.distributed import globalise_batch_norms, start_distributed, world
 from drivesim_reference.model import Config, DriveSim, save_drivesim
@@ -215,8 +220,12 @@ def main(argv=None):
                    "mirror images (frames flipped left to right, steering negated)")
     train_texture.add_arguments(sub.add_parser("texture", help="train the transition's texture net, a sampler "
                                                "whose futures keep the road's texture (train_texture.py)"))
+    train_latent.add_arguments(sub.add_parser("latent", help="train the transition and its texture net together "
+                                              "as a conditional VAE: sampled futures that draw what the state "
+                                              "cannot know (train_latent.py)"))
     args = p.parse_args(argv)
-    modes = {"fit": fit, "eval": evaluate, "step": step, "heads": train_heads.heads, "texture": train_texture.texture}
+    modes = {"fit": fit, "eval": evaluate, "step": step, "heads": train_heads.heads, "texture": train_texture.texture,
+             "latent": train_latent.latent}
     try:
         modes[args.mode](args)
     except (episodes.EpisodesError, ValueError, OSError) as err:

@@ -152,8 +152,9 @@ def windows(model, data, length: int, no_mirror: bool):
     return torch.cat(codes), torch.cat(actions), torch.tensor(starts)
 
 
-def save_checkpoint(path, gan: TextureGAN, step: int, arguments: dict):
-    state = dict(format=CHECKPOINT_FORMAT, arguments=arguments, step=step,
+def save_checkpoint(path, gan, step: int, arguments: dict, fmt: str = CHECKPOINT_FORMAT):
+    """Writes `gan.modules()`' states, the step and the random state to `path` (atomically)."""
+    state = dict(format=fmt, arguments=arguments, step=step,
                  modules={k: m.state_dict() for k, m in gan.modules().items()},
                  random=dict(torch=torch.get_rng_state(),
                              cuda=torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None))
@@ -168,13 +169,14 @@ def _bytes(state) -> bytes:
     return buf.getvalue()
 
 
-def restore(path, gan: TextureGAN, arguments: dict) -> int:
-    """The step a checkpoint at `path` was written after (0 where there is none)."""
+def restore(path, gan, arguments: dict, fmt: str = CHECKPOINT_FORMAT) -> int:
+    """The step a checkpoint at `path` was written after (0 where there is none), `gan.modules()`
+    and the random state restored from it."""
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         return 0
-    if state.get("format") != CHECKPOINT_FORMAT or state.get("arguments") != arguments:
+    if state.get("format") != fmt or state.get("arguments") != arguments:
         raise ValueError(f"{path}: a checkpoint of another run (other arguments): remove it or name another file")
     for k, m in gan.modules().items():
         m.load_state_dict(state["modules"][k])
