@@ -34,7 +34,6 @@ import io
 import math
 import time
 
-import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -83,7 +82,7 @@ class TextureGAN:
 
     def step(self, z, c) -> dict:
         """One step on windows of codes z [B, T, z] and actions c [B, T-1, 2]."""
-        a, tr, dev = self.args, self.model.transition, self.device
+        a, tr = self.args, self.model.transition
         b, steps = z.shape[0], z.shape[1] - 1
         h = z.new_zeros(b, tr.W.shape[0])
         drawn, hs, means = [], [], []
