@@ -23,16 +23,14 @@ dtype; every other tensor stays as it was.
 from __future__ import annotations
 
 import math
-import time
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from drivesim_reference.model import Texture, load_drivesim
+from drivesim_reference.model import Texture
 from drivesim_reference.sequences import TEACHER
-from drivesim_reference.train_heads import Source, load_episodes
-from drivesim_reference.train_texture import restore, save_checkpoint, windows
+from drivesim_reference.train_texture import train_sampler
 
 CHECKPOINT_FORMAT = "drivesim train.py latent checkpoint 1"
 # The posterior's log standard deviation is kept in this range (the KL term's exp stays finite).
@@ -53,10 +51,8 @@ class LatentTrainer:
         self.texture = Texture(cfg, args.width).to(device)
         self.posterior = nn.Sequential(nn.Linear(hd + zd, args.posterior_width), nn.Tanh(),
                                        nn.Linear(args.posterior_width, 2 * zd)).to(device)
-        for p in model.parameters():
-            p.requires_grad_(False)
         learnt = [*self.texture.parameters(), *self.posterior.parameters()]
-        if not args.freeze_transition:
+        if not args.freeze_transition:  # the model's tensors come frozen (train_sampler): these learn
             for name in ("W", "V", "U", "b", "A", "a"):
                 getattr(model.transition, name).requires_grad_(True)
                 learnt.append(getattr(model.transition, name))
@@ -102,40 +98,7 @@ def check(args):
 
 def latent(args):
     check(args)
-    model, cfg = load_drivesim(args.weights)
-    source = Source(args.weights, args.out)
-    if not 1 <= args.width <= cfg.hidden_dim:
-        raise ValueError(f"--width {args.width}: from 1 to the model's hidden_dim ({cfg.hidden_dim}), as the crate "
-                         "reads it")
-    data = load_episodes(args.episodes, cfg, "episodes", rewards=False)
-    dev = torch.device(args.device)
-    with torch.no_grad():
-        codes, actions, starts = windows(model, data, TEACHER + args.fed + 1, args.no_mirror)
-    model = model.to(dev)
-    codes, actions = codes.to(dev), actions.to(dev)
-    torch.manual_seed(args.seed)
-    trainer = LatentTrainer(model, cfg, args, dev)
-    arguments = {k: str(v) for k, v in sorted(vars(args).items())
-                 if k not in {"out", "checkpoint", "checkpoint_every", "mode", "device", "log_every", "steps"}}
-    first = restore(args.checkpoint, trainer, arguments, CHECKPOINT_FORMAT) if args.checkpoint else 0
-    print(f"{len(starts)} windows of {TEACHER} + {args.fed} codes, texture net width {args.width}, "
-          f"steps {first}..{args.steps} of {args.batch}" + (" (resumed)" if first else ""), flush=True)
-    span = torch.arange(TEACHER + args.fed + 1, device=dev)
-    begun, sums = time.time(), {}
-    for step in range(first, args.steps):
-        idx = starts[torch.randint(len(starts), (args.batch,))].to(dev)[:, None] + span
-        for k, v in trainer.step(codes[idx], actions[idx[:, :-1]]).items():
-            sums[k] = sums.get(k, 0.0) + v
-        if (step + 1) % args.log_every == 0:
-            shown = ", ".join(f"{k} {v / args.log_every:.3f}" for k, v in sums.items())
-            print(f"step {step + 1}/{args.steps}: {shown} ({time.time() - begun:.0f} s)", flush=True)
-            sums = {}
-        if args.checkpoint and ((step + 1) % args.checkpoint_every == 0 or step + 1 == args.steps):
-            save_checkpoint(args.checkpoint, trainer, step + 1, arguments, CHECKPOINT_FORMAT)
-    model.transition.texture = trainer.texture
-    for p in model.parameters():
-        p.requires_grad_(False)
-    source.write(model.cpu(), cfg, args.out)
+    train_sampler(args, LatentTrainer, CHECKPOINT_FORMAT)
 
 
 def add_arguments(t):

@@ -187,6 +187,14 @@ def restore(path, gan, arguments: dict, fmt: str = CHECKPOINT_FORMAT) -> int:
 
 def texture(args):
     check(args)
+    train_sampler(args, TextureGAN, CHECKPOINT_FORMAT)
+
+
+def train_sampler(args, make, fmt: str):
+    """The run `train.py texture` and `train.py latent` share: the file and the episodes read, the
+    windows encoded, the trainer `make(model, cfg, args, device)` made (with `step(z, c)` -> the
+    losses, `modules()` and `texture`) and stepped, resumed from and checkpointed to
+    `args.checkpoint` (format `fmt`), and the input written again with the trainer's texture net."""
     model, cfg = load_drivesim(args.weights)
     source = Source(args.weights, args.out)
     if not 1 <= args.width <= cfg.hidden_dim:
@@ -201,25 +209,27 @@ def texture(args):
         p.requires_grad_(False)
     codes, actions = codes.to(dev), actions.to(dev)
     torch.manual_seed(args.seed)
-    gan = TextureGAN(model, cfg, args, dev)
+    trainer = make(model, cfg, args, dev)
     arguments = {k: str(v) for k, v in sorted(vars(args).items())
                  if k not in {"out", "checkpoint", "checkpoint_every", "mode", "device", "log_every", "steps"}}
-    first = restore(args.checkpoint, gan, arguments) if args.checkpoint else 0
+    first = restore(args.checkpoint, trainer, arguments, fmt) if args.checkpoint else 0
     print(f"{len(starts)} windows of {TEACHER} + {args.fed} codes, texture net width {args.width}, "
           f"steps {first}..{args.steps} of {args.batch}" + (" (resumed)" if first else ""), flush=True)
     span = torch.arange(TEACHER + args.fed + 1, device=dev)
     begun, sums = time.time(), {}
     for step in range(first, args.steps):
         idx = starts[torch.randint(len(starts), (args.batch,))].to(dev)[:, None] + span
-        for k, v in gan.step(codes[idx], actions[idx[:, :-1]]).items():
+        for k, v in trainer.step(codes[idx], actions[idx[:, :-1]]).items():
             sums[k] = sums.get(k, 0.0) + v
         if (step + 1) % args.log_every == 0:
             shown = ", ".join(f"{k} {v / args.log_every:.3f}" for k, v in sums.items())
             print(f"step {step + 1}/{args.steps}: {shown} ({time.time() - begun:.0f} s)", flush=True)
             sums = {}
         if args.checkpoint and ((step + 1) % args.checkpoint_every == 0 or step + 1 == args.steps):
-            save_checkpoint(args.checkpoint, gan, step + 1, arguments)
-    model.transition.texture = gan.texture
+            save_checkpoint(args.checkpoint, trainer, step + 1, arguments, fmt)
+    model.transition.texture = trainer.texture
+    for p in model.parameters():
+        p.requires_grad_(False)
     source.write(model.cpu(), cfg, args.out)
 
 
