@@ -30,7 +30,7 @@ from torch.nn import functional as F
 
 from drivesim_reference.model import Texture
 from drivesim_reference.sequences import TEACHER
-from drivesim_reference.train_texture import train_sampler
+from drivesim_reference.train_texture import add_run_arguments, train_sampler
 
 CHECKPOINT_FORMAT = "drivesim train.py latent checkpoint 1"
 # The posterior's log standard deviation is kept in this range (the KL term's exp stays finite).
@@ -106,18 +106,10 @@ def add_arguments(t):
     t.add_argument("--weights", required=True, help="weight file to start from (its transition is trained further)")
     t.add_argument("--episodes", required=True, help="episodes to learn the futures from (failures too)")
     t.add_argument("--out", required=True, help="where to write the weights with the texture net")
-    t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    t.add_argument("--steps", type=int, default=3000)
-    t.add_argument("--batch", type=int, default=64, help="windows per step")
     t.add_argument("--fed", type=int, default=19, help="fed-back sampled steps per window")
     t.add_argument("--width", type=int, default=256, help="units of the texture net's layer")
     t.add_argument("--posterior-width", type=int, default=256, help="units of the posterior's layer")
     t.add_argument("--lr", type=float, default=3e-4)
     t.add_argument("--beta", type=float, default=1.0, help="weight of the KL term (per code dimension)")
     t.add_argument("--freeze-transition", action="store_true", help="train the texture net only")
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--log-every", type=int, default=250)
-    t.add_argument("--no-mirror", action="store_true", help="train on the episodes only, not also on their mirror "
-                   "images (frames flipped left to right, steering negated)")
-    t.add_argument("--checkpoint", help="checkpoint file, written every --checkpoint-every steps and read back")
-    t.add_argument("--checkpoint-every", type=int, default=500)
+    add_run_arguments(t)

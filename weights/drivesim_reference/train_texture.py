@@ -238,9 +238,6 @@ def add_arguments(t):
     t.add_argument("--weights", required=True, help="weight file to start from (every tensor of it is kept)")
     t.add_argument("--episodes", required=True, help="episodes to learn the road's texture from")
     t.add_argument("--out", required=True, help="where to write the weights with the texture net")
-    t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    t.add_argument("--steps", type=int, default=3000)
-    t.add_argument("--batch", type=int, default=64, help="windows per step")
     t.add_argument("--fed", type=int, default=20, help="fed-back sampled steps per window")
     t.add_argument("--frames", type=int, default=4, help="fed-back steps per window the image discriminator judges")
     t.add_argument("--width", type=int, default=256, help="units of the texture net's and the code critics' layer")
@@ -249,6 +246,14 @@ def add_arguments(t):
     t.add_argument("--image", type=float, default=0.1, help="weight of the image discriminator's term")
     t.add_argument("--marginal", type=float, default=1.0, help="weight of the fed-back codes' critic's term")
     t.add_argument("--bestof", type=float, default=3.0, help="weight of the best of 8 samples' squared error")
+    add_run_arguments(t)
+
+
+def add_run_arguments(t):
+    """The arguments of `train_sampler`'s run that `train.py texture` and `train.py latent` share."""
+    t.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    t.add_argument("--steps", type=int, default=3000)
+    t.add_argument("--batch", type=int, default=64, help="windows per step")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--log-every", type=int, default=250)
     t.add_argument("--no-mirror", action="store_true", help="train on the episodes only, not also on their mirror "

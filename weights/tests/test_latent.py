@@ -11,6 +11,7 @@ from torch.distributions import Normal, kl_divergence
 from drivesim_reference.model import DriveSim, save_drivesim
 from drivesim_reference.train_latent import kl_from_standard
 from test_heads import ACTIONS, HEAD_CFG, reward_episodes
+from test_texture import assert_resumes_to_the_same_bytes
 
 TRANSITION = [f"transition.{n}" for n in ("A", "U", "V", "W", "a", "b")]
 TEXTURE = [f"transition.texture.{l}.{p}" for l in ("hidden", "output") for p in ("bias", "weight")]
@@ -41,13 +42,7 @@ def test_train_latent_trains_the_transition_adds_the_texture_net_and_resumes_to_
     kept = set(before) - set(TRANSITION)
     assert all(torch.equal(after[k], before[k]) and after[k].dtype == before[k].dtype for k in kept)
     assert after["transition.texture.output.weight"].abs().max() > 0, "the net moved from the mean"
-    ckpt = tmp_path / "run.ckpt"
-    run(weights, data, tmp_path / "part.safetensors", "--checkpoint", str(ckpt), "--checkpoint-every", "2",
-        "--steps", "4")
-    run(weights, data, tmp_path / "resumed.safetensors", "--checkpoint", str(ckpt), "--checkpoint-every", "2")
-    assert (tmp_path / "resumed.safetensors").read_bytes() == (tmp_path / "whole.safetensors").read_bytes()
-    with pytest.raises(SystemExit):  # another run's checkpoint
-        run(weights, data, tmp_path / "x.safetensors", "--checkpoint", str(ckpt), "--beta", "2")
+    assert_resumes_to_the_same_bytes(run, weights, data, tmp_path, "--beta", "2")
 
 
 def test_freeze_transition_trains_the_texture_net_alone(tmp_path, files):

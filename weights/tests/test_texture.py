@@ -30,14 +30,20 @@ def test_train_texture_adds_the_net_keeps_the_rest_and_resumes_to_the_same_bytes
     assert added == [f"transition.texture.{l}.{p}" for l in ("hidden", "output") for p in ("bias", "weight")]
     assert all(torch.equal(after[k], v) and after[k].dtype == v.dtype for k, v in before.items())
     assert after["transition.texture.output.weight"].abs().max() > 0, "the net moved from the mean"
-    # Stopped after 4 steps (its checkpoint written), then run again: the bytes of the whole run.
+    assert_resumes_to_the_same_bytes(run, weights, data, tmp_path, "--width", "3")
+
+
+def assert_resumes_to_the_same_bytes(run, weights, data, tmp_path, *other_run):
+    """A run of 6 steps wrote `tmp_path/whole.safetensors`: one stopped after 4 (its checkpoint
+    written) and run again writes its bytes, and a run with `other_run`'s arguments will not go
+    on from that checkpoint."""
     ckpt = tmp_path / "run.ckpt"
     run(weights, data, tmp_path / "part.safetensors", "--checkpoint", str(ckpt), "--checkpoint-every", "2",
         "--steps", "4")
     run(weights, data, tmp_path / "resumed.safetensors", "--checkpoint", str(ckpt), "--checkpoint-every", "2")
     assert (tmp_path / "resumed.safetensors").read_bytes() == (tmp_path / "whole.safetensors").read_bytes()
     with pytest.raises(SystemExit):
-        run(weights, data, tmp_path / "x.safetensors", "--checkpoint", str(ckpt), "--width", "3")
+        run(weights, data, tmp_path / "x.safetensors", "--checkpoint", str(ckpt), *other_run)
 
 
 def test_sampled_rollouts_draw_through_the_texture_net():
