@@ -51,8 +51,20 @@ def test_a_fresh_zero_controller_steers_straight_at_the_middle_speed(model):
     agent = make_agent("dreamt", controller=controller(model))
     z = np.zeros(model.z_dim, np.float32)
     assert agent.decide(z) == (pytest.approx((10.0 + 58.8) / 2), 0.0)
+
+
+def test_without_a_controller_the_files_policy_drives_at_its_own_speed(model):
+    """A driver that `train driver` learnt in the dream is the file's policy head: it drives as
+    the clone would with every hand-made aid off, which a file without a policy cannot."""
+    from conftest import fixture
+
+    frames = np.random.default_rng(3).integers(0, 256, (16, 80, 160, 3), dtype=np.uint8)
+    bare = make_agent("cloned", pace=None, grip=None, traction=False, bearings=False)
+    dreamt = make_agent("dreamt")
+    for i, frame in enumerate(frames):
+        assert np.array_equal(bare.act(frame, 40.0 - i), dreamt.act(frame, 40.0 - i)), i
     with pytest.raises(ValueError, match="controller=FILE"):
-        make_agent("dreamt")
+        make_agent("dreamt", weights=fixture("small_f32.safetensors"))
 
 
 def test_controller_files_round_trip_and_bad_ones_are_named(model, tmp_path):

@@ -7,6 +7,7 @@
   weights/tool train heads --head reward|value --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors
   weights/tool train texture --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors [--device cuda]
   weights/tool train latent --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors [--device cuda]
+  weights/tool train driver --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors
 
 fit: (1) VAE-GAN (vae_gan.py): encoder, generator and a discriminator. (2) The transition RNN
 (sequences.py) on encoded 15-frame sequences: 5 frames teacher forced, then 10 with its own
@@ -35,6 +36,10 @@ latent (train_latent.py): the transition and its texture net trained together as
 VAE, so that the futures sampled at temperature 1 draw what the state cannot know (the bend not
 yet in view): the world that ranks drivers as the real track does (docs/judging.md).
 
+driver (train_driver.py): a driver learnt inside such a world by the gradient of the dream's own
+return (its reward, off-road and value heads), from real starts, never an expert's label: the
+file's policy replaced by it (docs/learning.md).
+
 eval (evaluation.py): reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
 a contact sheet of a 100-step rollout, all from frames the model never saw; and the fidelity
 figures (`fidelity` in eval.json, weights/TRAINING_FILES.md §5): PSNR percentiles, the latent error
@@ -56,7 +61,7 @@ import torch.distributed as dist
 
 from drivesim import _files, episodes
 from drivesim_reference import train_heads
-from drivesim_reference import train_latent, train_texture
+from drivesim_reference import train_driver, train_latent, train_texture
 from drivesim_reference.checkpoints import Checkpoints
 from drivesim_reference.distributed import globalise_batch_norms, start_distributed, world
 from drivesim_reference.model import Config, DriveSim, save_drivesim
@@ -223,9 +228,11 @@ def main(argv=None):
     train_latent.add_arguments(sub.add_parser("latent", help="train the transition and its texture net together "
                                               "as a conditional VAE: sampled futures that draw what the state "
                                               "cannot know (train_latent.py)"))
+    train_driver.add_arguments(sub.add_parser("driver", help="learn a driver inside the dream by the gradient of "
+                                              "the dream's own return (train_driver.py)"))
     args = p.parse_args(argv)
     modes = {"fit": fit, "eval": evaluate, "step": step, "heads": train_heads.heads, "texture": train_texture.texture,
-             "latent": train_latent.latent}
+             "latent": train_latent.latent, "driver": train_driver.driver}
     try:
         modes[args.mode](args)
     except (episodes.EpisodesError, ValueError, OSError) as err:

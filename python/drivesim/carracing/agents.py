@@ -11,8 +11,9 @@ file (``Simulator.act``, trained by ``train policy``) reading the code of the fr
 seen now and the transition's hidden state stepped along the drive, and giving the steering and
 the speed to drive at (through the same speed controller).
 
-``DreamtAgent`` ("dreamt", ``dreamt.py``) drives with a controller learnt inside the dream
-(``python -m drivesim dream-train``), read from ``controller=FILE``.
+``DreamtAgent`` ("dreamt", ``dreamt.py``) drives with a driver learnt inside the dream: a
+controller of ``python -m drivesim dream-train`` read from ``controller=FILE``, or without one
+the weight file's policy head, which ``weights/tool train driver`` learnt in the dream.
 
 ``ReactiveAgent`` ("reactive") is the baseline without the models: the proportional steering
 and the speed controller alone.
@@ -105,7 +106,9 @@ AGENTS = {
 def make_agent(name: str, weights: Optional[str] = None, threads: int = 1, **options):
     """An agent by name: ``"mpc"`` (planning in the simulator with the learned heads),
     ``"mpc-road"`` (the grid planner with the hand-fitted road cost), ``"cloned"`` (the policy in
-    the weight file), ``"dreamt"`` (a controller learnt in the dream: ``controller=FILE``), or the baselines without the models, ``"reactive"`` and ``"random"``.
+    the weight file), ``"dreamt"`` (a driver learnt in the dream: ``controller=FILE`` of ``dream-train``, or
+    without it the weight file's policy that ``weights/tool train driver`` wrote), or the
+    baselines without the models, ``"reactive"`` and ``"random"``.
     ``weights``: a weight file (the built-in default model when None; for ``"mpc-road"``,
     another model also needs ``cost=RoadCost...``). ``options`` are the agent's (``MPCAgent``
     and ``RoadMPCAgent`` say which they take); ValueError or TypeError for an option out of

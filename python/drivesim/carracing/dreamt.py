@@ -1,5 +1,7 @@
 """A driver learnt inside the dream (issue 60): the controller, its rollouts in the dream, and the
-agent that drives the real CarRacing with it. ``dream_train`` trains it.
+agent that drives the real CarRacing with it. ``dream_train`` trains it. The agent also drives
+a weight file's policy head without a controller: the driver that ``weights/tool train driver``
+learns in the dream by the gradient of its return, written in the policy's place.
 
 The controller reads what the cloned policy reads, the code ``z`` of the frame seen now and the
 transition's hidden state ``h``, through a fixed projection onto the first ``K`` principal
@@ -174,25 +176,34 @@ def rollout(world: Simulator, controller: Controller, starts: dict, horizon: int
 
 
 class DreamtAgent(ClonedAgent):
-    """The driver learnt in the dream: ``controller`` (a controller file) decides from the code
-    of the view and the transition's hidden state, which steps as the cloned agent's does."""
+    """The driver learnt in the dream: ``controller`` (a controller file of ``dream-train``)
+    decides from the code of the view and the transition's hidden state, which steps as the
+    cloned agent's does; without one, the weight file's policy head drives (a driver that
+    ``weights/tool train driver`` learnt in the dream and wrote there), at its own speed: no
+    racing pace, grip envelope, traction control or bearings, none of which it learnt with."""
 
     def __init__(self, model: Optional[Model] = None, threads: int = 1, controller=None):
-        if controller is None:
-            raise ValueError("dreamt: give controller=FILE (python -m drivesim dream-train writes one)")
-        self.controller = controller if isinstance(controller, Controller) else Controller.load(controller)
         self.model = model if model is not None else Model.load()
-        if self.controller.base == "cloned" and self.model.policy_width is None:
-            raise ValueError("a controller on the cloned policy needs a model with a policy")
-        if self.controller.centre.shape != (self.model.z_dim + self.model.hidden_dim,):
-            raise ValueError(f"the controller reads {self.controller.centre.shape[0]} numbers; the model's [z, h] "
-                             f"has {self.model.z_dim + self.model.hidden_dim}")
-        # The controller gives the speed: no racing pace, grip envelope or traction control.
-        self.pace, self.top, self.grip, self.traction = None, top_speed(self.model), None, None
+        if controller is None:
+            self.controller = None
+            if self.model.policy_width is None:
+                raise ValueError("dreamt: give controller=FILE (python -m drivesim dream-train writes one) or a "
+                                 "weight file whose policy was learnt in the dream (weights/tool train driver)")
+        else:
+            self.controller = controller if isinstance(controller, Controller) else Controller.load(controller)
+            if self.controller.base == "cloned" and self.model.policy_width is None:
+                raise ValueError("a controller on the cloned policy needs a model with a policy")
+            if self.controller.centre.shape != (self.model.z_dim + self.model.hidden_dim,):
+                raise ValueError(f"the controller reads {self.controller.centre.shape[0]} numbers; the model's [z, h] "
+                                 f"has {self.model.z_dim + self.model.hidden_dim}")
+        # The driver gives the speed: no racing pace, grip envelope, traction control or bearings.
+        self.pace, self.top, self.grip, self.traction, self.bearings = None, top_speed(self.model), None, None, None
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 
     def choose(self, z: np.ndarray, h: np.ndarray) -> tuple:
+        if self.controller is None:
+            return super().choose(z, h)
         f = self.controller.features(z[None], h[None])
         clone = self.sim.act(z, h)[None] if self.controller.base == "cloned" else None
         target, steer = self.controller.decide(f, clone)

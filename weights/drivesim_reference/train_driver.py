@@ -1,0 +1,209 @@
+"""`train.py driver`: a driver learnt inside the dream by the gradient of the dream's own return
+(issue 60, docs/learning.md). It never sees an expert's label or a real reward: the world model's
+reward head, its off-road chance and its value head are the only signal.
+
+The driver is a head of the policy's shape (model.py `Policy`: one tanh layer on `[z | h]`, then
+the speed to drive at and the steering), started at random with its output layer at zero (a
+straight drive at --first-speed). Each step draws --batch real states (every decision of the
+episodes past their first SETTLE, the code of the frame seen there and the transition's hidden
+state stepped along the episode with the recorded actions, from zeros; on the road only with
+--on-road-starts) and rolls the driver --horizon decisions in the dream:
+
+    action = (speed now, clamp(steering, -1, 1))
+    h' = tanh(W h + V z + U action + b)
+    z' = A h' + a + texture(temperature * noise, h')       (the crate's sampled future)
+    speed' = speed_after(speed, clamp(target, 2, --top-speed))   (drivesim.carracing.control)
+    return = sum_t discount^t (reward(z', h') - --off-road-cost * off_road(z', h'))
+             [+ discount^H value(z_H, h_H) with --value]
+
+and Adam (lr --lr, the gradient's norm clipped to 100) follows the gradient of the mean return,
+which runs through the sampled futures (the noise is drawn, the texture net's offset kept in the
+graph), the transition and the speed's response back to every decision. Outputs the crate would
+clip (steering past +-1, a target outside 2..--top-speed) pay a squared penalty, so the file's
+driver is the one trained.
+
+With --checkpoint FILE the run writes the driver, Adam's state and the random state every
+--checkpoint-every steps (atomically); a run started again with the same arguments goes on from
+there to the same bytes (on the same device). The written file is the input with `policy.*`
+replaced by the learnt driver and the clone's `pace.*` head left out (a driver learnt in the dream
+drives at its own speed): `make_agent("dreamt", weights=OUT)` drives it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+from torch import nn
+
+from drivesim_reference.model import Policy, load_drivesim
+from drivesim_reference.train_heads import Source, encode_view, load_episodes
+from drivesim_reference.train_texture import restore, save_checkpoint
+
+CHECKPOINT_FORMAT = "drivesim train.py driver checkpoint 1"
+# Decisions of an episode before a start is drawn (drivesim.carracing.dream_train's SETTLE).
+SETTLE = 12
+# The speed control's response per decision (drivesim.carracing.control: GAIN, ACCELERATION,
+# BRAKE_DEAD) and the lowest target speed a driver may give.
+GAIN, ACCELERATION, BRAKE_DEAD, LOWEST = 0.2, 2.0, 4.0, 2.0
+# The penalty's weight on outputs the crate would clip.
+CLIP_PENALTY = 1.0
+
+
+def speed_after(speed: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """control.speed_after in torch: up by GAIN of the gap (at most ACCELERATION), down at once
+    where the target is more than BRAKE_DEAD below."""
+    gap = target - speed
+    up = torch.minimum(GAIN * gap, torch.full_like(gap, ACCELERATION))
+    return speed + torch.where(gap >= 0, up, torch.where(gap < -BRAKE_DEAD, gap, torch.zeros_like(gap)))
+
+
+def real_states(model, data, on_road_only: bool) -> dict:
+    """Every decision of `data` past its episode's first SETTLE (on the road only where asked and
+    the file records it): the code, the hidden state before the decision and the recorded speed."""
+    codes, actions = encode_view(model, data, mirrored=False)
+    on_road = data.rewards["on_road"] if data.rewards is not None else None
+    z, h, speed = [], [], []
+    tr = model.transition
+    for start, end in data.bounds():
+        hidden = codes.new_zeros(tr.W.shape[0])
+        for t in range(start, end):
+            if t - start >= SETTLE and (not on_road_only or on_road is None or on_road[t]):
+                z.append(codes[t])
+                h.append(hidden)
+                speed.append(actions[t, 0])
+            _, hidden = tr(codes[t], hidden, actions[t])
+    if not z:
+        raise ValueError(f"no decision past an episode's first {SETTLE}" + (" on the road" if on_road_only else ""))
+    return dict(z=torch.stack(z), h=torch.stack(h), speed=torch.stack(speed).float())
+
+
+class DreamDriver:
+    """The driver, its optimiser and the dream it is rolled in (the model's frozen networks)."""
+
+    def __init__(self, model, cfg, args):
+        self.model, self.args = model, args
+        self.driver = Policy(cfg, args.width)
+        nn.init.zeros_(self.driver.output.weight)
+        with torch.no_grad():
+            self.driver.output.bias.copy_(torch.tensor([args.first_speed, 0.0]))
+        self.opt = torch.optim.Adam(self.driver.parameters(), lr=args.lr)
+
+    def modules(self):
+        return dict(driver=self.driver, opt=self.opt)
+
+    def rollout(self, z, h, speed, noise=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(return, mean off-road chance, clip penalty) of each drive from the states `z`, `h`,
+        `speed`; `noise` [horizon, N, z] the standard normal draws (None: drawn here)."""
+        a, m = self.args, self.model
+        total, off, over = speed.new_zeros(len(speed)), speed.new_zeros(len(speed)), speed.new_zeros(len(speed))
+        weight = 1.0
+        for t in range(a.horizon):
+            out = self.driver(z, h)
+            target, steer = out[:, 0].clamp(LOWEST, a.top_speed), out[:, 1].clamp(-1.0, 1.0)
+            over = over + (torch.relu(out[:, 0] - a.top_speed) / a.top_speed).square() \
+                + (torch.relu(LOWEST - out[:, 0]) / a.top_speed).square() + torch.relu(out[:, 1].abs() - 1).square()
+            mean, h = m.transition(z, h, torch.stack([speed, steer], 1))
+            draw = torch.randn_like(mean) if noise is None else noise[t]
+            z = mean + m.transition.texture(a.temperature * draw, h) if a.temperature > 0 else mean
+            speed = speed_after(speed, target)
+            reward = m.reward(z, h)
+            off_road = reward[:, 1].clamp(0.0, 1.0)
+            total = total + weight * (reward[:, 0] - a.off_road_cost * off_road)
+            off = off + off_road
+            weight *= m.discount
+        if a.value:
+            total = total + weight * m.value(z, h)[:, 0]
+        return total, off / a.horizon, over / a.horizon
+
+    def step(self, z, h, speed) -> dict:
+        total, off, over = self.rollout(z, h, speed)
+        loss = -total.mean() + CLIP_PENALTY * over.mean()
+        self.opt.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.driver.parameters(), 100.0)
+        self.opt.step()
+        return dict(dream_return=float(total.detach().mean()), off_road=float(off.detach().mean()))
+
+
+def check(args, model, cfg):
+    if args.steps < 0 or not 1 <= args.batch <= 65536 or args.horizon < 1 or not 1 <= args.width <= cfg.hidden_dim:
+        raise ValueError(f"--steps must be at least 0, --batch from 1 to 65536, --horizon at least 1 and --width from 1 "
+                         f"to the model's hidden_dim ({cfg.hidden_dim})")
+    numbers = dict(lr=args.lr, temperature=args.temperature, off_road_cost=args.off_road_cost,
+                   top_speed=args.top_speed, first_speed=args.first_speed)
+    if not all(math.isfinite(v) for v in numbers.values()) or args.lr <= 0 or args.temperature < 0 \
+            or args.off_road_cost < 0 or not LOWEST < args.top_speed or not LOWEST <= args.first_speed <= args.top_speed:
+        raise ValueError(f"--lr must be above 0, --temperature and --off-road-cost at least 0, --top-speed above "
+                         f"{LOWEST} and --first-speed from {LOWEST} to it, all finite; got {numbers}")
+    if args.checkpoint_every < 1:
+        raise ValueError("--checkpoint-every must be at least 1")
+    heads = model.heads()
+    missing = [name for name, there in (("reward head", "reward" in heads),
+                                        ("value head (--value)", "value" in heads or not args.value),
+                                        ("texture net (--temperature above 0)",
+                                         hasattr(model.transition, "texture") or args.temperature == 0))
+               if not there]
+    if missing:
+        raise ValueError(f"{args.weights}: the world model lacks its {', '.join(missing)}")
+
+
+def driver(args):
+    model, cfg = load_drivesim(args.weights)
+    check(args, model, cfg)
+    source = Source(args.weights, args.out)
+    data = load_episodes(args.episodes, cfg, "episodes", rewards=False)
+    for p in model.parameters():
+        p.requires_grad_(False)
+    with torch.no_grad():
+        states = real_states(model, data, args.on_road_starts)
+    torch.manual_seed(args.seed)
+    trainer = DreamDriver(model, cfg, args)
+    arguments = {k: str(v) for k, v in sorted(vars(args).items())
+                 if k not in {"out", "checkpoint", "checkpoint_every", "mode", "log_every", "steps"}}
+    first = restore(args.checkpoint, trainer, arguments, CHECKPOINT_FORMAT) if args.checkpoint else 0
+    n = len(states["speed"])
+    print(f"{n} real starts, a driver of width {args.width}, steps {first}..{args.steps} of {args.batch} drives of "
+          f"{args.horizon} decisions" + (" (resumed)" if first else ""), flush=True)
+    begun, sums = time.time(), {}
+    for step in range(first, args.steps):
+        i = torch.randint(n, (args.batch,))
+        for k, v in trainer.step(states["z"][i], states["h"][i], states["speed"][i]).items():
+            sums[k] = sums.get(k, 0.0) + v
+        if (step + 1) % args.log_every == 0:
+            shown = ", ".join(f"{k} {v / args.log_every:.3f}" for k, v in sums.items())
+            rate = args.log_every * args.batch * args.horizon / max(time.time() - begun, 1e-9)
+            print(f"step {step + 1}/{args.steps}: {shown} ({time.time() - begun:.0f} s, {rate:.0f} dream decisions/s)",
+                  flush=True)
+            sums, begun = {}, time.time()
+        if args.checkpoint and ((step + 1) % args.checkpoint_every == 0 or step + 1 == args.steps):
+            save_checkpoint(args.checkpoint, trainer, step + 1, arguments, CHECKPOINT_FORMAT)
+    model.policy = trainer.driver
+    model.pace = None
+    for p in model.parameters():
+        p.requires_grad_(False)
+    source.write(model, cfg, args.out)
+
+
+def add_arguments(t):
+    """`train.py driver`'s arguments."""
+    t.add_argument("--weights", required=True, help="the world: a weight file with the texture net, the reward head "
+                   "(and the value head for --value)")
+    t.add_argument("--episodes", required=True, help="real recorded episodes: the dream drives' starts")
+    t.add_argument("--out", required=True, help="where to write the world with the learnt driver as its policy")
+    t.add_argument("--steps", type=int, default=1500)
+    t.add_argument("--batch", type=int, default=256, help="dream drives per step")
+    t.add_argument("--horizon", type=int, default=40, help="decisions a dream drive lasts")
+    t.add_argument("--lr", type=float, default=3e-4)
+    t.add_argument("--temperature", type=float, default=1.0, help="the sampled futures' (0: the mean dream)")
+    t.add_argument("--value", action="store_true", help="add the value head at the horizon")
+    t.add_argument("--off-road-cost", type=float, default=0.0, help="paid per unit of off-road chance a decision")
+    t.add_argument("--top-speed", type=float, default=60.0, help="the highest target speed the driver may give")
+    t.add_argument("--first-speed", type=float, default=30.0, help="the untrained driver's target speed")
+    t.add_argument("--width", type=int, default=64, help="units of the driver's layer")
+    t.add_argument("--on-road-starts", action="store_true", help="start only where the car is on the road")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--log-every", type=int, default=50)
+    t.add_argument("--checkpoint", help="checkpoint file, written every --checkpoint-every steps and read back")
+    t.add_argument("--checkpoint-every", type=int, default=250)

@@ -1,0 +1,111 @@
+"""`train.py driver` (train_driver.py): a driver learnt by the gradient of the dream's own return.
+The dream it learns in is the crate's (the same return, step for step, as the crate's simulator
+gives the same drives), the written file is the world with the driver as its policy and the
+clone's pace head left out, a run stopped after a checkpoint goes on to the same bytes, and bad
+settings or a world without its heads are refused."""
+
+import types
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from drivesim_reference.model import DriveSim, load_drivesim, save_drivesim
+from drivesim_reference.train_driver import DreamDriver, speed_after
+from test_heads import ACTIONS, HEAD_CFG, reward_episodes
+from test_texture import assert_resumes_to_the_same_bytes
+
+DRIVER = [f"policy.{l}.{p}" for l in ("hidden", "output") for p in ("bias", "weight")]
+
+
+def run(weights, data, out, *more):
+    from drivesim_reference import train
+
+    train.main(["driver", "--weights", str(weights), "--episodes", str(data), "--out", str(out), "--steps", "6",
+                "--batch", "5", "--horizon", "4", "--width", "3", "--lr", "1e-2", "--top-speed", "4",
+                "--first-speed", "3", "--value", *more])
+
+
+def world(path, **heads):
+    torch.manual_seed(2)
+    model = DriveSim(HEAD_CFG, **{"policy_width": 3, "reward_width": 4, "value_width": 3, "discount": 0.9,
+                                  "texture_width": 4, "pace_width": 2, **heads})
+    save_drivesim(model, HEAD_CFG, path, "f32", actions=ACTIONS, frame_hz=12.5, discount=0.9)
+    return path
+
+
+@pytest.fixture
+def files(tmp_path):
+    return world(tmp_path / "w.safetensors"), reward_episodes(tmp_path / "e.safetensors", lengths=(15, 17))
+
+
+def test_the_driver_replaces_the_policy_drops_the_pace_head_and_resumes_to_the_same_bytes(tmp_path, files):
+    weights, data = files
+    run(weights, data, tmp_path / "whole.safetensors")
+    before, after = load_file(str(weights)), load_file(str(tmp_path / "whole.safetensors"))
+    assert set(before) - set(after) == {k for k in before if k.startswith("pace.")}
+    assert sorted(k for k in after if k.startswith("policy.")) == DRIVER
+    assert after["policy.hidden.weight"].shape == (3, HEAD_CFG.z_dim + HEAD_CFG.hidden_dim)
+    assert after["policy.output.weight"].abs().max() > 0, "the driver learnt from its zero output layer"
+    kept = {k for k in before if not k.startswith(("policy.", "pace."))}
+    assert all(torch.equal(after[k], before[k]) for k in kept)
+    assert_resumes_to_the_same_bytes(run, weights, data, tmp_path, "--horizon", "3")
+
+
+def test_the_dream_it_learns_in_is_the_crates(tmp_path, files):
+    """At temperature 0 the trainer's return of a drive is what the crate's simulator gives for
+    the same actions: its transition, speed response, reward, off-road chance, discount and value."""
+    from drivesim import Model, Simulator
+    from drivesim.carracing.control import speed_after as crate_speed_after
+
+    weights, _ = files
+    model, cfg = load_drivesim(weights)
+    args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=5, top_speed=4.0, temperature=0.0,
+                                 off_road_cost=0.5, value=True)
+    torch.manual_seed(0)
+    trainer = DreamDriver(model, cfg, args)
+    torch.nn.init.normal_(trainer.driver.output.weight)  # a driver that steers and changes its speed
+    rng = np.random.default_rng(1)
+    z = rng.standard_normal((3, cfg.z_dim)).astype(np.float32)
+    h = rng.uniform(-0.5, 0.5, (3, cfg.hidden_dim)).astype(np.float32)
+    speed = np.array([1.0, 2.5, 3.5], np.float32)
+    with torch.no_grad():
+        total, off, _ = trainer.rollout(torch.from_numpy(z), torch.from_numpy(h), torch.from_numpy(speed))
+    sim = Simulator(Model.load(str(weights)), batch=3)
+    expected, off_sum, weight = np.zeros(3), np.zeros(3), 1.0
+    for _ in range(args.horizon):
+        with torch.no_grad():
+            out = trainer.driver(torch.from_numpy(z), torch.from_numpy(h)).numpy()
+        target, steer = np.clip(out[:, 0], 2.0, 4.0), np.clip(out[:, 1], -1.0, 1.0)
+        z, h = sim.transition(z, h, np.stack([speed, steer], 1).astype(np.float32))
+        speed = crate_speed_after(speed, target).astype(np.float32)
+        reward = sim.reward(z, h)
+        expected += weight * (reward[:, 0] - 0.5 * reward[:, 1])
+        off_sum += reward[:, 1]
+        weight *= 0.9
+    expected += weight * sim.value(z, h)[:, 0]
+    np.testing.assert_allclose(total.numpy(), expected, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(off.numpy(), off_sum / args.horizon, rtol=1e-4, atol=1e-5)
+    assert torch.equal(speed_after(torch.tensor([10.0, 10.0, 10.0]), torch.tensor([30.0, 11.0, 4.0])),
+                       torch.tensor([12.0, 10.2, 4.0]))
+
+
+@pytest.mark.parametrize("bad", [["--lr", "0"], ["--horizon", "0"], ["--width", "0"], ["--temperature", "-1"],
+                                 ["--top-speed", "1"], ["--first-speed", "9"], ["--off-road-cost", "nan"]])
+def test_bad_settings_exit_with_a_message_and_write_nothing(tmp_path, files, bad):
+    weights, data = files
+    with pytest.raises(SystemExit):
+        run(weights, data, tmp_path / "x.safetensors", *bad)
+    assert not (tmp_path / "x.safetensors").exists()
+
+
+@pytest.mark.parametrize("missing, message", [({"reward_width": None}, "reward head"),
+                                              ({"value_width": None}, "value head"),
+                                              ({"texture_width": None}, "texture net")])
+def test_a_world_without_its_heads_is_refused(tmp_path, missing, message):
+    weights = world(tmp_path / "w.safetensors", **missing)
+    data = reward_episodes(tmp_path / "e.safetensors", lengths=(15,))
+    with pytest.raises(SystemExit):
+        run(weights, data, tmp_path / "x.safetensors")
+    assert not (tmp_path / "x.safetensors").exists()
