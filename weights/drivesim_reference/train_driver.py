@@ -18,9 +18,10 @@ state stepped along the episode with the recorded actions, from zeros; on the ro
 
 and Adam (lr --lr, the gradient's norm clipped to 100) follows the gradient of the mean return,
 which runs through the sampled futures (the noise is drawn, the texture net's offset kept in the
-graph), the transition and the speed's response back to every decision. Outputs the crate would
-clip (steering past +-1, a target outside 2..--top-speed) pay a squared penalty, so the file's
-driver is the one trained.
+graph), the transition and the speed's response back to every decision. Outputs past the
+ranges clamped here (steering past +-1, a target outside 2..--top-speed) pay a squared penalty,
+which keeps them near: the crate clips the steering to +-1 but the target only to the file's
+speed range (docs/learning.md's driver, --top-speed 40, gives at most 41.1 on its starts).
 
 With --checkpoint FILE the run writes the driver, Adam's state and the random state every
 --checkpoint-every steps (atomically); a run started again with the same arguments goes on from
