@@ -13,7 +13,8 @@ state stepped along the episode with the recorded actions, from zeros; on the ro
     h' = tanh(W h + V z + U action + b)
     z' = A h' + a + texture(temperature * noise, h')       (the crate's sampled future)
     speed' = speed_after(speed, clamp(target, 2, --top-speed))   (drivesim.carracing.control)
-    return = sum_t discount^t (reward(z', h') - --off-road-cost * off_road(z', h'))
+    return = sum_t discount^t (reward(z', h') - --off-road-cost * off_road(z', h'))   (discount: the
+             value head's, 1 in a world without one)
              [+ discount^H value(z_H, h_H) with --value]
 
 and Adam (lr --lr, the gradient's norm clipped to 100) follows the gradient of the mean return,
@@ -99,21 +100,25 @@ class DreamDriver:
         `speed`; `noise` [horizon, N, z] the standard normal draws (None: drawn here)."""
         a, m = self.args, self.model
         total, off, over = speed.new_zeros(len(speed)), speed.new_zeros(len(speed)), speed.new_zeros(len(speed))
-        weight = 1.0
+        # The value head's discount; a world without one sums its rewards as dream-train does.
+        weight, discount = 1.0, m.discount if m.discount is not None else 1.0
         for t in range(a.horizon):
             out = self.driver(z, h)
             target, steer = out[:, 0].clamp(LOWEST, a.top_speed), out[:, 1].clamp(-1.0, 1.0)
             over = over + (torch.relu(out[:, 0] - a.top_speed) / a.top_speed).square() \
                 + (torch.relu(LOWEST - out[:, 0]) / a.top_speed).square() + torch.relu(out[:, 1].abs() - 1).square()
             mean, h = m.transition(z, h, torch.stack([speed, steer], 1))
-            draw = torch.randn_like(mean) if noise is None else noise[t]
-            z = mean + m.transition.texture(a.temperature * draw, h) if a.temperature > 0 else mean
+            if a.temperature > 0:
+                draw = torch.randn_like(mean) if noise is None else noise[t]
+                z = mean + m.transition.texture(a.temperature * draw, h)
+            else:
+                z = mean
             speed = speed_after(speed, target)
             reward = m.reward(z, h)
             off_road = reward[:, 1].clamp(0.0, 1.0)
             total = total + weight * (reward[:, 0] - a.off_road_cost * off_road)
             off = off + off_road
-            weight *= m.discount
+            weight *= discount
         if a.value:
             total = total + weight * m.value(z, h)[:, 0]
         return total, off / a.horizon, over / a.horizon

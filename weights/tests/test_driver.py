@@ -31,7 +31,7 @@ def world(path, **heads):
     torch.manual_seed(2)
     model = DriveSim(HEAD_CFG, **{"policy_width": 3, "reward_width": 4, "value_width": 3, "discount": 0.9,
                                   "texture_width": 4, "pace_width": 2, **heads})
-    save_drivesim(model, HEAD_CFG, path, "f32", actions=ACTIONS, frame_hz=12.5, discount=0.9)
+    save_drivesim(model, HEAD_CFG, path, "f32", actions=ACTIONS, frame_hz=12.5, discount=model.discount)
     return path
 
 
@@ -98,6 +98,19 @@ def test_bad_settings_exit_with_a_message_and_write_nothing(tmp_path, files, bad
     with pytest.raises(SystemExit):
         run(weights, data, tmp_path / "x.safetensors", *bad)
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_a_world_without_a_value_head_sums_its_rewards(tmp_path):
+    """Without --value a world needs no value head, and with it no discount: the rewards are
+    summed as dream-train sums them."""
+    from drivesim_reference import train
+
+    weights = world(tmp_path / "w.safetensors", value_width=None, discount=None)
+    data = reward_episodes(tmp_path / "e.safetensors", lengths=(15,))
+    train.main(["driver", "--weights", str(weights), "--episodes", str(data), "--out", str(tmp_path / "o.safetensors"),
+                "--steps", "2", "--batch", "3", "--horizon", "3", "--width", "3", "--top-speed", "4",
+                "--first-speed", "3"])
+    assert sorted(k for k in load_file(str(tmp_path / "o.safetensors")) if k.startswith("policy.")) == DRIVER
 
 
 @pytest.mark.parametrize("missing, message", [({"reward_width": None}, "reward head"),
