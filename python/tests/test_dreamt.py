@@ -67,6 +67,27 @@ def test_without_a_controller_the_files_policy_drives_at_its_own_speed(model):
         make_agent("dreamt", weights=fixture("small_f32.safetensors"))
 
 
+def test_traction_eases_the_gas_in_turns_and_cuts_it_while_the_wheels_spin(model):
+    """traction=True: the learnt driver's speed control is the racing one (less gas with the
+    wheels turned) with the traction control: gas that did not make the slow car faster is cut.
+    The driver's own decisions, the steering among them, do not change."""
+    from drivesim.carracing.control import speed_control
+
+    z = np.random.default_rng(0).standard_normal(model.z_dim).astype(np.float32)  # target 35.5, steer 0.13
+    frame = np.zeros((80, 160, 3), np.uint8)  # drive() reads the code; the frame is for aids it has not
+    bare, held = make_agent("dreamt"), make_agent("dreamt", traction=True)
+    target, steer = bare.choose(z, bare.h)
+    first, eased = bare.drive(frame, z, 10.0), held.drive(frame, z, 10.0)
+    assert eased[0] == first[0] == steer and first[1] == pytest.approx(speed_control(10.0, target)[0])
+    assert eased[1] == pytest.approx(speed_control(10.0, target, steer)[0]) and 0.2 <= eased[1] < first[1]
+    bare_again, cut = bare.drive(frame, z, 10.0), held.drive(frame, z, 10.0)  # the gas gained nothing
+    assert bare_again[1] >= 0.2 and cut[1] == 0.0 and cut[0] == bare_again[0]
+    with pytest.raises(TypeError, match="traction"):
+        make_agent("dreamt", traction="yes")
+    with pytest.raises(ValueError, match="traction"):
+        make_agent("dreamt", traction=2)
+
+
 def test_controller_files_round_trip_and_bad_ones_are_named(model, tmp_path):
     c = controller(model, "cloned")
     c = c.with_weights(np.random.default_rng(0).standard_normal(c.weights.shape), 7)

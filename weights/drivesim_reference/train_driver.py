@@ -10,7 +10,8 @@ state stepped along the episode with the recorded actions, from zeros; on the ro
 --on-road-starts) and rolls the driver --horizon decisions in the dream:
 
     action = (speed now, clamp(steering, -1, 1))
-    h' = tanh(W h + V z + U action + b)
+    h' = tanh(W h + V z + U (speed now, gain * steering) + b)   (gain: 1, or drawn per drive
+                                                                  from --steer-gain LO,HI)
     z' = A h' + a + texture(temperature * noise, h')       (the crate's sampled future)
     speed' = speed_after(speed, clamp(target, 2, --top-speed))   (drivesim.carracing.control)
     return = sum_t discount^t (reward(z', h') - --off-road-cost * off_road(z', h'))   (discount: the
@@ -23,6 +24,12 @@ graph), the transition and the speed's response back to every decision. Outputs 
 ranges clamped here (steering past +-1, a target outside 2..--top-speed) pay a squared penalty,
 which keeps them near: the crate clips the steering to +-1 but the target only to the file's
 speed range (docs/learning.md's driver, --top-speed 40, gives at most 41.1 on its starts).
+
+--steer-gain LO,HI is a guard of dynamics randomisation: every drive's steering reaches the
+transition scaled by its own gain, drawn uniformly from LO..HI, so that the driver learns to
+drive dreams whose steering answers more than the world's does (the worlds' steering moves the
+road 0.45-0.8x as far as the real car's: docs/judging.md). The driver still gives, and the real
+car still gets, the steering itself.
 
 With --checkpoint FILE the run writes the driver, Adam's state and the random state every
 --checkpoint-every steps (atomically); a run started again with the same arguments goes on from
@@ -102,12 +109,14 @@ class DreamDriver:
         total, off, over = speed.new_zeros(len(speed)), speed.new_zeros(len(speed)), speed.new_zeros(len(speed))
         # The value head's discount; a world without one sums its rewards as dream-train does.
         weight, discount = 1.0, m.discount if m.discount is not None else 1.0
+        low, high = a.steer_gain
+        gain = speed.new_empty(len(speed)).uniform_(low, high) if (low, high) != (1.0, 1.0) else 1.0
         for t in range(a.horizon):
             out = self.driver(z, h)
             target, steer = out[:, 0].clamp(LOWEST, a.top_speed), out[:, 1].clamp(-1.0, 1.0)
             over = over + (torch.relu(out[:, 0] - a.top_speed) / a.top_speed).square() \
                 + (torch.relu(LOWEST - out[:, 0]) / a.top_speed).square() + torch.relu(out[:, 1].abs() - 1).square()
-            mean, h = m.transition(z, h, torch.stack([speed, steer], 1))
+            mean, h = m.transition(z, h, torch.stack([speed, gain * steer], 1))
             if a.temperature > 0:
                 draw = torch.randn_like(mean) if noise is None else noise[t]
                 z = mean + m.transition.texture(a.temperature * draw, h)
@@ -143,6 +152,9 @@ def check(args, model, cfg):
             or args.off_road_cost < 0 or not LOWEST < args.top_speed or not LOWEST <= args.first_speed <= args.top_speed:
         raise ValueError(f"--lr must be above 0, --temperature and --off-road-cost at least 0, --top-speed above "
                          f"{LOWEST} and --first-speed from {LOWEST} to it, all finite; got {numbers}")
+    low, high = args.steer_gain
+    if not (math.isfinite(low) and math.isfinite(high) and 0.0 < low <= high <= 5.0):
+        raise ValueError(f"--steer-gain must be LO,HI with 0 < LO <= HI <= 5; got {low},{high}")
     if args.checkpoint_every < 1:
         raise ValueError("--checkpoint-every must be at least 1")
     heads = model.heads()
@@ -192,6 +204,15 @@ def driver(args):
     source.write(model, cfg, args.out)
 
 
+def gain_range(text: str) -> tuple[float, float]:
+    """`--steer-gain`'s LO,HI (a single number: both)."""
+    parts = text.split(",")
+    if len(parts) not in (1, 2):
+        raise ValueError(f"expected LO,HI, got {text!r}")
+    low, high = float(parts[0]), float(parts[-1])
+    return low, high
+
+
 def add_arguments(t):
     """`train.py driver`'s arguments."""
     t.add_argument("--weights", required=True, help="the world: a weight file with the texture net, the reward head "
@@ -206,6 +227,8 @@ def add_arguments(t):
     t.add_argument("--value", action="store_true", help="add the value head at the horizon")
     t.add_argument("--off-road-cost", type=float, default=0.0, help="paid per unit of off-road chance a decision")
     t.add_argument("--top-speed", type=float, default=60.0, help="the highest target speed the driver may give")
+    t.add_argument("--steer-gain", type=gain_range, default=(1.0, 1.0), metavar="LO,HI",
+                   help="each dream drive's steering reaches the transition times a gain drawn from LO..HI")
     t.add_argument("--first-speed", type=float, default=30.0, help="the untrained driver's target speed")
     t.add_argument("--width", type=int, default=64, help="units of the driver's layer")
     t.add_argument("--on-road-starts", action="store_true", help="start only where the car is on the road")

@@ -50,19 +50,22 @@ def test_the_driver_replaces_the_policy_drops_the_pace_head_and_resumes_to_the_s
     assert after["policy.output.weight"].abs().max() > 0, "the driver learnt from its zero output layer"
     kept = {k for k in before if not k.startswith(("policy.", "pace."))}
     assert all(torch.equal(after[k], before[k]) for k in kept)
-    assert_resumes_to_the_same_bytes(run, weights, data, tmp_path, "--horizon", "3")
+    assert_resumes_to_the_same_bytes(run, weights, data, tmp_path, "--horizon", "3", "--steer-gain", "1,2")
 
 
-def test_the_dream_it_learns_in_is_the_crates(tmp_path, files):
+@pytest.mark.parametrize("gain", [1.0, 1.7])
+def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
     """At temperature 0 the trainer's return of a drive is what the crate's simulator gives for
-    the same actions: its transition, speed response, reward, off-road chance, discount and value."""
+    the same actions: its transition, speed response, reward, off-road chance, discount and value;
+    with a steering gain (--steer-gain 1.7,1.7), the crate's transition stepped with the steering
+    times the gain."""
     from drivesim import Model, Simulator
     from drivesim.carracing.control import speed_after as crate_speed_after
 
     weights, _ = files
     model, cfg = load_drivesim(weights)
     args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=5, top_speed=4.0, temperature=0.0,
-                                 off_road_cost=0.5, value=True)
+                                 off_road_cost=0.5, value=True, steer_gain=(gain, gain))
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)  # a driver that steers and changes its speed
@@ -78,7 +81,7 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files):
         with torch.no_grad():
             out = trainer.driver(torch.from_numpy(z), torch.from_numpy(h)).numpy()
         target, steer = np.clip(out[:, 0], 2.0, 4.0), np.clip(out[:, 1], -1.0, 1.0)
-        z, h = sim.transition(z, h, np.stack([speed, steer], 1).astype(np.float32))
+        z, h = sim.transition(z, h, np.stack([speed, gain * steer], 1).astype(np.float32))
         speed = crate_speed_after(speed, target).astype(np.float32)
         reward = sim.reward(z, h)
         expected += weight * (reward[:, 0] - 0.5 * reward[:, 1])
@@ -91,8 +94,28 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files):
                        torch.tensor([12.0, 10.2, 4.0]))
 
 
+def test_each_drive_draws_its_own_steering_gain(files):
+    """--steer-gain LO,HI: two drives from the same state in the mean dream differ, each by its
+    own gain, and a run with the range resumes to the same bytes (the draws are the seed's)."""
+    weights, _ = files
+    model, cfg = load_drivesim(weights)
+    args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=4, top_speed=4.0, temperature=0.0,
+                                 off_road_cost=0.0, value=False, steer_gain=(1.0, 3.0))
+    torch.manual_seed(0)
+    trainer = DreamDriver(model, cfg, args)
+    torch.nn.init.normal_(trainer.driver.output.weight)
+    z, h = torch.randn(1, cfg.z_dim).repeat(2, 1), torch.zeros(2, cfg.hidden_dim)
+    with torch.no_grad():
+        total, _, _ = trainer.rollout(z, h, torch.full((2,), 2.0))
+        args.steer_gain = (1.0, 1.0)
+        same, _, _ = trainer.rollout(z, h, torch.full((2,), 2.0))
+    assert total[0] != total[1] and same[0] == same[1]
+
+
 @pytest.mark.parametrize("bad", [["--lr", "0"], ["--horizon", "0"], ["--width", "0"], ["--temperature", "-1"],
-                                 ["--top-speed", "1"], ["--first-speed", "9"], ["--off-road-cost", "nan"]])
+                                 ["--top-speed", "1"], ["--first-speed", "9"], ["--off-road-cost", "nan"],
+                                 ["--steer-gain", "0,1"], ["--steer-gain", "2,1"], ["--steer-gain", "1,nan"],
+                                 ["--steer-gain", "1,2,3"]])
 def test_bad_settings_exit_with_a_message_and_write_nothing(tmp_path, files, bad):
     weights, data = files
     with pytest.raises(SystemExit):

@@ -13,7 +13,8 @@ the speed to drive at (through the same speed controller).
 
 ``DreamtAgent`` ("dreamt", ``dreamt.py``) drives with a driver learnt inside the dream: a
 controller of ``python -m drivesim dream-train`` read from ``controller=FILE``, or without one
-the weight file's policy head, which ``weights/tool train driver`` learnt in the dream.
+the weight file's policy head, which ``weights/tool train driver`` learnt in the dream
+(``traction=True``: with the clone's traction control under it).
 
 ``ReactiveAgent`` ("reactive") is the baseline without the models: the proportional steering
 and the speed controller alone.

@@ -68,11 +68,13 @@ def paced_control(sim: Simulator, z: np.ndarray, h: np.ndarray, speed: float, ta
     """``(gas, brake)`` for the ``target`` an agent chose at the state ``(z, h)``: with ``pace``,
     through ``racing_pace`` (with ``grip``) and ``speed_control``'s traction rule for ``steer``,
     the gas then through the drive's ``traction`` control where it has one; without, the plain
-    ``speed_control``. Never faster than ``limit`` (a planner's ``control.brake_ahead``)."""
+    ``speed_control`` (with the traction rule and control where ``traction`` is given: the
+    learnt driver's). Never faster than ``limit`` (a planner's ``control.brake_ahead``)."""
     if pace is None:
-        return speed_control(speed, min(target, limit))
-    paced = min(racing_pace(sim, z, h, target, top, pace, steer, grip), limit)
-    gas, brake = speed_control(speed, paced, steer)
+        gas, brake = speed_control(speed, min(target, limit), None if traction is None else steer)
+    else:
+        paced = min(racing_pace(sim, z, h, target, top, pace, steer, grip), limit)
+        gas, brake = speed_control(speed, paced, steer)
     return (gas if traction is None else traction.gas(speed, gas)), brake
 
 

@@ -34,7 +34,7 @@ from .. import _checks
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from .cloned import ClonedAgent, top_speed
-from .control import speed_after
+from .control import Wheelspin, speed_after
 
 BASES = ("fresh", "cloned")
 #: A controller on the clone's ``limits`` unless told: up to 10 units/s of target speed and the
@@ -180,9 +180,13 @@ class DreamtAgent(ClonedAgent):
     decides from the code of the view and the transition's hidden state, which steps as the
     cloned agent's does; without one, the weight file's policy head drives (a driver that
     ``weights/tool train driver`` learnt in the dream and wrote there), at its own speed: no
-    racing pace, grip envelope, traction control or bearings, none of which it learnt with."""
+    racing pace, grip envelope or bearings, none of which it learnt with. ``traction=True``
+    gives its speed control the traction of the clone's racing pace (less gas with the wheels
+    turned, ``control.speed_control``, and the gas cut while the rear wheels spin,
+    ``control.Wheelspin``): below the driver's decisions, it changes neither its speed nor its
+    steering, only how the pedals reach them."""
 
-    def __init__(self, model: Optional[Model] = None, threads: int = 1, controller=None):
+    def __init__(self, model: Optional[Model] = None, threads: int = 1, controller=None, traction: bool = False):
         self.model = model if model is not None else Model.load()
         if controller is None:
             self.controller = None
@@ -196,8 +200,11 @@ class DreamtAgent(ClonedAgent):
             if self.controller.centre.shape != (self.model.z_dim + self.model.hidden_dim,):
                 raise ValueError(f"the controller reads {self.controller.centre.shape[0]} numbers; the model's [z, h] "
                                  f"has {self.model.z_dim + self.model.hidden_dim}")
-        # The driver gives the speed: no racing pace, grip envelope, traction control or bearings.
-        self.pace, self.top, self.grip, self.traction, self.bearings = None, top_speed(self.model), None, None, None
+        # The driver gives the speed: no racing pace, grip envelope or bearings. Traction is the
+        # speed control's, below the driver's decisions: less gas with the wheels turned, and
+        # none while the rear wheels spin (control.Wheelspin).
+        self.pace, self.top, self.grip, self.bearings = None, top_speed(self.model), None, None
+        self.traction = Wheelspin() if _checks.flag("traction", traction) else None
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 
