@@ -56,7 +56,8 @@ def test_the_driver_replaces_the_policy_drops_the_pace_head_and_resumes_to_the_s
 @pytest.mark.parametrize("gain", [1.0, 1.7])
 def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
     """At temperature 0 the trainer's return of a drive is what the crate's simulator gives for
-    the same actions: its transition, speed response, reward, off-road chance, discount and value;
+    the same actions: its transition, speed response, reward, off-road chance, discount, value and
+    the lateral load's cost;
     with a steering gain (--steer-gain 1.7,1.7), the crate's transition stepped with the steering
     times the gain."""
     from drivesim import Model, Simulator
@@ -65,7 +66,8 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
     weights, _ = files
     model, cfg = load_drivesim(weights)
     args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=5, top_speed=4.0, temperature=0.0,
-                                 off_road_cost=0.5, value=True, steer_gain=(gain, gain))
+                                 off_road_cost=0.5, value=True, steer_gain=(gain, gain), lateral_cost=50.0,
+                                 lateral_limit=0.001)
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)  # a driver that steers and changes its speed
@@ -81,10 +83,11 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
         with torch.no_grad():
             out = trainer.driver(torch.from_numpy(z), torch.from_numpy(h)).numpy()
         target, steer = np.clip(out[:, 0], 2.0, 4.0), np.clip(out[:, 1], -1.0, 1.0)
+        lateral = np.maximum((speed / 50.0) ** 2 * np.abs(steer) - 0.001, 0.0)
         z, h = sim.transition(z, h, np.stack([speed, gain * steer], 1).astype(np.float32))
         speed = crate_speed_after(speed, target).astype(np.float32)
         reward = sim.reward(z, h)
-        expected += weight * (reward[:, 0] - 0.5 * reward[:, 1])
+        expected += weight * (reward[:, 0] - 0.5 * reward[:, 1] - 50.0 * lateral)
         off_sum += reward[:, 1]
         weight *= 0.9
     expected += weight * sim.value(z, h)[:, 0]
@@ -100,7 +103,8 @@ def test_each_drive_draws_its_own_steering_gain(files):
     weights, _ = files
     model, cfg = load_drivesim(weights)
     args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=4, top_speed=4.0, temperature=0.0,
-                                 off_road_cost=0.0, value=False, steer_gain=(1.0, 3.0))
+                                 off_road_cost=0.0, value=False, steer_gain=(1.0, 3.0), lateral_cost=0.0,
+                                 lateral_limit=0.2)
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)
@@ -114,6 +118,7 @@ def test_each_drive_draws_its_own_steering_gain(files):
 
 @pytest.mark.parametrize("bad", [["--lr", "0"], ["--horizon", "0"], ["--width", "0"], ["--temperature", "-1"],
                                  ["--top-speed", "1"], ["--first-speed", "9"], ["--off-road-cost", "nan"],
+                                 ["--lateral-cost", "-1"], ["--lateral-limit", "-0.1"], ["--lateral-cost", "inf"],
                                  ["--steer-gain", "0,1"], ["--steer-gain", "2,1"], ["--steer-gain", "1,nan"],
                                  ["--steer-gain", "1,2,3"]])
 def test_bad_settings_exit_with_a_message_and_write_nothing(tmp_path, files, bad):
