@@ -36,7 +36,10 @@ car still gets, the steering itself.
 hard at speed leaves the road. Of the failure drives' decisions on the road (tracks
 12000-12031), 11 % leave it within 8 decisions where the lateral load (speed / 50)^2 |steering|
 is under 0.2, and 19, 27, 30, 34 and 41 % at 0.2-0.3, 0.3-0.4, 0.4-0.5, 0.5-0.7 and above
-(docs/learning.md); each decision pays C per unit of load above --lateral-limit (0.2).
+(docs/learning.md); each decision pays C per unit of load above --lateral-limit (0.2). With
+--lateral-by speed the cost's gradient reaches the steering only through the states it leads to
+(its own size held as given), so that the driver pays for a bend by slowing for it, not by
+steering less than the road needs.
 
 With --checkpoint FILE the run writes the driver, Adam's state and the random state every
 --checkpoint-every steps (atomically); a run started again with the same arguments goes on from
@@ -123,7 +126,8 @@ class DreamDriver:
             target, steer = out[:, 0].clamp(LOWEST, a.top_speed), out[:, 1].clamp(-1.0, 1.0)
             over = over + (torch.relu(out[:, 0] - a.top_speed) / a.top_speed).square() \
                 + (torch.relu(LOWEST - out[:, 0]) / a.top_speed).square() + torch.relu(out[:, 1].abs() - 1).square()
-            lateral = torch.relu((speed / 50.0).square() * steer.abs() - a.lateral_limit)
+            turn = steer.abs().detach() if a.lateral_by == "speed" else steer.abs()
+            lateral = torch.relu((speed / 50.0).square() * turn - a.lateral_limit)
             mean, h = m.transition(z, h, torch.stack([speed, gain * steer], 1))
             if a.temperature > 0:
                 draw = torch.randn_like(mean) if noise is None else noise[t]
@@ -158,7 +162,8 @@ def check(args, model, cfg):
                    lateral_cost=args.lateral_cost, lateral_limit=args.lateral_limit,
                    top_speed=args.top_speed, first_speed=args.first_speed)
     if not all(math.isfinite(v) for v in numbers.values()) or args.lr <= 0 or args.temperature < 0 \
-            or min(args.off_road_cost, args.lateral_cost, args.lateral_limit) < 0 or not LOWEST < args.top_speed or not LOWEST <= args.first_speed <= args.top_speed:
+            or min(args.off_road_cost, args.lateral_cost, args.lateral_limit) < 0 or not LOWEST < args.top_speed \
+            or not LOWEST <= args.first_speed <= args.top_speed:
         raise ValueError(f"--lr must be above 0, --temperature, the costs and --lateral-limit at least 0, "
                          f"--top-speed above {LOWEST} and --first-speed from {LOWEST} to it, all finite; got {numbers}")
     low, high = args.steer_gain
@@ -237,6 +242,8 @@ def add_arguments(t):
     t.add_argument("--off-road-cost", type=float, default=0.0, help="paid per unit of off-road chance a decision")
     t.add_argument("--lateral-cost", type=float, default=0.0,
                    help="paid per unit of lateral load (speed / 50)^2 |steering| above --lateral-limit, a decision")
+    t.add_argument("--lateral-by", choices=("both", "speed"), default="both",
+                   help="what the lateral cost's gradient changes: the speed and the steering, or the speed alone")
     t.add_argument("--lateral-limit", type=float, default=0.2, help="the lateral load that costs nothing")
     t.add_argument("--top-speed", type=float, default=60.0, help="the highest target speed the driver may give")
     t.add_argument("--steer-gain", type=gain_range, default=(1.0, 1.0), metavar="LO,HI",

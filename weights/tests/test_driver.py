@@ -67,7 +67,7 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
     model, cfg = load_drivesim(weights)
     args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=5, top_speed=4.0, temperature=0.0,
                                  off_road_cost=0.5, value=True, steer_gain=(gain, gain), lateral_cost=50.0,
-                                 lateral_limit=0.001)
+                                 lateral_limit=0.001, lateral_by="both")
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)  # a driver that steers and changes its speed
@@ -104,7 +104,7 @@ def test_each_drive_draws_its_own_steering_gain(files):
     model, cfg = load_drivesim(weights)
     args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=4, top_speed=4.0, temperature=0.0,
                                  off_road_cost=0.0, value=False, steer_gain=(1.0, 3.0), lateral_cost=0.0,
-                                 lateral_limit=0.2)
+                                 lateral_limit=0.2, lateral_by="both")
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)
@@ -116,9 +116,36 @@ def test_each_drive_draws_its_own_steering_gain(files):
     assert total[0] != total[1] and same[0] == same[1]
 
 
+def test_the_lateral_cost_by_speed_changes_the_speed_alone(files):
+    """--lateral-by speed: the cost's gradient reaches the driver's speed output and not its
+    steering's (over two decisions, where a steering reaches the cost only directly: later, it
+    also changes the states the later speeds are chosen in); --lateral-by both reaches both."""
+    weights, _ = files
+    model, cfg = load_drivesim(weights)
+    for p in model.parameters():
+        p.requires_grad_(False)
+    z, h = torch.randn(4, cfg.z_dim, generator=torch.Generator().manual_seed(3)), torch.zeros(4, cfg.hidden_dim)
+
+    def gradient(cost, by):
+        args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=2, top_speed=4.0, temperature=0.0,
+                                     off_road_cost=0.0, value=False, steer_gain=(1.0, 1.0), lateral_cost=cost,
+                                     lateral_limit=0.0, lateral_by=by)
+        torch.manual_seed(0)
+        trainer = DreamDriver(model, cfg, args)
+        torch.nn.init.normal_(trainer.driver.output.weight)
+        total, _, _ = trainer.rollout(z, h, torch.full((4,), 2.0))
+        total.sum().backward()
+        return trainer.driver.output.weight.grad
+
+    free, by_speed, by_both = gradient(0.0, "speed"), gradient(1e4, "speed"), gradient(1e4, "both")
+    assert torch.allclose(by_speed[1], free[1]) and not torch.allclose(by_speed[0], free[0])
+    assert not torch.allclose(by_both[1], free[1])
+
+
 @pytest.mark.parametrize("bad", [["--lr", "0"], ["--horizon", "0"], ["--width", "0"], ["--temperature", "-1"],
                                  ["--top-speed", "1"], ["--first-speed", "9"], ["--off-road-cost", "nan"],
                                  ["--lateral-cost", "-1"], ["--lateral-limit", "-0.1"], ["--lateral-cost", "inf"],
+                                 ["--lateral-by", "steering"],
                                  ["--steer-gain", "0,1"], ["--steer-gain", "2,1"], ["--steer-gain", "1,nan"],
                                  ["--steer-gain", "1,2,3"]])
 def test_bad_settings_exit_with_a_message_and_write_nothing(tmp_path, files, bad):
