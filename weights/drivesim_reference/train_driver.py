@@ -13,7 +13,8 @@ state stepped along the episode with the recorded actions, from zeros; on the ro
     h' = tanh(W h + V z + U (speed now, gain * steering) + b)   (gain: 1, or drawn per drive
                                                                   from --steer-gain LO,HI)
     z' = A h' + a + texture(temperature * noise, h')       (the crate's sampled future)
-    speed' = speed_after(speed, clamp(target, 2, --top-speed))   (drivesim.carracing.control)
+    speed' = speed_after(speed, clamp(target, 2, --top-speed))   (drivesim.carracing.control; with
+             --brake-gradient its dead band passes a gradient back)
     return = sum_t discount^t (reward(z', h') - --off-road-cost * off_road(z', h')
                                - --lateral-cost * max(0, (speed / 50)^2 |steering| - --lateral-limit))
              (discount: the value head's, 1 in a world without one)
@@ -70,12 +71,15 @@ GAIN, ACCELERATION, BRAKE_DEAD, LOWEST = 0.2, 2.0, 4.0, 2.0
 CLIP_PENALTY = 1.0
 
 
-def speed_after(speed: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def speed_after(speed: torch.Tensor, target: torch.Tensor, brake_gradient: bool = False) -> torch.Tensor:
     """control.speed_after in torch: up by GAIN of the gap (at most ACCELERATION), down at once
-    where the target is more than BRAKE_DEAD below."""
+    where the target is more than BRAKE_DEAD below. The dead band between passes no gradient: a
+    driver at speed that asks for a little less learns nothing of braking. With
+    `brake_gradient` it passes GAIN's, straight through (the speed itself unchanged)."""
     gap = target - speed
     up = torch.minimum(GAIN * gap, torch.full_like(gap, ACCELERATION))
-    return speed + torch.where(gap >= 0, up, torch.where(gap < -BRAKE_DEAD, gap, torch.zeros_like(gap)))
+    dead = torch.zeros_like(gap) if not brake_gradient else GAIN * (gap - gap.detach())
+    return speed + torch.where(gap >= 0, up, torch.where(gap < -BRAKE_DEAD, gap, dead))
 
 
 def real_states(model, data, on_road_only: bool) -> dict:
@@ -134,7 +138,7 @@ class DreamDriver:
                 z = mean + m.transition.texture(a.temperature * draw, h)
             else:
                 z = mean
-            speed = speed_after(speed, target)
+            speed = speed_after(speed, target, a.brake_gradient)
             reward = m.reward(z, h)
             off_road = reward[:, 1].clamp(0.0, 1.0)
             total = total + weight * (reward[:, 0] - a.off_road_cost * off_road - a.lateral_cost * lateral)
@@ -240,6 +244,8 @@ def add_arguments(t):
     t.add_argument("--temperature", type=float, default=1.0, help="the sampled futures' (0: the mean dream)")
     t.add_argument("--value", action="store_true", help="add the value head at the horizon")
     t.add_argument("--off-road-cost", type=float, default=0.0, help="paid per unit of off-road chance a decision")
+    t.add_argument("--brake-gradient", action="store_true",
+                   help="the speed response's dead band passes a gradient back (straight through)")
     t.add_argument("--lateral-cost", type=float, default=0.0,
                    help="paid per unit of lateral load (speed / 50)^2 |steering| above --lateral-limit, a decision")
     t.add_argument("--lateral-by", choices=("both", "speed"), default="both",

@@ -59,7 +59,7 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
     the same actions: its transition, speed response, reward, off-road chance, discount, value and
     the lateral load's cost;
     with a steering gain (--steer-gain 1.7,1.7), the crate's transition stepped with the steering
-    times the gain."""
+    times the gain (and --brake-gradient, which changes no number the dream gives)."""
     from drivesim import Model, Simulator
     from drivesim.carracing.control import speed_after as crate_speed_after
 
@@ -67,7 +67,7 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
     model, cfg = load_drivesim(weights)
     args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=5, top_speed=4.0, temperature=0.0,
                                  off_road_cost=0.5, value=True, steer_gain=(gain, gain), lateral_cost=50.0,
-                                 lateral_limit=0.001, lateral_by="both")
+                                 lateral_limit=0.001, lateral_by="both", brake_gradient=gain != 1.0)
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)  # a driver that steers and changes its speed
@@ -97,6 +97,17 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
                        torch.tensor([12.0, 10.2, 4.0]))
 
 
+def test_the_brake_gradient_passes_the_dead_band_and_keeps_the_speed():
+    """A target a little under the speed keeps it (the dead band) and passes no gradient back;
+    with --brake-gradient the speed is the same and the gradient GAIN's, as a little above."""
+    for straight_through, slope in ((False, 0.0), (True, 0.2)):
+        target = torch.tensor([8.0, 11.0, 4.0], requires_grad=True)
+        after = speed_after(torch.full((3,), 10.0), target, straight_through)
+        after.sum().backward()
+        assert torch.equal(after.detach(), torch.tensor([10.0, 10.2, 4.0]))
+        assert torch.allclose(target.grad, torch.tensor([slope, 0.2, 1.0]))
+
+
 def test_each_drive_draws_its_own_steering_gain(files):
     """--steer-gain LO,HI: two drives from the same state in the mean dream differ, each by its
     own gain, and a run with the range resumes to the same bytes (the draws are the seed's)."""
@@ -104,7 +115,7 @@ def test_each_drive_draws_its_own_steering_gain(files):
     model, cfg = load_drivesim(weights)
     args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=4, top_speed=4.0, temperature=0.0,
                                  off_road_cost=0.0, value=False, steer_gain=(1.0, 3.0), lateral_cost=0.0,
-                                 lateral_limit=0.2, lateral_by="both")
+                                 lateral_limit=0.2, lateral_by="both", brake_gradient=False)
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)
@@ -129,7 +140,7 @@ def test_the_lateral_cost_by_speed_changes_the_speed_alone(files):
     def gradient(cost, by):
         args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=2, top_speed=4.0, temperature=0.0,
                                      off_road_cost=0.0, value=False, steer_gain=(1.0, 1.0), lateral_cost=cost,
-                                     lateral_limit=0.0, lateral_by=by)
+                                     lateral_limit=0.0, lateral_by=by, brake_gradient=False)
         torch.manual_seed(0)
         trainer = DreamDriver(model, cfg, args)
         torch.nn.init.normal_(trainer.driver.output.weight)
