@@ -51,6 +51,7 @@ drives at its own speed): `make_agent("dreamt", weights=OUT)` drives it.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 
@@ -107,10 +108,15 @@ class DreamDriver:
 
     def __init__(self, model, cfg, args):
         self.model, self.args = model, args
-        self.driver = Policy(cfg, args.width)
-        nn.init.zeros_(self.driver.output.weight)
-        with torch.no_grad():
-            self.driver.output.bias.copy_(torch.tensor([args.first_speed, 0.0]))
+        # --from-policy: the file's policy, kept frozen as the anchor of --stay, starts the driver.
+        self.anchor = model.policy if getattr(args, "from_policy", False) else None
+        if self.anchor is not None:
+            self.driver = copy.deepcopy(self.anchor).requires_grad_(True)
+        else:
+            self.driver = Policy(cfg, args.width)
+            nn.init.zeros_(self.driver.output.weight)
+            with torch.no_grad():
+                self.driver.output.bias.copy_(torch.tensor([args.first_speed, 0.0]))
         self.opt = torch.optim.Adam(self.driver.parameters(), lr=args.lr)
 
     def modules(self):
@@ -130,6 +136,10 @@ class DreamDriver:
             target, steer = out[:, 0].clamp(LOWEST, a.top_speed), out[:, 1].clamp(-1.0, 1.0)
             over = over + (torch.relu(out[:, 0] - a.top_speed) / a.top_speed).square() \
                 + (torch.relu(LOWEST - out[:, 0]) / a.top_speed).square() + torch.relu(out[:, 1].abs() - 1).square()
+            if self.anchor is not None and a.stay > 0:
+                start = self.anchor(z, h)
+                over = over + a.stay / CLIP_PENALTY * (((out[:, 0] - start[:, 0]) / a.top_speed).square()
+                                                       + (out[:, 1] - start[:, 1]).square())
             turn = steer.abs().detach() if a.lateral_by == "speed" else steer.abs()
             lateral = torch.relu((speed / 50.0).square() * turn - a.lateral_limit)
             mean, h = m.transition(z, h, torch.stack([speed, gain * steer], 1))
@@ -173,6 +183,10 @@ def check(args, model, cfg):
     low, high = args.steer_gain
     if not (math.isfinite(low) and math.isfinite(high) and 0.0 < low <= high <= 5.0):
         raise ValueError(f"--steer-gain must be LO,HI with 0 < LO <= HI <= 5; got {low},{high}")
+    if args.from_policy and "policy" not in model.heads():
+        raise ValueError(f"{args.weights}: --from-policy needs a weight file with a policy")
+    if not math.isfinite(args.stay) or args.stay < 0 or (args.stay > 0 and not args.from_policy):
+        raise ValueError("--stay must be finite, at least 0, and given with --from-policy")
     if args.checkpoint_every < 1:
         raise ValueError("--checkpoint-every must be at least 1")
     heads = model.heads()
@@ -216,7 +230,8 @@ def driver(args):
         if args.checkpoint and ((step + 1) % args.checkpoint_every == 0 or step + 1 == args.steps):
             save_checkpoint(args.checkpoint, trainer, step + 1, arguments, CHECKPOINT_FORMAT)
     model.policy = trainer.driver
-    model.pace = None
+    if not args.from_policy:
+        model.pace = None  # a driver learnt from a fresh start drives at its own speed
     for p in model.parameters():
         p.requires_grad_(False)
     source.write(model, cfg, args.out)
@@ -256,6 +271,10 @@ def add_arguments(t):
                    help="each dream drive's steering reaches the transition times a gain drawn from LO..HI")
     t.add_argument("--first-speed", type=float, default=30.0, help="the untrained driver's target speed")
     t.add_argument("--width", type=int, default=64, help="units of the driver's layer")
+    t.add_argument("--from-policy", action="store_true",
+                   help="start from the file's policy (fine-tuning the clone; its pace head kept) instead of afresh")
+    t.add_argument("--stay", type=float, default=0.0,
+                   help="with --from-policy: paid per squared change of its outputs (target / --top-speed, steering)")
     t.add_argument("--on-road-starts", action="store_true", help="start only where the car is on the road")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--log-every", type=int, default=50)

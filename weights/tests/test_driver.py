@@ -153,10 +153,30 @@ def test_the_lateral_cost_by_speed_changes_the_speed_alone(files):
     assert not torch.allclose(by_both[1], free[1])
 
 
+def test_from_the_policy_it_starts_as_the_clone_stays_near_and_keeps_the_pace_head(tmp_path, files):
+    """--from-policy: the first step's driver is the file's policy; --stay pays for moving away
+    from it (a larger --stay moves less); the written file keeps the pace head."""
+    weights, data = files
+    moved = {}
+    for stay in ("0", "1000"):
+        out = tmp_path / f"ft{stay}.safetensors"
+        run(weights, data, out, "--from-policy", "--stay", stay, "--width", "3")
+        before, after = load_file(str(weights)), load_file(str(out))
+        assert set(after) == set(before), "every tensor kept, the pace head among them"
+        moved[stay] = sum(float((after[k] - before[k]).square().sum()) for k in DRIVER)
+    assert 0 < moved["1000"] < moved["0"]
+    model, cfg = load_drivesim(weights)
+    args = types.SimpleNamespace(from_policy=True, width=3, lr=1e-3)
+    trainer = DreamDriver(model, cfg, args)
+    z, h = torch.randn(2, cfg.z_dim), torch.zeros(2, cfg.hidden_dim)
+    assert torch.equal(trainer.driver(z, h), model.policy(z, h))
+
+
 @pytest.mark.parametrize("bad", [["--lr", "0"], ["--horizon", "0"], ["--width", "0"], ["--temperature", "-1"],
                                  ["--top-speed", "1"], ["--first-speed", "9"], ["--off-road-cost", "nan"],
                                  ["--lateral-cost", "-1"], ["--lateral-limit", "-0.1"], ["--lateral-cost", "inf"],
-                                 ["--lateral-by", "steering"],
+                                 ["--lateral-by", "steering"], ["--stay", "1"],
+                                 ["--from-policy", "--stay", "-1"],
                                  ["--steer-gain", "0,1"], ["--steer-gain", "2,1"], ["--steer-gain", "1,nan"],
                                  ["--steer-gain", "1,2,3"]])
 def test_bad_settings_exit_with_a_message_and_write_nothing(tmp_path, files, bad):
@@ -187,4 +207,13 @@ def test_a_world_without_its_heads_is_refused(tmp_path, missing, message):
     data = reward_episodes(tmp_path / "e.safetensors", lengths=(15,))
     with pytest.raises(SystemExit):
         run(weights, data, tmp_path / "x.safetensors")
+    assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_from_the_policy_of_a_world_without_one_is_refused(tmp_path, capsys):
+    weights = world(tmp_path / "w.safetensors", policy_width=None)
+    data = reward_episodes(tmp_path / "e.safetensors", lengths=(15,))
+    with pytest.raises(SystemExit):
+        run(weights, data, tmp_path / "x.safetensors", "--from-policy")
+    assert "--from-policy needs a weight file with a policy" in capsys.readouterr().err
     assert not (tmp_path / "x.safetensors").exists()
