@@ -47,6 +47,10 @@ With --checkpoint FILE the run writes the driver, Adam's state and the random st
 there to the same bytes (on the same device). The written file is the input with `policy.*`
 replaced by the learnt driver and the clone's `pace.*` head left out (a driver learnt in the dream
 drives at its own speed): `make_agent("dreamt", weights=OUT)` drives it.
+
+--from-policy starts the driver as the file's policy instead (the clone fine-tuned in the dream;
+`pace.*` kept, `make_agent("cloned", weights=OUT)` drives it), and --stay C pays C per squared
+change of its outputs from the file's policy (target / --top-speed, steering) at every decision.
 """
 
 from __future__ import annotations
