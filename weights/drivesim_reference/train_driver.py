@@ -113,7 +113,7 @@ class DreamDriver:
     def __init__(self, model, cfg, args):
         self.model, self.args = model, args
         # --from-policy: the file's policy, kept frozen as the anchor of --stay, starts the driver.
-        self.anchor = model.policy if getattr(args, "from_policy", False) else None
+        self.anchor = model.policy if args.from_policy else None
         if self.anchor is not None:
             self.driver = copy.deepcopy(self.anchor).requires_grad_(True)
         else:
@@ -126,11 +126,12 @@ class DreamDriver:
     def modules(self):
         return dict(driver=self.driver, opt=self.opt)
 
-    def rollout(self, z, h, speed, noise=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(return, mean off-road chance, clip penalty) of each drive from the states `z`, `h`,
+    def rollout(self, z, h, speed, noise=None) -> tuple[torch.Tensor, ...]:
+        """(return, mean off-road chance, clip penalty, move from the file's policy: the last two a
+        decision's mean, the move 0 without --from-policy) of each drive from the states `z`, `h`,
         `speed`; `noise` [horizon, N, z] the standard normal draws (None: drawn here)."""
         a, m = self.args, self.model
-        total, off, over = speed.new_zeros(len(speed)), speed.new_zeros(len(speed)), speed.new_zeros(len(speed))
+        total, off, over, moved = (speed.new_zeros(len(speed)) for _ in range(4))
         # The value head's discount; a world without one sums its rewards as dream-train does.
         weight, discount = 1.0, m.discount if m.discount is not None else 1.0
         low, high = a.steer_gain
@@ -140,10 +141,9 @@ class DreamDriver:
             target, steer = out[:, 0].clamp(LOWEST, a.top_speed), out[:, 1].clamp(-1.0, 1.0)
             over = over + (torch.relu(out[:, 0] - a.top_speed) / a.top_speed).square() \
                 + (torch.relu(LOWEST - out[:, 0]) / a.top_speed).square() + torch.relu(out[:, 1].abs() - 1).square()
-            if self.anchor is not None and a.stay > 0:
+            if self.anchor is not None:
                 start = self.anchor(z, h)
-                over = over + a.stay / CLIP_PENALTY * (((out[:, 0] - start[:, 0]) / a.top_speed).square()
-                                                       + (out[:, 1] - start[:, 1]).square())
+                moved = moved + ((out[:, 0] - start[:, 0]) / a.top_speed).square() + (out[:, 1] - start[:, 1]).square()
             turn = steer.abs().detach() if a.lateral_by == "speed" else steer.abs()
             lateral = torch.relu((speed / 50.0).square() * turn - a.lateral_limit)
             mean, h = m.transition(z, h, torch.stack([speed, gain * steer], 1))
@@ -160,11 +160,13 @@ class DreamDriver:
             weight *= discount
         if a.value:
             total = total + weight * m.value(z, h)[:, 0]
-        return total, off / a.horizon, over / a.horizon
+        return total, off / a.horizon, over / a.horizon, moved / a.horizon
 
     def step(self, z, h, speed) -> dict:
-        total, off, over = self.rollout(z, h, speed)
+        total, off, over, moved = self.rollout(z, h, speed)
         loss = -total.mean() + CLIP_PENALTY * over.mean()
+        if self.anchor is not None:
+            loss = loss + self.args.stay * moved.mean()
         self.opt.zero_grad()
         loss.backward()
         nn.utils.clip_grad_norm_(self.driver.parameters(), 100.0)

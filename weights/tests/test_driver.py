@@ -65,8 +65,9 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
 
     weights, _ = files
     model, cfg = load_drivesim(weights)
-    args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=5, top_speed=4.0, temperature=0.0,
-                                 off_road_cost=0.5, value=True, steer_gain=(gain, gain), lateral_cost=50.0,
+    args = types.SimpleNamespace(from_policy=False, width=3, first_speed=3.0, lr=1e-3, horizon=5, top_speed=4.0,
+                                 temperature=0.0, off_road_cost=0.5, value=True,
+                                 steer_gain=(gain, gain), lateral_cost=50.0,
                                  lateral_limit=0.001, lateral_by="both", brake_gradient=gain != 1.0)
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
@@ -76,7 +77,7 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
     h = rng.uniform(-0.5, 0.5, (3, cfg.hidden_dim)).astype(np.float32)
     speed = np.array([1.0, 2.5, 3.5], np.float32)
     with torch.no_grad():
-        total, off, _ = trainer.rollout(torch.from_numpy(z), torch.from_numpy(h), torch.from_numpy(speed))
+        total, off, _, _ = trainer.rollout(torch.from_numpy(z), torch.from_numpy(h), torch.from_numpy(speed))
     sim = Simulator(Model.load(str(weights)), batch=3)
     expected, off_sum, weight = np.zeros(3), np.zeros(3), 1.0
     for _ in range(args.horizon):
@@ -113,17 +114,18 @@ def test_each_drive_draws_its_own_steering_gain(files):
     own gain, and a run with the range resumes to the same bytes (the draws are the seed's)."""
     weights, _ = files
     model, cfg = load_drivesim(weights)
-    args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=4, top_speed=4.0, temperature=0.0,
-                                 off_road_cost=0.0, value=False, steer_gain=(1.0, 3.0), lateral_cost=0.0,
+    args = types.SimpleNamespace(from_policy=False, width=3, first_speed=3.0, lr=1e-3, horizon=4, top_speed=4.0,
+                                 temperature=0.0, off_road_cost=0.0, value=False,
+                                 steer_gain=(1.0, 3.0), lateral_cost=0.0,
                                  lateral_limit=0.2, lateral_by="both", brake_gradient=False)
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)
     z, h = torch.randn(1, cfg.z_dim).repeat(2, 1), torch.zeros(2, cfg.hidden_dim)
     with torch.no_grad():
-        total, _, _ = trainer.rollout(z, h, torch.full((2,), 2.0))
+        total, _, _, _ = trainer.rollout(z, h, torch.full((2,), 2.0))
         args.steer_gain = (1.0, 1.0)
-        same, _, _ = trainer.rollout(z, h, torch.full((2,), 2.0))
+        same, _, _, _ = trainer.rollout(z, h, torch.full((2,), 2.0))
     assert total[0] != total[1] and same[0] == same[1]
 
 
@@ -138,13 +140,14 @@ def test_the_lateral_cost_by_speed_changes_the_speed_alone(files):
     z, h = torch.randn(4, cfg.z_dim, generator=torch.Generator().manual_seed(3)), torch.zeros(4, cfg.hidden_dim)
 
     def gradient(cost, by):
-        args = types.SimpleNamespace(width=3, first_speed=3.0, lr=1e-3, horizon=2, top_speed=4.0, temperature=0.0,
-                                     off_road_cost=0.0, value=False, steer_gain=(1.0, 1.0), lateral_cost=cost,
+        args = types.SimpleNamespace(from_policy=False, width=3, first_speed=3.0, lr=1e-3, horizon=2, top_speed=4.0,
+                                     temperature=0.0, off_road_cost=0.0, value=False,
+                                     steer_gain=(1.0, 1.0), lateral_cost=cost,
                                      lateral_limit=0.0, lateral_by=by, brake_gradient=False)
         torch.manual_seed(0)
         trainer = DreamDriver(model, cfg, args)
         torch.nn.init.normal_(trainer.driver.output.weight)
-        total, _, _ = trainer.rollout(z, h, torch.full((4,), 2.0))
+        total, _, _, _ = trainer.rollout(z, h, torch.full((4,), 2.0))
         total.sum().backward()
         return trainer.driver.output.weight.grad
 
