@@ -175,9 +175,10 @@ class DreamDriver:
 
 
 def check(args, model, cfg):
-    if args.steps < 0 or not 1 <= args.batch <= 65536 or args.horizon < 1 or not 1 <= args.width <= cfg.hidden_dim:
-        raise ValueError(f"--steps must be at least 0, --batch from 1 to 65536, --horizon at least 1 and --width from 1 "
-                         f"to the model's hidden_dim ({cfg.hidden_dim})")
+    if args.steps < 0 or not 1 <= args.batch <= 65536 or args.horizon < 1 \
+            or not 1 <= args.width <= cfg.hidden_dim:
+        raise ValueError(f"--steps must be at least 0, --batch from 1 to 65536, --horizon at least 1 and --width "
+                         f"from 1 to the model's hidden_dim ({cfg.hidden_dim})")
     numbers = dict(lr=args.lr, temperature=args.temperature, off_road_cost=args.off_road_cost,
                    lateral_cost=args.lateral_cost, lateral_limit=args.lateral_limit,
                    top_speed=args.top_speed, first_speed=args.first_speed)
@@ -276,7 +277,7 @@ def add_arguments(t):
     t.add_argument("--steer-gain", type=gain_range, default=(1.0, 1.0), metavar="LO,HI",
                    help="each dream drive's steering reaches the transition times a gain drawn from LO..HI")
     t.add_argument("--first-speed", type=float, default=30.0, help="the untrained driver's target speed")
-    t.add_argument("--width", type=int, default=64, help="units of the driver's layer")
+    t.add_argument("--width", type=int, default=64, help="units of the driver's layer (--from-policy: the policy's)")
     t.add_argument("--from-policy", action="store_true",
                    help="start from the file's policy (fine-tuning the clone; its pace head kept) instead of afresh")
     t.add_argument("--stay", type=float, default=0.0,

@@ -35,6 +35,15 @@ def world(path, **heads):
     return path
 
 
+def settings(**changes):
+    """The trainer's arguments for the tests that step it directly: a small driver in the mean
+    dream with every guard off, but for `changes`."""
+    base = dict(from_policy=False, width=3, first_speed=3.0, lr=1e-3, horizon=4, top_speed=4.0, temperature=0.0,
+                off_road_cost=0.0, value=False, steer_gain=(1.0, 1.0), lateral_cost=0.0, lateral_limit=0.2,
+                lateral_by="both", brake_gradient=False)
+    return types.SimpleNamespace(**{**base, **changes})
+
+
 @pytest.fixture
 def files(tmp_path):
     return world(tmp_path / "w.safetensors"), reward_episodes(tmp_path / "e.safetensors", lengths=(15, 17))
@@ -65,10 +74,8 @@ def test_the_dream_it_learns_in_is_the_crates(tmp_path, files, gain):
 
     weights, _ = files
     model, cfg = load_drivesim(weights)
-    args = types.SimpleNamespace(from_policy=False, width=3, first_speed=3.0, lr=1e-3, horizon=5, top_speed=4.0,
-                                 temperature=0.0, off_road_cost=0.5, value=True,
-                                 steer_gain=(gain, gain), lateral_cost=50.0,
-                                 lateral_limit=0.001, lateral_by="both", brake_gradient=gain != 1.0)
+    args = settings(horizon=5, off_road_cost=0.5, value=True, steer_gain=(gain, gain), lateral_cost=50.0,
+                    lateral_limit=0.001, brake_gradient=gain != 1.0)
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)  # a driver that steers and changes its speed
@@ -111,13 +118,10 @@ def test_the_brake_gradient_passes_the_dead_band_and_keeps_the_speed():
 
 def test_each_drive_draws_its_own_steering_gain(files):
     """--steer-gain LO,HI: two drives from the same state in the mean dream differ, each by its
-    own gain, and a run with the range resumes to the same bytes (the draws are the seed's)."""
+    own gain (a run with the range resumes to the same bytes: the first test's)."""
     weights, _ = files
     model, cfg = load_drivesim(weights)
-    args = types.SimpleNamespace(from_policy=False, width=3, first_speed=3.0, lr=1e-3, horizon=4, top_speed=4.0,
-                                 temperature=0.0, off_road_cost=0.0, value=False,
-                                 steer_gain=(1.0, 3.0), lateral_cost=0.0,
-                                 lateral_limit=0.2, lateral_by="both", brake_gradient=False)
+    args = settings(steer_gain=(1.0, 3.0))
     torch.manual_seed(0)
     trainer = DreamDriver(model, cfg, args)
     torch.nn.init.normal_(trainer.driver.output.weight)
@@ -140,10 +144,7 @@ def test_the_lateral_cost_by_speed_changes_the_speed_alone(files):
     z, h = torch.randn(4, cfg.z_dim, generator=torch.Generator().manual_seed(3)), torch.zeros(4, cfg.hidden_dim)
 
     def gradient(cost, by):
-        args = types.SimpleNamespace(from_policy=False, width=3, first_speed=3.0, lr=1e-3, horizon=2, top_speed=4.0,
-                                     temperature=0.0, off_road_cost=0.0, value=False,
-                                     steer_gain=(1.0, 1.0), lateral_cost=cost,
-                                     lateral_limit=0.0, lateral_by=by, brake_gradient=False)
+        args = settings(horizon=2, lateral_cost=cost, lateral_limit=0.0, lateral_by=by)
         torch.manual_seed(0)
         trainer = DreamDriver(model, cfg, args)
         torch.nn.init.normal_(trainer.driver.output.weight)
@@ -169,7 +170,7 @@ def test_from_the_policy_it_starts_as_the_clone_stays_near_and_keeps_the_pace_he
         moved[stay] = sum(float((after[k] - before[k]).square().sum()) for k in DRIVER)
     assert 0 < moved["1000"] < moved["0"]
     model, cfg = load_drivesim(weights)
-    args = types.SimpleNamespace(from_policy=True, width=3, lr=1e-3)
+    args = settings(from_policy=True)
     trainer = DreamDriver(model, cfg, args)
     z, h = torch.randn(2, cfg.z_dim), torch.zeros(2, cfg.hidden_dim)
     assert torch.equal(trainer.driver(z, h), model.policy(z, h))
