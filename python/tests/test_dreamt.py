@@ -88,6 +88,38 @@ def test_traction_eases_the_gas_in_turns_and_cuts_it_while_the_wheels_spin(model
         make_agent("dreamt", traction=2)
 
 
+def test_anticipate_slows_for_the_steering_the_driver_dreams_ahead_and_only_slows(model):
+    """anticipate=D: a driver at full lock in its own dream is held to the grip envelope of full
+    lock (``brake_ahead`` of its plan), braking from 50 where it asked for 58.8; a slow car's
+    decisions are bit for bit those without the option; the steering is never touched."""
+    from drivesim.carracing.control import brake_ahead, speed_control
+    from drivesim.carracing.dreamt import ANTICIPATE_HORIZON
+
+    full_lock = controller(model)
+    full_lock.weights[:] = 0.0
+    full_lock.weights[:, -1] = (20.0, 3.0)  # target ~58.8, steering tanh(3)
+    frame, z = np.zeros((80, 160, 3), np.uint8), np.zeros(model.z_dim, np.float32)
+    bare = make_agent("dreamt", controller=full_lock)
+    ahead = make_agent("dreamt", controller=full_lock, anticipate=10)
+    target, steer = bare.choose(z, bare.h)
+    limit = brake_ahead(np.full(ANTICIPATE_HORIZON, steer), 10.0)
+    assert 45.0 < limit < 46.0 < target
+    fast_bare, fast_ahead = bare.drive(frame, z, 50.0), ahead.drive(frame, z, 50.0)
+    assert fast_ahead[0] == fast_bare[0] == np.float32(steer)
+    assert fast_bare[1:] == pytest.approx(speed_control(50.0, target)) and fast_bare[2] == 0.0
+    assert fast_ahead[1:] == pytest.approx(speed_control(50.0, limit)) and fast_ahead[1] == 0.0 < fast_ahead[2]
+    frames = np.random.default_rng(5).integers(0, 256, (16, 80, 160, 3), dtype=np.uint8)
+    pairs = [(make_agent("dreamt", traction=t), make_agent("dreamt", traction=t, anticipate=10)) for t in (0, 1)]
+    for i, frame in enumerate(frames):
+        for without, with_it in pairs:
+            assert np.array_equal(without.act(frame, 12.0 + i), with_it.act(frame, 12.0 + i)), i
+    assert with_it.decisions == 16 > with_it.warmup
+    with pytest.raises(ValueError, match="anticipate"):
+        make_agent("dreamt", anticipate=-1)
+    with pytest.raises(TypeError, match="anticipate"):
+        make_agent("dreamt", anticipate="soon")
+
+
 def test_controller_files_round_trip_and_bad_ones_are_named(model, tmp_path):
     c = controller(model, "cloned")
     c = c.with_weights(np.random.default_rng(0).standard_normal(c.weights.shape), 7)

@@ -33,13 +33,15 @@ import numpy as np
 from .. import _checks
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
-from .cloned import ClonedAgent, top_speed
-from .control import Wheelspin, speed_after
+from .cloned import ClonedAgent, paced_control, top_speed
+from .control import Wheelspin, brake_ahead, speed_after
 
 BASES = ("fresh", "cloned")
 #: A controller on the clone's ``limits`` unless told: up to 10 units/s of target speed and the
 #: whole steering range.
 CLONE_LIMITS = (10.0, 1.0)
+#: Decisions ahead that ``DreamtAgent``'s ``anticipate`` dreams its own plan (``mpc``'s horizon).
+ANTICIPATE_HORIZON = 8
 
 
 class Controller:
@@ -184,9 +186,14 @@ class DreamtAgent(ClonedAgent):
     gives its speed control the traction of the clone's racing pace (less gas with the wheels
     turned, ``control.speed_control``, and the gas cut while the rear wheels spin,
     ``control.Wheelspin``): below the driver's decisions, it changes neither its speed nor its
-    steering, only how the pedals reach them."""
+    steering, only how the pedals reach them. ``anticipate=D`` (units/s a
+    decision, 0 to 100; None: off) dreams the driver's own next ``ANTICIPATE_HORIZON`` decisions
+    from each state (the mean dream) and keeps the speed under ``control.brake_ahead`` of their
+    steering, as ``mpc``'s option does: slow enough to meet each planned steering within the grip
+    envelope, shedding D units/s a decision. It only lowers the speed the driver asks for."""
 
-    def __init__(self, model: Optional[Model] = None, threads: int = 1, controller=None, traction: bool = False):
+    def __init__(self, model: Optional[Model] = None, threads: int = 1, controller=None, traction: bool = False,
+                 anticipate: Optional[float] = None):
         self.model = model if model is not None else Model.load()
         if controller is None:
             self.controller = None
@@ -205,8 +212,31 @@ class DreamtAgent(ClonedAgent):
         # none while the rear wheels spin (control.Wheelspin).
         self.pace, self.top, self.grip, self.bearings = None, top_speed(self.model), None, None
         self.traction = Wheelspin() if _checks.flag("traction", traction) else None
+        self.anticipate = None if anticipate is None else _checks.number("anticipate", anticipate, 0.0, 100.0)
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
+
+    def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
+        if self.anticipate is None:
+            return super().drive(frame, z, speed)
+        target, steer = self.decide(z)
+        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, None, None, self.traction,
+                                   self.speed_ahead(z, speed, target, steer))
+        self.last_state = (z, self.h, speed)
+        _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
+        return np.array([steer, gas, brake], np.float32)
+
+    def speed_ahead(self, z: np.ndarray, speed: float, target: float, steer: float) -> float:
+        """The fastest speed now that meets the steering of the driver's own plan, dreamt from
+        this decision (``target``, ``steer``) on at temperature 0, within the grip envelope
+        (``control.brake_ahead`` at ``anticipate`` units/s a decision)."""
+        steers, h = [steer], self.h
+        for _ in range(ANTICIPATE_HORIZON - 1):
+            z, h = self.sim.transition(z, h, np.array([speed, steer], np.float32))
+            speed = float(speed_after(speed, target))
+            target, steer = self.choose(z, h)
+            steers.append(steer)
+        return brake_ahead(np.clip(steers, -1.0, 1.0), self.anticipate)
 
     def choose(self, z: np.ndarray, h: np.ndarray) -> tuple:
         if self.controller is None:
