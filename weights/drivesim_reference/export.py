@@ -22,7 +22,8 @@ import torch
 from safetensors import safe_open
 from torch import nn
 
-from drivesim_reference.model import ACTIONS_KEY, DTYPES, Config, DriveSim, from_state_dict, load_drivesim, save_drivesim
+from drivesim_reference.model import (ACTIONS_KEY, DTYPES, FRAME_HZ_KEY, Config, DriveSim, from_state_dict, load_drivesim,
+                                      save_drivesim)
 
 OPSET = 17
 
@@ -78,18 +79,29 @@ def export_onnx(model: DriveSim, cfg: Config, out: Path) -> None:
             )
 
 
+def source_metadata(source: Path) -> dict:
+    """The source drivesim file's metadata ({} for a checkpoint)."""
+    if source.suffix != ".safetensors":
+        return {}
+    with safe_open(str(source), framework="pt") as f:
+        return dict(f.metadata() or {})
+
+
 def actions_of(source: Path, given: Path | None) -> list[dict] | None:
     """The action descriptions to write: `given`'s, else the source drivesim file's."""
     if given is not None:
         return json.loads(given.read_text())
-    if source.suffix == ".safetensors":
-        with safe_open(str(source), framework="pt") as f:
-            text = (f.metadata() or {}).get(ACTIONS_KEY)
-        return json.loads(text) if text else None
-    return None
+    text = source_metadata(source).get(ACTIONS_KEY)
+    return json.loads(text) if text else None
 
 
-def main() -> int:
+def frame_hz_of(source: Path) -> float | None:
+    """The source drivesim file's frame rate, kept in what is written from it."""
+    text = source_metadata(source).get(FRAME_HZ_KEY)
+    return float(text) if text else None
+
+
+def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("input", type=Path, help="checkpoint .pt or drivesim .safetensors")
     p.add_argument("--config", type=Path, help="config JSON (nine integer keys), for a .pt without one")
@@ -99,13 +111,14 @@ def main() -> int:
     p.add_argument("--actions", type=Path, metavar="JSON",
                    help="what the actions mean and their trained range, written as drivesim.actions "
                         "(a JSON array, weights/README.md §3; default: the input file's, if any)")
-    args = p.parse_args()
+    args = p.parse_args(argv)
     if args.out is None and args.onnx is None:
         p.error("nothing to do: give --out and/or --onnx")
 
     model, cfg = load_any(args.input, args.config)
     if args.out is not None:
-        save_drivesim(model, cfg, args.out, args.dtype, actions=actions_of(args.input, args.actions))
+        save_drivesim(model, cfg, args.out, args.dtype, actions=actions_of(args.input, args.actions),
+                      frame_hz=frame_hz_of(args.input))
         print(f"wrote {args.out} ({args.dtype}, config {json.loads(cfg.to_json())})")
     if args.onnx is not None:
         export_onnx(model, cfg, args.onnx)

@@ -13,6 +13,12 @@ recorded next code plus --beta times the KL divergence of the posterior from the
 draws the crate samples, per code dimension. The posterior is training's alone: the file has no
 place for it (a checkpoint keeps it). With --freeze-transition only the texture net learns.
 
+--mean-weight M adds M times the squared error of the mean `A h' + a` itself against the recorded
+next code. The posterior sees that code, so without it the noise can carry what the action did:
+the mean world then barely answers the steering, and the sampled ones answer it by chance
+(docs/judging.md, "The clone carried to Tv"). With it, what the state and the action determine
+stays in the transition, and the texture net draws what they cannot.
+
 Adam (lr --lr) for everything, the gradient's norm clipped to 1. With --checkpoint FILE the run
 writes what it needs every --checkpoint-every steps (atomically) and a run started again with the
 same arguments goes on from there to the same bytes (on the same device). The written file is the
@@ -67,7 +73,7 @@ class LatentTrainer:
         of codes z [B, T, z] and actions c [B, T-1, 2]."""
         tr = self.model.transition
         h = z.new_zeros(z.shape[0], tr.W.shape[0])
-        errors, kls, drawn = [], [], None
+        errors, kls, means, drawn = [], [], [], None
         for t in range(z.shape[1] - 1):
             mean, h = tr(z[:, t] if t < TEACHER else drawn, h, c[:, t])
             q_mean, q_log_sd = self.posterior(torch.cat([h, z[:, t + 1] - mean], 1)).chunk(2, 1)
@@ -76,22 +82,29 @@ class LatentTrainer:
             drawn = mean + self.texture(noise, h)
             errors.append(F.mse_loss(drawn, z[:, t + 1]))
             kls.append(kl_from_standard(q_mean, q_log_sd).mean())
+            means.append(F.mse_loss(mean, z[:, t + 1]))
+        self.mean_error = torch.stack(means).mean()
         return torch.stack(errors).mean(), torch.stack(kls).mean() / z.shape[2]
 
     def step(self, z, c) -> dict:
         error, kl = self.loss(z, c)
         self.opt.zero_grad()
-        (error + self.args.beta * kl).backward()
+        (error + self.args.beta * kl + self.args.mean_weight * self.mean_error).backward()
         nn.utils.clip_grad_norm_(self.learnt, 1.0)
         self.opt.step()
-        return dict(error=float(error.detach()), kl=float(kl.detach()))
+        out = dict(error=float(error.detach()), kl=float(kl.detach()))
+        if self.args.mean_weight:
+            out["mean_error"] = float(self.mean_error.detach())
+        return out
 
 
 def check(args):
     if args.steps < 0 or not 1 <= args.batch <= 65536 or args.fed < 1 or args.posterior_width < 1:
         raise ValueError("--steps must be at least 0, --batch from 1 to 65536, --fed and --posterior-width at least 1")
-    if not (math.isfinite(args.lr) and args.lr > 0 and math.isfinite(args.beta) and args.beta >= 0):
-        raise ValueError(f"--lr must be a finite number above 0 and --beta at least 0, got {args.lr}, {args.beta}")
+    if not (math.isfinite(args.lr) and args.lr > 0 and math.isfinite(args.beta) and args.beta >= 0
+            and math.isfinite(args.mean_weight) and args.mean_weight >= 0):
+        raise ValueError(f"--lr must be a finite number above 0, --beta and --mean-weight at least 0, got {args.lr}, "
+                         f"{args.beta}, {args.mean_weight}")
     if args.checkpoint_every < 1:
         raise ValueError("--checkpoint-every must be at least 1")
 
@@ -111,5 +124,7 @@ def add_arguments(t):
     t.add_argument("--posterior-width", type=int, default=256, help="units of the posterior's layer")
     t.add_argument("--lr", type=float, default=3e-4)
     t.add_argument("--beta", type=float, default=1.0, help="weight of the KL term (per code dimension)")
+    t.add_argument("--mean-weight", type=float, default=0.0,
+                   help="weight of the mean's own squared error (keeps the action's answer in the transition)")
     t.add_argument("--freeze-transition", action="store_true", help="train the texture net only")
     add_run_arguments(t)

@@ -53,12 +53,35 @@ def test_freeze_transition_trains_the_texture_net_alone(tmp_path, files):
     assert all(torch.equal(after[k], v) for k, v in before.items())
 
 
-@pytest.mark.parametrize("bad", [["--beta", "-1"], ["--lr", "0"], ["--fed", "0"], ["--width", "0"]])
+@pytest.mark.parametrize("bad", [["--beta", "-1"], ["--lr", "0"], ["--fed", "0"], ["--width", "0"], ["--mean-weight", "-1"],
+                                 ["--mean-weight", "nan"]])
 def test_bad_settings_exit_with_a_message(tmp_path, files, bad):
     weights, data = files
     with pytest.raises(SystemExit):
         run(weights, data, tmp_path / "x.safetensors", *bad)
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_mean_weight_keeps_what_the_actions_do_in_the_mean(tmp_path, files):
+    """--mean-weight M: the mean `A h' + a` learns the next code itself, so the mean world's
+    fed-back error falls below that of the same run without it (where the posterior's noise may
+    carry the difference); the sampled error is still trained."""
+    from drivesim_reference.model import load_drivesim
+    from drivesim_reference.sequences import encode, predict
+    from drivesim import episodes
+
+    weights, data = files
+    for m in ("0", "30"):
+        run(weights, data, tmp_path / f"m{m}.safetensors", "--mean-weight", m, "--steps", "40")
+    recorded = episodes.read(data)
+    errors = {}
+    for m in ("0", "30"):
+        model, _ = load_drivesim(tmp_path / f"m{m}.safetensors")
+        with torch.no_grad():
+            codes = encode(model, torch.from_numpy(recorded.frames), 64)
+            z, c = codes[None, :9], torch.from_numpy(recorded.actions)[None, :8]
+            errors[m] = float((predict(model.transition, z, c, 3) - z[:, 1:]).square().mean())
+    assert errors["30"] < 0.8 * errors["0"], errors
 
 
 def test_kl_is_the_closed_form():

@@ -189,3 +189,22 @@ def test_the_noise_factor_round_trips_and_correlates_the_samples(tmp_path):
     assert not torch.allclose(eps @ swap.T, eps)
     with pytest.raises(ValueError, match="spread head"):
         DriveSim(CFG).transition.set_noise_factor(factor)
+
+
+def test_export_from_a_drivesim_file_keeps_its_frame_rate_and_takes_new_actions(tmp_path):
+    """`export M.safetensors --out N --actions A.json`: the tensors and the frame rate as they
+    were (a file re-exported lost `drivesim.frame_hz`), the actions given."""
+    from drivesim_reference.export import main
+
+    torch.manual_seed(0)
+    actions = [dict(name=f"a{i}", unit="u", mean=0.0, std=1.0, min=-1.0, max=1.0) for i in range(CFG.action_dim)]
+    save_drivesim(DriveSim(CFG), CFG, tmp_path / "in.safetensors", "f32", actions=actions, frame_hz=12.5)
+    narrower = [dict(a, max=0.5) for a in actions]
+    (tmp_path / "actions.json").write_text(json.dumps(narrower))
+    assert main([str(tmp_path / "in.safetensors"), "--out", str(tmp_path / "out.safetensors"),
+                 "--actions", str(tmp_path / "actions.json")]) == 0
+    with safe_open(str(tmp_path / "out.safetensors"), "pt") as f:
+        meta = f.metadata()
+    assert meta["drivesim.frame_hz"] == "12.5" and json.loads(meta["drivesim.actions"]) == narrower
+    before, after = load_file(tmp_path / "in.safetensors"), load_file(tmp_path / "out.safetensors")
+    assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)
