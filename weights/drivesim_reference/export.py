@@ -22,8 +22,8 @@ import torch
 from safetensors import safe_open
 from torch import nn
 
-from drivesim_reference.model import (ACTIONS_KEY, DTYPES, FRAME_HZ_KEY, Config, DriveSim, from_state_dict, load_drivesim,
-                                      save_drivesim)
+from drivesim_reference.model import (ACTIONS_KEY, DTYPES, FRAME_HZ_KEY, Config, DriveSim, from_state_dict,
+                                      load_drivesim, save_drivesim)
 
 OPSET = 17
 

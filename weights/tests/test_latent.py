@@ -53,8 +53,8 @@ def test_freeze_transition_trains_the_texture_net_alone(tmp_path, files):
     assert all(torch.equal(after[k], v) for k, v in before.items())
 
 
-@pytest.mark.parametrize("bad", [["--beta", "-1"], ["--lr", "0"], ["--fed", "0"], ["--width", "0"], ["--mean-weight", "-1"],
-                                 ["--mean-weight", "nan"]])
+@pytest.mark.parametrize("bad", [["--beta", "-1"], ["--lr", "0"], ["--fed", "0"], ["--width", "0"],
+                                 ["--mean-weight", "-1"], ["--mean-weight", "nan"]])
 def test_bad_settings_exit_with_a_message(tmp_path, files, bad):
     weights, data = files
     with pytest.raises(SystemExit):
