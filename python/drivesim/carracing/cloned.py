@@ -120,10 +120,15 @@ class ClonedAgent(ModelAgent):
     def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
         target, steer = self.decide(z)
         gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, self.pace, self.grip,
-                                   self.traction)
+                                   self.traction, self.speed_limit(z, speed, target, steer))
         self.last_state = (z, self.h, speed)
         _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
         return np.array([steer, gas, brake], np.float32)
+
+    def speed_limit(self, z: np.ndarray, speed: float, target: float, steer: float) -> float:
+        """The fastest the car may go now, whatever the driver asks for: none here
+        (``dreamt.DreamtAgent``'s ``anticipate`` sets one)."""
+        return np.inf
 
     def paced(self, z: np.ndarray, target: float, steer: float = 0.0) -> float:
         """The speed to drive at with the pace head, for the policy's ``target`` and ``steer`` at

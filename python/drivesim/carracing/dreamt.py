@@ -33,7 +33,7 @@ import numpy as np
 from .. import _checks
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
-from .cloned import ClonedAgent, paced_control, top_speed
+from .cloned import ClonedAgent, top_speed
 from .control import Wheelspin, brake_ahead, speed_after
 
 BASES = ("fresh", "cloned")
@@ -186,11 +186,13 @@ class DreamtAgent(ClonedAgent):
     gives its speed control the traction of the clone's racing pace (less gas with the wheels
     turned, ``control.speed_control``, and the gas cut while the rear wheels spin,
     ``control.Wheelspin``): below the driver's decisions, it changes neither its speed nor its
-    steering, only how the pedals reach them. ``anticipate=D`` (units/s a
-    decision, 0 to 100; None: off) dreams the driver's own next ``ANTICIPATE_HORIZON`` decisions
-    from each state (the mean dream) and keeps the speed under ``control.brake_ahead`` of their
-    steering, as ``mpc``'s option does: slow enough to meet each planned steering within the grip
-    envelope, shedding D units/s a decision. It only lowers the speed the driver asks for."""
+    steering, only how the pedals reach them.
+
+    ``anticipate=D`` (units/s a decision, 0 to 100; None: off) dreams the driver's own next
+    ``ANTICIPATE_HORIZON`` decisions from each state (the mean dream) and keeps the speed under
+    ``control.brake_ahead`` of their steering, as ``mpc``'s option does: slow enough to meet each
+    planned steering within the grip envelope, shedding D units/s a decision. It only lowers the
+    speed the driver asks for."""
 
     def __init__(self, model: Optional[Model] = None, threads: int = 1, controller=None, traction: bool = False,
                  anticipate: Optional[float] = None):
@@ -216,20 +218,12 @@ class DreamtAgent(ClonedAgent):
         self.sim = Simulator(self.model, batch=1, threads=_checks.integer("threads", threads, 1))
         self.reset()
 
-    def drive(self, frame: np.ndarray, z: np.ndarray, speed: float) -> np.ndarray:
+    def speed_limit(self, z: np.ndarray, speed: float, target: float, steer: float) -> float:
+        """With ``anticipate``, the fastest speed now that meets the steering of the driver's own
+        plan, dreamt from this decision (``target``, ``steer``) on at temperature 0, within the grip
+        envelope (``control.brake_ahead`` at ``anticipate`` units/s a decision); else none."""
         if self.anticipate is None:
-            return super().drive(frame, z, speed)
-        target, steer = self.decide(z)
-        gas, brake = paced_control(self.sim, z, self.h, speed, target, steer, self.top, None, None, self.traction,
-                                   self.speed_ahead(z, speed, target, steer))
-        self.last_state = (z, self.h, speed)
-        _, self.h = self.sim.transition(z, self.h, np.array([speed, steer], np.float32))
-        return np.array([steer, gas, brake], np.float32)
-
-    def speed_ahead(self, z: np.ndarray, speed: float, target: float, steer: float) -> float:
-        """The fastest speed now that meets the steering of the driver's own plan, dreamt from
-        this decision (``target``, ``steer``) on at temperature 0, within the grip envelope
-        (``control.brake_ahead`` at ``anticipate`` units/s a decision)."""
+            return np.inf
         steers, h = [steer], self.h
         for _ in range(ANTICIPATE_HORIZON - 1):
             z, h = self.sim.transition(z, h, np.array([speed, steer], np.float32))
