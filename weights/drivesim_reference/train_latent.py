@@ -16,7 +16,7 @@ place for it (a checkpoint keeps it). With --freeze-transition only the texture 
 --mean-weight M adds M times the squared error of the mean `A h' + a` itself against the recorded
 next code. The posterior sees that code, so without it the noise can carry what the action did:
 the mean world then barely answers the steering, and the sampled ones answer it by chance
-(docs/judging.md, "The clone carried to Tv"). With it, what the state and the action determine
+(docs/judging.md, "The mean kept honest: TM"). With it, what the state and the action determine
 stays in the transition, and the texture net draws what they cannot.
 
 Adam (lr --lr) for everything, the gradient's norm clipped to 1. With --checkpoint FILE the run
@@ -68,9 +68,9 @@ class LatentTrainer:
     def modules(self):
         return dict(transition=self.model.transition, texture=self.texture, posterior=self.posterior, opt=self.opt)
 
-    def loss(self, z, c) -> tuple[torch.Tensor, torch.Tensor]:
-        """The mean squared error of the samples and the mean KL per code dimension, on windows
-        of codes z [B, T, z] and actions c [B, T-1, 2]."""
+    def loss(self, z, c) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The mean squared error of the samples, the mean KL per code dimension and the mean
+        squared error of the means, on windows of codes z [B, T, z] and actions c [B, T-1, 2]."""
         tr = self.model.transition
         h = z.new_zeros(z.shape[0], tr.W.shape[0])
         errors, kls, means, drawn = [], [], [], None
@@ -83,18 +83,17 @@ class LatentTrainer:
             errors.append(F.mse_loss(drawn, z[:, t + 1]))
             kls.append(kl_from_standard(q_mean, q_log_sd).mean())
             means.append(F.mse_loss(mean, z[:, t + 1]))
-        self.mean_error = torch.stack(means).mean()
-        return torch.stack(errors).mean(), torch.stack(kls).mean() / z.shape[2]
+        return torch.stack(errors).mean(), torch.stack(kls).mean() / z.shape[2], torch.stack(means).mean()
 
     def step(self, z, c) -> dict:
-        error, kl = self.loss(z, c)
+        error, kl, mean_error = self.loss(z, c)
         self.opt.zero_grad()
-        (error + self.args.beta * kl + self.args.mean_weight * self.mean_error).backward()
+        (error + self.args.beta * kl + self.args.mean_weight * mean_error).backward()
         nn.utils.clip_grad_norm_(self.learnt, 1.0)
         self.opt.step()
         out = dict(error=float(error.detach()), kl=float(kl.detach()))
         if self.args.mean_weight:
-            out["mean_error"] = float(self.mean_error.detach())
+            out["mean_error"] = float(mean_error.detach())
         return out
 
 
