@@ -244,10 +244,12 @@ def test_sampled_futures(model):
 
 
 def test_texture_net_sampled_futures(model):
-    """A file with the texture net (`transition.texture.*`, the texture_f32 fixture's) samples
-    through it: temperature 0 is the mean, a seed gives its bits at any thread count."""
+    """A file with the texture net (`transition.texture.*`, the texture_f32 fixture's, and the
+    default's, 256 wide) samples through it: temperature 0 is the mean, a seed gives its bits at
+    any thread count; a file without one has none."""
     textured = drivesim.Model.load(fixture("texture_f32.safetensors"))
-    assert textured.texture_width == 9 and textured.samples and model.texture_width is None
+    assert textured.texture_width == 9 and textured.samples and model.texture_width == 256
+    assert drivesim.Model.load(fixture("small_f32.safetensors")).texture_width is None
     h = np.linspace(-0.5, 0.5, textured.hidden_dim, dtype=np.float32)
     z = np.linspace(-1.0, 1.0, textured.z_dim, dtype=np.float32)
     plans = np.zeros((4, 3, 2), np.float32)
