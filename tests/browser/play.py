@@ -176,7 +176,7 @@ def main() -> int:
             centres = [r[0] for r in readings if r[0] is not None][-3:]
             assert centres, f"{name}: no road in any frame"
             ends[name] = sum(centres) / len(centres)
-        print(f"road centre in the last frames with road, holds of {HOLD_MS} ms: straight {ends['straight']:.1f} px, left {ends['left']:.1f}, right {ends['right']:.1f}")
+        print(f"road centre, last frames with road in {HOLD_MS} ms: straight {ends['straight']:.1f} px, left {ends['left']:.1f}, right {ends['right']:.1f}")
         assert ends["left"] > ends["straight"] > ends["right"], "the road did not move the right way"
         assert browser.script(MALFORMED, asynchronous=True), "a malformed message did not end its connection"
         time.sleep(0.3)  # its drive given back
