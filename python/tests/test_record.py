@@ -15,7 +15,7 @@ def test_record_short_episode():
     assert record.parse_seeds("0-2,7") == [0, 1, 2, 7]
 
 
-@pytest.mark.parametrize("style", ["varied", "varied-noise", "varied-holds", "holds", "hard", "jerky"])
+@pytest.mark.parametrize("style", ["varied", "varied-noise", "varied-holds", "holds", "hard", "jerky", "expert-holds"])
 def test_record_driver_styles(style):
     frames, actions, _, _, _ = record.record_episode(seed=4, frames=40, frame_skip=2, style=style, random_colours=True)
     assert frames.shape == (40, 80, 160, 3) and np.all(np.abs(actions[:, 1]) <= 1)
@@ -67,3 +67,14 @@ def test_varied_holds_driver_holds_constant_steering_open_loop():
     # `holds`: a hold, then a recovery of 0.4-1.2 s and back to the road, again and again.
     many = holds("holds")
     assert len(many) >= 8 and max(many) <= 11 and 0.1 < sum(many) / 400 < 0.5
+
+
+def test_expert_holds_driver_holds_at_racing_pace():
+    # Holds of 0.05-0.3 for 0.2-0.5 s (3 to 7 frames of 0.08 s) between 1-3 s of the expert's own
+    # driving, at the expert's pace: far faster than the slow `holds`. (Full lock held is the
+    # expert's own steering, clipped, in a recovery.)
+    _, actions, _, _, labels = record.record_episode(seed=8, frames=300, frame_skip=4, style="expert-holds")
+    held = [(n, s) for n, s in runs_of(actions[:, 1]) if n >= 3 and abs(s) < 1]
+    assert len(held) >= 6 and all(n <= 7 and 0.05 <= abs(s) <= 0.3 for n, s in held)
+    _, slow, _, _, _ = record.record_episode(seed=8, frames=300, frame_skip=4, style="holds")
+    assert actions[100:, 0].mean() > 1.5 * slow[100:, 0].mean() and labels is None

@@ -147,3 +147,31 @@ def _speed_profile(curvature, seg_len):
             nxt = v[(i + 1) % n]
             v[i] = min(limit[i], math.sqrt(nxt * nxt + 2.0 * BRAKE_ACCEL * seg_len[i]))
     return v
+
+
+class ExpertHolds(Expert):
+    """The expert at racing pace with holds (`record --driver expert-holds`): after 1 to 3 s of its
+    own driving, back within half a half-road of the centre line, a constant steering of 0.05 to
+    0.3 either way for 0.2 to 0.5 s, whatever the road does, its speed rule going on; then it
+    recovers. The slow `holds` recordings (15-45 units/s) teach a world what steering does where
+    the car has grip to spare; these show it at the clone's speeds and above, where a hold of 0.1
+    takes the car off the road in about half a second and a hard one spins it."""
+
+    def __init__(self, track, rng, style="expert-holds"):
+        super().__init__(track, rng, style)
+        self.rng = rng
+        self.hold_steer, self.hold_left, self.free_left = 0.0, 0.0, float(rng.uniform(1.0, 3.0))
+
+    def act(self, car, frame_seconds):
+        action, speed, off_centre = super().act(car, frame_seconds)
+        if self.hold_left > 0:
+            self.hold_left -= frame_seconds
+            action[0] = self.hold_steer
+        elif self.free_left > 0 or self.off_centre > 0.5:
+            self.free_left -= frame_seconds  # the expert's own driving, and its recovery
+        else:
+            self.hold_steer = float(self.rng.choice([-1, 1]) * self.rng.uniform(0.05, 0.3))
+            self.hold_left = float(self.rng.uniform(0.2, 0.5)) - frame_seconds
+            self.free_left = float(self.rng.uniform(1.0, 3.0))
+            action[0] = self.hold_steer
+        return action, speed, off_centre

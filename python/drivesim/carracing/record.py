@@ -23,6 +23,8 @@ A scripted driver follows the track centre line with pure pursuit; `--driver` pi
   line, so that holds start on the road and make about a quarter of the frames, where
   `varied-holds` has one in 25; the steering gain stays `steady`'s and the speeds are 15 to 45,
   so that the car comes back to the road after each hold.
+- `expert-holds` (the same at racing pace): the expert (expert.py) with a hold of 0.05 to 0.3
+  for 0.2 to 0.5 s after every 1 to 3 s of its own driving (`expert.ExpertHolds`).
 - `hard` (a second style, held out for evaluation): 1.4 times the steering gain, 1.5 times the
   steering noise and slower (steering sd about 0.4 against `steady`'s 0.23), as a nervous
   human driver.
@@ -74,7 +76,7 @@ class OU:
         return self.x
 
 
-DRIVERS = ("steady", "varied", "varied-noise", "varied-holds", "holds", "hard", "jerky", "expert")
+DRIVERS = ("steady", "varied", "varied-noise", "varied-holds", "holds", "hard", "jerky", "expert", "expert-holds")
 COLOURS = ("default", "random", "mixed")
 
 
@@ -83,8 +85,8 @@ class Driver(expert.CentreLine):
     `Driver(track, rng, "expert")` is the racing-pace teacher of expert.py, with the same `act`."""
 
     def __new__(cls, track, rng, style="steady"):
-        if style == "expert":
-            return expert.Expert(track, rng, style)
+        if style in ("expert", "expert-holds"):
+            return (expert.Expert if style == "expert" else expert.ExpertHolds)(track, rng, style)
         return super().__new__(cls)
 
     def __init__(self, track, rng, style="steady"):
