@@ -5,7 +5,7 @@ seeds and the driver in its metadata), the recording is replayed from its seed (
 driver and CarRacing are deterministic) to the start's last seed frame; then the car steers
 -x, 0 or +x for 30 frames, its gas and brake holding the start's speed, and the probe reads the
 road's centre after 5, 10 and 30 frames, as `train eval` does in the dream's. Prints and writes
-(--out) the right-way share and the symmetry for each x and number of steps:
+(--out, and the cache below) the right-way share and the symmetry for each x and number of steps:
 
   python -m drivesim probe-real --data held_out.safetensors.gz [--workers 2] [--out probe.json]
 
@@ -114,8 +114,8 @@ def main(argv=None):
     p.add_argument("--workers", type=int, default=os.cpu_count())
     p.add_argument("--out", help="JSON file to write the figures to")
     args = p.parse_args(argv)
-    try:
-        out = real_probe(args.data, args.workers)
+    try:  # through the cache, so that `train eval --probe-real` on the same file reuses it
+        out = cached(args.data, args.workers, log=lambda *_: None)
     except ValueError as e:
         p.error(str(e))
     print(json.dumps(out, indent=1))
