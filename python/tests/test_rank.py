@@ -171,3 +171,30 @@ def test_a_bad_weight_file_is_refused_before_any_drive(tmp_path):
         assert run.returncode == 2, run.stderr
         assert f"error: {flag}: " in run.stderr, run.stderr
         assert "Traceback" not in run.stderr and not (tmp_path / "out" / "real").exists()
+
+
+def test_real_drives_of_other_drivers_are_refused(tmp_path):
+    """The real drives in ``--out`` are the drivers' of ``--weights``: another policy (or another
+    built-in default) with the same folder is an error, not a report mixing two families' drives."""
+    from safetensors.numpy import load_file, save_file
+    from safetensors import safe_open
+
+    default = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "weights", "default.safetensors")
+    built_in = rank.drivers_fingerprint(drivesim.Model.load())
+    assert built_in == rank.drivers_fingerprint(drivesim.Model.load(default))
+    tensors = load_file(default)
+    with safe_open(default, "np") as f:
+        meta = f.metadata()
+    tensors["policy.output.bias"] = tensors["policy.output.bias"] + np.float16(0.25)
+    save_file(tensors, tmp_path / "other.safetensors", metadata=meta)
+    other = rank.drivers_fingerprint(drivesim.Model.load(tmp_path / "other.safetensors"))
+    assert other != built_in
+
+    rank.check_drivers(str(tmp_path), built_in)
+    rank.check_drivers(str(tmp_path), built_in)  # the same drivers: the folder is theirs
+    with pytest.raises(ValueError, match="other drivers"):
+        rank.check_drivers(str(tmp_path), other)
+    run = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "1", "--out", str(tmp_path),
+                          "--weights", str(tmp_path / "other.safetensors")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "holds the real drives of other drivers" in run.stderr, run.stderr
+    assert not os.listdir(tmp_path / "real")

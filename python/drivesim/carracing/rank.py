@@ -25,13 +25,17 @@ the correlation falls where the dream's road stops being the real one).
 changing the drivers. ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another
 ``--family``'s with its name first; the behaviour drive in ``drive_SEED.npz``): a run that stops
 resumes where it was, and another ``--world`` or ``--horizon`` reuses the real drives; the report
-goes to ``rank.json`` (``--report``: another name).
+goes to ``rank.json`` (``--report``: another name). The real drives are the drivers' of
+``--weights``: ``drivers.json`` keeps what those drivers answer to fixed inputs, and another
+``--weights`` (or another built-in default) with the same ``--out`` is an error, not a report
+that mixes two families' drives (a folder from before this check is taken as the next run's).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import json
 import multiprocessing
 import os
@@ -71,6 +75,34 @@ def process_model(weights):
     if _model is None:
         _model = Model.load(weights)
     return _model
+
+
+def drivers_fingerprint(model: Model) -> str:
+    """A hash of what the drivers of ``model`` answer to fixed inputs (their policy and pace, and
+    their transition's step): the same for the same drivers, whatever the thread count, and for
+    the built-in default, which has no file to hash."""
+    sim, rng = Simulator(model), np.random.default_rng(0)
+    z = rng.standard_normal((1, model.z_dim)).astype(np.float32)
+    h = np.tanh(rng.standard_normal((1, model.hidden_dim))).astype(np.float32)
+    answers = [sim.act(z, h), *sim.transition(z[0], h[0], np.array([30.0, 0.1], np.float32))]
+    if model.pace_width is not None:
+        answers.append(sim.pace(z, h))
+    return hashlib.sha256(b"".join(np.asarray(a, np.float32).tobytes() for a in answers)).hexdigest()
+
+
+def check_drivers(out: str, fingerprint: str) -> None:
+    """Keeps ``fingerprint`` in ``out/drivers.json``, or raises ValueError where the folder
+    holds another drivers' real drives."""
+    path = os.path.join(out, "drivers.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            kept = json.load(f).get("fingerprint")
+        if kept != fingerprint:
+            raise ValueError(f"{out} holds the real drives of other drivers (another --weights, or another "
+                             f"built-in default): give another --out")
+        return
+    with atomic_write(path) as f:
+        f.write(json.dumps({"fingerprint": fingerprint}).encode())
 
 
 def dream_row_seed(seed: int, index: int, start: int, starts: int) -> int:
@@ -374,8 +406,14 @@ def main(argv=None) -> int:
             p.error(f"{flag}: {e}")
         if flag == "--weights" and model.policy_width is None:
             p.error("--weights: the model has no policy to drive with")
+        if flag == "--weights":
+            fingerprint = drivers_fingerprint(model)
     args.family_name, args.family = args.family, FAMILIES[args.family]
     os.makedirs(os.path.join(args.out, "real"), exist_ok=True)
+    try:
+        check_drivers(args.out, fingerprint)
+    except ValueError as e:
+        p.error(str(e))
     # Each track's unchanged driver first: its drive leaves the dream's starts.
     jobs = [(args, i, seed) for i in range(len(args.family)) for seed in args.seeds]
     results, windowed, started = [], [], time.perf_counter()
