@@ -85,8 +85,9 @@ class Driver(expert.CentreLine):
     `Driver(track, rng, "expert")` is the racing-pace teacher of expert.py, with the same `act`."""
 
     def __new__(cls, track, rng, style="steady"):
-        if style in ("expert", "expert-holds"):
-            return (expert.Expert if style == "expert" else expert.ExpertHolds)(track, rng, style)
+        experts = {"expert": expert.Expert, "expert-holds": expert.ExpertHolds}
+        if style in experts:
+            return experts[style](track, rng, style)
         return super().__new__(cls)
 
     def __init__(self, track, rng, style="steady"):
