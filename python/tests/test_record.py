@@ -15,7 +15,7 @@ def test_record_short_episode():
     assert record.parse_seeds("0-2,7") == [0, 1, 2, 7]
 
 
-@pytest.mark.parametrize("style", ["varied", "varied-noise", "varied-holds", "holds", "hard", "jerky", "expert-holds"])
+@pytest.mark.parametrize("style", ["varied", "varied-noise", "varied-holds", "holds", "hard", "jerky", "expert-holds", "expert-speeds"])
 def test_record_driver_styles(style):
     frames, actions, _, _, _ = record.record_episode(seed=4, frames=40, frame_skip=2, style=style, random_colours=True)
     assert frames.shape == (40, 80, 160, 3) and np.all(np.abs(actions[:, 1]) <= 1)
@@ -78,3 +78,14 @@ def test_expert_holds_driver_holds_at_racing_pace():
     assert len(held) >= 6 and all(n <= 7 and 0.05 <= abs(s) <= 0.3 for n, s in held)
     _, slow, _, _, _ = record.record_episode(seed=8, frames=300, frame_skip=4, style="holds")
     assert actions[100:, 0].mean() > 1.5 * slow[100:, 0].mean() and labels is None
+
+
+def test_expert_speeds_driver_takes_bends_too_fast_and_too_slow():
+    # The expert's steering with its speed profile scaled by 0.6-1.7, redrawn every 1-3 s: on the
+    # same track its speeds spread far wider than the expert's own, and the fast bends take the
+    # car off the road, which the expert never leaves.
+    _, actions, _, rewards, labels = record.record_episode(seed=7800, frames=300, frame_skip=4, style="expert-speeds")
+    _, planned, _, kept, _ = record.record_episode(seed=7800, frames=300, frame_skip=4, style="expert")
+    assert labels is None and kept["on_road"].all() and rewards["on_road"].mean() < 0.95
+    assert actions[50:, 0].std() > 1.15 * planned[50:, 0].std()
+    assert actions[50:, 0].min() < planned[50:, 0].min() - 5

@@ -175,3 +175,27 @@ class ExpertHolds(Expert):
             self.free_left = float(self.rng.uniform(1.0, 3.0))
             action[0] = self.hold_steer
         return action, speed, off_centre
+
+
+class ExpertSpeeds(Expert):
+    """The expert at the wrong speeds (`record --driver expert-speeds`): its speed profile, the
+    whole of it, times a factor of 0.6 to 1.7 drawn again every 1 to 3 s, its steering its own.
+    The expert's recordings take every bend at the one speed it plans for it, so a world learnt
+    on them cannot tell what speed does in a bend; these take bends of every kind slower and
+    faster than the grip allows, and show the slides, spins and recoveries of the fast ones."""
+
+    SCALES = (0.6, 1.7)
+    SECONDS = (1.0, 3.0)
+
+    def __init__(self, track, rng, style="expert-speeds"):
+        super().__init__(track, rng, style)
+        self.rng, self.planned = rng, self.profile
+        self.scale_left = 0.0
+
+    def act(self, car, frame_seconds):
+        self.scale_left -= frame_seconds
+        if self.scale_left <= 0:
+            self.scale = float(self.rng.uniform(*self.SCALES))
+            self.scale_left = float(self.rng.uniform(*self.SECONDS))
+            self.profile = self.planned * self.scale
+        return super().act(car, frame_seconds)

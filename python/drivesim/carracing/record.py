@@ -25,6 +25,9 @@ A scripted driver follows the track centre line with pure pursuit; `--driver` pi
   so that the car comes back to the road after each hold.
 - `expert-holds` (the same at racing pace): the expert (expert.py) with a hold of 0.05 to 0.3
   for 0.2 to 0.5 s after every 1 to 3 s of its own driving (`expert.ExpertHolds`).
+- `expert-speeds` (what speed does in a bend): the expert's steering with its speed profile
+  times 0.6 to 1.7, redrawn every 1 to 3 s (`expert.ExpertSpeeds`): bends of every kind taken
+  slower and faster than the grip allows, with the slides, spins and recoveries that follow.
 - `hard` (a second style, held out for evaluation): 1.4 times the steering gain, 1.5 times the
   steering noise and slower (steering sd about 0.4 against `steady`'s 0.23), as a nervous
   human driver.
@@ -76,7 +79,7 @@ class OU:
         return self.x
 
 
-DRIVERS = ("steady", "varied", "varied-noise", "varied-holds", "holds", "hard", "jerky", "expert", "expert-holds")
+DRIVERS = ("steady", "varied", "varied-noise", "varied-holds", "holds", "hard", "jerky", "expert", "expert-holds", "expert-speeds")
 COLOURS = ("default", "random", "mixed")
 
 
@@ -85,7 +88,8 @@ class Driver(expert.CentreLine):
     `Driver(track, rng, "expert")` is the racing-pace teacher of expert.py, with the same `act`."""
 
     def __new__(cls, track, rng, style="steady"):
-        experts = {"expert": expert.Expert, "expert-holds": expert.ExpertHolds}
+        experts = {"expert": expert.Expert, "expert-holds": expert.ExpertHolds,
+                   "expert-speeds": expert.ExpertSpeeds}
         if style in experts:
             return experts[style](track, rng, style)
         return super().__new__(cls)
