@@ -35,10 +35,13 @@ def steering_probe(model, data, codes, actions, decode):
     seeds = codes[torch.as_tensor(picks)[:, None] + torch.arange(probe.SEEDS)]
     speed = actions[torch.as_tensor(picks) + probe.SEEDS - 1, 0]
     z = torch.cat([seeds, seeds.new_zeros(len(seeds), probe.PROBE_STEPS, seeds.shape[2])], 1)
+    # Between the seed frames the recorded actions, as the real probe drives the recording to the
+    # start: the probe's steering fed there too would have the hidden state steer before the car.
+    recorded = actions[torch.as_tensor(picks)[:, None] + torch.arange(probe.SEEDS - 1)]
 
     def centres(steer):
-        steps = probe.SEEDS - 1 + probe.PROBE_STEPS
-        c = torch.stack([speed, torch.full_like(speed, steer)], 1)[:, None].expand(-1, steps, -1)
+        held = torch.stack([speed, torch.full_like(speed, steer)], 1)[:, None].expand(-1, probe.PROBE_STEPS, -1)
+        c = torch.cat([recorded.to(held.dtype), held], 1)
         fed = predict(model.transition, z, c, probe.SEEDS)[:, probe.SEEDS - 2:]  # [:, k]: after k steps
         return {k: [probe.centre(f) for f in decode(fed[:, k])] for k in probe.READINGS}
 

@@ -84,7 +84,7 @@ def test_fit_and_eval_tiny(tmp_path):
         assert latent[f"mse_1_to_{k}"] == pytest.approx(per_step[:k].mean(), rel=1e-4)
     assert set(fidelity["road_moves_right_way"]) == {"0.3", "0.6"}
     futures = json.loads((tmp_path / "fig" / "eval.json").read_text())["futures"]
-    assert set(futures["steering_probe"]) == {"5", "10", "30"} and set(futures["steering_probe"]["30"]) == {"0.3", "0.6"}
+    assert set(futures["steering_probe"]) == {"1", "2", "3", "5", "10", "30"} and set(futures["steering_probe"]["30"]) == {"0.3", "0.6"}
     assert futures["at_30_steps"]["windows"] > 0 and "sampled" not in futures["at_30_steps"]
     assert set(futures["texture"]) == {"steps", "windows", "recorded", "reconstruction", "mean", "linear", "copy"}
     assert episodes.read(tmp_path / "clip.safetensors").frames.shape == (8, 32, 64, 3)

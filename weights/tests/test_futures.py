@@ -181,3 +181,46 @@ def test_the_real_probe_is_computed_once_per_data_file(tmp_path, monkeypatch):
     data.write_bytes(b"another recording")
     assert probe_real.cached(data, 1, log=lambda *_: None) == {"5": 2} and len(runs) == 2
     assert (tmp_path / "held_out.safetensors.gz.probe-real.json").exists()
+
+
+class Steering(torch.nn.Module):
+    """A dream whose one-number code is the steering summed since its start: every input counts."""
+
+    def __init__(self):
+        super().__init__()
+        self.W = torch.zeros(1, 1)
+
+    def forward(self, z, h, c):
+        h = h + c[:, 1:2]
+        return h, h
+
+
+def test_steering_probe_steers_from_the_start_not_through_the_seed_frames():
+    # The real probe (probe_real) drives the recording to the start, then steers: the dream's
+    # seed frames must be stepped with the recorded actions (here straight), so that after k
+    # steps of steering x the dream's code is k x. Feeding x through the 4 seed steps too made
+    # it (4 + k) x: a hidden state that steered before the car did.
+    from drivesim import probe
+    from drivesim_reference.futures import steering_probe
+
+    n = 60
+    frames = np.zeros((n, 80, 160, 3), np.uint8)
+    data = episodes.Episodes(frames, np.zeros((n, 2), np.float32), np.array([0]))
+
+    def decode(z):  # the road 4 px left per unit of code, as right steering moves it
+        out = np.zeros((len(z), 80, 160, 3), np.uint8)
+        out[..., 1] = 200
+        for i, centre in enumerate(80 - 4 * z[:, 0].numpy()):
+            out[i, :, int(round(centre)) - 10:int(round(centre)) + 10] = 105
+        return out
+
+    probed = steering_probe(Dream_of(Steering()), data, torch.zeros(n, 1), torch.zeros(n, 2), decode)
+    for k in (5, 10):
+        for x in probe.PROBE_STEER:
+            moved = probed[str(k)][str(x)]
+            assert moved["road_moves_px_left_steering"] == pytest.approx(4 * k * x, abs=0.6)
+            assert moved["road_moves_px_right_steering"] == pytest.approx(4 * k * x, abs=0.6)
+
+
+def Dream_of(transition):
+    return type("Model", (), {"transition": transition})()

@@ -4,7 +4,7 @@ For each of the probe's starts in a recorded episodes file (`python -m drivesim 
 seeds and the driver in its metadata), the recording is replayed from its seed (the scripted
 driver and CarRacing are deterministic) to the start's last seed frame; then the car steers
 -x, 0 or +x for 30 frames, its gas and brake holding the start's speed, and the probe reads the
-road's centre after 5, 10 and 30 frames, as `train eval` does in the dream's. Prints and writes
+road's centre after 1, 2, 3, 5, 10 and 30 frames, as `train eval` does in the dream's. Prints and writes
 (--out, and the cache below) the right-way share and the symmetry for each x and number of steps:
 
   python -m drivesim probe-real --data held_out.safetensors.gz [--workers 2] [--out probe.json]
