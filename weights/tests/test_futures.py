@@ -126,7 +126,7 @@ def test_texture_follows_the_dream_against_the_recording():
 
 
 def test_texture_baselines_fit_a_linear_dream_and_copy_the_last_seed():
-    from drivesim_reference.futures import TEACHER, futures_windows, linear_predictor, linear_rollout, texture
+    from drivesim_reference.futures import futures_windows, linear_predictor, linear_rollout, texture
 
     n = 80
     frames = carracing_frames(n)
