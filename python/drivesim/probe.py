@@ -15,8 +15,8 @@ SEEDS, PROBE_STARTS, PROBE_STEPS, PROBE_STEER, PROBE_ROWS = 5, 50, 30, (0.3, 0.6
 # Steps after which the road's centre is also read (the figures are at PROBE_STEPS):
 # in the real CarRacing, 30 steps (2.4 s) of constant steering spin the car off the road. The
 # first three show how the answer builds: the real car's grows with every step (the wheels turn
-# at a limited rate, then the heading turns), and a dream that answers late or levels off is a
-# car that is easier to hold on the road than the real one (docs/judging.md).
+# at a limited rate, then the heading turns), where a dream's may come late or level off
+# (docs/judging.md).
 READINGS = (1, 2, 3, 5, 10, PROBE_STEPS)
 
 

@@ -1,5 +1,7 @@
 """Tests of the dream's measures against held-out episodes (futures.py, issue 31)."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -214,13 +216,9 @@ def test_steering_probe_steers_from_the_start_not_through_the_seed_frames():
             out[i, :, int(round(centre)) - 10:int(round(centre)) + 10] = 105
         return out
 
-    probed = steering_probe(Dream_of(Steering()), data, torch.zeros(n, 1), torch.zeros(n, 2), decode)
+    probed = steering_probe(SimpleNamespace(transition=Steering()), data, torch.zeros(n, 1), torch.zeros(n, 2), decode)
     for k in (5, 10):
         for x in probe.PROBE_STEER:
             moved = probed[str(k)][str(x)]
             assert moved["road_moves_px_left_steering"] == pytest.approx(4 * k * x, abs=0.6)
             assert moved["road_moves_px_right_steering"] == pytest.approx(4 * k * x, abs=0.6)
-
-
-def Dream_of(transition):
-    return type("Model", (), {"transition": transition})()
