@@ -195,7 +195,6 @@ class ExpertSpeeds(Expert):
     def act(self, car, frame_seconds):
         self.scale_left -= frame_seconds
         if self.scale_left <= 0:
-            self.scale = float(self.rng.uniform(*self.SCALES))
+            self.profile = self.planned * float(self.rng.uniform(*self.SCALES))
             self.scale_left = float(self.rng.uniform(*self.SECONDS))
-            self.profile = self.planned * self.scale
         return super().act(car, frame_seconds)

@@ -399,19 +399,21 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(str(e))
     # Before any drive: a bad file is an error now, not after the real drives.
-    for flag, path in (("--weights", args.weights), ("--world", args.world)):
+    def load(flag, path):
         try:
-            model = Model.load(path) if path or flag == "--weights" else None
+            return Model.load(path)
         except (OSError, ValueError) as e:
             p.error(f"{flag}: {e}")
-        if flag == "--weights" and model.policy_width is None:
-            p.error("--weights: the model has no policy to drive with")
-        if flag == "--weights":
-            fingerprint = drivers_fingerprint(model)
+
+    drivers = load("--weights", args.weights)
+    if drivers.policy_width is None:
+        p.error("--weights: the model has no policy to drive with")
+    if args.world:
+        load("--world", args.world)
     args.family_name, args.family = args.family, FAMILIES[args.family]
     os.makedirs(os.path.join(args.out, "real"), exist_ok=True)
     try:
-        check_drivers(args.out, fingerprint)
+        check_drivers(args.out, drivers_fingerprint(drivers))
     except ValueError as e:
         p.error(str(e))
     # Each track's unchanged driver first: its drive leaves the dream's starts.
