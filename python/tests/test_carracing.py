@@ -76,6 +76,22 @@ def test_evaluation_command(tmp_path, capsys):
     assert capsys.readouterr().out.splitlines()[-2] == out.splitlines()[-2]
 
 
+def test_evaluation_without_animations(tmp_path, capsys):
+    pytest.importorskip("Box2D")
+    from drivesim.carracing.__main__ import main
+
+    # The figures, resumable, without the animation: the same drive, to the same reward.
+    main(["--agent", "cloned", "--seeds", "7", "--frames", "60", "--out", str(tmp_path / "a"), "--no-gif"])
+    main(["--agent", "cloned", "--seeds", "7", "--frames", "60", "--out", str(tmp_path / "b")])
+    capsys.readouterr()
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["track_7.json"]
+    a, b = (json.loads((tmp_path / d / "track_7.json").read_text()) for d in "ab")
+    assert a["reward"] == b["reward"] and a["frames"] == b["frames"] == 60
+    with pytest.raises(SystemExit):  # nowhere to write the figures
+        main(["--agent", "cloned", "--seeds", "7", "--no-gif"])
+    assert "--no-gif goes with --out" in capsys.readouterr().err
+
+
 def test_baselines_act_in_range(clip):
     frames, actions = clip
     for name in ("reactive", "random"):
