@@ -48,6 +48,12 @@ there to the same bytes (on the same device). The written file is the input with
 replaced by the learnt driver and the clone's `pace.*` head left out (a driver learnt in the dream
 drives at its own speed): `make_agent("dreamt", weights=OUT)` drives it.
 
+--look DRIVER trains nothing: it rolls DRIVER's policy (a file this command wrote) in the world's
+dream, --batch drives of --horizon decisions from the starts drawn with --seed, and prints what it
+does there as JSON: the return and off-road chance, its speed (all decisions, and where it steers
+0.2 or more), how often it steers so, asks for --top-speed (within 2 units/s) or brakes, and its
+lateral load over --lateral-limit. A look at a driver before any real drive (docs/learning.md).
+
 --from-policy starts the driver as the file's policy instead (the clone fine-tuned in the dream;
 `pace.*` kept, `make_agent("cloned", weights=OUT)` drives it), and --stay C pays C per squared
 change of its outputs from the file's policy (target / --top-speed, steering) at every decision.
@@ -56,6 +62,7 @@ change of its outputs from the file's policy (target / --top-speed, steering) at
 from __future__ import annotations
 
 import copy
+import json
 import math
 import time
 
@@ -110,11 +117,13 @@ def real_states(model, data, on_road_only: bool) -> dict:
 class DreamDriver:
     """The driver, its optimiser and the dream it is rolled in (the model's frozen networks)."""
 
-    def __init__(self, model, cfg, args):
+    def __init__(self, model, cfg, args, driver=None):
         self.model, self.args = model, args
         # --from-policy: the file's policy, kept frozen as the anchor of --stay, starts the driver.
         self.anchor = model.policy if args.from_policy else None
-        if self.anchor is not None:
+        if driver is not None:  # a driver to look at (--look), not to train
+            self.driver = driver
+        elif self.anchor is not None:
             self.driver = copy.deepcopy(self.anchor).requires_grad_(True)
         else:
             self.driver = Policy(cfg, args.width)
@@ -126,10 +135,11 @@ class DreamDriver:
     def modules(self):
         return dict(driver=self.driver, opt=self.opt)
 
-    def rollout(self, z, h, speed, noise=None) -> tuple[torch.Tensor, ...]:
+    def rollout(self, z, h, speed, noise=None, trace=None) -> tuple[torch.Tensor, ...]:
         """(return, mean off-road chance, clip penalty, move from the file's policy: the last two a
         decision's mean, the move 0 without --from-policy) of each drive from the states `z`, `h`,
-        `speed`; `noise` [horizon, N, z] the standard normal draws (None: drawn here)."""
+        `speed`; `noise` [horizon, N, z] the standard normal draws (None: drawn here); `trace`, a
+        list, gets each decision's (speed, steering, the driver's target, lateral load)."""
         a, m = self.args, self.model
         total, off, over, moved = (speed.new_zeros(len(speed)) for _ in range(4))
         # The value head's discount; a world without one sums its rewards as dream-train does.
@@ -146,6 +156,8 @@ class DreamDriver:
                 moved = moved + ((out[:, 0] - start[:, 0]) / a.top_speed).square() + (out[:, 1] - start[:, 1]).square()
             turn = steer.abs().detach() if a.lateral_by == "speed" else steer.abs()
             lateral = torch.relu((speed / 50.0).square() * turn - a.lateral_limit)
+            if trace is not None:
+                trace.append((speed, steer, out[:, 0], lateral))
             mean, h = m.transition(z, h, torch.stack([speed, gain * steer], 1))
             if a.temperature > 0:
                 draw = torch.randn_like(mean) if noise is None else noise[t]
@@ -176,7 +188,7 @@ class DreamDriver:
 
 def check(args, model, cfg):
     if args.steps < 0 or not 1 <= args.batch <= 65536 or args.horizon < 1 \
-            or not 1 <= args.width <= cfg.hidden_dim:
+            or (args.look is None and not 1 <= args.width <= cfg.hidden_dim):  # a look's driver has its own
         raise ValueError(f"--steps must be at least 0, --batch from 1 to 65536, --horizon at least 1 and --width "
                          f"from 1 to the model's hidden_dim ({cfg.hidden_dim})")
     numbers = dict(lr=args.lr, temperature=args.temperature, off_road_cost=args.off_road_cost,
@@ -206,15 +218,42 @@ def check(args, model, cfg):
         raise ValueError(f"{args.weights}: the world model lacks its {', '.join(missing)}")
 
 
+def look(args, model, cfg, states) -> dict:
+    """--look: what the driver of `args.look` does in the world's dream (the module's docstring)."""
+    looked, _ = load_drivesim(args.look)
+    policy = looked.heads().get("policy")
+    if policy is None or policy.hidden.weight.shape[1] != cfg.z_dim + cfg.hidden_dim:
+        raise ValueError(f"--look {args.look}: a weight file whose policy reads this world's [z, h] "
+                         f"({cfg.z_dim} + {cfg.hidden_dim} numbers)")
+    torch.manual_seed(args.seed)
+    i = torch.randint(len(states["speed"]), (args.batch,))
+    trace = []
+    with torch.no_grad():
+        total, off, _, _ = DreamDriver(model, cfg, args, driver=policy).rollout(
+            states["z"][i], states["h"][i], states["speed"][i], trace=trace)
+    speed, steer, target, lateral = (torch.stack(x) for x in zip(*trace))
+    steers = steer.abs() >= 0.2
+    figures = dict(dream_return=total.mean(), off_road=off.mean(), speed=speed.mean(),
+                   speed_where_steering=speed[steers].mean() if steers.any() else float("nan"),
+                   steering=steers.float().mean(), at_top_speed=(target >= args.top_speed - 2.0).float().mean(),
+                   braking=(target < speed - BRAKE_DEAD).float().mean(), lateral_excess=lateral.mean())
+    return {k: round(float(v), 4) for k, v in figures.items()}
+
+
 def driver(args):
+    if args.look is None and args.out is None:
+        raise ValueError("--out is needed (unless --look)")
     model, cfg = load_drivesim(args.weights)
     check(args, model, cfg)
-    source = Source(args.weights, args.out)
     data = load_episodes(args.episodes, cfg, "episodes", rewards=False)
     for p in model.parameters():
         p.requires_grad_(False)
     with torch.no_grad():
         states = real_states(model, data, args.on_road_starts)
+    if args.look is not None:
+        print(json.dumps(look(args, model, cfg, states)))
+        return
+    source = Source(args.weights, args.out)
     torch.manual_seed(args.seed)
     trainer = DreamDriver(model, cfg, args)
     arguments = {k: str(v) for k, v in sorted(vars(args).items())
@@ -258,7 +297,9 @@ def add_arguments(t):
     t.add_argument("--weights", required=True, help="the world: a weight file with the texture net, the reward head "
                    "(and the value head for --value)")
     t.add_argument("--episodes", required=True, help="real recorded episodes: the dream drives' starts")
-    t.add_argument("--out", required=True, help="where to write the world with the learnt driver as its policy")
+    t.add_argument("--out", help="where to write the world with the learnt driver as its policy")
+    t.add_argument("--look", metavar="DRIVER", help="train nothing: roll DRIVER's policy in the dream from the "
+                   "starts and print what it does there (its return, speeds, steering, braking)")
     t.add_argument("--steps", type=int, default=1500)
     t.add_argument("--batch", type=int, default=256, help="dream drives per step")
     t.add_argument("--horizon", type=int, default=40, help="decisions a dream drive lasts")

@@ -221,3 +221,45 @@ def test_from_the_policy_of_a_world_without_one_is_refused(tmp_path, capsys):
         run(weights, data, tmp_path / "x.safetensors", "--from-policy")
     assert "--from-policy needs a weight file with a policy" in capsys.readouterr().err
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_a_look_at_a_driver_reports_what_it_does_in_the_dream_and_writes_nothing(tmp_path, files, capsys):
+    """--look DRIVER: a driver that asks for the top speed and steers 0.5 everywhere is reported
+    at the top speed, steering, never braking, at the return its own rollout gives; a file whose
+    policy reads another [z, h] is refused."""
+    import dataclasses
+    import json
+
+    from drivesim import episodes
+    from drivesim_reference import train
+    from drivesim_reference.train_driver import real_states
+
+    weights, data = files
+    model, cfg = load_drivesim(weights)
+    with torch.no_grad():
+        model.policy.output.weight.zero_()
+        model.policy.output.bias.copy_(torch.tensor([4.0, 0.5]))
+    save_drivesim(model, cfg, tmp_path / "d.safetensors", "f32", actions=ACTIONS, frame_hz=12.5, discount=model.discount)
+    look = ["driver", "--weights", str(weights), "--episodes", str(data), "--look", str(tmp_path / "d.safetensors"),
+            "--batch", "7", "--horizon", "5", "--top-speed", "4", "--first-speed", "3", "--value", "--temperature", "0"]
+    train.main(look)
+    seen = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert seen["at_top_speed"] == 1.0 and seen["steering"] == 1.0 and seen["braking"] == 0.0
+    assert np.isfinite(seen["dream_return"]) and 0 <= seen["off_road"] <= 1 and seen["speed"] > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.safetensors", "e.safetensors", "w.safetensors"]
+    trainer = DreamDriver(model, cfg, settings(horizon=5, value=True), driver=model.policy)
+    data_states = real_states(model, episodes.read(str(data)), False)
+    torch.manual_seed(0)
+    i = torch.randint(len(data_states["speed"]), (7,))
+    with torch.no_grad():
+        total, _, _, _ = trainer.rollout(data_states["z"][i], data_states["h"][i], data_states["speed"][i])
+    assert seen["dream_return"] == round(float(total.mean()), 4), "the look's return is its rollout's"
+    wider = dataclasses.replace(HEAD_CFG, hidden_dim=HEAD_CFG.hidden_dim + 1)
+    save_drivesim(DriveSim(wider, policy_width=3), wider, tmp_path / "o.safetensors", "f32", actions=ACTIONS,
+                  frame_hz=12.5)
+    with pytest.raises(SystemExit):
+        train.main(look[:6] + [str(tmp_path / "o.safetensors")] + look[7:])
+    assert "a weight file whose policy reads this world's [z, h]" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # neither --look nor --out
+        train.main(look[:5] + look[7:])
+    assert "--out is needed" in capsys.readouterr().err
