@@ -234,10 +234,10 @@ def look(args, model, cfg, states) -> dict:
     speed, steer, target, lateral = (torch.stack(x) for x in zip(*trace))
     steers = steer.abs() >= 0.2
     figures = dict(dream_return=total.mean(), off_road=off.mean(), speed=speed.mean(),
-                   speed_where_steering=speed[steers].mean() if steers.any() else float("nan"),
+                   speed_where_steering=speed[steers].mean() if steers.any() else None,  # null: it never steers so
                    steering=steers.float().mean(), at_top_speed=(target >= args.top_speed - 2.0).float().mean(),
                    braking=(target < speed - BRAKE_DEAD).float().mean(), lateral_excess=lateral.mean())
-    return {k: round(float(v), 4) for k, v in figures.items()}
+    return {k: None if v is None else round(float(v), 4) for k, v in figures.items()}
 
 
 def driver(args):
