@@ -1,9 +1,12 @@
 """`train.py driver` (train_driver.py): a driver learnt by the gradient of the dream's own return.
 The dream it learns in is the crate's (the same return, step for step, as the crate's simulator
 gives the same drives), the written file is the world with the driver as its policy and the
-clone's pace head left out, a run stopped after a checkpoint goes on to the same bytes, and bad
-settings or a world without its heads are refused."""
+clone's pace head left out, a run stopped after a checkpoint goes on to the same bytes, a look at a
+driver (--look) reports what its rollout does, and bad settings or a world without its heads are
+refused."""
 
+import dataclasses
+import json
 import types
 
 import numpy as np
@@ -11,8 +14,9 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from drivesim import episodes
 from drivesim_reference.model import DriveSim, load_drivesim, save_drivesim
-from drivesim_reference.train_driver import DreamDriver, speed_after
+from drivesim_reference.train_driver import DreamDriver, real_states, speed_after
 from test_heads import ACTIONS, HEAD_CFG, reward_episodes
 from test_texture import assert_resumes_to_the_same_bytes
 
@@ -227,12 +231,7 @@ def test_a_look_at_a_driver_reports_what_it_does_in_the_dream_and_writes_nothing
     """--look DRIVER: a driver that asks for the top speed and steers 0.5 everywhere is reported
     at the top speed, steering, never braking, at the return its own rollout gives; a file whose
     policy reads another [z, h] is refused."""
-    import dataclasses
-    import json
-
-    from drivesim import episodes
     from drivesim_reference import train
-    from drivesim_reference.train_driver import real_states
 
     weights, data = files
     model, cfg = load_drivesim(weights)
