@@ -54,6 +54,14 @@ does there as JSON: the return and off-road chance, its speed (all decisions, an
 0.2 or more), how often it steers so, asks for --top-speed (within 2 units/s) or brakes, and its
 lateral load over --lateral-limit. A look at a driver before any real drive (docs/learning.md).
 
+--average A,B,... trains nothing either: it writes the world of --weights with the mean of these
+drivers as its policy, one head as wide as theirs together (their hidden layers stacked, their
+output layers side by side over their number, their output biases averaged), so that the crate
+drives their mean action exactly as it drives one driver. Each must be a driver this command
+learnt afresh in that same world (every other network equal); their widths together at most
+hidden_dim. The recipe's seeds differ by as much as a hundred tracks do (docs/learning.md), and a
+mean of independently learnt drivers averages their separate mistakes.
+
 --from-policy starts the driver as the file's policy instead (the clone fine-tuned in the dream;
 `pace.*` kept, `make_agent("cloned", weights=OUT)` drives it), and --stay C pays C per squared
 change of its outputs from the file's policy (target / --top-speed, steering) at every decision.
@@ -240,10 +248,43 @@ def look(args, model, cfg, states) -> dict:
     return {k: None if v is None else round(float(v), 4) for k, v in figures.items()}
 
 
+def average(args, model, cfg) -> Policy:
+    """--average: the drivers' mean as one head (the module's docstring)."""
+    world = {k: v for k, v in model.state_dict().items() if not k.startswith(("policy.", "pace."))}
+    heads = []
+    for path in args.average:
+        other, _ = load_drivesim(path)
+        theirs = {k: v for k, v in other.state_dict().items() if not k.startswith("policy.")}
+        if "policy" not in other.heads() or theirs.keys() != world.keys() \
+                or not all(torch.equal(theirs[k], world[k]) for k in world):
+            raise ValueError(f"--average {path}: not a driver learnt afresh in the world of {args.weights} (its "
+                             "other networks differ, it has no policy, or it keeps the clone's pace head)")
+        heads.append(other.policy)
+    width = sum(head.width for head in heads)
+    if len(heads) < 2 or width > cfg.hidden_dim:
+        raise ValueError(f"--average needs two drivers or more, {width} units together at most the model's "
+                         f"hidden_dim ({cfg.hidden_dim})")
+    mean = Policy(cfg, width)
+    with torch.no_grad():
+        mean.hidden.weight.copy_(torch.cat([head.hidden.weight for head in heads]))
+        mean.hidden.bias.copy_(torch.cat([head.hidden.bias for head in heads]))
+        mean.output.weight.copy_(torch.cat([head.output.weight for head in heads], dim=1) / len(heads))
+        mean.output.bias.copy_(torch.stack([head.output.bias for head in heads]).mean(0))
+    return mean
+
+
 def driver(args):
     if args.look is None and args.out is None:
         raise ValueError("--out is needed (unless --look)")
+    if (args.episodes is None) == (args.average is None) or (args.look and args.average):
+        raise ValueError("give --episodes to train or look, or --average to write drivers' mean (not both)")
     model, cfg = load_drivesim(args.weights)
+    if args.average is not None:
+        model.policy, model.pace = average(args, model, cfg), None
+        for p in model.parameters():
+            p.requires_grad_(False)
+        Source(args.weights, args.out).write(model, cfg, args.out)
+        return
     check(args, model, cfg)
     data = load_episodes(args.episodes, cfg, "episodes", rewards=False)
     for p in model.parameters():
@@ -296,10 +337,12 @@ def add_arguments(t):
     """`train.py driver`'s arguments."""
     t.add_argument("--weights", required=True, help="the world: a weight file with the texture net, the reward head "
                    "(and the value head for --value)")
-    t.add_argument("--episodes", required=True, help="real recorded episodes: the dream drives' starts")
+    t.add_argument("--episodes", help="real recorded episodes: the dream drives' starts (not for --average)")
     t.add_argument("--out", help="where to write the world with the learnt driver as its policy")
     t.add_argument("--look", metavar="DRIVER", help="train nothing: roll DRIVER's policy in the dream from the "
                    "starts and print what it does there (its return, speeds, steering, braking)")
+    t.add_argument("--average", type=lambda text: text.split(","), metavar="A,B,...",
+                   help="train nothing: write the world with the mean of these drivers as its policy")
     t.add_argument("--steps", type=int, default=1500)
     t.add_argument("--batch", type=int, default=256, help="dream drives per step")
     t.add_argument("--horizon", type=int, default=40, help="decisions a dream drive lasts")

@@ -2,7 +2,8 @@
 The dream it learns in is the crate's (the same return, step for step, as the crate's simulator
 gives the same drives), the written file is the world with the driver as its policy and the
 clone's pace head left out, a run stopped after a checkpoint goes on to the same bytes, a look at a
-driver (--look) reports what its rollout does, and bad settings or a world without its heads are
+driver (--look) reports what its rollout does, drivers' mean (--average) is the crate's policy and
+the mean of their actions, and bad settings or a world without its heads are
 refused."""
 
 import dataclasses
@@ -262,3 +263,45 @@ def test_a_look_at_a_driver_reports_what_it_does_in_the_dream_and_writes_nothing
     with pytest.raises(SystemExit):  # neither --look nor --out
         train.main(look[:5] + look[7:])
     assert "--out is needed" in capsys.readouterr().err
+
+
+def test_the_mean_of_drivers_is_one_policy_the_crate_drives_at_their_mean_action(tmp_path, files, capsys):
+    """--average A,B: the world of --weights (its pace head left out) with one policy as wide as
+    both, whose action in the crate is the mean of theirs at any [z, h]; a driver of another
+    world, a fine-tuned clone (it keeps the pace head), one driver alone, or drivers wider together
+    than hidden_dim are refused and nothing is written."""
+    from drivesim import Model, Simulator
+    from drivesim_reference import train
+
+    weights, data = files
+    members = [tmp_path / "a.safetensors", tmp_path / "b.safetensors"]
+    for seed, path in enumerate(members):
+        run(weights, data, path, "--seed", str(seed))
+    mean = tmp_path / "mean.safetensors"
+    train.main(["driver", "--weights", str(weights), "--average", ",".join(map(str, members)), "--out", str(mean)])
+    before, after = load_file(str(weights)), load_file(str(mean))
+    assert after["policy.hidden.bias"].shape == (6,) and not any(k.startswith("pace.") for k in after)
+    assert all(torch.equal(after[k], before[k]) for k in before if not k.startswith(("policy.", "pace.")))
+    rng = np.random.default_rng(0)
+    z = rng.normal(size=HEAD_CFG.z_dim).astype(np.float32)
+    h = np.tanh(rng.normal(size=HEAD_CFG.hidden_dim)).astype(np.float32)
+    acts = [Simulator(Model.load(str(path)), batch=1).act(z, h) for path in (*members, mean)]
+    assert not np.allclose(acts[0], acts[1]), "two seeds learnt two drivers"
+    np.testing.assert_allclose(acts[2], (acts[0] + acts[1]) / 2, rtol=1e-5, atol=1e-5)
+    other = world(tmp_path / "other.safetensors")
+    torch.manual_seed(5)
+    model, cfg = load_drivesim(other)
+    with torch.no_grad():
+        model.transition.W.add_(0.01)
+    save_drivesim(model, cfg, other, "f32", actions=ACTIONS, frame_hz=12.5, discount=model.discount)
+    run(other, data, tmp_path / "c.safetensors")
+    run(weights, data, tmp_path / "clone.safetensors", "--from-policy")
+    for bad, message in [([members[0], tmp_path / "c.safetensors"], "not a driver learnt afresh"),
+                         ([members[0], tmp_path / "clone.safetensors"], "not a driver learnt afresh"),
+                         ([members[0]], "two drivers or more"),
+                         ([members[0]] * (HEAD_CFG.hidden_dim // 3 + 1), "at most the model's hidden_dim")]:
+        with pytest.raises(SystemExit):
+            train.main(["driver", "--weights", str(weights), "--average", ",".join(map(str, bad)),
+                        "--out", str(tmp_path / "x.safetensors")])
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x.safetensors").exists()
