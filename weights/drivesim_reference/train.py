@@ -8,6 +8,7 @@
   weights/tool train texture --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors [--device cuda]
   weights/tool train latent --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors [--device cuda]
   weights/tool train driver --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors
+  weights/tool train driver --weights W.safetensors --average A.safetensors,B.safetensors --out O.safetensors
 
 fit: (1) VAE-GAN (vae_gan.py): encoder, generator and a discriminator. (2) The transition RNN
 (sequences.py) on encoded 15-frame sequences: 5 frames teacher forced, then 10 with its own
@@ -38,7 +39,8 @@ yet in view): the world that ranks drivers as the real track does (docs/judging.
 
 driver (train_driver.py): a driver learnt inside such a world by the gradient of the dream's own
 return (its reward, off-road and value heads), from real starts, never an expert's label: the
-file's policy replaced by it (docs/learning.md).
+file's policy replaced by it (docs/learning.md); --average writes several such drivers' mean as
+one policy.
 
 eval (evaluation.py): reconstruction PSNR, 1-step and 10-step latent prediction error, steering response,
 a contact sheet of a 100-step rollout, all from frames the model never saw; and the fidelity
