@@ -53,6 +53,10 @@ dream, --batch drives of --horizon decisions from the starts drawn with --seed, 
 does there as JSON: the return and off-road chance, its speed (all decisions, and where it steers
 0.2 or more), how often it steers so, asks for --top-speed (within 2 units/s) or brakes, and its
 lateral load over --lateral-limit. A look at a driver before any real drive (docs/learning.md).
+--look A,B,... looks at each from the same starts and the same noise, a line each, and then names
+the one of least lateral load: of eight drivers learnt by one recipe with eight seeds, that load
+ranked the real scores as the track did, where the dream's return ranked them backwards
+(docs/learning.md, "Four seeds").
 
 --average A,B,... trains nothing either: it writes the world of --weights with the mean of these
 drivers as its policy, one head as wide as theirs together (their hidden layers stacked, their
@@ -226,12 +230,12 @@ def check(args, model, cfg):
         raise ValueError(f"{args.weights}: the world model lacks its {', '.join(missing)}")
 
 
-def look(args, model, cfg, states) -> dict:
-    """--look: what the driver of `args.look` does in the world's dream (the module's docstring)."""
-    looked, _ = load_drivesim(args.look)
+def look(args, model, cfg, states, path) -> dict:
+    """--look: what the driver of `path` does in the world's dream (the module's docstring)."""
+    looked, _ = load_drivesim(path)
     policy = looked.heads().get("policy")
     if policy is None or policy.hidden.weight.shape[1] != cfg.z_dim + cfg.hidden_dim:
-        raise ValueError(f"--look {args.look}: a weight file whose policy reads this world's [z, h] "
+        raise ValueError(f"--look {path}: a weight file whose policy reads this world's [z, h] "
                          f"({cfg.z_dim} + {cfg.hidden_dim} numbers)")
     torch.manual_seed(args.seed)
     i = torch.randint(len(states["speed"]), (args.batch,))
@@ -245,7 +249,7 @@ def look(args, model, cfg, states) -> dict:
                    speed_where_steering=speed[steers].mean() if steers.any() else None,  # null: it never steers so
                    steering=steers.float().mean(), at_top_speed=(target >= args.top_speed - 2.0).float().mean(),
                    braking=(target < speed - BRAKE_DEAD).float().mean(), lateral_excess=lateral.mean())
-    return {k: None if v is None else round(float(v), 4) for k, v in figures.items()}
+    return {"driver": str(path), **{k: None if v is None else round(float(v), 4) for k, v in figures.items()}}
 
 
 def average(args, model, cfg) -> Policy:
@@ -292,7 +296,11 @@ def driver(args):
     with torch.no_grad():
         states = real_states(model, data, args.on_road_starts)
     if args.look is not None:
-        print(json.dumps(look(args, model, cfg, states)))
+        seen = [look(args, model, cfg, states, path) for path in args.look]
+        for figures in seen:
+            print(json.dumps(figures), flush=True)
+        if len(seen) > 1:
+            print(json.dumps({"least_lateral_load": min(seen, key=lambda f: f["lateral_excess"])["driver"]}))
         return
     source = Source(args.weights, args.out)
     torch.manual_seed(args.seed)
@@ -339,8 +347,10 @@ def add_arguments(t):
                    "(and the value head for --value)")
     t.add_argument("--episodes", help="real recorded episodes: the dream drives' starts (not for --average)")
     t.add_argument("--out", help="where to write the world with the learnt driver as its policy")
-    t.add_argument("--look", metavar="DRIVER", help="train nothing: roll DRIVER's policy in the dream from the "
-                   "starts and print what it does there (its return, speeds, steering, braking)")
+    t.add_argument("--look", metavar="DRIVER[,DRIVER...]", type=lambda text: text.split(","),
+                   help="train nothing: roll each DRIVER's policy in the dream from the "
+                   "starts and print what it does there (its return, speeds, steering, braking, lateral load); "
+                   "of several, name the one of least lateral load")
     t.add_argument("--average", type=lambda text: text.split(","), metavar="A,B,...",
                    help="train nothing: write the world with the mean of these drivers as its policy")
     t.add_argument("--steps", type=int, default=1500)

@@ -231,7 +231,8 @@ def test_from_the_policy_of_a_world_without_one_is_refused(tmp_path, capsys):
 def test_a_look_at_a_driver_reports_what_it_does_in_the_dream_and_writes_nothing(tmp_path, files, capsys):
     """--look DRIVER: a driver that asks for the top speed and steers 0.5 everywhere is reported
     at the top speed, steering, never braking, at the return its own rollout gives; a file whose
-    policy reads another [z, h] is refused."""
+    policy reads another [z, h] is refused; --look A,B reports each and names the one of least
+    lateral load (one that steers 0.1 rather than 0.5)."""
     from drivesim_reference import train
 
     weights, data = files
@@ -263,6 +264,16 @@ def test_a_look_at_a_driver_reports_what_it_does_in_the_dream_and_writes_nothing
     with pytest.raises(SystemExit):  # neither --look nor --out
         train.main(look[:5] + look[7:])
     assert "--out is needed" in capsys.readouterr().err
+    with torch.no_grad():  # a driver that steers less: less lateral load, named the least of the two
+        model.policy.output.bias.copy_(torch.tensor([4.0, 0.1]))
+    save_drivesim(model, cfg, tmp_path / "gentle.safetensors", "f32", actions=ACTIONS, frame_hz=12.5,
+                  discount=model.discount)
+    both = f"{tmp_path / 'd.safetensors'},{tmp_path / 'gentle.safetensors'}"
+    train.main(look[:6] + [both] + look[7:] + ["--lateral-limit", "0"])
+    lines = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()[-3:]]
+    assert [line["driver"] for line in lines[:2]] == both.split(",")
+    assert lines[0]["lateral_excess"] > lines[1]["lateral_excess"] > 0
+    assert lines[2] == {"least_lateral_load": str(tmp_path / "gentle.safetensors")}
 
 
 def test_the_mean_of_drivers_is_one_policy_the_crate_drives_at_their_mean_action(tmp_path, files, capsys):
