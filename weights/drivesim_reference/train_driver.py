@@ -285,8 +285,6 @@ def driver(args):
     model, cfg = load_drivesim(args.weights)
     if args.average is not None:
         model.policy, model.pace = average(args, model, cfg), None
-        for p in model.parameters():
-            p.requires_grad_(False)
         Source(args.weights, args.out).write(model, cfg, args.out)
         return
     check(args, model, cfg)

@@ -3,8 +3,7 @@ The dream it learns in is the crate's (the same return, step for step, as the cr
 gives the same drives), the written file is the world with the driver as its policy and the
 clone's pace head left out, a run stopped after a checkpoint goes on to the same bytes, a look at a
 driver (--look) reports what its rollout does, drivers' mean (--average) is the crate's policy and
-the mean of their actions, and bad settings or a world without its heads are
-refused."""
+the mean of their actions, and bad settings or a world without its heads are refused."""
 
 import dataclasses
 import json
@@ -300,7 +299,6 @@ def test_the_mean_of_drivers_is_one_policy_the_crate_drives_at_their_mean_action
     assert not np.allclose(acts[0], acts[1]), "two seeds learnt two drivers"
     np.testing.assert_allclose(acts[2], (acts[0] + acts[1]) / 2, rtol=1e-5, atol=1e-5)
     other = world(tmp_path / "other.safetensors")
-    torch.manual_seed(5)
     model, cfg = load_drivesim(other)
     with torch.no_grad():
         model.transition.W.add_(0.01)
