@@ -174,6 +174,14 @@ pub enum Error {
     NoSampling,
     /// A trainer asked to apply gradients it has not computed (each set is applied once).
     NoGradients,
+    /// A driver file learnt in another world than the weight file it was given with
+    /// ([`crate::Model::from_bytes_with_driver`]; fingerprints: [`crate::world_fingerprint`]).
+    OtherWorld {
+        /// The weight file's world.
+        world: String,
+        /// The world the driver was learnt in (its file's `drivesim.world`).
+        learnt_in: String,
+    },
     /// A caller-supplied arena is smaller than its plan.
     ArenaTooSmall {
         /// The bytes the plan needs.
@@ -227,6 +235,10 @@ impl fmt::Display for Error {
             Error::Config { field, expected, found } => {
                 write!(f, "config `{field}`: expected {expected}, found {found}")
             }
+            Error::OtherWorld { world, learnt_in } => write!(
+                f,
+                "the driver was learnt in world {learnt_in}, not in this weight file's world {world}"
+            ),
             Error::MissingTensor { name } => write!(f, "weight file has no tensor `{name}`"),
             Error::Shape { name, expected, found } => {
                 write!(f, "tensor `{name}`: expected shape {expected:?}, found {found:?}")

@@ -54,6 +54,7 @@ extern crate alloc;
 
 mod actions;
 mod config;
+mod driver;
 mod encoder;
 mod environment;
 mod episodes;
@@ -76,6 +77,9 @@ mod weights;
 
 pub use actions::ActionSpec;
 pub use config::Config;
+#[cfg(feature = "std")]
+pub use driver::driver_file;
+pub use driver::world_fingerprint;
 pub use drivesim_kernels::{Isa, IsaLevel};
 pub use environment::Environment;
 pub use episodes::{Episode, Episodes};

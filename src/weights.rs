@@ -365,8 +365,8 @@ pub(crate) fn rewrite(
 /// writes them in a `HashMap`'s order, which changes from run to run, so that two runs of a
 /// deterministic trainer would write different bytes. The sorted header has the same length
 /// (the same entries, written as compactly), so it is rewritten in place.
-#[cfg(all(feature = "std", feature = "train"))]
-fn sort_metadata(mut bytes: Vec<u8>) -> Vec<u8> {
+#[cfg(feature = "std")]
+pub(crate) fn sort_metadata(mut bytes: Vec<u8>) -> Vec<u8> {
     use serde_json::{Map, Value};
     let Some(len) = bytes
         .get(..8)

@@ -90,3 +90,9 @@ fn mutated_weight_files_never_panic() {
 fn mutated_episodes_files_never_panic() {
     assert!(smoke("episodes", 20000, exercise::episodes) > 0.03);
 }
+
+#[test]
+fn mutated_driver_files_never_panic() {
+    // Each mutation loads the small world again (and its fingerprint): fewer of them.
+    assert!(smoke("drivers", 500, exercise::driver) > 0.03);
+}

@@ -16,6 +16,7 @@ COMMANDS = {
     "compare": ("drivesim.carracing.compare", "two drivers' scores compared track by track, from what the scoring commands printed"),
     "rank": ("drivesim.carracing.rank", "the rank probe: a family of drivers scored in the real env and in the dream"),
     "dream-train": ("drivesim.carracing.dream_train", "learn a driver inside the dream: CMA-ES on the world model's reward alone"),
+    "driver": ("drivesim.driver", "a learnt driver's file apart from its world: its policy and the world's fingerprint"),
     "dream-curve": ("drivesim.carracing.dream_curve", "the dream's return against the real score of a dream-train run's controllers"),
     "sb3": ("drivesim.carracing.sb3", "PPO (stable-baselines3) trained in the dream unchanged, and scored on the real track"),
     "record": ("drivesim.carracing.record", "record CarRacing driving by a scripted driver as an episodes file"),

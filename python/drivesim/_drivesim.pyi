@@ -16,9 +16,16 @@ class Model:
     """Loaded weights: encoder, transition and generator, checked on load."""
 
     @staticmethod
-    def load(path: Optional[Union[str, os.PathLike[str]]] = None) -> Model:
-        """A weight file (safetensors), or the built-in default model when ``path`` is None.
-        Raises OSError for a file that cannot be read, ValueError for a bad weight file."""
+    def load(
+        path: Optional[Union[str, os.PathLike[str]]] = None, driver: Optional[Union[str, os.PathLike[str]]] = None
+    ) -> Model:
+        """A weight file (safetensors), or the built-in default model when ``path`` is None;
+        ``driver``, a driver file (``drivesim.driver``), replaces its policy (its pace head left
+        out). Raises OSError for a file that cannot be read, ValueError for a bad weight file or
+        a driver learnt in another world."""
+    @staticmethod
+    def dreamt() -> Model:
+        """The built-in default model driven by the built-in driver learnt in its dream."""
     @staticmethod
     def from_bytes(data: bytes) -> Model:
         """A model from a weight file's bytes (TypeError for what is not bytes, ValueError for
@@ -189,6 +196,12 @@ class Environment:
     def rollout_candidates(self, drive: int, actions: F32, frames: bool = False, dtype: DType = ...) -> Any:
         """``actions`` ``(T, N, 2)`` from drive ``drive``'s state (``0 <= drive < drives``,
         ValueError otherwise): codes ``(T, N, z_dim)``, or ``(codes, frames)``."""
+
+def world_fingerprint(path: Union[str, os.PathLike[str]]) -> str:
+    """The fingerprint of the world a weight file holds (16 hexadecimal digits)."""
+
+def driver_file(path: Union[str, os.PathLike[str]]) -> bytes:
+    """The driver file's bytes of a weight file whose policy is a learnt driver."""
 
 def load_episodes(
     path: Optional[Union[str, os.PathLike[str]]] = None,

@@ -12,6 +12,16 @@ use std::sync::Arc;
 static DEFAULT_WEIGHTS: &[u8] = include_bytes!("../../weights/default.safetensors");
 /// The seed clip that `hallucinate` and the dream environments start from by default.
 static SEED_CLIP: &[u8] = include_bytes!("../../weights/seed_clip.safetensors");
+/// The driver learnt in the default model's dream (`weights/tool train driver`), built in so
+/// that `Model.dreamt()` needs no file either.
+static DREAMT_DRIVER: &[u8] = include_bytes!("../../weights/dreamt.safetensors");
+
+fn read(path: &std::path::Path) -> drivesim::Result<Vec<u8>> {
+    std::fs::read(path).map_err(|source| drivesim::Error::Io {
+        path: path.display().to_string(),
+        source,
+    })
+}
 
 /// A loaded model: encoder, transition and generator weights, checked on load.
 ///
@@ -29,13 +39,32 @@ impl PyModel {
     ///
     /// Raises OSError when the file cannot be read and ValueError when it is not a valid weight
     /// file (the message says which tensor or field is wrong).
+    ///
+    /// `driver`: a driver file (`python -m drivesim driver` writes one) whose policy replaces the
+    /// file's, its pace head left out; ValueError when the driver was learnt in another world.
     #[staticmethod]
-    #[pyo3(signature = (path=None))]
-    fn load(py: Python<'_>, path: Option<PathBuf>) -> PyResult<PyModel> {
-        let model = py.detach(|| match path {
-            Some(path) => Model::load(path),
-            None => Model::from_bytes(DEFAULT_WEIGHTS),
+    #[pyo3(signature = (path=None, driver=None))]
+    fn load(py: Python<'_>, path: Option<PathBuf>, driver: Option<PathBuf>) -> PyResult<PyModel> {
+        let model = py.detach(|| {
+            let world = match &path {
+                Some(path) => std::borrow::Cow::Owned(read(path)?),
+                None => std::borrow::Cow::Borrowed(DEFAULT_WEIGHTS),
+            };
+            match driver {
+                Some(driver) => Model::from_bytes_with_driver(&world, &read(&driver)?),
+                None => Model::from_bytes(&world),
+            }
         });
+        Ok(PyModel {
+            inner: Arc::new(model.map_err(to_py)?),
+        })
+    }
+
+    /// The default model driven by the driver learnt in its dream (built in, as the default
+    /// is): what `make_agent("dreamt")` drives.
+    #[staticmethod]
+    fn dreamt(py: Python<'_>) -> PyResult<PyModel> {
+        let model = py.detach(|| Model::from_bytes_with_driver(DEFAULT_WEIGHTS, DREAMT_DRIVER));
         Ok(PyModel {
             inner: Arc::new(model.map_err(to_py)?),
         })
@@ -212,4 +241,19 @@ pub fn load_episodes<'py>(
         out.push((frames.into_any(), actions.into_any()));
     }
     Ok(out)
+}
+
+/// The fingerprint of the world a weight file holds (16 hexadecimal digits): what a driver
+/// file names as the world it was learnt in (`weights/README.md`).
+#[pyfunction]
+pub fn world_fingerprint(py: Python<'_>, path: PathBuf) -> PyResult<String> {
+    py.detach(|| drivesim::world_fingerprint(&read(&path)?)).map_err(to_py)
+}
+
+/// The bytes of the driver file of a weight file whose policy is a driver: its `policy.*`
+/// tensors and its world's fingerprint (`weights/README.md`).
+#[pyfunction]
+pub fn driver_file<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, pyo3::types::PyBytes>> {
+    let bytes = py.detach(|| drivesim::driver_file(&read(&path)?)).map_err(to_py)?;
+    Ok(pyo3::types::PyBytes::new(py, &bytes))
 }

@@ -53,18 +53,25 @@ def test_a_fresh_zero_controller_steers_straight_at_the_middle_speed(model):
     assert agent.decide(z) == (pytest.approx((10.0 + 58.8) / 2), 0.0)
 
 
-def test_without_a_controller_the_files_policy_drives_at_its_own_speed(model):
-    """A driver that `train driver` learnt in the dream is the file's policy head: it drives as
-    the clone would with every hand-made aid off, which a file without a policy cannot."""
-    from conftest import fixture
+def test_without_a_controller_the_built_in_driver_drives_at_its_own_speed():
+    """Without options `dreamt` drives the built-in driver learnt in the default's dream (its
+    policy head, `Model.dreamt()`): as the clone's agent would drive that head with every
+    hand-made aid off, the traction control aside. A file whose policy is the clone (it has the
+    pace head) or that has no policy is refused."""
+    from conftest import REPO, fixture
+
+    from drivesim.carracing.cloned import ClonedAgent
 
     frames = np.random.default_rng(3).integers(0, 256, (16, 80, 160, 3), dtype=np.uint8)
-    bare = make_agent("cloned", pace=None, grip=None, traction=False, bearings=False)
-    dreamt = make_agent("dreamt")
+    bare = ClonedAgent(drivesim.Model.dreamt(), pace=None, grip=None, traction=False, bearings=False)
+    dreamt, held = make_agent("dreamt", traction=False), make_agent("dreamt")
+    assert held.traction is not None and dreamt.traction is None
     for i, frame in enumerate(frames):
         assert np.array_equal(bare.act(frame, 40.0 - i), dreamt.act(frame, 40.0 - i)), i
     with pytest.raises(ValueError, match="controller=FILE"):
         make_agent("dreamt", weights=fixture("small_f32.safetensors"))
+    with pytest.raises(ValueError, match="pace head"):
+        make_agent("dreamt", weights=os.path.join(REPO, "weights", "default.safetensors"))
 
 
 def test_traction_eases_the_gas_in_turns_and_cuts_it_while_the_wheels_spin(model):
@@ -73,9 +80,9 @@ def test_traction_eases_the_gas_in_turns_and_cuts_it_while_the_wheels_spin(model
     The driver's own decisions, the steering among them, do not change."""
     from drivesim.carracing.control import speed_control
 
-    z = np.random.default_rng(0).standard_normal(model.z_dim).astype(np.float32)  # target 35.5, steer 0.13
+    z = np.random.default_rng(0).standard_normal(model.z_dim).astype(np.float32)  # target 30.8, steer 0.26
     frame = np.zeros((80, 160, 3), np.uint8)  # drive() reads the code; the frame is for aids it has not
-    bare, held = make_agent("dreamt"), make_agent("dreamt", traction=True)
+    bare, held = make_agent("dreamt", traction=False), make_agent("dreamt", traction=True)
     target, steer = bare.choose(z, bare.h)
     first, eased = bare.drive(frame, z, 10.0), held.drive(frame, z, 10.0)
     assert eased[0] == first[0] == steer and first[1] == pytest.approx(speed_control(10.0, target)[0])

@@ -47,3 +47,17 @@ pub fn episodes(bytes: &[u8]) -> bool {
     }
     true
 }
+
+/// Loads `bytes` as a driver file for the small fixture's world and, if that succeeds, runs the
+/// driver once. Returns whether it loaded.
+pub fn driver(bytes: &[u8]) -> bool {
+    static WORLD: &[u8] = include_bytes!("../fixtures/small_f32.safetensors");
+    let Ok(model) = Model::from_bytes_with_driver(WORLD, bytes) else {
+        return false;
+    };
+    let c = *model.config();
+    let Ok(mut sim) = Simulator::new(&model) else { return false };
+    let mut action = vec![0.0; c.action_dim];
+    let _ = sim.act(&vec![0.5; c.z_dim], &vec![0.1; c.hidden_dim], &mut action);
+    true
+}

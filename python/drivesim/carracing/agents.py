@@ -46,7 +46,7 @@ from .control import (  # noqa: F401 (re-exported: the agents' building blocks)
     warmup_action,
 )
 from .cloned import ClonedAgent
-from .dreamt import DreamtAgent
+from .dreamt import DreamtAgent, driven_model
 from .mpc import MPCAgent
 from .road_mpc import RoadMPCAgent
 
@@ -107,8 +107,9 @@ AGENTS = {
 def make_agent(name: str, weights: Optional[str] = None, threads: int = 1, **options):
     """An agent by name: ``"mpc"`` (planning in the simulator with the learned heads),
     ``"mpc-road"`` (the grid planner with the hand-fitted road cost), ``"cloned"`` (the policy in
-    the weight file), ``"dreamt"`` (a driver learnt in the dream: ``controller=FILE`` of ``dream-train``, or
-    without it the weight file's policy that ``weights/tool train driver`` wrote), or the
+    the weight file), ``"dreamt"`` (a driver learnt in the dream: without options the built-in one, learnt in
+    the default's dream; ``driver=FILE``, a driver file for ``weights``' world; the weight file's
+    policy that ``weights/tool train driver`` wrote; or ``controller=FILE`` of ``dream-train``), or the
     baselines without the models, ``"reactive"`` and ``"random"``.
     ``weights``: a weight file (the built-in default model when None; for ``"mpc-road"``,
     another model also needs ``cost=RoadCost...``). ``options`` are the agent's (``MPCAgent``
@@ -118,5 +119,8 @@ def make_agent(name: str, weights: Optional[str] = None, threads: int = 1, **opt
         raise ValueError(f"unknown agent {name!r}: one of {', '.join(sorted(AGENTS))}")
     if name not in ("mpc", "mpc-road", "cloned", "dreamt"):
         return AGENTS[name](**options)
-    model = Model.load(weights)
+    if name == "dreamt":
+        model = driven_model(weights, options.pop("driver", None), options.get("controller"))
+    else:
+        model = Model.load(weights)
     return AGENTS[name](model=model, threads=threads, **options)

@@ -177,31 +177,54 @@ def rollout(world: Simulator, controller: Controller, starts: dict, horizon: int
     return total.reshape(p, s), (off / horizon).reshape(p, s)
 
 
+def driven_model(weights=None, driver=None, controller=None) -> Model:
+    """The model a ``dreamt`` agent drives: the world of ``weights`` (the default's when None)
+    with ``driver`` (a driver file, ``drivesim.driver``) as its policy; with neither, nor a
+    ``controller``, the built-in driver learnt in the default's dream (``Model.dreamt()``)."""
+    if driver is not None:
+        return Model.load(weights, driver=driver)
+    if weights is None and controller is None:
+        return Model.dreamt()
+    return Model.load(weights)
+
+
 class DreamtAgent(ClonedAgent):
     """The driver learnt in the dream: ``controller`` (a controller file of ``dream-train``)
     decides from the code of the view and the transition's hidden state, which steps as the
-    cloned agent's does; without one, the weight file's policy head drives (a driver that
-    ``weights/tool train driver`` learnt in the dream and wrote there), at its own speed: no
-    racing pace, grip envelope or bearings, none of which it learnt with. ``traction=True``
-    gives its speed control the traction of the clone's racing pace (less gas with the wheels
-    turned, ``control.speed_control``, and the gas cut while the rear wheels spin,
+    cloned agent's does; without one, the model's policy head drives (a driver that
+    ``weights/tool train driver`` learnt in the dream: the built-in one, ``Model.dreamt()``, when
+    no model is given), at its own speed: no racing pace, grip envelope or bearings, none of
+    which it learnt with. A model whose policy is the clone (it has the pace head) is refused.
+    ``traction`` gives its speed control the traction of the clone's racing pace (less gas with
+    the wheels turned, ``control.speed_control``, and the gas cut while the rear wheels spin,
     ``control.Wheelspin``): below the driver's decisions, it changes neither its speed nor its
-    steering, only how the pedals reach them.
+    steering, only how the pedals reach them. None: on for a policy head (the gradient's drivers
+    were learnt and scored with it), off for a controller (CMA-ES's were scored without).
 
     ``anticipate=D`` (units/s a decision, 0 to 100; None: off) dreams the driver's own next
     ``ANTICIPATE_HORIZON`` decisions from each state (the mean dream) and keeps the speed under
     ``control.brake_ahead`` of their steering, as ``mpc``'s option does: slow enough to meet each
     planned steering within the grip envelope, shedding D units/s a decision. It only lowers the
-    speed the driver asks for."""
+    speed the driver asks for.
 
-    def __init__(self, model: Optional[Model] = None, threads: int = 1, controller=None, traction: bool = False,
-                 anticipate: Optional[float] = None):
-        self.model = model if model is not None else Model.load()
+    >>> from drivesim.carracing import make_agent
+    >>> agent = make_agent("dreamt")   # the built-in driver, learnt only in the default's dream
+    >>> agent.traction is not None
+    True
+    """
+
+    def __init__(self, model: Optional[Model] = None, threads: int = 1, controller=None,
+                 traction: Optional[bool] = None, anticipate: Optional[float] = None):
+        self.model = model if model is not None else driven_model(controller=controller)
         if controller is None:
             self.controller = None
             if self.model.policy_width is None:
                 raise ValueError("dreamt: give controller=FILE (python -m drivesim dream-train writes one) or a "
                                  "weight file whose policy was learnt in the dream (weights/tool train driver)")
+            if self.model.pace_width is not None:
+                raise ValueError("dreamt: this model's policy is the cloned driver (it has the pace head); give a "
+                                 "driver learnt in the dream (driver=FILE, or weights/tool train driver's weight "
+                                 "file) or controller=FILE")
         else:
             self.controller = controller if isinstance(controller, Controller) else Controller.load(controller)
             if self.controller.base == "cloned" and self.model.policy_width is None:
@@ -209,6 +232,8 @@ class DreamtAgent(ClonedAgent):
             if self.controller.centre.shape != (self.model.z_dim + self.model.hidden_dim,):
                 raise ValueError(f"the controller reads {self.controller.centre.shape[0]} numbers; the model's [z, h] "
                                  f"has {self.model.z_dim + self.model.hidden_dim}")
+        if traction is None:
+            traction = self.controller is None
         # The driver gives the speed: no racing pace, grip envelope or bearings. Traction is the
         # speed control's, below the driver's decisions: less gas with the wheels turned, and
         # none while the rear wheels spin (control.Wheelspin).

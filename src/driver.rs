@@ -1,0 +1,142 @@
+//! Drivers apart from their world: a driver file holds one policy head (`policy.*`) and the
+//! fingerprint of the world it was learnt in, so that a small file can ship a driver learnt
+//! in the dream of a large one, and so that it is never driven in another world by mistake
+//! (its weights mean nothing there: they read that world's codes and hidden states).
+
+use crate::heads::{Head, HeadKind};
+use crate::weights::{SafetensorsSource, TensorSource, DISCRIMINATOR_PREFIX};
+use crate::{Error, Model, Result};
+use alloc::format;
+use alloc::string::{String, ToString};
+use safetensors::SafeTensors;
+
+/// The metadata key of a driver file that names its world (16 hexadecimal digits).
+pub(crate) const WORLD_KEY: &str = "drivesim.world";
+
+/// Tensors that are a driver's, not its world's: the policy and the clone's pace head (which a
+/// driver learnt in the dream drops). The discriminator only trains the generator.
+fn drivers_own(name: &str) -> bool {
+    [HeadKind::Policy.prefix(), HeadKind::Pace.prefix(), DISCRIMINATOR_PREFIX]
+        .iter()
+        .any(|prefix| name.starts_with(prefix))
+}
+
+fn malformed(e: safetensors::SafeTensorError) -> Error {
+    Error::Malformed {
+        what: "weight file",
+        reason: format!("{e:?}"),
+    }
+}
+
+/// The fingerprint of the world a weight file holds, as 16 hexadecimal digits: 64-bit FNV-1a
+/// over its tensors in name order but the drivers' (`policy.*`, `pace.*`) and the
+/// discriminator's, each tensor its name's UTF-8 bytes, a zero byte, then its stored data.
+/// Metadata is left out, so re-describing a world keeps its drivers. `weights/README.md` states it.
+///
+/// ```
+/// let world = std::fs::read("weights/default.safetensors")?;
+/// let fingerprint = drivesim::world_fingerprint(&world)?;
+/// assert_eq!(fingerprint.len(), 16);
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+pub fn world_fingerprint(weight_file: &[u8]) -> Result<String> {
+    let file = SafeTensors::deserialize(weight_file).map_err(malformed)?;
+    let mut tensors = file.tensors();
+    tensors.retain(|(name, _)| !drivers_own(name));
+    tensors.sort_by(|a, b| a.0.cmp(&b.0));
+    let mut hash = Fnv1a::new();
+    for (name, view) in &tensors {
+        hash.write(name.as_bytes());
+        hash.write(&[0]);
+        hash.write(view.data());
+    }
+    Ok(format!("{:016x}", hash.0))
+}
+
+/// 64-bit FNV-1a: a checksum that tells worlds apart, not a defence against forgery.
+struct Fnv1a(u64);
+
+impl Fnv1a {
+    fn new() -> Self {
+        Fnv1a(0xcbf2_9ce4_8422_2325)
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0 ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+}
+
+impl Model {
+    /// The world of `weight_file` driven by the driver of `driver_file` (format:
+    /// `weights/README.md`): the driver's policy head replaces the file's, and the file's pace
+    /// head is left out (a driver learnt in the dream drives at its own speed).
+    /// [`Error::OtherWorld`] when the driver was learnt in another world; the driver file is
+    /// checked as a weight file is (shapes against the world's config, one dtype, finite values,
+    /// nothing but `policy.*`).
+    ///
+    /// ```
+    /// let world = std::fs::read("weights/default.safetensors")?;
+    /// let driver = std::fs::read("weights/dreamt.safetensors")?;
+    /// let model = drivesim::Model::from_bytes_with_driver(&world, &driver)?;
+    /// assert_eq!(model.policy_width(), Some(64));
+    /// assert!(model.head_width(drivesim::HeadKind::Pace).is_none());
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
+    pub fn from_bytes_with_driver(weight_file: &[u8], driver_file: &[u8]) -> Result<Model> {
+        let mut model = Model::from_bytes(weight_file)?;
+        let (config, _, mut src) = SafetensorsSource::parse(driver_file)?;
+        let (_, header) = SafeTensors::read_metadata(driver_file).map_err(malformed)?;
+        let learnt_in = header
+            .metadata()
+            .as_ref()
+            .and_then(|m| m.get(WORLD_KEY))
+            .ok_or_else(|| Error::Metadata {
+                reason: format!("no `{WORLD_KEY}` key: not a driver file"),
+            })?;
+        let world = world_fingerprint(weight_file)?;
+        if *learnt_in != world || config != *model.config() {
+            return Err(Error::OtherWorld {
+                world,
+                learnt_in: learnt_in.to_string(),
+            });
+        }
+        let policy = Head::load(&config, &mut src, HeadKind::Policy)?.ok_or(Error::MissingTensor {
+            name: "policy.hidden.weight".to_string(),
+        })?;
+        src.finish()?;
+        model.policy = Some(policy);
+        model.pace = None;
+        Ok(model)
+    }
+}
+
+/// The driver file of a weight file whose policy is a driver (what `weights/tool train driver`
+/// writes): its `policy.*` tensors as stored, the `drivesim.config` of the file and the
+/// fingerprint of its world under `drivesim.world`. The file is loaded first, so a driver file
+/// is only ever written from a valid weight file.
+#[cfg(feature = "std")]
+pub fn driver_file(weight_file: &[u8]) -> Result<alloc::vec::Vec<u8>> {
+    use crate::Config;
+    let model = Model::from_bytes(weight_file)?;
+    if model.policy.is_none() {
+        return Err(Error::NoPolicy);
+    }
+    let file = SafeTensors::deserialize(weight_file).map_err(malformed)?;
+    let mut policy = file.tensors();
+    policy.retain(|(name, _)| name.starts_with(HeadKind::Policy.prefix()));
+    policy.sort_by(|a, b| a.0.cmp(&b.0));
+    let (_, header) = SafeTensors::read_metadata(weight_file).map_err(malformed)?;
+    let config = header
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get(Config::METADATA_KEY))
+        .cloned();
+    let metadata = [
+        (Config::METADATA_KEY.to_string(), config.unwrap_or_default()),
+        (WORLD_KEY.to_string(), world_fingerprint(weight_file)?),
+    ];
+    let bytes = safetensors::serialize(policy, Some(metadata.into_iter().collect())).map_err(malformed)?;
+    Ok(crate::weights::sort_metadata(bytes))
+}
