@@ -70,6 +70,26 @@ def test_expert_finishes_a_lap_at_racing_pace():
     assert record.score_episode(8000, "expert") > 900
 
 
+def test_the_expert_held_to_a_top_speed_plans_under_it():
+    """`record --score --top-speed V`: the same profile, clipped at V (the braking passes keep
+    every later point reachable, so lowering the cap is clipping the profile)."""
+    import gymnasium
+
+    from drivesim.carracing import record
+    from drivesim.carracing.expert import Expert
+
+    env = gymnasium.make("CarRacing-v3").unwrapped
+    env.reset(seed=8000)
+    free, held = Expert(env.track), Expert(env.track, top_speed=45.0)
+    assert free.profile.max() > 60.0 and held.profile.max() == 45.0
+    np.testing.assert_allclose(held.profile, np.minimum(free.profile, 45.0))
+    env.close()
+    for bad in (["--top-speed", "60"], ["--score", "--driver", "steady", "--top-speed", "60"],
+                ["--score", "--driver", "expert", "--top-speed", "5"]):
+        with pytest.raises(SystemExit):
+            record.main(["--seeds", "0"] + bad)
+
+
 def test_recorded_episodes_carry_rewards(tmp_path):
     from drivesim.carracing import record
     frames, actions, _, rewards, labels = record.record_episode(seed=3, frames=30, frame_skip=4, style="expert")

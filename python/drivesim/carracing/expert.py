@@ -70,10 +70,10 @@ class CentreLine:
 class Expert(CentreLine):
     """Pure pursuit on the centre line with a speed profile planned from its curvature."""
 
-    def __init__(self, track, rng=None, style="expert"):
+    def __init__(self, track, rng=None, style="expert", top_speed=TOP_SPEED):
         super().__init__(track)
         self.curvature = _curvature(self.heading, self.seg_len)
-        self.profile = _speed_profile(self.curvature, self.seg_len)
+        self.profile = _speed_profile(self.curvature, self.seg_len, top_speed)
         self.style = style
         self.off_centre, self.target = 0.0, 0.0
 
@@ -136,10 +136,11 @@ def _curvature(heading, seg_len, half_window=2):
     return dh / lengths
 
 
-def _speed_profile(curvature, seg_len):
-    """The fastest speed at each point that corners within LATERAL_ACCEL and can brake to every
-    later point's speed within BRAKE_ACCEL (two backward passes: the lap is a loop)."""
-    limit = np.minimum(TOP_SPEED, np.sqrt(LATERAL_ACCEL / np.maximum(np.abs(curvature), 1e-6)))
+def _speed_profile(curvature, seg_len, top_speed=TOP_SPEED):
+    """The fastest speed at each point, at most ``top_speed``, that corners within LATERAL_ACCEL
+    and can brake to every later point's speed within BRAKE_ACCEL (two backward passes: the lap
+    is a loop)."""
+    limit = np.minimum(top_speed, np.sqrt(LATERAL_ACCEL / np.maximum(np.abs(curvature), 1e-6)))
     v = limit.copy()
     n = len(v)
     for _ in range(2):

@@ -274,16 +274,19 @@ def one_episode(out, labels=None):
                              rewards, labels)
 
 
-def score_episode(seed, style="steady", frame_skip=4, limit=1000):
+def score_episode(seed, style="steady", frame_skip=4, limit=1000, top_speed=None):
     """The env's own reward for the driver on one track, as the agents are scored
     (`python -m drivesim.carracing`): driving from the first frame, `limit` frames at most, the
-    episode ending early when the env says so (a lap done, or off the playfield)."""
+    episode ending early when the env says so (a lap done, or off the playfield). `top_speed`:
+    the expert's speed profile held under it (style "expert" only): what a driver held to a
+    speed range at best scores."""
     env = car_racing.CarRacing()
     env.reset(seed=seed)
     # The env draws its 96x96 state on every step, and the score reads none of it: drawing
     # changes nothing in the physics (checked: the same scores) and takes most of the time.
     env._render = lambda *args, **kwargs: None
-    driver = Driver(env.track, np.random.default_rng(seed), style)
+    rng = np.random.default_rng(seed)
+    driver = Driver(env.track, rng, style) if top_speed is None else expert.Expert(env.track, rng, style, top_speed)
     total, frames = 0.0, 0
     while frames < limit:
         action, _, _ = driver.act(env.car, frame_skip / car_racing.FPS)
@@ -298,8 +301,8 @@ def score_episode(seed, style="steady", frame_skip=4, limit=1000):
 
 
 def _score(job):
-    seed, style = job
-    return seed, score_episode(seed, style)
+    seed, style, top_speed = job
+    return seed, score_episode(seed, style, top_speed=top_speed)
 
 
 def _record(job):
@@ -324,10 +327,14 @@ def main(argv=None):
     p.add_argument("--out", help="episodes file (.safetensors or .safetensors.gz)")
     p.add_argument("--score", action="store_true",
                    help="record nothing: print the env's reward for the driver on each track (1000 frames)")
+    p.add_argument("--top-speed", type=float,
+                   help="with --score --driver expert: its speed profile held under this (units/s, 10 to 95)")
     args = p.parse_args(argv)
+    if args.top_speed is not None and not (args.score and args.driver == "expert" and 10 <= args.top_speed <= 95):
+        p.error("--top-speed is for --score --driver expert, from 10 to 95")
     if args.score:
         with Pool(min(args.workers, len(args.seeds))) as pool:
-            scores = pool.map(_score, [(s, args.driver) for s in args.seeds], chunksize=1)
+            scores = pool.map(_score, [(s, args.driver, args.top_speed) for s in args.seeds], chunksize=1)
         for seed, score in scores:
             print(f"seed {seed}: {score:.1f}")
         r = np.array([score for _, score in scores])
