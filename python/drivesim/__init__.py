@@ -3,7 +3,9 @@
 The networks run in the Rust crate (hand-written SIMD kernels, fixed memory); this package
 gives them numpy arrays:
 
-- ``Model.load(path=None)``: a weight file, or the built-in default model;
+- ``Model.load(path=None, driver=None)``: a weight file, or the built-in default model (with
+  ``driver``, a driver file's policy in place of its own: ``drivesim.driver``); ``Model.dreamt()``:
+  the default driven by the built-in driver learnt in its dream;
 - ``Simulator(model, batch=1, threads=1)``: ``encode``, ``generate``, ``transition``,
   ``transition_fed_back``, ``rollout`` and ``rollout_candidates``;
 - ``Environment(model, drives, candidates, threads)``: dreamed drives a controller steps;
