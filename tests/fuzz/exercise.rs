@@ -56,7 +56,9 @@ pub fn driver(bytes: &[u8]) -> bool {
         return false;
     };
     let c = *model.config();
-    let Ok(mut sim) = Simulator::new(&model) else { return false };
+    let Ok(mut sim) = Simulator::new(&model) else {
+        return false;
+    };
     let mut action = vec![0.0; c.action_dim];
     let _ = sim.act(&vec![0.5; c.z_dim], &vec![0.1; c.hidden_dim], &mut action);
     true
