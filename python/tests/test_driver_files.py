@@ -9,6 +9,7 @@ import pytest
 from conftest import REPO, fixture
 
 import drivesim
+from drivesim.carracing import make_agent
 from drivesim.driver import main, world_fingerprint, write_driver
 
 DEFAULT = os.path.join(REPO, "weights", "default.safetensors")
@@ -38,6 +39,8 @@ def test_another_world_refuses_a_driver_and_the_command_writes_nothing(tmp_path,
         drivesim.Model.load(driver=DEFAULT)
     with pytest.raises(FileNotFoundError, match="missing"):
         drivesim.Model.load(driver=tmp_path / "missing.safetensors")
+    with pytest.raises(TypeError):
+        make_agent("dreamt", driver=3)
     with pytest.raises(SystemExit) as exit:
         main([small, "--out", str(tmp_path / "never.safetensors")])  # no policy
     assert exit.value.code == 2 and "no policy" in capsys.readouterr().err
