@@ -88,6 +88,8 @@ def test_the_expert_held_to_a_top_speed_plans_under_it():
                 ["--score", "--driver", "expert", "--top-speed", "5"]):
         with pytest.raises(SystemExit):
             record.main(["--seeds", "0"] + bad)
+    with pytest.raises(ValueError, match="expert's"):
+        record.score_episode(0, "steady", top_speed=60.0)
 
 
 def test_recorded_episodes_carry_rewards(tmp_path):

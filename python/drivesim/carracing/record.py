@@ -280,6 +280,8 @@ def score_episode(seed, style="steady", frame_skip=4, limit=1000, top_speed=None
     episode ending early when the env says so (a lap done, or off the playfield). `top_speed`:
     the expert's speed profile held under it (style "expert" only): what a driver held to a
     speed range at best scores."""
+    if top_speed is not None and style != "expert":
+        raise ValueError(f"top_speed is the expert's, not the {style!r} driver's")
     env = car_racing.CarRacing()
     env.reset(seed=seed)
     # The env draws its 96x96 state on every step, and the score reads none of it: drawing
