@@ -27,9 +27,10 @@ def write_driver(weights: str | os.PathLike, out: str | os.PathLike, world: str 
     ``out``, atomically, and returns its world's fingerprint. With ``world``, a weight file, the
     driver must have been learnt in that world (ValueError otherwise)."""
     fingerprint = world_fingerprint(weights)
-    if world is not None and world_fingerprint(world) != fingerprint:
+    expected = fingerprint if world is None else world_fingerprint(world)
+    if expected != fingerprint:
         raise ValueError(f"{weights} holds another world than {world} ({fingerprint} against "
-                         f"{world_fingerprint(world)}): its driver was not learnt there")
+                         f"{expected}): its driver was not learnt there")
     data = driver_file(weights)
     with atomic_write(out) as f:
         f.write(data)
