@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import drivesim
-from drivesim.carracing import rank
+from drivesim.carracing import rank, rank_figures
 from drivesim.carracing.family import FAMILY, SMALL, Driver
 
 
@@ -75,15 +75,88 @@ def test_the_world_given_the_dreams_own_inputs_open_loop_is_the_dream():
     assert not np.array_equal(other, given)
 
 
+def test_several_futures_are_the_mean_of_their_dreams_and_their_spread():
+    """``--futures N``: the dream from the same starts with sampling seeds 0..N-1, its figures
+    their means and each driver's spread over them; one future is the dream a run without the
+    option draws, bit for bit, and the world samples with seed 0 after either."""
+    from types import SimpleNamespace
+
+    sim, starts = three_starts(4)
+    family = [FAMILY[0], Driver("n", noise=0.7)]
+    each = []
+    for future in range(3):
+        sim.set_sampling(1.0, future)
+        each.append(rank.dream(sim, sim, family, starts, 6, 5, False))
+    args = SimpleNamespace(futures=3, temperature=1.0, horizon=6, value=False, world_steering=(1.0, 0.0))
+    got = rank.dream_futures(sim, sim, family, starts, args, 5)
+    assert sim.sampling == (1.0, 0)
+    for key in ("return", "rewards", "off_road", "off_steps"):
+        np.testing.assert_allclose(got[key], np.mean([d[key] for d in each], 0), rtol=1e-6)
+    np.testing.assert_allclose(got["spread"][0], np.std([d["return"] for d in each], 0).mean(1), rtol=1e-6)
+    np.testing.assert_allclose(got["spread"][2], np.std([d["off_road"] for d in each], 0).mean(1), rtol=1e-6)
+    assert got["spread"].shape == (3, 2) and (got["spread"][0] > 0).all()  # the futures differ
+    args.futures = 1
+    one = rank.dream_futures(sim, sim, family, starts, args, 5)
+    np.testing.assert_array_equal(one["return"], each[0]["return"])
+    assert not one["spread"].any()
+
+
+def test_the_dreams_doubt_against_its_error():
+    """Each driver's spread over the futures is reported, and its correlation over the family
+    with the dream's error in ranks: here the dream doubts most where it ranks a driver
+    farthest from its real place."""
+    family = [Driver(n) for n in "abcd"]
+    real = np.array([[900.0, 880.0], [100.0, 120.0], [500.0, 500.0], [300.0, 300.0]])
+    dreamt = np.array([[4.0], [3.0], [2.0], [1.0]]) * np.ones((4, 2))  # ranks: 3 2 1 0, real: 3 0 2 1
+    off = np.zeros((4, 2))
+    spread = np.stack([np.array([[0.0], [20.0], [10.0], [10.0]]) * np.ones((4, 2)), off + 0.1])
+    s = rank_figures.summary(family, real, off, dreamt, off, spread)
+    assert s["doubt_against_error"] == pytest.approx(1.0)
+    assert [d["dream_spread"] for d in s["drivers"]] == [0.0, 20.0, 10.0, 10.0]
+    assert [d["dream_off_road_spread"] for d in s["drivers"]] == pytest.approx([0.1] * 4)
+    assert "doubt_against_error" not in rank_figures.summary(family, real, off, dreamt, off)
+    assert "spread" in rank_figures.doubt(s) and rank_figures.doubt(s["drivers"][1]).split() == ["20.0", "10.0%"]
+
+
+def test_the_worlds_steering_shaped_is_its_steering_column_scaled(tmp_path):
+    """``--world-steering 2``: the world stepping with twice each steering is the world whose
+    transition's steering column is doubled (both exact in floating point), bit for bit, while
+    the drivers' memory steps as before; a lead adds the change from the decision before."""
+    from safetensors.numpy import load_file, save_file
+    from safetensors import safe_open
+
+    default = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "weights", "default.safetensors")
+    tensors = load_file(default)
+    with safe_open(default, "np") as f:
+        meta = f.metadata()
+    tensors["transition.U"] = tensors["transition.U"] * np.float16([1, 2])
+    save_file(tensors, tmp_path / "k2.safetensors", metadata=meta)
+    sim, starts = three_starts(6)
+    doubled = drivesim.Simulator(drivesim.Model.load(tmp_path / "k2.safetensors"), batch=6)
+    family = [FAMILY[0], Driver("b", bias=0.3)]
+    shaped = rank.dream(sim, sim, family, starts, 6, 0, False, (2.0, 0.0))
+    scaled = rank.dream(sim, doubled, family, starts, 6, 0, False)
+    np.testing.assert_array_equal(shaped["off_steps"], scaled["off_steps"])
+    np.testing.assert_array_equal(shaped["return"], scaled["return"])
+    assert not np.array_equal(shaped["return"], rank.dream(sim, sim, family, starts, 6, 0, False)["return"])
+    action = np.float32([[30, 0.5], [20, -0.2]])
+    np.testing.assert_allclose(rank.world_steering(action, np.float32([0.1, -0.2]), (1.5, 1.0)),
+                               [[30, 1.15], [20, -0.3]], rtol=1e-6)
+    assert rank.world_steering(action, 0.0, (1.0, 0.0)) is action
+    assert rank.shaping("2") == (2.0, 0.0) and rank.shaping("1.5,0.5") == (1.5, 0.5)
+    with pytest.raises(ValueError):
+        rank.shaping("1,nan")
+
+
 def test_spearman_and_regret():
-    assert rank.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
-    assert rank.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
-    np.testing.assert_allclose(rank.ranks(np.array([5.0, 1.0, 5.0])), [1.5, 0.0, 1.5])
+    assert rank_figures.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
+    assert rank_figures.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+    np.testing.assert_allclose(rank_figures.ranks(np.array([5.0, 1.0, 5.0])), [1.5, 0.0, 1.5])
     family = [Driver(n) for n in "abc"]
     real = np.array([[900.0, 880.0], [100.0, 120.0], [500.0, 500.0]])
     dreamt = np.array([[1.0, 1.0], [3.0, 3.0], [2.0, 2.0]])  # ranks them backwards
     off = np.zeros((3, 2))
-    s = rank.summary(family, real, off, dreamt, off + 0.25)
+    s = rank_figures.summary(family, real, off, dreamt, off + 0.25)
     assert s["spearman"] == pytest.approx(-1.0)
     assert s["favourite"] == "b"
     assert s["regret_at_1"] == pytest.approx(1.0)
@@ -145,6 +218,13 @@ def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
         assert 0 <= d["dream_off_road"] <= 1 and 0 <= d["real_off_road"] <= 1
     assert len(report["per_track"]["real"][0]) == 2
     assert len(report["road_memory"]) == 4 and report["road_memory"][0] == pytest.approx(1.0, abs=1e-5)
+    # The same real drives, the dream sampled three times from each start: no drive again.
+    futures = subprocess.run(_probe(whole, "--temperature", "1", "--futures", "3", "--report", "futures.json"),
+                             check=True, capture_output=True, text=True, timeout=600)
+    assert "on track" in futures.stdout and "spread against the dream's error in ranks" in futures.stdout
+    with open(whole / "futures.json") as f:
+        sampled = json.load(f)
+    assert sampled["futures"] == 3 and all(d["dream_spread"] >= 0 for d in sampled["drivers"])
 
     # Killed once the first drives are kept, then run again: the same report.
     killed = tmp_path / "killed"
@@ -171,6 +251,13 @@ def test_a_bad_weight_file_is_refused_before_any_drive(tmp_path):
         assert run.returncode == 2, run.stderr
         assert f"error: {flag}: " in run.stderr, run.stderr
         assert "Traceback" not in run.stderr and not (tmp_path / "out" / "real").exists()
+
+
+def test_several_futures_of_the_mean_dream_are_refused(tmp_path):
+    run = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "1", "--out",
+                          str(tmp_path / "out"), "--futures", "2"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "--futures above 1 needs --temperature" in run.stderr, run.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def test_real_drives_of_other_drivers_are_refused(tmp_path):

@@ -20,6 +20,12 @@ dream's road memory: how well the unchanged driver's steering in the dream follo
 steering from the same starts, decision by decision (the policy steers by the road it sees, so
 the correlation falls where the dream's road stops being the real one).
 
+``--futures N`` (with ``--temperature``) draws N futures from each start: the dream's figures are
+their means, and each driver's spread over them is reported beside them, with its correlation over
+the family with the dream's error in ranks (does the dream doubt where it is wrong?).
+``--world-steering GAIN,LEAD`` steps the world with each steering s as ``GAIN * s + LEAD * (s - the
+decision before's s)``, the drivers' memory with s: a diagnostic of the world's steering answer.
+
 ``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
 ``--weights`` and step its transition for their own memory): a world model is judged without
 changing the drivers. ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another
@@ -41,7 +47,6 @@ import multiprocessing
 import os
 import sys
 import time
-from dataclasses import asdict
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame draws off-screen
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
@@ -54,6 +59,7 @@ from .agents import ClonedAgent
 from .control import speed_after
 from .family import FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Changes, Driver
 from . import rank_real
+from .rank_figures import print_report, summary
 from .view import parse_seeds
 
 
@@ -145,6 +151,18 @@ def real_job(job) -> dict:
     return figures
 
 
+def world_steering(action: np.ndarray, previous, shaping: tuple) -> np.ndarray:
+    """The inputs ``(N, 2)`` the world steps with (``--world-steering GAIN,LEAD``, a diagnostic of
+    its steering's answer): each steering ``GAIN * s + LEAD * (s - previous)``, ``previous`` the
+    steering of the decision before; ``(1, 0)`` leaves them as they are."""
+    gain, lead = shaping
+    if (gain, lead) == (1.0, 0.0):
+        return action
+    shaped = action.copy()
+    shaped[:, 1] = gain * action[:, 1] + lead * (action[:, 1] - previous)
+    return shaped
+
+
 def window_starts(drive: dict, count: int, horizon: int) -> tuple[list, list]:
     """The ``count`` starts in the behaviour drive ``drive`` (``drive_SEED.npz``): their
     decisions in the drive, and their indices in its kept states (which begin after the warm-up)."""
@@ -153,22 +171,26 @@ def window_starts(drive: dict, count: int, horizon: int) -> tuple[list, list]:
     return decisions, [d - first for d in decisions]
 
 
-def starts_of(drive: dict, world: Simulator, hidden_dim: int, count: int, horizon: int) -> dict:
+def starts_of(drive: dict, world: Simulator, hidden_dim: int, count: int, horizon: int,
+              shaping: tuple = (1.0, 0.0)) -> dict:
     """``count`` starts in the behaviour drive ``drive`` (``drive_SEED.npz``): the code, the
     driver's hidden state and the speed at each, and the world model's hidden state there, its
     transition stepped along the drive from the decision the driver's started (the same state
     where the world is the driver's own model); and the steering the drive applied over the
-    ``horizon`` decisions from each (``steer``, what `road_memory` compares)."""
+    ``horizon`` decisions from each (``steer``, what `road_memory` compares), and the one before
+    each (``previous``); the world steps with ``shaping`` (`world_steering`)."""
     _, at = window_starts(drive, count, horizon)
     h_world = np.zeros((1, hidden_dim), np.float32)
     hidden = []
     for t in range(max(at) + 1):
         hidden.append(h_world[0])
         action = np.array([[drive["speed"][t], drive["steer"][t]]], np.float32)
+        action = world_steering(action, drive["steer"][max(t - 1, 0)], shaping)
         _, h_world = world.transition(np.ascontiguousarray(drive["z"][t:t + 1]), h_world, action)
     return {"z": drive["z"][at], "h": drive["h"][at], "speed": drive["speed"][at],
             "h_world": np.stack([hidden[t] for t in at]),
-            "steer": np.stack([drive["steer"][t:t + horizon] for t in at])}
+            "steer": np.stack([drive["steer"][t:t + horizon] for t in at]),
+            "previous": np.array([drive["steer"][max(t - 1, 0)] for t in at], np.float32)}
 
 
 def tiled(rows: np.ndarray, n: int) -> np.ndarray:
@@ -177,18 +199,19 @@ def tiled(rows: np.ndarray, n: int) -> np.ndarray:
 
 
 def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horizon: int, seed: int,
-          use_value: bool) -> dict:
+          use_value: bool, shaping: tuple = (1.0, 0.0)) -> dict:
     """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` (with the
     value at the horizon where ``use_value``), ``rewards`` (without it) and ``off_road`` (its
     chance, averaged) ``(drivers, starts)``, and ``steer``, the steering applied, and
     ``off_steps``, each decision's off-road chance, and ``speed``, the speed stepped with,
     ``(drivers, starts, horizon)``. The drivers' policy reads the codes the world predicts, and
     their hidden states step on their own model's transition (as a real drive steps them on the
-    codes of what the car sees); the world's transition predicts the codes, its reward head
-    scores them."""
+    codes of what the car sees); the world's transition predicts the codes (its inputs shaped by
+    ``shaping``, `world_steering`), its reward head scores them."""
     k, n = len(starts["speed"]), len(family)
     z, h, h_world = (tiled(starts[key], n) for key in ("z", "h", "h_world"))
     v = np.tile(starts["speed"], n).astype(np.float32)
+    previous = np.tile(starts.get("previous", np.zeros(k, np.float32)), n)
     drivers = [d for d in family for _ in range(k)]
     changes = Changes(drivers, [dream_row_seed(seed, i, j, k) for i in range(n) for j in range(k)])
     total, off = np.zeros(n * k), np.zeros((n * k, horizon))
@@ -198,7 +221,8 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
         steers[:, step], speeds[:, step] = steer, v
         action = np.ascontiguousarray(np.stack([v, steer], 1), np.float32)
         _, h = driver.transition(z, h, action)
-        z, h_world = world.transition(z, h_world, action)
+        z, h_world = world.transition(z, h_world, world_steering(action, previous, shaping))
+        previous = steer
         if world.sampling[0] > 0:
             z = world.sample(h_world, step, z)
         v = speed_after(v, target).astype(np.float32)
@@ -211,7 +235,7 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
             "speed": speeds.reshape(n, k, horizon), "off_steps": off.reshape(n, k, horizon)}
 
 
-def open_loop(world: Simulator, starts: dict, actions: np.ndarray) -> np.ndarray:
+def open_loop(world: Simulator, starts: dict, actions: np.ndarray, shaping: tuple = (1.0, 0.0)) -> np.ndarray:
     """The world stepped from the starts with given inputs, no driver in the loop: ``actions``
     ``(drivers, starts, horizon, 2)`` (the speed and the steering, a real window's) to each
     decision's off-road chance ``(drivers, starts, horizon)``. Against `dream` it tells the
@@ -222,7 +246,8 @@ def open_loop(world: Simulator, starts: dict, actions: np.ndarray) -> np.ndarray
     rows = actions.reshape(n * k, horizon, 2).astype(np.float32)
     off = np.zeros((n * k, horizon))
     for step in range(horizon):
-        z, h_world = world.transition(z, h_world, np.ascontiguousarray(rows[:, step]))
+        previous = rows[:, step - 1, 1] if step else np.tile(starts.get("previous", np.zeros(k, np.float32)), n)
+        z, h_world = world.transition(z, h_world, world_steering(np.ascontiguousarray(rows[:, step]), previous, shaping))
         if world.sampling[0] > 0:
             z = world.sample(h_world, step, z)
         off[:, step] = world.reward(z, h_world)[:, 1]
@@ -246,84 +271,70 @@ def road_memory(dreamt: np.ndarray, real: np.ndarray) -> list:
     return out
 
 
-def ranks(x: np.ndarray) -> np.ndarray:
-    """Ranks from 0, ties sharing their mean rank."""
-    order = np.argsort(x, kind="stable")
-    r = np.empty(len(x))
-    r[order] = np.arange(len(x))
-    for value in np.unique(x):
-        tied = x == value
-        r[tied] = r[tied].mean()
-    return r
-
-
-def spearman(a, b) -> float:
-    a, b = ranks(np.asarray(a, float)), ranks(np.asarray(b, float))
-    if a.std() == 0 or b.std() == 0:
-        return float("nan")
-    return float(np.corrcoef(a, b)[0, 1])
-
-
-def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.ndarray, dream_off: np.ndarray) -> dict:
-    """The figures of the report from ``(drivers, tracks)`` arrays of real scores and off-road
-    shares, and the dream's returns and off-road chances (each the mean over the starts)."""
-    real_mean, dream_mean = real.mean(1), dreamt.mean(1)
-    favourite = int(np.argmax(dream_mean))
-    span = real_mean.max() - real_mean.min()
-    per_track = [spearman(dreamt[:, t], real[:, t]) for t in range(real.shape[1])]
-    return {
-        "spearman": spearman(dream_mean, real_mean),
-        "spearman_per_track": float(np.nanmean(per_track)),
-        "regret_at_1": float((real_mean.max() - real_mean[favourite]) / span) if span > 0 else 0.0,
-        "pearson": float(np.corrcoef(dream_mean, real_mean)[0, 1]) if dream_mean.std() > 0 else float("nan"),
-        "off_road_gap": float(np.abs(dream_off.mean(1) - real_off.mean(1)).max()),
-        "favourite": family[favourite].name,
-        "drivers": [{"driver": asdict(d), "real": float(real_mean[i]), "real_sd": float(real[i].std()),
-                     "real_off_road": float(real_off[i].mean()), "dream": float(dream_mean[i]),
-                     "dream_off_road": float(dream_off[i].mean())} for i, d in enumerate(family)],
-    }
+def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dict, args, seed: int) -> dict:
+    """`dream` ``args.futures`` times from the same starts, the world sampling with seeds 0, 1, ...
+    (the first future is the one a run with one draws): the means of its figures over the futures,
+    the first future's ``steer``, and ``spread`` ``(3, drivers)``, the standard deviation over the
+    futures of a start's return, its rewards (without the value) and its off-road chance,
+    averaged over the starts."""
+    drawn = []
+    for future in range(args.futures):
+        if args.temperature > 0:
+            world.set_sampling(args.temperature, future)
+        drawn.append(dream(driver, world, family, starts, args.horizon, seed, args.value, args.world_steering))
+    if args.temperature > 0:
+        world.set_sampling(args.temperature, 0)  # the open loop draws as a run with one future
+    out = {key: np.mean([d[key] for d in drawn], 0) for key in ("return", "rewards", "off_road", "off_steps")}
+    out["steer"] = drawn[0]["steer"]
+    out["spread"] = np.stack([np.std([d[key] for d in drawn], 0).mean(1) for key in ("return", "rewards", "off_road")])
+    return out
 
 
 def report(args, results: list, windowed: list) -> dict:
     """The dream's side for every track (from the starts the real drives left), then the figures:
     against the whole real drives, and (``windowed``, ``rank_real.window_job``'s) against the real
     windows from the same starts (``windows``: the dream's rewards without the value; each
-    decision's off-road share real, dreamt, and dreamt open loop on the real windows' inputs)."""
+    decision's off-road share real, dreamt, and dreamt open loop on the real windows' inputs).
+    With several ``--futures``, the dream's figures are their means, and each driver's spread
+    over them is reported."""
     family, seeds = args.family, args.seeds
     batch = len(family) * args.starts
     driver = Simulator(Model.load(args.weights), batch=batch, threads=args.threads)
     world_model = Model.load(args.world or args.weights)
     world = Simulator(world_model, batch=batch, threads=args.threads)
-    if args.temperature > 0:
-        world.set_sampling(args.temperature, 0)
     real = {(r["driver"], r["seed"]): r for r in results}
     shape = (len(family), len(seeds))
     real_score, real_off, dream_return, dream_off, dream_rewards = (np.zeros(shape) for _ in range(5))
+    spread = np.zeros((3, *shape))
     steer_dreamt, steer_real, dream_steps, open_steps = [], [], [], []
     got = {(w["driver"], w["seed"]): w for w in windowed}
     start = time.perf_counter()
     for t, seed in enumerate(seeds):
         with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
-            starts = starts_of({k: f[k] for k in f.files}, world, world_model.hidden_dim, args.starts, args.horizon)
-        d = dream(driver, world, family, starts, args.horizon, seed, args.value)
+            starts = starts_of({k: f[k] for k in f.files}, world, world_model.hidden_dim, args.starts, args.horizon,
+                               args.world_steering)
+        d = dream_futures(driver, world, family, starts, args, seed)
+        spread[:, :, t] = d["spread"]
         dream_return[:, t], dream_off[:, t] = d["return"].mean(1), d["off_road"].mean(1)
         dream_rewards[:, t] = d["rewards"].mean(1)
         dream_steps.append(d["off_steps"])
         if windowed:
             inputs = [padded_to_horizon(got[i, seed]["actions"], args.horizon) for i in range(len(family))]
-            open_steps.append(open_loop(world, starts, np.array(inputs)))
+            open_steps.append(open_loop(world, starts, np.array(inputs), args.world_steering))
         steer_dreamt.append(d["steer"][0])
         steer_real.append(starts["steer"])
         for i in range(len(family)):
             real_score[i, t], real_off[i, t] = real[i, seed]["reward"], real[i, seed]["off_road"]
     seconds = time.perf_counter() - start
-    out = summary(family, real_score, real_off, dream_return, dream_off)
+    several = args.futures > 1
+    out = summary(family, real_score, real_off, dream_return, dream_off, spread[[0, 2]] if several else None)
     if windowed:
         win_return, win_off = np.zeros(shape), np.zeros(shape)
         for t, seed in enumerate(seeds):
             for i in range(len(family)):
                 win_return[i, t], win_off[i, t] = np.mean(got[i, seed]["return"]), np.mean(got[i, seed]["off_road"])
-        out["windows"] = summary(family, win_return, win_off, dream_rewards, dream_off)
+        out["windows"] = summary(family, win_return, win_off, dream_rewards, dream_off,
+                                 spread[[1, 2]] if several else None)
         out["windows"]["per_track"] = {"real": win_return.tolist(), "dream": dream_rewards.tolist()}
         real_steps = [[padded_to_horizon(got[i, seed]["off"], args.horizon) for seed in seeds]
                       for i in range(len(family))]
@@ -333,42 +344,18 @@ def report(args, results: list, windowed: list) -> dict:
     if family[0] == Driver(family[0].name):  # unchanged: its real drive is the behaviour drive
         out["road_memory"] = road_memory(np.concatenate(steer_dreamt), np.concatenate(steer_real))
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
-               value=args.value, frames=args.frames, weights=args.weights, world=args.world,
-               dream_decisions_per_second=len(family) * args.starts * args.horizon * len(seeds) / seconds,
+               futures=args.futures, world_steering=list(args.world_steering), value=args.value, frames=args.frames, weights=args.weights, world=args.world,
+               dream_decisions_per_second=len(family) * args.starts * args.horizon * len(seeds) * args.futures / seconds,
                per_track={"real": real_score.tolist(), "dream": dream_return.tolist()})
     return out
 
 
-def print_report(out: dict) -> None:
-    print(f"\n{'driver':24} {'real':>8} {'± sd':>6} {'off road':>8} {'dream':>8} {'off road':>8}")
-    for d in out["drivers"]:
-        print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_sd']:6.1f} {d['real_off_road']:8.1%} "
-              f"{d['dream']:8.1f} {d['dream_off_road']:8.1%}")
-    print(f"Spearman {out['spearman']:+.2f} over the family ({out['spearman_per_track']:+.2f} per track, averaged); "
-          f"regret@1 {out['regret_at_1']:.2f} (the dream's favourite: {out['favourite']}); Pearson {out['pearson']:+.2f}; "
-          f"the largest off-road gap {out['off_road_gap']:.2f}; {len(out['seeds'])} tracks, {out['starts']} starts, "
-          f"horizon {out['horizon']}; {out['dream_decisions_per_second']:.0f} dream decisions a second")
-    if "windows" in out:
-        w = out["windows"]
-        print(f"\nthe same starts in the real env, {out['horizon']} decisions each (the dream without the value):")
-        print(f"{'driver':24} {'real':>8} {'off road':>8} {'dream':>8} {'off road':>8}")
-        for d in w["drivers"]:
-            print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_off_road']:8.1%} {d['dream']:8.1f} "
-                  f"{d['dream_off_road']:8.1%}")
-        steps = [s for s in (5, 10, 20) if s < out["horizon"]] + [out["horizon"]]  # the last always shown
-        print("\noff the road at decision N of the windows, real / dream / the dream given the real window's "
-              "actions (open loop):\n" + f"{'driver':24}" + "".join(f"{s:>18}" for s in steps))
-        by = w["off_by_decision"]
-        for d, real, dream, given in zip(w["drivers"], by["real"], by["dream"], by["open_loop"]):
-            print(f"{d['driver']['name']:24}"
-                  + "".join(f"{real[s - 1]:>6.0%} /{dream[s - 1]:>4.0%} /{given[s - 1]:>4.0%}" for s in steps))
-        print(f"windows: Spearman {w['spearman']:+.2f} ({w['spearman_per_track']:+.2f} per track); regret@1 "
-              f"{w['regret_at_1']:.2f} ({w['favourite']}); Pearson {w['pearson']:+.2f}; the largest off-road gap "
-              f"{w['off_road_gap']:.2f}")
-    if "road_memory" in out:
-        steps = [s for s in (1, 3, 5, 8, 10, 20, 40) if s <= len(out["road_memory"])]
-        print("road memory (the unchanged driver's steering, dream against real, correlation after N decisions): "
-              + ", ".join(f"{s}: {out['road_memory'][s - 1]:+.2f}" for s in steps))
+def shaping(text: str) -> tuple:
+    """``--world-steering``'s GAIN[,LEAD] (LEAD 0 where not given), both finite."""
+    parts = [float(x) for x in text.split(",")]
+    if len(parts) not in (1, 2) or not np.isfinite(parts).all():
+        raise ValueError(text)
+    return (parts[0], parts[1] if len(parts) == 2 else 0.0)
 
 
 def main(argv=None) -> int:
@@ -378,12 +365,18 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="folder for the real drives and the report (resumable)")
     p.add_argument("--weights", help="the drivers' weight file: their policy (default: the built-in model)")
     p.add_argument("--world", help="the world model's weight file: the transition and heads that dream (default: --weights)")
+    p.add_argument("--world-steering", type=shaping, default=(1.0, 0.0), metavar="GAIN[,LEAD]",
+                   help="the world steps with GAIN * s + LEAD * (s - the decision before's s) for each steering s "
+                        "(a diagnostic of its steering's answer; the drivers' memory steps with s)")
     p.add_argument("--family", choices=list(FAMILIES), default="all",
                    help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests); holds: the clone and "
                         f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20)")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
     p.add_argument("--starts", type=int, default=7, help="starts per track")
     p.add_argument("--temperature", type=float, default=0.0, help="sampled futures (0: the mean dream)")
+    p.add_argument("--futures", type=int, default=1,
+                   help="sampled futures from each start (with --temperature): the dream's figures their means, "
+                        "and each driver's spread over them reported")
     p.add_argument("--value", action="store_true", help="add the value head at the horizon")
     p.add_argument("--frames", type=int, default=1000, help="env frames per real drive (CarRacing-v3: 1000)")
     p.add_argument("--workers", type=int, default=1, help="real drives at once, each in its own process")
@@ -392,8 +385,11 @@ def main(argv=None) -> int:
                    help="also drive every driver in the real env from the dream's starts, --horizon decisions")
     p.add_argument("--report", default="rank.json", help="the report's file name in --out")
     args = p.parse_args(argv)
-    if min(args.horizon, args.starts, args.frames, args.workers, args.threads) < 1 or not args.temperature >= 0:
-        p.error("--horizon, --starts, --frames, --workers and --threads must be positive, --temperature >= 0")
+    if min(args.horizon, args.starts, args.frames, args.workers, args.threads, args.futures) < 1 \
+            or not args.temperature >= 0:
+        p.error("--horizon, --starts, --frames, --workers, --threads and --futures must be positive, --temperature >= 0")
+    if args.futures > 1 and args.temperature == 0:
+        p.error("--futures above 1 needs --temperature above 0: the mean dream has one future")
     try:
         start_decisions(args.frames // ClonedAgent.frame_skip, args.starts, args.horizon, ClonedAgent.warmup)
     except ValueError as e:

@@ -1,0 +1,110 @@
+"""The rank probe's figures (`drivesim.carracing.rank`): Spearman, regret@1 and Pearson of the
+dream's scores against the real ones over a family of drivers, each driver's off-road shares,
+and, where the dream drew several futures from each start, how far they disagree (the dream's
+own doubt) and whether it doubts most where it is wrong; and the printed report."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import numpy as np
+
+
+def ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks from 0, ties sharing their mean rank."""
+    order = np.argsort(x, kind="stable")
+    r = np.empty(len(x))
+    r[order] = np.arange(len(x))
+    for value in np.unique(x):
+        tied = x == value
+        r[tied] = r[tied].mean()
+    return r
+
+
+def spearman(a, b) -> float:
+    a, b = ranks(np.asarray(a, float)), ranks(np.asarray(b, float))
+    if a.std() == 0 or b.std() == 0:
+        return float("nan")
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def pearson(a, b) -> float:
+    """The Pearson correlation of ``a`` and ``b``; NaN where either does not vary."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else float("nan")
+
+
+def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.ndarray, dream_off: np.ndarray,
+            spread: np.ndarray | None = None) -> dict:
+    """The figures of the report from ``(drivers, tracks)`` arrays of real scores and off-road
+    shares, and the dream's returns and off-road chances (each the mean over the starts and the
+    futures). ``spread`` (with several futures a start): ``(2, drivers, tracks)``, the standard
+    deviation over the futures of a start's return and of its off-road chance, averaged over the
+    starts; each driver gets their means, and ``doubt_against_error`` is the Pearson correlation
+    over the family of the return's spread with the dream's error in ranks, |its rank in the
+    dream - its real rank|."""
+    real_mean, dream_mean = real.mean(1), dreamt.mean(1)
+    favourite = int(np.argmax(dream_mean))
+    span = real_mean.max() - real_mean.min()
+    per_track = [spearman(dreamt[:, t], real[:, t]) for t in range(real.shape[1])]
+    out = {
+        "spearman": spearman(dream_mean, real_mean),
+        "spearman_per_track": float(np.nanmean(per_track)),
+        "regret_at_1": float((real_mean.max() - real_mean[favourite]) / span) if span > 0 else 0.0,
+        "pearson": pearson(dream_mean, real_mean),
+        "off_road_gap": float(np.abs(dream_off.mean(1) - real_off.mean(1)).max()),
+        "favourite": family[favourite].name,
+        "drivers": [{"driver": asdict(d), "real": float(real_mean[i]), "real_sd": float(real[i].std()),
+                     "real_off_road": float(real_off[i].mean()), "dream": float(dream_mean[i]),
+                     "dream_off_road": float(dream_off[i].mean())} for i, d in enumerate(family)],
+    }
+    if spread is not None:
+        doubt = spread.mean(2)
+        for i, d in enumerate(out["drivers"]):
+            d["dream_spread"], d["dream_off_road_spread"] = float(doubt[0, i]), float(doubt[1, i])
+        # The error in ranks: a whole drive's score and a dream's 40 decisions are not one scale.
+        out["doubt_against_error"] = pearson(doubt[0], np.abs(ranks(dream_mean) - ranks(real_mean)))
+    return out
+
+
+def doubt(figures: dict) -> str:
+    """A driver's (or the family's) spread over the dream's futures, for the printed tables
+    (nothing where the dream drew one future)."""
+    if "dream_spread" in figures:
+        return f" {figures['dream_spread']:>8.1f} {figures['dream_off_road_spread']:>8.1%}"
+    if "doubt_against_error" in figures:
+        return f"; the futures' spread against the dream's error in ranks: Pearson {figures['doubt_against_error']:+.2f}"
+    return ""
+
+
+def print_report(out: dict) -> None:
+    spread = f" {'± spread':>8} {'off road':>8}" if "doubt_against_error" in out else ""
+    print(f"\n{'driver':24} {'real':>8} {'± sd':>6} {'off road':>8} {'dream':>8} {'off road':>8}{spread}")
+    for d in out["drivers"]:
+        print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_sd']:6.1f} {d['real_off_road']:8.1%} "
+              f"{d['dream']:8.1f} {d['dream_off_road']:8.1%}{doubt(d)}")
+    print(f"Spearman {out['spearman']:+.2f} over the family ({out['spearman_per_track']:+.2f} per track, averaged); "
+          f"regret@1 {out['regret_at_1']:.2f} (the dream's favourite: {out['favourite']}); Pearson {out['pearson']:+.2f}; "
+          f"the largest off-road gap {out['off_road_gap']:.2f}; {len(out['seeds'])} tracks, {out['starts']} starts, "
+          f"horizon {out['horizon']}; {out['dream_decisions_per_second']:.0f} dream decisions a second{doubt(out)}")
+    if "windows" in out:
+        w = out["windows"]
+        print(f"\nthe same starts in the real env, {out['horizon']} decisions each (the dream without the value):")
+        print(f"{'driver':24} {'real':>8} {'off road':>8} {'dream':>8} {'off road':>8}{spread}")
+        for d in w["drivers"]:
+            print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_off_road']:8.1%} {d['dream']:8.1f} "
+                  f"{d['dream_off_road']:8.1%}{doubt(d)}")
+        steps = [s for s in (5, 10, 20) if s < out["horizon"]] + [out["horizon"]]  # the last always shown
+        print("\noff the road at decision N of the windows, real / dream / the dream given the real window's "
+              "actions (open loop):\n" + f"{'driver':24}" + "".join(f"{s:>18}" for s in steps))
+        by = w["off_by_decision"]
+        for d, real, dream, given in zip(w["drivers"], by["real"], by["dream"], by["open_loop"]):
+            print(f"{d['driver']['name']:24}"
+                  + "".join(f"{real[s - 1]:>6.0%} /{dream[s - 1]:>4.0%} /{given[s - 1]:>4.0%}" for s in steps))
+        print(f"windows: Spearman {w['spearman']:+.2f} ({w['spearman_per_track']:+.2f} per track); regret@1 "
+              f"{w['regret_at_1']:.2f} ({w['favourite']}); Pearson {w['pearson']:+.2f}; the largest off-road gap "
+              f"{w['off_road_gap']:.2f}{doubt(w)}")
+    if "road_memory" in out:
+        steps = [s for s in (1, 3, 5, 8, 10, 20, 40) if s <= len(out["road_memory"])]
+        print("road memory (the unchanged driver's steering, dream against real, correlation after N decisions): "
+              + ", ".join(f"{s}: {out['road_memory'][s - 1]:+.2f}" for s in steps))
