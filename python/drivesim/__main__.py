@@ -25,6 +25,7 @@ COMMANDS = {
     "speed-model": ("drivesim.carracing.speed_model", "how the car's speed answers speed_control (the planners' speed model)"),
     "grip": ("drivesim.carracing.grip", "the grip envelope: the fastest a recorded driver goes at each amount of steering"),
     "probe-real": ("drivesim.carracing.probe_real", "the steering probe in the real CarRacing (what a perfect dream would show)"),
+    "branches": ("drivesim.carracing.branches", "paired steering branches: the probe's experiment recorded as training data"),
     "join": ("drivesim.episodes", "join episodes files into one (the last file's episodes last: a trainer's --holdout)"),
     "relabel": ("drivesim.relabel", "label episodes with a teacher's policy (a policy carried to another world model)"),
     "road-cost": ("drivesim.road", "fit a RoadCost for a model on recorded episodes"),

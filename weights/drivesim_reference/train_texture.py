@@ -197,7 +197,7 @@ def train_sampler(args, make, fmt: str):
     `args.checkpoint` (format `fmt`), and the input written again with the trainer's texture net."""
     model, cfg = load_drivesim(args.weights)
     source = Source(args.weights, args.out)
-    if not 1 <= args.width <= cfg.hidden_dim:
+    if getattr(args, "width", None) is not None and not 1 <= args.width <= cfg.hidden_dim:  # a texture net made
         raise ValueError(f"--width {args.width}: from 1 to the model's hidden_dim ({cfg.hidden_dim}), as the crate "
                          "reads it")
     data = load_episodes(args.episodes, cfg, "episodes", rewards=False)
@@ -213,7 +213,8 @@ def train_sampler(args, make, fmt: str):
     arguments = {k: str(v) for k, v in sorted(vars(args).items())
                  if k not in {"out", "checkpoint", "checkpoint_every", "mode", "device", "log_every", "steps"}}
     first = restore(args.checkpoint, trainer, arguments, fmt) if args.checkpoint else 0
-    print(f"{len(starts)} windows of {TEACHER} + {args.fed} codes, texture net width {args.width}, "
+    made = f", texture net width {args.width}" if getattr(args, "width", None) is not None else ""
+    print(f"{len(starts)} windows of {TEACHER} + {args.fed} codes{made}, "
           f"steps {first}..{args.steps} of {args.batch}" + (" (resumed)" if first else ""), flush=True)
     span = torch.arange(TEACHER + args.fed + 1, device=dev)
     begun, sums = time.time(), {}
@@ -227,7 +228,8 @@ def train_sampler(args, make, fmt: str):
             sums = {}
         if args.checkpoint and ((step + 1) % args.checkpoint_every == 0 or step + 1 == args.steps):
             save_checkpoint(args.checkpoint, trainer, step + 1, arguments, fmt)
-    model.transition.texture = trainer.texture
+    if trainer.texture is not None:  # `train.py steering` keeps the model's own, or none
+        model.transition.texture = trainer.texture
     for p in model.parameters():
         p.requires_grad_(False)
     source.write(model.cpu(), cfg, args.out)

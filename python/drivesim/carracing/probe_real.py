@@ -32,10 +32,20 @@ from .record import car_racing
 
 def steps(env, action, n, draw_last):
     """`n` env steps of `action`, drawing only the last where `draw_last` (drawing changes
-    nothing in the physics: view.unseen)."""
+    nothing in the physics: view.unseen); the env's reward over them."""
+    reward = 0.0
     for i in range(n):
         with contextlib.nullcontext() if draw_last and i + 1 == n else record.view.unseen(env):
-            env.step(action)
+            reward += float(env.step(action)[1])
+    return reward
+
+
+def held(steer, speed, now):
+    """The env's action that steers `steer` and holds the car near `speed` (units/s) from `now`:
+    gas below it, the brake above it by more than 5."""
+    gas = float(np.clip(0.05 * (speed - now), 0.0, 0.5))
+    brake = float(np.clip(0.05 * (now - speed - 5.0), 0.0, 0.8))
+    return np.array([steer, gas, brake], dtype=np.float32)
 
 
 def branch(job):
@@ -55,9 +65,7 @@ def branch(job):
     centres = {}
     for step in range(1, probe.PROBE_STEPS + 1):
         now = float(np.linalg.norm(env.car.hull.linearVelocity))
-        gas = float(np.clip(0.05 * (speed - now), 0.0, 0.5))
-        brake = float(np.clip(0.05 * (now - speed - 5.0), 0.0, 0.8))
-        steps(env, np.array([steer, gas, brake], dtype=np.float32), skip, step in probe.READINGS)
+        steps(env, held(steer, speed, now), skip, step in probe.READINGS)
         if step in probe.READINGS:
             centres[step] = probe.centre(record.view.observe(env))
     env.close()

@@ -1,0 +1,142 @@
+"""Paired steering branches: the steering probe's experiment (`probe_real`) recorded as training
+data, so that a world model can learn what the steering does on its own.
+
+In every recording the steering follows the road: the driver steers because the road bends, so a
+transition trained on it can put down to the steering what the road was doing anyway (the probe
+finds the dream's road moving the wrong way a step after the wheel turns, and half as far as the
+real one after five; docs/judging.md). Here the same state is driven three ways: a scripted
+driver (`record`'s styles) drives each track; every ``--every`` decisions a point, and from each
+point three branches of ``--horizon`` decisions steering a constant -x, 0 and +x (x drawn from
+0.15 to 0.7), gas and brake holding the point's speed as the probe does. The track is replayed
+from its seed to the point for each branch (CarRacing is deterministic: the replayed frame is the
+recorded one, which the run checks). Each branch is an episode: the drive's 5 frames up to the
+point (its recorded actions between them), then the branch's frames, with the env's reward, the
+tiles and ``on_road``; the three branches of a point are consecutive, -x first.
+
+  python -m drivesim branches --seeds 14000-14019 --driver hard --workers 2 --out branches.safetensors.gz
+"""
+
+import argparse
+import os
+import sys
+from multiprocessing import Pool
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # pygame renders off-screen
+os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+
+import numpy as np
+
+from .. import episodes, probe
+from . import record, view
+from .probe_real import held, steps
+from .record import car_racing
+
+SKIP = 4  # the recordings' frame skip (12.5 decisions a second)
+STEER = (0.15, 0.7)  # the range x is drawn from
+
+
+def started(seed, draw_last):
+    """CarRacing on track ``seed`` past its zoom (its last step drawn where ``draw_last``)."""
+    env = car_racing.CarRacing()
+    env.reset(seed=seed)
+    steps(env, np.array([0.0, 0.3, 0.0], np.float32), record.WARMUP_STEPS, draw_last)
+    return env
+
+
+def base_drive(seed, style, frames):
+    """The scripted driver's drive of ``seed``: its frames, actions (speed, steering), the env's
+    actions and, one a decision, `episodes.REWARDS`' reward, tiles and ``on_road``."""
+    env = started(seed, True)
+    driver = record.Driver(env.track, np.random.default_rng(seed), style)
+    drive = {"frames": [], "actions": [], "applied": [], "reward": [], "tiles": [], "on_road": []}
+    while len(drive["frames"]) < frames and not record.off_playfield(env.car):
+        action, speed, _ = driver.act(env.car, SKIP / car_racing.FPS)
+        drive["frames"].append(view.observe(env))
+        drive["actions"].append((speed, action[0]))
+        drive["applied"].append(np.asarray(action, np.float32))
+        drive["on_road"].append(record.wheel_on_road(env.car))
+        tiles = env.tile_visited_count
+        drive["reward"].append(steps(env, action, SKIP, True))
+        drive["tiles"].append(env.tile_visited_count - tiles)
+    env.close()
+    return drive
+
+
+def branch(seed, drive, point, steer, horizon):
+    """One branch (an `episodes.Episodes`) from decision ``point`` of ``drive`` (`base_drive`'s),
+    steering ``steer`` for ``horizon`` decisions, and how far the replayed frame at the point is
+    from the recorded one (mean absolute difference, 0-255)."""
+    env = started(seed, point == 0)
+    for i in range(point):
+        steps(env, drive["applied"][i], SKIP, i + 1 == point)
+    replayed = float(np.abs(view.observe(env).astype(np.int16) - drive["frames"][point]).mean())
+    first = point - probe.SEEDS + 1
+    out = {k: list(drive[k][first:point]) for k in ("frames", "actions", "reward", "tiles", "on_road")}
+    out["frames"].append(drive["frames"][point])
+    speed = drive["actions"][point][0]
+    for _ in range(horizon):
+        now = view.speed(env)
+        out["actions"].append((now, steer))
+        out["on_road"].append(record.wheel_on_road(env.car))
+        tiles = env.tile_visited_count
+        out["reward"].append(steps(env, held(steer, speed, now), SKIP, True))
+        out["tiles"].append(env.tile_visited_count - tiles)
+        out["frames"].append(view.observe(env))
+    # The last frame's action is never stepped: the steering held, its reward none.
+    out["actions"].append((view.speed(env), steer))
+    out["on_road"].append(record.wheel_on_road(env.car))
+    out["reward"].append(0.0)
+    out["tiles"].append(0)
+    env.close()
+    rewards = {k: np.array(out[k], dtype=episodes.REWARDS[k]) for k in episodes.REWARDS}
+    return episodes.Episodes(np.stack(out["frames"]), np.array(out["actions"], np.float32), np.zeros(1, np.int64),
+                             rewards), replayed
+
+
+def track_branches(job):
+    """Every point's three branches on one track (`main`'s job): a list of episodes."""
+    seed, style, frames, every, horizon = job
+    drive = base_drive(seed, style, frames)
+    rng = np.random.default_rng(seed + 1_000_003)
+    out, worst = [], 0.0
+    for point in range(probe.SEEDS - 1 + every // 2, len(drive["frames"]), every):
+        x = rng.uniform(*STEER)
+        for steer in (-x, 0.0, x):
+            episode, replayed = branch(seed, drive, point, float(steer), horizon)
+            out.append(episode)
+            worst = max(worst, replayed)
+    if worst > 1.0:
+        raise RuntimeError(f"track {seed}: the replay drifted from the recording (mean difference {worst:.2f})")
+    print(f"track {seed}: {len(out) // 3} points, {len(out)} branches", flush=True)
+    return out
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m drivesim branches", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", type=view.parse_seeds, required=True, help="track seeds, e.g. 14000-14019")
+    p.add_argument("--driver", choices=record.DRIVERS, default="hard", help="the scripted driver of the drives")
+    p.add_argument("--frames", type=int, default=300, help="decisions of each track's drive")
+    p.add_argument("--every", type=int, default=25, help="decisions between branch points")
+    p.add_argument("--horizon", type=int, default=20, help="decisions of each branch")
+    p.add_argument("--workers", type=int, default=os.cpu_count(), help="tracks at once, each in its own process")
+    p.add_argument("--out", required=True, help="episodes file (.safetensors or .safetensors.gz)")
+    args = p.parse_args(argv)
+    if min(args.frames, args.every, args.horizon, args.workers) < 1:
+        p.error("--frames, --every, --horizon and --workers must be positive")
+    if args.frames < probe.SEEDS + args.every // 2:
+        p.error(f"--frames {args.frames} leaves no branch point (the first is after {probe.SEEDS - 1 + args.every // 2})")
+    jobs = [(s, args.driver, args.frames, args.every, args.horizon) for s in args.seeds]
+    with Pool(min(args.workers, len(jobs))) as pool:
+        parts = pool.map(track_branches, jobs, chunksize=1)
+    data = episodes.Episodes.concat([e for part in parts for e in part])
+    meta = {"source": "gymnasium CarRacing-v3 steering branches (python -m drivesim branches)",
+            "seeds": ",".join(map(str, args.seeds)), "driver": args.driver, "branches": "3",
+            "horizon": str(args.horizon), "frame_hz": str(car_racing.FPS / SKIP)}
+    episodes.write(args.out, data, meta)
+    print(f"wrote {args.out}: {len(data) // 3} points, {len(data)} branches, {len(data.frames)} frames")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""drivesim.carracing.branches: paired steering branches from the same states."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("Box2D")
+
+from drivesim import episodes, probe  # noqa: E402
+from drivesim.carracing import branches  # noqa: E402
+
+
+def test_three_branches_from_each_point_share_its_past_and_part_by_their_steering(tmp_path):
+    out = tmp_path / "b.safetensors.gz"
+    assert branches.main(["--seeds", "3", "--frames", "30", "--every", "10", "--horizon", "3", "--workers", "1",
+                          "--out", str(out)]) == 0
+    data, meta = episodes.read(out), episodes.metadata(out)
+    assert meta["branches"] == "3" and meta["driver"] == "hard" and meta["horizon"] == "3" and meta["seeds"] == "3"
+    bounds = data.bounds()
+    assert len(bounds) == 9 and all(e - s == probe.SEEDS + 3 for s, e in bounds)  # points at 9, 19, 29
+    for k in range(0, len(bounds), 3):
+        left, straight, right = (slice(*bounds[k + i]) for i in range(3))
+        seeds = slice(0, probe.SEEDS)
+        # The point's past is the drive's, the same in the three.
+        np.testing.assert_array_equal(data.frames[left][seeds], data.frames[straight][seeds])
+        np.testing.assert_array_equal(data.frames[right][seeds], data.frames[straight][seeds])
+        np.testing.assert_array_equal(data.actions[left][:probe.SEEDS - 1], data.actions[right][:probe.SEEDS - 1])
+        # From the point on, a constant steering: -x, 0, +x with x in its range.
+        steer = [data.actions[s][probe.SEEDS - 1:, 1] for s in (left, straight, right)]
+        x = steer[2][0]
+        assert branches.STEER[0] <= x <= branches.STEER[1]
+        for held, want in zip(steer, (-x, 0.0, x)):
+            np.testing.assert_allclose(held, want, rtol=1e-6)
+        # And the steering did something: the branches' last frames differ.
+        assert not np.array_equal(data.frames[left][-1], data.frames[right][-1])
+    assert set(data.rewards) == set(episodes.REWARDS)
+
+
+def test_the_replayed_point_is_the_recorded_frame():
+    drive = branches.base_drive(5, "hard", 20)
+    episode, replayed = branches.branch(5, drive, 12, 0.4, 2)
+    assert replayed == 0.0
+    np.testing.assert_array_equal(episode.frames[probe.SEEDS - 1], drive["frames"][12])
+    np.testing.assert_array_equal(episode.frames[:probe.SEEDS], np.stack(drive["frames"][8:13]))
+
+
+def test_a_drive_too_short_for_a_point_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        branches.main(["--seeds", "3", "--frames", "5", "--out", str(tmp_path / "b.safetensors.gz")])
+    assert e.value.code == 2 and "leaves no branch point" in capsys.readouterr().err
+    assert not (tmp_path / "b.safetensors.gz").exists()
