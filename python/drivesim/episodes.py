@@ -306,10 +306,13 @@ def join(paths, out):
     """The episodes of ``paths``, in order, written to ``out`` as one file (rewards kept only if
     every file has them, labels if any: ``Episodes.concat``). The held-out episodes a trainer
     takes from the end (``--holdout N``) are then the last file's last ones. Returns the joined
-    ``Episodes``."""
+    ``Episodes``. The metadata every file has alike is kept (a frame rate, `python -m drivesim
+    branches`' layout), with ``source`` (theirs, joined by " + ") and ``joined`` (their names)."""
     data = Episodes.concat([read(p) for p in paths])
-    sources = [metadata(p).get("source", Path(p).name) for p in paths]
-    write(out, data, {"source": " + ".join(sources), "joined": ",".join(Path(p).name for p in paths)})
+    metas = [metadata(p) for p in paths]
+    shared = {k: v for k, v in metas[0].items() if all(m.get(k) == v for m in metas[1:])}
+    sources = [m.get("source", Path(p).name) for m, p in zip(metas, paths)]
+    write(out, data, {**shared, "source": " + ".join(sources), "joined": ",".join(Path(p).name for p in paths)})
     return data
 
 

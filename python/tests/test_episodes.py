@@ -144,6 +144,17 @@ def test_mirror_images_flip_the_frames_and_negate_the_steering():
     assert np.array_equal(both.with_mirror_images().frames[3 * n:], data.frames)  # twice: the original
 
 
+def test_join_keeps_the_metadata_its_files_share(tmp_path):
+    """What every file says alike stays (`python -m drivesim branches`' layout, which `train.py
+    steering` checks); what they say differently goes."""
+    for name, driver in (("h.safetensors", "hard"), ("e.safetensors", "expert")):
+        episodes.write(tmp_path / name, make_episodes(), {"branches": "3", "horizon": "20", "driver": driver,
+                                                          "source": "branches"})
+    episodes.join([tmp_path / "h.safetensors", tmp_path / "e.safetensors"], tmp_path / "he.safetensors")
+    assert episodes.metadata(tmp_path / "he.safetensors") == {
+        "branches": "3", "horizon": "20", "source": "branches + branches", "joined": "h.safetensors,e.safetensors"}
+
+
 def test_join_keeps_the_order_and_says_what_was_joined(tmp_path, capsys):
     a, b = make_episodes(), make_episodes(n=5, starts=(0, 2, 3))
     episodes.write(tmp_path / "a.safetensors", a, {"source": "first"})
