@@ -191,10 +191,11 @@ def texture(args):
 
 
 def train_sampler(args, make, fmt: str):
-    """The run `train.py texture` and `train.py latent` share: the file and the episodes read, the
-    windows encoded, the trainer `make(model, cfg, args, device)` made (with `step(z, c)` -> the
-    losses, `modules()` and `texture`) and stepped, resumed from and checkpointed to
-    `args.checkpoint` (format `fmt`), and the input written again with the trainer's texture net."""
+    """The run `train.py texture`, `latent` and `steering` share: the file and the episodes read,
+    the windows encoded, the trainer `make(model, cfg, args, device)` made (with `step(z, c)` ->
+    the losses, `modules()` and `texture`) and stepped, resumed from and checkpointed to
+    `args.checkpoint` (format `fmt`), and the input written again with the trainer's texture net
+    (None: the model's own, as `steering` keeps it)."""
     model, cfg = load_drivesim(args.weights)
     source = Source(args.weights, args.out)
     if getattr(args, "width", None) is not None and not 1 <= args.width <= cfg.hidden_dim:  # a texture net made
