@@ -37,12 +37,13 @@ def test_the_worlds_hidden_state_steps_along_the_behaviour_drive():
 
 
 def three_starts(seed: int) -> tuple:
-    """A simulator for two drivers from three random starts (codes, no memory yet, three speeds)."""
+    """A simulator for two drivers from three random starts (codes, no memory yet, three speeds, the
+    steering before each)."""
     model = drivesim.Model.load()
     rng = np.random.default_rng(seed)
     starts = {"z": rng.standard_normal((3, model.z_dim)).astype(np.float32),
               "h": np.zeros((3, model.hidden_dim), np.float32), "speed": np.float32([30, 40, 50])}
-    starts["h_world"] = starts["h"]
+    starts["h_world"], starts["previous"] = starts["h"], np.float32([0.1, -0.2, 0.0])
     return drivesim.Simulator(model, batch=6), starts
 
 

@@ -104,8 +104,6 @@ def check(args):
             and math.isfinite(args.mean_weight) and args.mean_weight >= 0):
         raise ValueError(f"--lr must be a finite number above 0, --beta and --mean-weight at least 0, got {args.lr}, "
                          f"{args.beta}, {args.mean_weight}")
-    if args.checkpoint_every < 1:
-        raise ValueError("--checkpoint-every must be at least 1")
 
 
 def latent(args):

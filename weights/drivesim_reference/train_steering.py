@@ -115,8 +115,6 @@ def check(args):
     if not all(math.isfinite(w) for w in weights) or args.lr <= 0 or min(weights[1:]) < 0:
         raise ValueError(f"--lr must be a finite number above 0, --effect and --branch-weight finite and at least 0, "
                          f"got {args.lr}, {args.effect}, {args.branch_weight}")
-    if args.checkpoint_every < 1:
-        raise ValueError("--checkpoint-every must be at least 1")
 
 
 def steering(args):

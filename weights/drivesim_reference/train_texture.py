@@ -132,8 +132,6 @@ def check(args):
         value = getattr(args, name)
         if not (math.isfinite(value) and value >= 0) or (name == "lr" and value == 0):
             raise ValueError(f"--{name} must be a finite number at least 0 (--lr above 0), got {value}")
-    if args.checkpoint_every < 1:
-        raise ValueError("--checkpoint-every must be at least 1")
 
 
 def windows(model, data, length: int, no_mirror: bool):
@@ -196,6 +194,8 @@ def train_sampler(args, make, fmt: str):
     the losses, `modules()` and `texture`) and stepped, resumed from and checkpointed to
     `args.checkpoint` (format `fmt`), and the input written again with the trainer's texture net
     (None: the model's own, as `steering` keeps it)."""
+    if args.checkpoint_every < 1:  # add_run_arguments' flag, checked here for every trainer that shares it
+        raise ValueError("--checkpoint-every must be at least 1")
     model, cfg = load_drivesim(args.weights)
     source = Source(args.weights, args.out)
     if getattr(args, "width", None) is not None and not 1 <= args.width <= cfg.hidden_dim:  # a texture net made

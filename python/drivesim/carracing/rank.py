@@ -211,7 +211,7 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     k, n = len(starts["speed"]), len(family)
     z, h, h_world = (tiled(starts[key], n) for key in ("z", "h", "h_world"))
     v = np.tile(starts["speed"], n).astype(np.float32)
-    previous = np.tile(starts.get("previous", np.zeros(k, np.float32)), n)
+    previous = np.tile(starts["previous"], n)
     drivers = [d for d in family for _ in range(k)]
     changes = Changes(drivers, [dream_row_seed(seed, i, j, k) for i in range(n) for j in range(k)])
     total, off = np.zeros(n * k), np.zeros((n * k, horizon))
@@ -246,7 +246,7 @@ def open_loop(world: Simulator, starts: dict, actions: np.ndarray, shaping: tupl
     rows = actions.reshape(n * k, horizon, 2).astype(np.float32)
     off = np.zeros((n * k, horizon))
     for step in range(horizon):
-        previous = rows[:, step - 1, 1] if step else np.tile(starts.get("previous", np.zeros(k, np.float32)), n)
+        previous = rows[:, step - 1, 1] if step else np.tile(starts["previous"], n)
         z, h_world = world.transition(z, h_world, world_steering(np.ascontiguousarray(rows[:, step]), previous, shaping))
         if world.sampling[0] > 0:
             z = world.sample(h_world, step, z)
