@@ -32,7 +32,9 @@ from drivesim_reference.sequences import noise_factor, sharpen_noise, transition
 from drivesim_reference.vae_gan import ADAM_VAE_GAN, Discriminator, vae_gan_step
 
 OUT = Path(__file__).resolve().parents[2] / "tests" / "fixtures"
-RTOL = 1e-6
+# Another CPU's float32 sums differ by a few 1e-6 of a tensor's scale (Intel AVX-512 against the
+# AMD AVX2 machine that wrote the fixtures: up to 3e-6); a change to the reference moves far more.
+RTOL = 1e-5
 # The convolutions followed by BatchNorm, whose bias gradients are zero in exact arithmetic.
 BEFORE_NORM = re.compile(r"\.(conv[123]|convs\.[123]|deconv[123])\.bias$")
 TRANSITION_STEPS = 30
@@ -375,18 +377,20 @@ def difference(k, x, y, old, new, lr):
     from the committed ones by far more than rounding; what must hold is what the Rust tests ask
     of drivesim: as close to the exact step as the committed float32 run was (3x, or 1e-4). The
     gradient of a bias before BatchNorm is zero in exact arithmetic (rounding noise on both
-    sides): it must stay within 1e-5 of its layer's weight gradient. A weight after the one step
+    sides): it must stay within 1e-5 of its layer's weight gradient, 1e-12 in float64 (the committed
+    run's are 1e-17 to 4e-15 of it; another CPU's rounding gives others). A weight after the one step
     (`lr`), as the Rust tests check drivesim's: within 1e-4 of the tensor's scale of the exact
     step, or 2 lr where the exact gradient is within rounding of zero (Adam's first step moves a
     weight by lr, its direction the gradient's sign). The losses of that step within 1e-4;
     everything else (the float64 values, every other fixture) within RTOL."""
-    twin = "f64." + k
-    if twin in new:
+    twin = "f64." + k.removeprefix("f64.")
+    if twin in new and twin.startswith("f64.grad.") and BEFORE_NORM.search(k):
+        scale = new[twin.removesuffix(".bias") + ".weight"].double().abs().max().item()
+        worst = max(y.abs().max().item(), new[twin].double().abs().max().item())
+        bound = (1e-12 if k == twin else 1e-5) * scale
+        return f"{worst:.3g}, not rounding's zero (weights' gradient {scale:.3g})" if worst > bound else None
+    if twin != k and twin in new:
         exact = new[twin].double()
-        if k.startswith("grad.") and BEFORE_NORM.search(k):
-            scale = new["f64." + k.removesuffix(".bias") + ".weight"].double().abs().max().item()
-            worst = max(y.abs().max().item(), exact.abs().max().item())
-            return f"{worst:.3g}, not rounding's zero (weights' gradient {scale:.3g})" if worst > 1e-5 * scale else None
         grad = new.get("f64.grad." + k)
         if not k.startswith(("grad.", "after5.")) and grad is not None:
             grad = grad.double().abs()
