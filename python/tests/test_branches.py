@@ -37,10 +37,37 @@ def test_three_branches_from_each_point_share_its_past_and_part_by_their_steerin
 
 def test_the_replayed_point_is_the_recorded_frame():
     drive = branches.base_drive(5, "hard", 20)
-    episode, replayed = branches.branch(5, drive, 12, 0.4, 2)
+    episode, replayed = branches.branch(5, "hard", drive, 12, 0.4, 2)
     assert replayed == 0.0
     np.testing.assert_array_equal(episode.frames[probe.SEEDS - 1], drive["frames"][12])
     np.testing.assert_array_equal(episode.frames[:probe.SEEDS], np.stack(drive["frames"][8:13]))
+
+
+def test_offset_branches_are_the_drivers_own_steering_moved_by_minus_x_0_plus_x(tmp_path):
+    out = tmp_path / "o.safetensors.gz"
+    assert branches.main(["--seeds", "3", "--frames", "20", "--every", "10", "--horizon", "4", "--workers", "1",
+                          "--offsets", "--steer", "0.2,0.3", "--out", str(out)]) == 0
+    data, meta = episodes.read(out), episodes.metadata(out)
+    assert meta["kind"] == "offsets" and meta["steer"] == "0.2,0.3" and meta["branches"] == "3"
+    drive = branches.base_drive(3, "hard", 20)
+    bounds = data.bounds()
+    assert len(bounds) == 6
+    for k, point in ((0, 9), (3, 19)):
+        left, straight, right = (data.actions[slice(*bounds[k + i])][probe.SEEDS - 1:, 1] for i in range(3))
+        # The 0 branch is the driver itself: its first steering is the drive's.
+        assert straight[0] == drive["actions"][point][1]
+        x = right[0] - straight[0]
+        assert 0.2 - 1e-6 <= x <= 0.3 + 1e-6 and abs(straight[0] - left[0] - x) < 1e-6
+        # The driver keeps steering (it corrects), so the branch's steering is not held constant.
+        assert np.ptp(straight) > 0.0 and np.ptp(right) > 0.0
+
+
+@pytest.mark.parametrize("bad", ["0,0.5", "0.5,0.2", "0.2,1.5", "x", "0.2"])
+def test_a_bad_steer_range_is_refused(tmp_path, capsys, bad):
+    with pytest.raises(SystemExit) as e:
+        branches.main(["--seeds", "3", "--steer", bad, "--out", str(tmp_path / "b.safetensors.gz")])
+    assert e.value.code == 2 and "--steer" in capsys.readouterr().err
+    assert not (tmp_path / "b.safetensors.gz").exists()
 
 
 def test_a_drive_too_short_for_a_point_is_refused(tmp_path, capsys):

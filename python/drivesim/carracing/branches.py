@@ -7,13 +7,16 @@ finds the dream's road moving the wrong way a step after the wheel turns, and ha
 real one after five; docs/judging.md). Here the same state is driven three ways: a scripted
 driver (`record`'s styles) drives each track; every ``--every`` decisions a point, and from each
 point three branches of ``--horizon`` decisions steering a constant -x, 0 and +x (x drawn from
-0.15 to 0.7), gas and brake holding the point's speed as the probe does. The track is replayed
-from its seed to the point for each branch (CarRacing is deterministic: the replayed frame is the
-recorded one, which the run checks). Each branch is an episode: the drive's 5 frames up to the
+``--steer``, 0.15 to 0.7 unless told), gas and brake holding the point's speed as the probe does.
+With ``--offsets`` the driver drives on in each branch, its own steering moved by -x, 0 and +x
+(clipped to full lock): pulled hands that the driver keeps correcting, what a steering bias does.
+The track is replayed from its seed to the point for each branch, the driver acting again
+(CarRacing is deterministic: the replayed frame is the recorded one, which the run checks). Each branch is an episode: the drive's 5 frames up to the
 point (its recorded actions between them), then the branch's frames, with the env's reward, the
 tiles and ``on_road``; the three branches of a point are consecutive, -x first.
 
   python -m drivesim branches --seeds 14000-14019 --driver hard --workers 2 --out branches.safetensors.gz
+  python -m drivesim branches --seeds 14300-14319 --offsets --steer 0.05,0.4 --out offsets.safetensors.gz
 """
 
 import argparse
@@ -32,7 +35,7 @@ from .probe_real import held, steps
 from .record import car_racing
 
 SKIP = 4  # the recordings' frame skip (12.5 decisions a second)
-STEER = (0.15, 0.7)  # the range x is drawn from
+STEER = (0.15, 0.7)  # the range x is drawn from unless --steer says otherwise
 
 
 def started(seed, draw_last):
@@ -43,11 +46,16 @@ def started(seed, draw_last):
     return env
 
 
+def driver_of(env, seed, style):
+    """The scripted driver of ``seed``'s drive, as `base_drive` starts it."""
+    return record.Driver(env.track, np.random.default_rng(seed), style)
+
+
 def base_drive(seed, style, frames):
     """The scripted driver's drive of ``seed``: its frames, actions (speed, steering), the env's
     actions and, one a decision, `episodes.REWARDS`' reward, tiles and ``on_road``."""
     env = started(seed, True)
-    driver = record.Driver(env.track, np.random.default_rng(seed), style)
+    driver = driver_of(env, seed, style)
     drive = {"frames": [], "actions": [], "applied": [], "reward": [], "tiles": [], "on_road": []}
     while len(drive["frames"]) < frames and not record.off_playfield(env.car):
         action, speed, _ = driver.act(env.car, SKIP / car_racing.FPS)
@@ -62,28 +70,42 @@ def base_drive(seed, style, frames):
     return drive
 
 
-def branch(seed, drive, point, steer, horizon):
-    """One branch (an `episodes.Episodes`) from decision ``point`` of ``drive`` (`base_drive`'s),
-    steering ``steer`` for ``horizon`` decisions, and how far the replayed frame at the point is
-    from the recorded one (mean absolute difference, 0-255)."""
+def branch(seed, style, drive, point, steer, horizon, offset=False):
+    """One branch (an `episodes.Episodes`) from decision ``point`` of ``drive`` (`base_drive`'s by
+    ``style``) for ``horizon`` decisions, steering ``steer`` (or, where ``offset``, the driver's own
+    steering plus ``steer``), and how far the replayed frame at the point is from the recorded one
+    (mean absolute difference, 0-255)."""
     env = started(seed, point == 0)
+    driver = driver_of(env, seed, style)
     for i in range(point):
-        steps(env, drive["applied"][i], SKIP, i + 1 == point)
+        # The driver acts again so that its own state (its noise, its aims) is the drive's at the point.
+        action, _, _ = driver.act(env.car, SKIP / car_racing.FPS)
+        if not np.array_equal(action, drive["applied"][i]):
+            raise RuntimeError(f"track {seed}: the driver's replay differs from its drive at decision {i}")
+        steps(env, action, SKIP, i + 1 == point)
     replayed = float(np.abs(view.observe(env).astype(np.int16) - drive["frames"][point]).mean())
     first = point - probe.SEEDS + 1
     out = {k: list(drive[k][first:point]) for k in ("frames", "actions", "reward", "tiles", "on_road")}
     out["frames"].append(drive["frames"][point])
     speed = drive["actions"][point][0]
+
+    def action_now():
+        if not offset:
+            return held(steer, speed, view.speed(env))
+        action = driver.act(env.car, SKIP / car_racing.FPS)[0]
+        action[0] = np.clip(action[0] + steer, -1.0, 1.0)
+        return action
+
     for _ in range(horizon):
-        now = view.speed(env)
-        out["actions"].append((now, steer))
+        action = action_now()
+        out["actions"].append((view.speed(env), float(action[0])))
         out["on_road"].append(record.wheel_on_road(env.car))
         tiles = env.tile_visited_count
-        out["reward"].append(steps(env, held(steer, speed, now), SKIP, True))
+        out["reward"].append(steps(env, action, SKIP, True))
         out["tiles"].append(env.tile_visited_count - tiles)
         out["frames"].append(view.observe(env))
-    # The last frame's action is never stepped: the steering held, its reward none.
-    out["actions"].append((view.speed(env), steer))
+    # The last frame's action is never stepped: its steering the branch's next, its reward none.
+    out["actions"].append((view.speed(env), float(action_now()[0])))
     out["on_road"].append(record.wheel_on_road(env.car))
     out["reward"].append(0.0)
     out["tiles"].append(0)
@@ -95,20 +117,31 @@ def branch(seed, drive, point, steer, horizon):
 
 def track_branches(job):
     """Every point's three branches on one track (`main`'s job): a list of episodes."""
-    seed, style, frames, every, horizon = job
+    seed, style, frames, every, horizon, steer_range, offset = job
     drive = base_drive(seed, style, frames)
     rng = np.random.default_rng(seed + 1_000_003)
     out, worst = [], 0.0
     for point in range(probe.SEEDS - 1 + every // 2, len(drive["frames"]), every):
-        x = rng.uniform(*STEER)
+        x = rng.uniform(*steer_range)
         for steer in (-x, 0.0, x):
-            episode, replayed = branch(seed, drive, point, float(steer), horizon)
+            episode, replayed = branch(seed, style, drive, point, float(steer), horizon, offset)
             out.append(episode)
             worst = max(worst, replayed)
     if worst > 1.0:
         raise RuntimeError(f"track {seed}: the replay drifted from the recording (mean difference {worst:.2f})")
     print(f"track {seed}: {len(out) // 3} points, {len(out)} branches", flush=True)
     return out
+
+
+def steer_range(text):
+    """``--steer``'s ``LO,HI`` (0 < LO <= HI <= 1)."""
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not LO,HI") from None
+    if not 0.0 < lo <= hi <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r}: want 0 < LO <= HI <= 1")
+    return lo, hi
 
 
 def main(argv=None):
@@ -119,6 +152,10 @@ def main(argv=None):
     p.add_argument("--frames", type=int, default=300, help="decisions of each track's drive")
     p.add_argument("--every", type=int, default=25, help="decisions between branch points")
     p.add_argument("--horizon", type=int, default=20, help="decisions of each branch")
+    p.add_argument("--steer", type=steer_range, default=STEER, metavar="LO,HI",
+                   help="the range x is drawn from (0 < LO <= HI <= 1; default 0.15,0.7)")
+    p.add_argument("--offsets", action="store_true",
+                   help="the driver drives on, its steering moved by -x, 0, +x (else a constant -x, 0, +x)")
     p.add_argument("--workers", type=int, default=os.cpu_count(), help="tracks at once, each in its own process")
     p.add_argument("--out", required=True, help="episodes file (.safetensors or .safetensors.gz)")
     args = p.parse_args(argv)
@@ -126,13 +163,14 @@ def main(argv=None):
         p.error("--frames, --every, --horizon and --workers must be positive")
     if args.frames < probe.SEEDS + args.every // 2:
         p.error(f"--frames {args.frames} leaves no branch point (the first is after {probe.SEEDS - 1 + args.every // 2})")
-    jobs = [(s, args.driver, args.frames, args.every, args.horizon) for s in args.seeds]
+    jobs = [(s, args.driver, args.frames, args.every, args.horizon, args.steer, args.offsets) for s in args.seeds]
     with Pool(min(args.workers, len(jobs))) as pool:
         parts = pool.map(track_branches, jobs, chunksize=1)
     data = episodes.Episodes.concat([e for part in parts for e in part])
     meta = {"source": "gymnasium CarRacing-v3 steering branches (python -m drivesim branches)",
             "seeds": ",".join(map(str, args.seeds)), "driver": args.driver, "branches": "3",
-            "horizon": str(args.horizon), "frame_hz": str(car_racing.FPS / SKIP)}
+            "horizon": str(args.horizon), "frame_hz": str(car_racing.FPS / SKIP),
+            "steer": f"{args.steer[0]},{args.steer[1]}", "kind": "offsets" if args.offsets else "held"}
     episodes.write(args.out, data, meta)
     print(f"wrote {args.out}: {len(data) // 3} points, {len(data)} branches, {len(data.frames)} frames")
     return 0
