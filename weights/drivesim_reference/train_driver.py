@@ -29,9 +29,10 @@ speed range (docs/learning.md's driver, --top-speed 40, gives at most 41.1 on it
 
 --steer-gain LO,HI is a guard of dynamics randomisation: every drive's steering reaches the
 transition scaled by its own gain, drawn uniformly from LO..HI, so that the driver learns to
-drive dreams whose steering answers more than the world's does (the worlds' steering moves the
-road 0.45-0.8x as far as the real car's: docs/judging.md). The driver still gives, and the real
-car still gets, the steering itself.
+drive dreams whose steering answers more than the world's does (the worlds before 2026-12-02 moved
+the road 0.45-0.8x as far as the real car's; the default's since answers about as far, and a
+driver learnt in it needs no gain: docs/judging.md, docs/learning.md). The driver still gives, and
+the real car still gets, the steering itself.
 
 --lateral-cost C is a guard of what the recordings say and the dream does not: a car steered
 hard at speed leaves the road. Of the failure drives' decisions on the road (tracks
