@@ -112,7 +112,8 @@ def test_dream_env_learned_reward_is_the_heads():
 
 def test_dream_env_takes_carracing_actions():
     # Gas, steering and brake move the dream as the (speed, steering) they stand for: the speed
-    # the car reaches under speed_control, from the last seed action's speed.
+    # the car reaches under speed_control, from the last seed action's speed. The dream is stepped
+    # with the env's own speed (float32, rounded each step), checked against the float64 formula.
     from drivesim.carracing.control import speed_after
 
     racing = drivesim.DreamEnv(actions="carracing", max_steps=20)
@@ -122,8 +123,10 @@ def test_dream_env_takes_carracing_actions():
     plain.reset(seed=4)
     speed = float(racing._speed[0])  # the last seed action's
     for steer, gas, brake in [(0.3, 0.6, 0.0), (-0.2, 0.0, 0.0), (0.0, 0.0, 0.5), (1.5, 2.0, -1.0), (0.0, 1.0, 0.3)]:
+        stepped_with = racing._speed[0]
+        assert stepped_with == pytest.approx(speed, abs=1e-4)
         obs, *_, info = racing.step(np.array([steer, gas, brake], np.float32))
-        expected, *_ = plain.step(np.array([speed, np.clip(steer, -1, 1)], np.float32))
+        expected, *_ = plain.step(np.array([stepped_with, np.clip(steer, -1, 1)], np.float32))
         assert np.array_equal(obs, expected)
         gas, brake = np.clip(gas, 0, 1), np.clip(brake, 0, 1)
         # The brake wins where both are pressed (the last action: the real car stops).
