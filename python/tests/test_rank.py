@@ -64,6 +64,24 @@ def test_the_dream_batch_and_the_value_at_the_horizon():
     np.testing.assert_array_equal(valued["off_road"], plain["off_road"])
 
 
+def test_through_frames_the_drivers_read_the_dreams_frames_encoded():
+    """``--through-frames``: the drivers act on the codes of the world's frames through their
+    encoder, as on a real drive; one decision of it is the policy on those codes, and it is not
+    the dream on the codes themselves (which the world still steps on)."""
+    sim, starts = three_starts(4)
+    family = [FAMILY[0], Driver("b", bias=0.5)]
+    seen = rank.dream(sim, sim, family, starts, 1, 0, False, through_frames=True)
+    plain = rank.dream(sim, sim, family, starts, 1, 0, False)
+    z = rank.tiled(starts["z"], 2)
+    expected = np.clip(sim.act(sim.encode(sim.generate(z)), rank.tiled(starts["h"], 2))[:, 1]
+                       + np.repeat([0.0, 0.5], 3), -1, 1)
+    np.testing.assert_allclose(seen["steer"][:, :, 0].ravel(), expected, atol=1e-6)
+    assert not np.allclose(seen["steer"], plain["steer"])
+    later = rank.dream(sim, sim, family, starts, 4, 0, False, through_frames=True)
+    assert np.isfinite(later["return"]).all() and not np.allclose(later["return"], rank.dream(
+        sim, sim, family, starts, 4, 0, False)["return"])
+
+
 def test_the_world_given_the_dreams_own_inputs_open_loop_is_the_dream():
     """``open_loop`` replays inputs without a driver: given the speeds and steerings a dream
     stepped with, each decision's off-road chance is the dream's, bit for bit."""
@@ -88,7 +106,8 @@ def test_several_futures_are_the_mean_of_their_dreams_and_their_spread():
     for future in range(3):
         sim.set_sampling(1.0, future)
         each.append(rank.dream(sim, sim, family, starts, 6, 5, False))
-    args = SimpleNamespace(futures=3, temperature=1.0, horizon=6, value=False, world_steering=(1.0, 0.0))
+    args = SimpleNamespace(futures=3, temperature=1.0, horizon=6, value=False, world_steering=(1.0, 0.0),
+                           through_frames=False)
     got = rank.dream_futures(sim, sim, family, starts, args, 5)
     assert sim.sampling == (1.0, 0)
     for key in ("return", "rewards", "off_road", "off_steps"):

@@ -26,7 +26,9 @@ the family with the dream's error in ranks (does the dream doubt where it is wro
 ``--world-steering GAIN,LEAD`` steps the world with each steering s as ``GAIN * s + LEAD * (s - the
 decision before's s)``, the drivers' memory with s: a diagnostic of the world's steering answer.
 
-``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
+``--through-frames``: the drivers read the dream as they read the road, its frame (the generator's)
+through their encoder, not the transition's code (about 150x slower; issue 58's tables say what it
+changes). ``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
 ``--weights`` and step its transition for their own memory): a world model is judged without
 changing the drivers. ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another
 ``--family``'s with its name first; the behaviour drive in ``drive_SEED.npz``): a run that stops
@@ -199,12 +201,13 @@ def tiled(rows: np.ndarray, n: int) -> np.ndarray:
 
 
 def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horizon: int, seed: int,
-          use_value: bool, shaping: tuple = (1.0, 0.0)) -> dict:
+          use_value: bool, shaping: tuple = (1.0, 0.0), through_frames: bool = False) -> dict:
     """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` (with the
     value at the horizon where ``use_value``), ``rewards`` (without it) and ``off_road`` (its
     chance, averaged) ``(drivers, starts)``, and ``steer``, the steering applied, and
     ``off_steps``, each decision's off-road chance, and ``speed``, the speed stepped with,
-    ``(drivers, starts, horizon)``. The drivers' policy reads the codes the world predicts, and
+    ``(drivers, starts, horizon)``. The drivers' policy reads the codes the world predicts (with
+    ``through_frames``, those of the world's frames through the drivers' encoder), and
     their hidden states step on their own model's transition (as a real drive steps them on the
     codes of what the car sees); the world's transition predicts the codes (its inputs shaped by
     ``shaping``, `world_steering`), its reward head scores them."""
@@ -217,10 +220,11 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     total, off = np.zeros(n * k), np.zeros((n * k, horizon))
     steers, speeds = np.zeros((n * k, horizon), np.float32), np.zeros((n * k, horizon), np.float32)
     for step in range(horizon):
-        target, steer = changes(driver.act(z, h)).T
+        seen = driver.encode(world.generate(z)) if through_frames else z
+        target, steer = changes(driver.act(seen, h)).T
         steers[:, step], speeds[:, step] = steer, v
         action = np.ascontiguousarray(np.stack([v, steer], 1), np.float32)
-        _, h = driver.transition(z, h, action)
+        _, h = driver.transition(seen, h, action)
         z, h_world = world.transition(z, h_world, world_steering(action, previous, shaping))
         previous = steer
         if world.sampling[0] > 0:
@@ -281,7 +285,8 @@ def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dic
     for future in range(args.futures):
         if args.temperature > 0:
             world.set_sampling(args.temperature, future)
-        drawn.append(dream(driver, world, family, starts, args.horizon, seed, args.value, args.world_steering))
+        drawn.append(dream(driver, world, family, starts, args.horizon, seed, args.value, args.world_steering,
+                           args.through_frames))
     if args.temperature > 0:
         world.set_sampling(args.temperature, 0)  # the open loop draws as a run with one future
     out = {key: np.mean([d[key] for d in drawn], 0) for key in ("return", "rewards", "off_road", "off_steps")}
@@ -344,7 +349,8 @@ def report(args, results: list, windowed: list) -> dict:
     if family[0] == Driver(family[0].name):  # unchanged: its real drive is the behaviour drive
         out["road_memory"] = road_memory(np.concatenate(steer_dreamt), np.concatenate(steer_real))
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
-               futures=args.futures, world_steering=list(args.world_steering), value=args.value, frames=args.frames, weights=args.weights, world=args.world,
+               futures=args.futures, world_steering=list(args.world_steering), value=args.value,
+               through_frames=args.through_frames, frames=args.frames, weights=args.weights, world=args.world,
                dream_decisions_per_second=len(family) * args.starts * args.horizon * len(seeds) * args.futures / seconds,
                per_track={"real": real_score.tolist(), "dream": dream_return.tolist()})
     return out
@@ -378,6 +384,8 @@ def main(argv=None) -> int:
                    help="sampled futures from each start (with --temperature): the dream's figures their means, "
                         "and each driver's spread over them reported")
     p.add_argument("--value", action="store_true", help="add the value head at the horizon")
+    p.add_argument("--through-frames", action="store_true",
+                   help="the drivers read the dream's frames through their encoder (as a real drive), not its codes")
     p.add_argument("--frames", type=int, default=1000, help="env frames per real drive (CarRacing-v3: 1000)")
     p.add_argument("--workers", type=int, default=1, help="real drives at once, each in its own process")
     p.add_argument("--threads", type=int, default=1, help="threads of the dream's simulator")
