@@ -27,8 +27,10 @@ the family with the dream's error in ranks (does the dream doubt where it is wro
 decision before's s)``, the drivers' memory with s: a diagnostic of the world's steering answer.
 
 ``--through-frames``: the drivers read the dream as they read the road, its frame (the generator's)
-through their encoder, not the transition's code (about 150x slower; issue 58's tables say what it
-changes). ``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
+through their encoder, not the transition's code (about 150x slower; docs/judging.md says what it
+changes).
+
+``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
 ``--weights`` and step its transition for their own memory): a world model is judged without
 changing the drivers. ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another
 ``--family``'s with its name first; the behaviour drive in ``drive_SEED.npz``): a run that stops
