@@ -78,8 +78,8 @@ def test_through_frames_the_drivers_read_the_dreams_frames_encoded():
     np.testing.assert_allclose(seen["steer"][:, :, 0].ravel(), expected, atol=1e-6)
     assert not np.allclose(seen["steer"], plain["steer"])
     later = rank.dream(sim, sim, family, starts, 4, 0, False, through_frames=True)
-    assert np.isfinite(later["return"]).all() and not np.allclose(later["return"], rank.dream(
-        sim, sim, family, starts, 4, 0, False)["return"])
+    codes_later = rank.dream(sim, sim, family, starts, 4, 0, False)
+    assert np.isfinite(later["return"]).all() and not np.allclose(later["return"], codes_later["return"])
 
 
 def test_the_world_given_the_dreams_own_inputs_open_loop_is_the_dream():
