@@ -62,6 +62,50 @@ def test_offset_branches_are_the_drivers_own_steering_moved_by_minus_x_0_plus_x(
         assert np.ptp(straight) > 0.0 and np.ptp(right) > 0.0
 
 
+def test_noise_branches_kick_the_drivers_own_steering_by_the_same_draws_either_way(tmp_path):
+    out = tmp_path / "n.safetensors.gz"
+    assert branches.main(["--seeds", "3", "--frames", "20", "--every", "10", "--horizon", "4", "--workers", "1",
+                          "--noise", "--steer", "0.2,0.3", "--out", str(out)]) == 0
+    data, meta = episodes.read(out), episodes.metadata(out)
+    assert meta["kind"] == "noise" and meta["steer"] == "0.2,0.3"
+    bounds = data.bounds()
+    assert len(bounds) == 6
+    rng = np.random.default_rng(3 + 1_000_003)  # the track's draws, as `track_branches` makes them
+    kicks = []
+    for k in (0, 3):
+        x, noise = rng.uniform(0.2, 0.3), rng.standard_normal(5)
+        left, straight, right = (data.actions[slice(*bounds[k + i])][probe.SEEDS - 1:, 1] for i in range(3))
+        # At the point the three share the driver's own steering, moved by -x n_0, 0 and +x n_0.
+        np.testing.assert_allclose(right[0], np.clip(straight[0] + x * noise[0], -1, 1), atol=1e-6)
+        np.testing.assert_allclose(left[0], np.clip(straight[0] - x * noise[0], -1, 1), atol=1e-6)
+        kicks.append(right[0] - straight[0])
+    # A fresh draw at each point: the kicks are not one constant offset.
+    assert kicks[0] != kicks[1] and np.sign(kicks[0]) in (-1.0, 1.0)
+
+
+def test_clone_branches_are_driven_by_the_default_cloned_policy(tmp_path):
+    out = tmp_path / "c.safetensors.gz"
+    assert branches.main(["--seeds", "3", "--driver", "clone", "--frames", "20", "--every", "10", "--horizon", "3",
+                          "--workers", "1", "--offsets", "--steer", "0.2,0.3", "--out", str(out)]) == 0
+    data, meta = episodes.read(out), episodes.metadata(out)
+    assert meta["driver"] == "clone" and meta["kind"] == "offsets"
+    drive, hard = branches.base_drive(3, "clone", 20), branches.base_drive(3, "hard", 20)
+    # The clone steers as the cloned policy does, not as the scripted driver.
+    assert not np.allclose(np.array(drive["actions"])[:, 1], np.array(hard["actions"])[:, 1], atol=0.02)
+    bounds = data.bounds()
+    for k, point in ((0, 9), (3, 19)):
+        left, straight, right = (data.actions[slice(*bounds[k + i])][probe.SEEDS - 1:, 1] for i in range(3))
+        # Replayed to the point, the clone steers there as in its drive; the branches move it by -x, +x.
+        assert straight[0] == drive["actions"][point][1]
+        assert 0.2 - 1e-6 <= right[0] - straight[0] <= 0.3 + 1e-6
+
+
+def test_offsets_and_noise_are_refused_together(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        branches.main(["--seeds", "3", "--offsets", "--noise", "--out", str(tmp_path / "b.safetensors.gz")])
+    assert e.value.code == 2 and "not allowed with" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("bad", ["0,0.5", "0.5,0.2", "0.2,1.5", "x", "0.2"])
 def test_a_bad_steer_range_is_refused(tmp_path, capsys, bad):
     with pytest.raises(SystemExit) as e:
