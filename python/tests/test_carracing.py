@@ -294,7 +294,7 @@ def test_guarded_planner_keeps_the_policy_where_the_dream_keeps_it_on_the_road(c
         agent.warmup = 0
         return np.array([agent.act(f, float(a[0])) for f, a in zip(frames, actions)])
 
-    assert carracing.make_agent("mpc").guard == 0.05 and option("guard=none") == ("guard", None)
+    assert carracing.make_agent("mpc").guard == 0.1 and option("guard=none") == ("guard", None)
     plain = drive(carracing.make_agent("mpc", guard=None))
     never = carracing.make_agent("mpc", guard=0.0)
     np.testing.assert_array_equal(drive(never), plain)
