@@ -23,7 +23,7 @@ tiles and ``on_road``; the three branches of a point are consecutive, -x first.
 
   python -m drivesim branches --seeds 14000-14019 --driver hard --workers 2 --out branches.safetensors.gz
   python -m drivesim branches --seeds 14300-14319 --offsets --steer 0.05,0.4 --out offsets.safetensors.gz
-  python -m drivesim branches --seeds 15000-15019 --noise --steer 0.1,0.8 --out noise.safetensors.gz
+  python -m drivesim branches --seeds 15300-15319 --driver clone --noise --steer 0.1,0.8 --out noise.safetensors.gz
 """
 
 import argparse
@@ -88,8 +88,9 @@ def driver_of(env, seed, style):
 
 
 def base_drive(seed, style, frames):
-    """The scripted driver's drive of ``seed``: its frames, actions (speed, steering), the env's
-    actions and, one a decision, `episodes.REWARDS`' reward, tiles and ``on_road``."""
+    """The driver's drive of ``seed``: its frames, actions (speed, steering), the env's actions
+    and, one a decision, `episodes.REWARDS`' reward, tiles and ``on_road`` (the clone's: also its
+    memory before each decision)."""
     env = started(seed, True)
     driver = driver_of(env, seed, style)
     drive = {"frames": [], "actions": [], "applied": [], "reward": [], "tiles": [], "on_road": []}
