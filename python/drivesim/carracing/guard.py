@@ -33,7 +33,8 @@ def figures(job) -> list:
     from .agents import make_agent
 
     weights, seed, frames = job
-    agent = make_agent("mpc", weights=weights, guard=1.0)
+    agent = make_agent("mpc", weights=weights)
+    agent.guard = 2.0  # above any chance (the option stops at 1, which a sure chance reaches): the policy decides
     chances = []
     plan = agent.plan
 
