@@ -197,6 +197,16 @@ def test_road_memory_is_the_correlation_step_by_step():
     assert memory[:2] == pytest.approx([1.0, 1.0]) and abs(memory[2]) < 0.4 and np.isnan(memory[3])
 
 
+def test_made_up_roads_compare_the_steering_past_the_road_memory():
+    real = np.tile([0.0, 0.1, -0.1], (4, 6))[:, :16]  # (4 starts, 16 decisions): |s| 2/30 a decision on average
+    dreamt = real.copy()
+    dreamt[:, 10:] *= 2.0  # the made-up roads twice as curvy, the known ones as the real
+    m = rank.made_up_roads(dreamt, real)
+    assert m["after"] == 10 and m["dream"] == pytest.approx(2 * m["real"]) and m["real"] > 0
+    assert m["dream_change"] == pytest.approx(2 * m["real_change"])
+    assert rank.made_up_roads(dreamt[:, :11], real[:, :11]) is None  # no decision past the memory to compare
+
+
 def test_each_familys_drives_are_kept_under_their_own_names():
     """Families share ``--out`` (and the behaviour drive): driver 1 of ``small`` is not driver 1
     of ``all``, so a run of one never reads the other's drives; ``all`` keeps its old names."""
@@ -238,6 +248,7 @@ def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
         assert 0 <= d["dream_off_road"] <= 1 and 0 <= d["real_off_road"] <= 1
     assert len(report["per_track"]["real"][0]) == 2
     assert len(report["road_memory"]) == 4 and report["road_memory"][0] == pytest.approx(1.0, abs=1e-5)
+    assert report["made_up_roads"] is None  # 4 decisions: all within the road memory
     # The same real drives, the dream sampled three times from each start: no drive again.
     futures = subprocess.run(_probe(whole, "--temperature", "1", "--futures", "3", "--report", "futures.json"),
                              check=True, capture_output=True, text=True, timeout=600)

@@ -18,7 +18,9 @@ averaged), regret@1 (the real score lost by picking the dream's favourite, as a 
 range between the best and the worst driver) and the Pearson correlation of the means; and the
 dream's road memory: how well the unchanged driver's steering in the dream follows its real
 steering from the same starts, decision by decision (the policy steers by the road it sees, so
-the correlation falls where the dream's road stops being the real one).
+the correlation falls where the dream's road stops being the real one), and how it steers on the
+roads the dream makes up past that (its mean |steering| and change a decision from decision 11 on,
+dream and real: the two agree where the made-up roads are as curvy and steady as the real ones).
 
 ``--futures N`` (with ``--temperature``) draws N futures from each start: the dream's figures are
 their means, and each driver's spread over them is reported beside them, with its correlation over
@@ -63,7 +65,7 @@ from .agents import ClonedAgent
 from .control import speed_after
 from .family import FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Changes, Driver
 from . import rank_real
-from .rank_figures import print_report, summary
+from .rank_figures import made_up_roads, print_report, road_memory, summary
 from .view import parse_seeds
 
 
@@ -266,17 +268,6 @@ def padded_to_horizon(windows: list, horizon: int) -> np.ndarray:
     return np.array([w + w[-1:] * (horizon - len(w)) for w in windows], float)
 
 
-def road_memory(dreamt: np.ndarray, real: np.ndarray) -> list:
-    """How far ahead the dream knows the road: the correlation, step by step, of the unchanged
-    driver's steering in the dream with its real steering from the same starts (``(starts,
-    horizon)`` each; the policy steers by the road it sees, so where the dream's road is not the
-    real one the two part). NaN at a step where either does not vary."""
-    out = []
-    for a, b in zip(dreamt.T, real.T):
-        out.append(float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else float("nan"))
-    return out
-
-
 def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dict, args, seed: int) -> dict:
     """`dream` ``args.futures`` times from the same starts, the world sampling with seeds 0, 1, ...
     (the first future is the one a run with one draws): the means of its figures over the futures,
@@ -349,7 +340,9 @@ def report(args, results: list, windowed: list) -> dict:
                                              "dream": np.concatenate(dream_steps, 1).mean(1).tolist(),
                                              "open_loop": np.concatenate(open_steps, 1).mean(1).tolist()}
     if family[0] == Driver(family[0].name):  # unchanged: its real drive is the behaviour drive
-        out["road_memory"] = road_memory(np.concatenate(steer_dreamt), np.concatenate(steer_real))
+        steer_dreamt, steer_real = np.concatenate(steer_dreamt), np.concatenate(steer_real)
+        out["road_memory"] = road_memory(steer_dreamt, steer_real)
+        out["made_up_roads"] = made_up_roads(steer_dreamt, steer_real)
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
                futures=args.futures, world_steering=list(args.world_steering), value=args.value,
                through_frames=args.through_frames, frames=args.frames, weights=args.weights, world=args.world,

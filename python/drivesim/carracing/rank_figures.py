@@ -9,6 +9,10 @@ from dataclasses import asdict
 
 import numpy as np
 
+# Decisions the dream knows the real road for (the view's reach: docs/judging.md); the unchanged
+# driver's steering after them is on roads the dream makes up.
+MEMORY = 10
+
 
 def ranks(x: np.ndarray) -> np.ndarray:
     """Ranks from 0, ties sharing their mean rank."""
@@ -32,6 +36,31 @@ def pearson(a, b) -> float:
     """The Pearson correlation of ``a`` and ``b``; NaN where either does not vary."""
     a, b = np.asarray(a, float), np.asarray(b, float)
     return float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else float("nan")
+
+
+def road_memory(dreamt: np.ndarray, real: np.ndarray) -> list:
+    """How far ahead the dream knows the road: the correlation, step by step, of the unchanged
+    driver's steering in the dream with its real steering from the same starts (``(starts,
+    horizon)`` each; the policy steers by the road it sees, so where the dream's road is not the
+    real one the two part). NaN at a step where either does not vary."""
+    out = []
+    for a, b in zip(dreamt.T, real.T):
+        out.append(float(np.corrcoef(a, b)[0, 1]) if a.std() > 0 and b.std() > 0 else float("nan"))
+    return out
+
+
+def made_up_roads(dreamt: np.ndarray, real: np.ndarray, after: int = MEMORY) -> dict | None:
+    """How the unchanged driver steers on the roads the dream makes up once its road memory is
+    spent (from decision ``after`` on; ``(starts, horizon)`` steerings each, as `road_memory`):
+    its mean absolute steering and mean change of steering a decision, in the dream and on the
+    real road from the same starts. The policy steers by the road it sees, so the two agree where
+    the made-up roads are as curvy and as steady as the real ones (docs/judging.md). None for a
+    horizon too short to have a decision past ``after``."""
+    if dreamt.shape[1] < after + 2:
+        return None
+    a, b = dreamt[:, after:], real[:, after:]
+    return dict(after=after, dream=float(np.abs(a).mean()), real=float(np.abs(b).mean()),
+                dream_change=float(np.abs(np.diff(a, axis=1)).mean()), real_change=float(np.abs(np.diff(b, axis=1)).mean()))
 
 
 def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.ndarray, dream_off: np.ndarray,
@@ -108,3 +137,7 @@ def print_report(out: dict) -> None:
         steps = [s for s in (1, 3, 5, 8, 10, 20, 40) if s <= len(out["road_memory"])]
         print("road memory (the unchanged driver's steering, dream against real, correlation after N decisions): "
               + ", ".join(f"{s}: {out['road_memory'][s - 1]:+.2f}" for s in steps))
+    if out.get("made_up_roads"):
+        m = out["made_up_roads"]
+        print(f"made-up roads (the unchanged driver from decision {m['after'] + 1} on, dream / real): mean |steering| "
+              f"{m['dream']:.3f} / {m['real']:.3f}, its change a decision {m['dream_change']:.3f} / {m['real_change']:.3f}")
