@@ -205,7 +205,7 @@ def tiled(rows: np.ndarray, n: int) -> np.ndarray:
 
 
 def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horizon: int, seed: int,
-          use_value: bool, shaping: tuple = (1.0, 0.0), through_frames: bool = False) -> dict:
+          use_value: bool, shaping: tuple = (1.0, 0.0), through_frames: bool = False, frames: list | None = None) -> dict:
     """Every driver from every start, ``horizon`` decisions, in one batch: ``return`` (with the
     value at the horizon where ``use_value``), ``rewards`` (without it) and ``off_road`` (its
     chance, averaged) ``(drivers, starts)``, and ``steer``, the steering applied, and
@@ -214,7 +214,8 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     ``through_frames``, those of the world's frames through the drivers' encoder), and
     their hidden states step on their own model's transition (as a real drive steps them on the
     codes of what the car sees); the world's transition predicts the codes (its inputs shaped by
-    ``shaping``, `world_steering`), its reward head scores them."""
+    ``shaping``, `world_steering`), its reward head scores them. ``frames``, where given, receives
+    the world's frame of every decision before the drivers act (``(drivers * starts, 80, 160, 3)``)."""
     k, n = len(starts["speed"]), len(family)
     z, h, h_world = (tiled(starts[key], n) for key in ("z", "h", "h_world"))
     v = np.tile(starts["speed"], n).astype(np.float32)
@@ -224,7 +225,10 @@ def dream(driver: Simulator, world: Simulator, family: list, starts: dict, horiz
     total, off = np.zeros(n * k), np.zeros((n * k, horizon))
     steers, speeds = np.zeros((n * k, horizon), np.float32), np.zeros((n * k, horizon), np.float32)
     for step in range(horizon):
-        seen = driver.encode(world.generate(z)) if through_frames else z
+        shown = world.generate(z) if through_frames or frames is not None else None
+        if frames is not None:
+            frames.append(shown)
+        seen = driver.encode(shown) if through_frames else z
         target, steer = changes(driver.act(seen, h)).T
         steers[:, step], speeds[:, step] = steer, v
         action = np.ascontiguousarray(np.stack([v, steer], 1), np.float32)

@@ -64,17 +64,21 @@ def replay(env, actions: np.ndarray, frame_skip: int) -> None:
             decision(env, action, frame_skip)
 
 
-def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int) -> tuple[list, list, list]:
+def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int,
+                 frames: list | None = None) -> tuple[list, list, list]:
     """``agent`` (a ``family.ChangedAgent``, just reset) takes over the env ``decisions`` decisions
     into the drive with hidden state ``h`` and drives ``horizon`` decisions (fewer where the
     episode ends): each decision's reward, whether the car was off the road as it decided, and
     the transition's input (the speed and the steering applied: what the dream is given to
-    replay the window open loop)."""
+    replay the window open loop); ``frames``, where given, receives each frame the agent read."""
     agent.decisions, agent.h = decisions, np.array(h, np.float32)  # past the warm-up, the drive's memory
     rewards, off, actions = [], [], []
     for _ in range(horizon):
         now = speed(env)
-        action = agent.act(observe(env), now)
+        frame = observe(env)
+        if frames is not None:
+            frames.append(frame)
+        action = agent.act(frame, now)
         off.append(not wheel_on_road(env.unwrapped.car))
         actions.append([round(float(now), 4), round(float(action[0]), 4)])
         reward, _, done = decision(env, action, agent.frame_skip)

@@ -1,0 +1,168 @@
+"""Where the car is when it is off the road, in the real windows and in the dream's from the same
+starts (``python -m drivesim.carracing.rank``'s): the real car that leaves the road mostly rides
+its edge, with the road in sight; a dream whose roads end leaves its car in a field with none
+(docs/judging.md, "Inside the view's reach, and past it").
+
+  python -m drivesim.carracing.rank_sight --seeds 14700-14719 --out runs/rank --drivers 0,3 [--temperature 0.9]
+
+``--out`` is a rank run's folder (its behaviour drives, ``drive_SEED.npz``, are read; nothing is
+written there unless ``--report`` names a file). For each driver of the family (by index), each
+track and each start, the real window is driven again with its frames kept, and the dream's is
+dreamt as ``rank`` dreams it (``--weights`` the drivers, ``--world`` the world, the same noise
+seeds); every frame a driver read is measured (`sight`), and the report gives, over bins of
+``--every`` decisions, the share of decisions off the road (the real car's: no wheel on it; the
+dream's: its reward head's chance), of frames with road in sight, of frames with road just ahead
+of the car, and of the off-road decisions' frames with road in sight.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+from .. import road
+from .._drivesim import Model, Simulator
+from .._files import atomic_write
+from . import rank, rank_real
+from .family import FAMILY, ChangedAgent
+from .view import parse_seeds
+
+# The car's box in the 80x160 view (its sprite has road-grey pixels) and the band just ahead of it.
+CAR_BOX = (slice(58, 76), slice(70, 90))
+AHEAD = (slice(48, 58), slice(60, 100))
+
+
+def sight(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For uint8 frames ``(N, 80, 160, 3)``: whether any road pixel is in sight outside the car's
+    box, and whether road lies in the 10 rows ahead of the car within 20 px of it; bool ``(N,)`` each."""
+    mask = road.road_mask(frames)
+    mask[(slice(None), *CAR_BOX)] = False
+    ahead = mask[(slice(None), *AHEAD)]
+    return mask.reshape(len(frames), -1).any(1), ahead.reshape(len(frames), -1).any(1)
+
+
+def real_windows(drive: dict, seed: int, index: int, args) -> np.ndarray:
+    """Driver ``index``'s real windows on track ``seed`` (as `rank_real.window_job` drives them),
+    its frames measured: ``(3, starts, horizon)``, the off-road flags, road in sight, road ahead
+    (a window the episode's end cut short keeps its last to the horizon)."""
+    import gymnasium
+
+    starts, at = rank.window_starts(drive, args.starts, args.horizon)
+    agent = ChangedAgent(FAMILY[index], seed=0, model=rank.process_model(args.weights))
+    env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
+    out = []
+    for j, (start, t) in enumerate(zip(starts, at)):
+        agent.seed = rank.dream_row_seed(seed, index, j, len(starts))
+        agent.reset()
+        env.reset(seed=seed)
+        rank_real.replay(env, drive["actions"][:start], agent.frame_skip)
+        seen = []
+        _, flags, _ = rank_real.drive_window(env, agent, drive["h"][t], start, args.horizon, seen)
+        in_sight, ahead = sight(np.stack(seen))
+        out.append(rank.padded_to_horizon([[float(f) for f in flags], in_sight.tolist(), ahead.tolist()], args.horizon))
+    env.close()
+    return np.stack(out, 1)
+
+
+def figures(measured: np.ndarray, every: int) -> list:
+    """Per bin of ``every`` decisions: off the road, road in sight, road ahead, and road in sight
+    where off (``measured`` ``(3, windows, horizon)``: off-road flags or chances, and `sight`'s two
+    figures); None where no decision of a bin is off the road."""
+    off, seen, ahead = measured[0], measured[1] > 0.5, measured[2] > 0.5
+    horizon = off.shape[1]
+    out = []
+    for a in range(0, horizon, every):
+        o, s, h = off[:, a:a + every], seen[:, a:a + every], ahead[:, a:a + every]
+        gone = o > 0.5
+        out.append({"decisions": [a + 1, min(a + every, horizon)], "off_road": float(o.mean()),
+                    "in_sight": float(s.mean()), "ahead": float(h.mean()),
+                    "in_sight_where_off": float(s[gone].mean()) if gone.any() else None})
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m drivesim.carracing.rank_sight", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", type=parse_seeds, required=True, help="track seeds of the rank run, e.g. 14700-14719")
+    p.add_argument("--out", required=True, help="the rank run's folder (its drive_SEED.npz are read)")
+    p.add_argument("--drivers", default="0", help="the family's drivers by index (family.FAMILY), e.g. 0,3,4")
+    p.add_argument("--weights", help="the drivers' weight file, as the rank run's (default: the built-in model)")
+    p.add_argument("--world", help="the world model's weight file (default: --weights)")
+    p.add_argument("--temperature", type=float, default=0.9, help="the dream's (0: the mean dream)")
+    p.add_argument("--horizon", type=int, default=40)
+    p.add_argument("--starts", type=int, default=7)
+    p.add_argument("--every", type=int, default=10, help="decisions a bin of the report")
+    p.add_argument("--frames", type=int, default=1000, help="env frames a drive, as the rank run's")
+    p.add_argument("--report", help="a JSON file for the figures")
+    args = p.parse_args(argv)
+    try:
+        drivers = [int(x) for x in args.drivers.split(",")]
+        if not all(0 <= i < len(FAMILY) for i in drivers):
+            raise ValueError
+    except ValueError:
+        p.error(f"--drivers: indices of family.FAMILY from 0 to {len(FAMILY) - 1}, e.g. 0,3, got {args.drivers!r}")
+    if args.horizon < 1 or args.starts < 1 or args.every < 1 or not 0 <= args.temperature <= 100:
+        p.error("--horizon, --starts and --every must be at least 1, --temperature from 0 to 100")
+    missing = [s for s in args.seeds if not os.path.exists(os.path.join(args.out, f"drive_{s}.npz"))]
+    if missing:
+        p.error(f"{args.out} has no behaviour drive of track {missing[0]}: run `python -m drivesim.carracing.rank` "
+                "with this --out and these --seeds first")
+    def load(flag, path):
+        try:
+            return Model.load(path)
+        except (OSError, ValueError) as e:
+            p.error(f"{flag}: {e}")
+
+    driver_model = load("--weights", args.weights)
+    world_model = load("--world", args.world) if args.world else driver_model
+    try:  # the behaviour drives hold these drivers' memory: another policy's would not do
+        rank.check_drivers(args.out, rank.drivers_fingerprint(driver_model))
+        for seed in args.seeds:
+            with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
+                rank.window_starts({k: f[k] for k in ("first", "speed")}, args.starts, args.horizon)
+    except (OSError, ValueError, KeyError) as e:
+        p.error(f"{args.out}: {e}")
+    family = [FAMILY[i] for i in drivers]
+    batch = len(family) * args.starts
+    driver, world = Simulator(driver_model, batch=batch), Simulator(world_model, batch=batch)
+    if args.temperature > 0:
+        world.set_sampling(args.temperature, 0)
+    real, dreamt = [[] for _ in family], [[] for _ in family]
+    for seed in args.seeds:
+        with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
+            drive = {k: f[k] for k in f.files}
+        for i, index in enumerate(drivers):
+            real[i].append(real_windows(drive, seed, index, args))
+        starts = rank.starts_of(drive, world, world_model.hidden_dim, args.starts, args.horizon)
+        first = world.reward(*(rank.tiled(starts[k], len(family)) for k in ("z", "h_world")))[:, 1]
+        shown = []
+        steps = rank.dream(driver, world, family, starts, args.horizon, seed, False, frames=shown)["off_steps"]
+        # The off-road chance of the state each frame shows: the start's, then each step's.
+        off = np.concatenate([first.reshape(len(family), args.starts, 1), steps[:, :, :-1]], 2)
+        seen = np.stack([np.stack(sight(frames)) for frames in shown], 2)  # (2, drivers * starts, horizon)
+        seen = seen.reshape(2, len(family), args.starts, args.horizon)
+        for i in range(len(family)):
+            dreamt[i].append(np.concatenate([off[i][None], seen[:, i]]))
+    report = {}
+    for i, d in enumerate(family):
+        report[d.name] = {
+            "real": figures(np.concatenate(real[i], 1), args.every),
+            "dream": figures(np.concatenate(dreamt[i], 1), args.every)}
+        for side in ("real", "dream"):
+            cells = "  ".join(f"{b['decisions'][0]}-{b['decisions'][1]}: off {b['off_road']:.2f} sight "
+                              f"{b['in_sight']:.2f} ahead {b['ahead']:.2f} sight where off "
+                              + ("-" if b["in_sight_where_off"] is None else f"{b['in_sight_where_off']:.2f}")
+                              for b in report[d.name][side])
+            print(f"{d.name:24} {side:5} {cells}", flush=True)
+    if args.report:
+        with atomic_write(args.report) as f:
+            f.write(json.dumps({"seeds": args.seeds, "temperature": args.temperature, "drivers": report}).encode())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,78 @@
+"""Where the car is when it is off the road (``python -m drivesim.carracing.rank_sight``): the
+frames measured, the bins, and a rank run's real windows driven again flag for flag."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from drivesim.carracing import rank_sight
+
+GRASS, ROAD = (102, 204, 102), (105, 105, 105)
+
+
+def frame(*boxes):
+    """A grass frame with road-grey boxes (rows, columns)."""
+    f = np.zeros((80, 160, 3), np.uint8)
+    f[:] = GRASS
+    for rows, cols in boxes:
+        f[rows, cols] = ROAD
+    return f
+
+
+def test_sight_leaves_the_car_out_and_reads_the_road_ahead():
+    frames = np.stack([
+        frame(),                                    # grass only
+        frame((slice(60, 74), slice(74, 86))),      # grey in the car's box only (its sprite)
+        frame((slice(0, 80), slice(0, 12))),        # road at the frame's left edge: in sight, not ahead
+        frame((slice(40, 58), slice(85, 95))),      # road just ahead and to the right of the car
+    ])
+    in_sight, ahead = rank_sight.sight(frames)
+    assert in_sight.tolist() == [False, False, True, True] and ahead.tolist() == [False, False, False, True]
+
+
+def test_figures_bin_the_decisions():
+    off = np.array([[0, 0, 1, 1], [0, 1, 1, 0]], float)
+    seen = np.array([[1, 1, 1, 0], [1, 1, 0, 1]], float)
+    ahead = np.array([[1, 0, 0, 0], [1, 1, 0, 0]], float)
+    bins = rank_sight.figures(np.stack([off, seen, ahead]), 2)
+    assert [b["decisions"] for b in bins] == [[1, 2], [3, 4]]
+    assert bins[0]["off_road"] == 0.25 and bins[0]["in_sight"] == 1.0 and bins[0]["ahead"] == 0.75
+    assert bins[0]["in_sight_where_off"] == 1.0 and bins[1]["in_sight_where_off"] == pytest.approx(1 / 3)
+    assert rank_sight.figures(np.stack([np.zeros((1, 2)), np.ones((1, 2)), np.ones((1, 2))]), 2)[0][
+        "in_sight_where_off"] is None
+
+
+def test_the_real_windows_are_the_rank_runs_again(tmp_path):
+    """On a rank run's drives: the real windows rank_sight drives again leave the road where the
+    rank run's windows did, decision for decision."""
+    pytest.importorskip("Box2D")
+    out = tmp_path / "rank"
+    common = ["--seeds", "3", "--out", str(out), "--frames", "160", "--horizon", "4", "--starts", "2"]
+    subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", *common, "--family", "small", "--windows"],
+                   check=True, capture_output=True, timeout=600)
+    report = tmp_path / "sight.json"
+    run = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank_sight", *common, "--drivers", "0,5",
+                          "--every", "2", "--report", str(report)], check=True, capture_output=True, text=True,
+                         timeout=600)
+    assert "clone" in run.stdout and "bias +0.4" in run.stdout
+    figures = json.loads(report.read_text())["drivers"]
+    with open(out / "windows_4x2" / "small_1_3.json") as f:  # bias +0.4 is the small family's second
+        kept = json.load(f)
+    flags = np.array(kept["off"], float)
+    for b, (a, e) in zip(figures["bias +0.4"]["real"], ((0, 2), (2, 4))):
+        assert b["off_road"] == pytest.approx(flags[:, a:e].mean())
+    for side in ("real", "dream"):
+        for b in figures["clone"][side]:
+            assert 0 <= b["off_road"] <= 1 and 0 <= b["in_sight"] <= 1 and 0 <= b["ahead"] <= 1
+
+
+def test_a_folder_without_the_rank_runs_drives_is_refused(tmp_path):
+    run = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank_sight", "--seeds", "3", "--out",
+                          str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "has no behaviour drive of track 3" in run.stderr and "Traceback" not in run.stderr
+    bad = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank_sight", "--seeds", "3", "--out",
+                          str(tmp_path), "--drivers", "0,99"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--drivers" in bad.stderr
