@@ -82,6 +82,20 @@ def test_through_frames_the_drivers_read_the_dreams_frames_encoded():
     assert np.isfinite(later["return"]).all() and not np.allclose(later["return"], codes_later["return"])
 
 
+def test_the_dreams_frames_are_handed_out_and_change_nothing():
+    """``frames`` receives the world's frame of each decision before the drivers act (the first
+    is the start's own code drawn); the dream's figures are the same bits with and without it."""
+    sim, starts = three_starts(3)
+    family = [FAMILY[0], Driver("b", bias=0.5)]
+    shown = []
+    kept = rank.dream(sim, sim, family, starts, 4, 0, False, frames=shown)
+    plain = rank.dream(sim, sim, family, starts, 4, 0, False)
+    assert len(shown) == 4 and shown[0].shape == (6, 80, 160, 3)
+    np.testing.assert_array_equal(shown[0], sim.generate(rank.tiled(starts["z"], 2)))
+    for key in ("return", "off_steps", "steer"):
+        np.testing.assert_array_equal(kept[key], plain[key])
+
+
 def test_the_world_given_the_dreams_own_inputs_open_loop_is_the_dream():
     """``open_loop`` replays inputs without a driver: given the speeds and steerings a dream
     stepped with, each decision's off-road chance is the dream's, bit for bit."""
