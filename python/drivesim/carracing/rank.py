@@ -355,6 +355,14 @@ def report(args, results: list, windowed: list) -> dict:
     return out
 
 
+def load_model(parser: argparse.ArgumentParser, flag: str, path: str | None) -> Model:
+    """The model of ``path`` (None: the built-in default), or the parser's error naming ``flag``."""
+    try:
+        return Model.load(path)
+    except (OSError, ValueError) as e:
+        parser.error(f"{flag}: {e}")
+
+
 def shaping(text: str) -> tuple:
     """``--world-steering``'s GAIN[,LEAD] (LEAD 0 where not given), both finite."""
     parts = [float(x) for x in text.split(",")]
@@ -402,17 +410,11 @@ def main(argv=None) -> int:
     except ValueError as e:
         p.error(str(e))
     # Before any drive: a bad file is an error now, not after the real drives.
-    def load(flag, path):
-        try:
-            return Model.load(path)
-        except (OSError, ValueError) as e:
-            p.error(f"{flag}: {e}")
-
-    drivers = load("--weights", args.weights)
+    drivers = load_model(p, "--weights", args.weights)
     if drivers.policy_width is None:
         p.error("--weights: the model has no policy to drive with")
     if args.world:
-        load("--world", args.world)
+        load_model(p, "--world", args.world)
     args.family_name, args.family = args.family, FAMILIES[args.family]
     os.makedirs(os.path.join(args.out, "real"), exist_ok=True)
     try:

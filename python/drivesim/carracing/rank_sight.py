@@ -25,7 +25,7 @@ import sys
 import numpy as np
 
 from .. import road
-from .._drivesim import Model, Simulator
+from .._drivesim import Simulator
 from .._files import atomic_write
 from . import rank, rank_real
 from .family import FAMILY, ChangedAgent
@@ -111,14 +111,8 @@ def main(argv=None) -> int:
     if missing:
         p.error(f"{args.out} has no behaviour drive of track {missing[0]}: run `python -m drivesim.carracing.rank` "
                 "with this --out and these --seeds first")
-    def load(flag, path):
-        try:
-            return Model.load(path)
-        except (OSError, ValueError) as e:
-            p.error(f"{flag}: {e}")
-
-    driver_model = load("--weights", args.weights)
-    world_model = load("--world", args.world) if args.world else driver_model
+    driver_model = rank.load_model(p, "--weights", args.weights)
+    world_model = rank.load_model(p, "--world", args.world) if args.world else driver_model
     try:  # the behaviour drives hold these drivers' memory: another policy's would not do
         rank.check_drivers(args.out, rank.drivers_fingerprint(driver_model))
         for seed in args.seeds:
