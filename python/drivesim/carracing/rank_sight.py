@@ -5,8 +5,8 @@ its edge, with the road in sight; a dream whose roads end leaves its car in a fi
 
   python -m drivesim.carracing.rank_sight --seeds 14700-14719 --out runs/rank --drivers 0,3 [--temperature 0.9]
 
-``--out`` is a rank run's folder (its behaviour drives, ``drive_SEED.npz``, are read; nothing is
-written there unless ``--report`` names a file). For each driver of the family (by index), each
+``--out`` is a rank run's folder (its behaviour drives, ``drive_SEED.npz``, are read, and its
+``drivers.json`` must name the same drivers; ``--report`` names the one file written). For each driver of the family (by index), each
 track and each start, the real window is driven again with its frames kept, and the dream's is
 dreamt as ``rank`` dreams it (``--weights`` the drivers, ``--world`` the world, the same noise
 seeds); every frame a driver read is measured (`sight`), and the report gives, over bins of
