@@ -88,6 +88,29 @@ def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int,
     return rewards, off, actions
 
 
+def drive_windows(drive: dict, driver, index: int, seed: int, args, frames: bool = False) -> list:
+    """``driver`` (family index ``index``) from each of the behaviour drive's starts on track
+    ``seed`` (``rank.window_starts``), with the dream row's noise seed: each window's rewards,
+    off-road flags and inputs (`drive_window`), and with ``frames`` the frames it read (else None)."""
+    import gymnasium
+
+    from . import rank
+
+    starts, at = rank.window_starts(drive, args.starts, args.horizon)
+    agent = ChangedAgent(driver, seed=0, model=rank.process_model(args.weights))
+    env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
+    out = []
+    for j, (start, t) in enumerate(zip(starts, at)):
+        agent.seed = rank.dream_row_seed(seed, index, j, len(starts))
+        agent.reset()
+        env.reset(seed=seed)
+        replay(env, drive["actions"][:start], agent.frame_skip)
+        seen = [] if frames else None
+        out.append((*drive_window(env, agent, drive["h"][t], start, args.horizon, seen), seen))
+    env.close()
+    return out
+
+
 def windows_dir(args) -> str:
     """Where the windows of ``args.horizon`` and ``args.starts`` are kept (``--out``'s)."""
     return os.path.join(args.out, f"windows_{args.horizon}x{args.starts}")
@@ -97,8 +120,6 @@ def window_job(job) -> dict:
     """One driver's windows on one track (``rank.window_starts``): their returns, off-road shares,
     each decision's off-road flag and the transition's input, read from ``--out`` when an earlier
     run drove them (one from before the flags and inputs were kept is driven again)."""
-    import gymnasium
-
     from . import rank
 
     args, index, seed = job
@@ -110,21 +131,12 @@ def window_job(job) -> dict:
             return kept
     with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
         drive = {k: f[k] for k in f.files}
-    starts, at = rank.window_starts(drive, args.starts, args.horizon)
-    agent = ChangedAgent(args.family[index], seed=0, model=rank.process_model(args.weights))
-    env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
     returns, off_road, flags, inputs = [], [], [], []
-    for j, (start, t) in enumerate(zip(starts, at)):
-        agent.seed = rank.dream_row_seed(seed, index, j, len(starts))
-        agent.reset()
-        env.reset(seed=seed)
-        replay(env, drive["actions"][:start], agent.frame_skip)
-        rewards, off, actions = drive_window(env, agent, drive["h"][t], start, args.horizon)
+    for rewards, off, actions, _ in drive_windows(drive, args.family[index], index, seed, args):
         returns.append(float(np.sum(rewards)))
         off_road.append(float(np.mean(off)))
         flags.append([int(o) for o in off])
         inputs.append(actions)
-    env.close()
     out = {"driver": index, "seed": seed, "return": returns, "off_road": off_road, "off": flags, "actions": inputs}
     with atomic_write(path) as f:
         f.write(json.dumps(out).encode())

@@ -6,8 +6,9 @@ its edge, with the road in sight; a dream whose roads end leaves its car in a fi
   python -m drivesim.carracing.rank_sight --seeds 14700-14719 --out runs/rank --drivers 0,3 [--temperature 0.9]
 
 ``--out`` is a rank run's folder (its behaviour drives, ``drive_SEED.npz``, are read, and its
-``drivers.json`` must name the same drivers; ``--report`` names the one file written). For each driver of the family (by index), each
-track and each start, the real window is driven again with its frames kept, and the dream's is
+``drivers.json`` must name the same drivers; ``--report`` names the one file written). For each
+driver of the family (by index), each track and each start, the real window is driven again with
+its frames kept, and the dream's is
 dreamt as ``rank`` dreams it (``--weights`` the drivers, ``--world`` the world, the same noise
 seeds); every frame a driver read is measured (`sight`), and the report gives, over bins of
 ``--every`` decisions, the share of decisions off the road (the real car's: no wheel on it; the
@@ -28,7 +29,7 @@ from .. import road
 from .._drivesim import Simulator
 from .._files import atomic_write
 from . import rank, rank_real
-from .family import FAMILY, ChangedAgent
+from .family import FAMILY
 from .view import parse_seeds
 
 # The car's box in the 80x160 view (its sprite has road-grey pixels) and the band just ahead of it.
@@ -46,25 +47,13 @@ def sight(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def real_windows(drive: dict, seed: int, index: int, args) -> np.ndarray:
-    """Driver ``index``'s real windows on track ``seed`` (as `rank_real.window_job` drives them),
-    its frames measured: ``(3, starts, horizon)``, the off-road flags, road in sight, road ahead
-    (a window the episode's end cut short keeps its last to the horizon)."""
-    import gymnasium
-
-    starts, at = rank.window_starts(drive, args.starts, args.horizon)
-    agent = ChangedAgent(FAMILY[index], seed=0, model=rank.process_model(args.weights))
-    env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
+    """Driver ``index``'s real windows on track ``seed`` (`rank_real.drive_windows`, as a rank run
+    drives them), its frames measured: ``(3, starts, horizon)``, the off-road flags, road in sight,
+    road ahead (a window the episode's end cut short keeps its last to the horizon)."""
     out = []
-    for j, (start, t) in enumerate(zip(starts, at)):
-        agent.seed = rank.dream_row_seed(seed, index, j, len(starts))
-        agent.reset()
-        env.reset(seed=seed)
-        rank_real.replay(env, drive["actions"][:start], agent.frame_skip)
-        seen = []
-        _, flags, _ = rank_real.drive_window(env, agent, drive["h"][t], start, args.horizon, seen)
+    for _, flags, _, seen in rank_real.drive_windows(drive, FAMILY[index], index, seed, args, frames=True):
         in_sight, ahead = sight(np.stack(seen))
         out.append(rank.padded_to_horizon([[float(f) for f in flags], in_sight.tolist(), ahead.tolist()], args.horizon))
-    env.close()
     return np.stack(out, 1)
 
 
