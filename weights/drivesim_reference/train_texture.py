@@ -17,8 +17,12 @@ losses), with weights:
   like the road's, kerbs included;
 - --marginal: a two-layer network on the codes of every fed-back step: the dreamed codes keep
   the real codes' distribution as the drive goes on;
+- --pairs (0 unless given): a two-layer network on `[code | next code | action]` at every fed-back
+  step: each dreamed step is one the road could take under that action, however long the dream
+  has run on its own samples (a road that ends or jumps is not);
 and --bestof: the smallest squared error of 8 samples at step 4, which keeps one of a few
-samples near what happened. Adam (lr --lr, betas 0.5 and 0.999) for the texture net and the
+samples near what happened. With --from-model the texture net starts from the file's own (a
+fine-tuning of, say, `train latent`'s, on the futures it draws itself), else from the mean. Adam (lr --lr, betas 0.5 and 0.999) for the texture net and the
 discriminators alike.
 
 With --checkpoint FILE the run writes everything it needs every --checkpoint-every steps
@@ -65,17 +69,21 @@ class TextureGAN:
     def __init__(self, model, cfg, args, device):
         self.model, self.args, self.device = model, args, device
         zd, hd = cfg.z_dim, cfg.hidden_dim
-        self.texture = Texture(cfg, args.width).to(device)
+        self.texture = own_texture(model, cfg, device) if args.from_model else Texture(cfg, args.width).to(device)
         self.latent, self.marginal = Critic(zd + hd, args.width).to(device), Critic(zd, args.width).to(device)
         self.image = Discriminator(cfg).to(device)
+        # Made only where asked: a run without it draws the same random numbers as before it was.
+        self.pairs = Critic(2 * zd + cfg.action_dim, args.width).to(device) if args.pairs else None
         adam = dict(lr=args.lr, betas=(0.5, 0.999))
         self.opt_texture = torch.optim.Adam(self.texture.parameters(), **adam)
-        critics = [*self.latent.parameters(), *self.marginal.parameters(), *self.image.parameters()]
+        critics = [*self.latent.parameters(), *self.marginal.parameters(), *self.image.parameters(),
+                   *(self.pairs.parameters() if self.pairs else [])]
         self.opt_critics = torch.optim.Adam(critics, **adam)
 
     def modules(self):
         return dict(texture=self.texture, latent=self.latent, marginal=self.marginal, image=self.image,
-                    opt_texture=self.opt_texture, opt_critics=self.opt_critics)
+                    opt_texture=self.opt_texture, opt_critics=self.opt_critics,
+                    **(dict(pairs=self.pairs) if self.pairs else {}))
 
     def sample(self, mean, h):
         return mean + self.texture(torch.randn(mean.shape, device=self.device), h)
@@ -104,10 +112,15 @@ class TextureGAN:
         def judged(critic_out, real: bool):
             return F.binary_cross_entropy_with_logits(critic_out, torch.full_like(critic_out, float(real)))
 
+        if self.pairs:  # each fed-back step: the code it started from, the one it drew, the action
+            real_p = torch.cat([torch.cat([z[:, t], z[:, t + 1], c[:, t]], 1) for t in fed])
+            fake_p = torch.cat([torch.cat([drawn[t - 1], drawn[t], c[:, t]], 1) for t in fed])
         critics = (judged(self.latent(torch.cat([real_l, state], 1)), True)
                    + judged(self.latent(torch.cat([fake_l.detach(), state], 1)), False)
                    + judged(self.marginal(real_m), True) + judged(self.marginal(fake_m.detach()), False)
                    + judged(self.image(real_i)[0], True) + judged(self.image(fake_i.detach())[0], False))
+        if self.pairs:
+            critics = critics + judged(self.pairs(real_p), True) + judged(self.pairs(fake_p.detach()), False)
         self.opt_critics.zero_grad()
         critics.backward()
         self.opt_critics.step()
@@ -118,6 +131,8 @@ class TextureGAN:
         terms = dict(latent=judged(self.latent(torch.cat([fake_l, state], 1)), True),
                      image=judged(self.image(fake_i)[0], True), marginal=judged(self.marginal(fake_m), True),
                      bestof=best)
+        if self.pairs:
+            terms["pairs"] = judged(self.pairs(fake_p), True)
         loss = sum(getattr(a, k) * v for k, v in terms.items())
         self.opt_texture.zero_grad()
         loss.backward()
@@ -128,10 +143,20 @@ class TextureGAN:
 def check(args):
     if args.steps < 0 or not 1 <= args.batch <= 65536 or args.fed < 1 or args.frames < 1:
         raise ValueError("--steps must be at least 0, --batch from 1 to 65536, --fed and --frames at least 1")
-    for name in ("lr", "latent", "image", "marginal", "bestof"):
+    for name in ("lr", "latent", "image", "marginal", "bestof", "pairs"):
         value = getattr(args, name)
         if not (math.isfinite(value) and value >= 0) or (name == "lr" and value == 0):
             raise ValueError(f"--{name} must be a finite number at least 0 (--lr above 0), got {value}")
+
+
+def own_texture(model, cfg, device):
+    """A trainable copy of the file's own texture net (--from-model), at its own width."""
+    own = getattr(model.transition, "texture", None)
+    if own is None:
+        raise ValueError("--from-model: the weight file has no texture net (transition.texture.*) to start from")
+    texture = Texture(cfg, own.hidden.out_features)
+    texture.load_state_dict(own.state_dict())
+    return texture.to(device)
 
 
 def windows(model, data, length: int, no_mirror: bool):
@@ -249,6 +274,10 @@ def add_arguments(t):
     t.add_argument("--image", type=float, default=0.1, help="weight of the image discriminator's term")
     t.add_argument("--marginal", type=float, default=1.0, help="weight of the fed-back codes' critic's term")
     t.add_argument("--bestof", type=float, default=3.0, help="weight of the best of 8 samples' squared error")
+    t.add_argument("--pairs", type=float, default=0.0,
+                   help="weight of the fed-back steps' critic of [code | next code | action] (0: none)")
+    t.add_argument("--from-model", action="store_true",
+                   help="start from the file's own texture net (its width) instead of the mean")
     add_run_arguments(t)
 
 

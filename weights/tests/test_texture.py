@@ -56,3 +56,24 @@ def test_sampled_rollouts_draw_through_the_texture_net():
         model.transition.S.fill_(5.0)  # the spread head's noise would be huge: it is not drawn
     drawn = predict(model.transition, z, c, 2, temperature=1.0, generator=torch.Generator().manual_seed(0))
     assert torch.allclose(drawn[:, 0], mean[:, 0] + 0.5)
+
+
+def test_from_model_starts_from_the_files_own_net_and_the_pairs_critic_trains_and_resumes(tmp_path):
+    torch.manual_seed(3)
+    weights, plain = tmp_path / "w.safetensors", tmp_path / "plain.safetensors"
+    model = DriveSim(HEAD_CFG, policy_width=3, texture_width=3)
+    with torch.no_grad():
+        model.transition.texture.output.weight.normal_()
+    save_drivesim(model, HEAD_CFG, weights, "f32", actions=ACTIONS, frame_hz=12.5)
+    save_drivesim(DriveSim(HEAD_CFG, policy_width=3), HEAD_CFG, plain, "f32", actions=ACTIONS, frame_hz=12.5)
+    data = reward_episodes(tmp_path / "e.safetensors", lengths=(9, 12), rewards=False)
+    run(weights, data, tmp_path / "same.safetensors", "--from-model", "--steps", "0")
+    assert (tmp_path / "same.safetensors").read_bytes() == weights.read_bytes(), "0 steps: the file's own net"
+    run(weights, data, tmp_path / "whole.safetensors", "--from-model", "--pairs", "1", "--width", "5")
+    before, after = load_file(str(weights)), load_file(str(tmp_path / "whole.safetensors"))
+    assert after["transition.texture.hidden.bias"].shape == (3,), "the file's width, not --width's"
+    assert not torch.equal(after["transition.texture.output.weight"], before["transition.texture.output.weight"])
+    from_model = ("--from-model", "--pairs", "1", "--width", "5")
+    assert_resumes_to_the_same_bytes(lambda *a: run(*a, *from_model), weights, data, tmp_path, "--bestof", "2")
+    with pytest.raises(SystemExit):
+        run(plain, data, tmp_path / "x.safetensors", "--from-model")
