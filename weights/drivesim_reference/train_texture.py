@@ -22,8 +22,8 @@ losses), with weights:
   has run on its own samples (a road that ends or jumps is not);
 and --bestof: the smallest squared error of 8 samples at step 4, which keeps one of a few
 samples near what happened. With --from-model the texture net starts from the file's own (a
-fine-tuning of, say, `train latent`'s, on the futures it draws itself), else from the mean. Adam (lr --lr, betas 0.5 and 0.999) for the texture net and the
-discriminators alike.
+fine-tuning of, say, `train latent`'s, on the futures it draws itself), else from the mean. Adam
+(lr --lr, betas 0.5 and 0.999) for the texture net and the discriminators alike.
 
 With --checkpoint FILE the run writes everything it needs every --checkpoint-every steps
 (atomically) and a run started again with the same arguments goes on from there to the same
