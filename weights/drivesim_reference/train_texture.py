@@ -39,11 +39,12 @@ import math
 import time
 
 import torch
+from safetensors import safe_open
 from torch import nn
 from torch.nn import functional as F
 
 from drivesim import _files
-from drivesim_reference.model import Texture, load_drivesim
+from drivesim_reference.model import TEXTURE, Texture, load_drivesim
 from drivesim_reference.sequences import TEACHER
 from drivesim_reference.train_heads import Source, encode_view, load_episodes
 from drivesim_reference.vae_gan import Discriminator
@@ -149,11 +150,22 @@ def check(args):
             raise ValueError(f"--{name} must be a finite number at least 0 (--lr above 0), got {value}")
 
 
+def check_has_texture(path):
+    """--from-model's file must have a texture net: said before the episodes are encoded (minutes),
+    from the file's header alone (a file that is not safetensors is the loader's to report)."""
+    try:
+        with safe_open(path, "pt") as f:
+            present = TEXTURE + "hidden.bias" in f.keys()
+    except Exception:  # noqa: BLE001 - load_drivesim reports what is wrong with it
+        return
+    if not present:
+        raise ValueError(f"--from-model: {path} has no texture net ({TEXTURE}*) to start from")
+
+
 def own_texture(model, cfg, device):
-    """A trainable copy of the file's own texture net (--from-model), at its own width."""
-    own = getattr(model.transition, "texture", None)
-    if own is None:
-        raise ValueError("--from-model: the weight file has no texture net (transition.texture.*) to start from")
+    """A trainable copy of the file's own texture net (--from-model, `check_has_texture`), at its
+    own width."""
+    own = model.transition.texture
     texture = Texture(cfg, own.hidden.out_features)
     texture.load_state_dict(own.state_dict())
     return texture.to(device)
@@ -210,6 +222,8 @@ def restore(path, gan, arguments: dict, fmt: str = CHECKPOINT_FORMAT) -> int:
 
 def texture(args):
     check(args)
+    if args.from_model:
+        check_has_texture(args.weights)
     train_sampler(args, TextureGAN, CHECKPOINT_FORMAT)
 
 
