@@ -45,6 +45,26 @@ def test_figures_bin_the_decisions():
         "in_sight_where_off"] is None
 
 
+def test_the_head_on_real_states_steps_the_world_on_the_frames(model, clip):
+    """The world's chance of each state a real window showed: the first frame's code with the
+    start's hidden state, each next with the hidden state the codes before and their inputs made;
+    the same figures whatever the simulator's batch (11 frames: not a multiple of it)."""
+    from drivesim import Simulator
+
+    frames = np.ascontiguousarray(np.concatenate([clip[0], clip[0][::-1]])[:11])
+    actions = np.concatenate([clip[1], clip[1][::-1]])[:11].astype(np.float32)
+    h = np.random.default_rng(3).uniform(-0.5, 0.5, model.hidden_dim).astype(np.float32)
+    world = Simulator(model, batch=4)
+    head = rank_sight.head_on_frames(world, frames, actions, h)
+    assert head.shape == (11,) and np.all((head >= 0) & (head <= 1))
+    one = Simulator(model, batch=1)
+    z = np.concatenate([one.encode(frames[t:t + 1]) for t in range(2)])
+    assert head[0] == one.reward(z[:1], h[None])[0, 1]
+    _, h1 = one.transition(z[:1], h[None], actions[:1])
+    assert head[1] == one.reward(z[1:2], h1)[0, 1]
+    np.testing.assert_array_equal(rank_sight.head_on_frames(Simulator(model, batch=16), frames, actions, h), head)
+
+
 def test_the_real_windows_are_the_rank_runs_again(tmp_path):
     """On a rank run's drives: the real windows rank_sight drives again leave the road where the
     rank run's windows did, decision for decision."""
@@ -67,6 +87,7 @@ def test_the_real_windows_are_the_rank_runs_again(tmp_path):
     for side in ("real", "dream"):
         for b in figures["clone"][side]:
             assert 0 <= b["off_road"] <= 1 and 0 <= b["in_sight"] <= 1 and 0 <= b["ahead"] <= 1
+            assert (0 <= b["head_on_real"] <= 1) if side == "real" else "head_on_real" not in b
 
 
 def test_a_folder_without_the_rank_runs_drives_is_refused(tmp_path):

@@ -13,7 +13,11 @@ dreamt as ``rank`` dreams it (``--weights`` the drivers, ``--world`` the world, 
 seeds); every frame a driver read is measured (`sight`), and the report gives, over bins of
 ``--every`` decisions, the share of decisions off the road (the real car's: no wheel on it; the
 dream's: its reward head's chance), of frames with road in sight, of frames with road just ahead
-of the car, and of the off-road decisions' frames with road in sight.
+of the car, and of the off-road decisions' frames with road in sight. The real side adds
+``head_on_real``: the world's reward head's off-road chance on the real window's own states (its
+frames through the world's encoder, the world's hidden state stepped on them with the real inputs
+from the start's): where it matches the real share and the dream's does not, the dream's gap is
+its trajectory, not its head (docs/judging.md).
 """
 
 from __future__ import annotations
@@ -46,21 +50,42 @@ def sight(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mask.reshape(len(frames), -1).any(1), ahead.reshape(len(frames), -1).any(1)
 
 
-def real_windows(drive: dict, seed: int, index: int, args) -> np.ndarray:
+def head_on_frames(world: Simulator, frames: np.ndarray, inputs: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """The world's off-road chance of each state a real window showed: ``frames`` ``(N, 80, 160,
+    3)`` through the world's encoder, its hidden state from ``h`` (the start's) stepped on each
+    code with the window's ``inputs`` ``(N, 2)`` (the speed and the steering applied), the reward
+    head on each code with the hidden state it was seen in (as `rank.dream` scores its steps)."""
+    batch = world.batch
+    codes = np.concatenate([world.encode(np.ascontiguousarray(frames[a:a + batch])) for a in range(0, len(frames), batch)])
+    states = [np.asarray(h, np.float32)[None]]
+    for t in range(len(frames) - 1):
+        states.append(world.transition(codes[t:t + 1], states[-1], np.ascontiguousarray(inputs[t:t + 1], np.float32))[1])
+    states = np.concatenate(states)
+    return np.concatenate([world.reward(codes[a:a + batch], states[a:a + batch])[:, 1]
+                           for a in range(0, len(frames), batch)])
+
+
+def real_windows(drive: dict, seed: int, index: int, args, world: Simulator, starts: dict) -> np.ndarray:
     """Driver ``index``'s real windows on track ``seed`` (`rank_real.drive_windows`, as a rank run
-    drives them), its frames measured: ``(3, starts, horizon)``, the off-road flags, road in sight,
-    road ahead (a window the episode's end cut short keeps its last to the horizon)."""
+    drives them), its frames measured: ``(4, starts, horizon)``, the off-road flags, road in sight,
+    road ahead and the world's off-road chance of each state (`head_on_frames` from ``starts``'s
+    hidden states; a window the episode's end cut short keeps its last to the horizon)."""
     out = []
-    for _, flags, _, seen in rank_real.drive_windows(drive, FAMILY[index], index, seed, args, frames=True):
-        in_sight, ahead = sight(np.stack(seen))
-        out.append(rank.padded_to_horizon([[float(f) for f in flags], in_sight.tolist(), ahead.tolist()], args.horizon))
+    windows = rank_real.drive_windows(drive, FAMILY[index], index, seed, args, frames=True)
+    for j, (_, flags, inputs, seen) in enumerate(windows):
+        frames = np.stack(seen)
+        in_sight, ahead = sight(frames)
+        head = head_on_frames(world, frames, np.array(inputs, np.float32), starts["h_world"][j])
+        out.append(rank.padded_to_horizon([[float(f) for f in flags], in_sight.tolist(), ahead.tolist(), head.tolist()],
+                                          args.horizon))
     return np.stack(out, 1)
 
 
 def figures(measured: np.ndarray, every: int) -> list:
     """Per bin of ``every`` decisions: off the road, road in sight, road ahead, and road in sight
     where off (``measured`` ``(3, windows, horizon)``: off-road flags or chances, and `sight`'s two
-    figures); None where no decision of a bin is off the road."""
+    figures, and for the real windows a fourth row, the world's chance on their states, as
+    ``head_on_real``); None where no decision of a bin is off the road."""
     off, seen, ahead = measured[0], measured[1] > 0.5, measured[2] > 0.5
     horizon = off.shape[1]
     out = []
@@ -70,6 +95,8 @@ def figures(measured: np.ndarray, every: int) -> list:
         out.append({"decisions": [a + 1, min(a + every, horizon)], "off_road": float(o.mean()),
                     "in_sight": float(s.mean()), "ahead": float(h.mean()),
                     "in_sight_where_off": float(s[gone].mean()) if gone.any() else None})
+        if len(measured) > 3:
+            out[-1]["head_on_real"] = float(measured[3][:, a:a + every].mean())
     return out
 
 
@@ -118,9 +145,9 @@ def main(argv=None) -> int:
     for seed in args.seeds:
         with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
             drive = {k: f[k] for k in f.files}
-        for i, index in enumerate(drivers):
-            real[i].append(real_windows(drive, seed, index, args))
         starts = rank.starts_of(drive, world, world_model.hidden_dim, args.starts, args.horizon)
+        for i, index in enumerate(drivers):
+            real[i].append(real_windows(drive, seed, index, args, world, starts))
         first = world.reward(*(rank.tiled(starts[k], len(family)) for k in ("z", "h_world")))[:, 1]
         shown = []
         steps = rank.dream(driver, world, family, starts, args.horizon, seed, False, frames=shown)["off_steps"]
@@ -139,6 +166,7 @@ def main(argv=None) -> int:
             cells = "  ".join(f"{b['decisions'][0]}-{b['decisions'][1]}: off {b['off_road']:.2f} sight "
                               f"{b['in_sight']:.2f} ahead {b['ahead']:.2f} sight where off "
                               + ("-" if b["in_sight_where_off"] is None else f"{b['in_sight_where_off']:.2f}")
+                              + (f" head {b['head_on_real']:.2f}" if "head_on_real" in b else "")
                               for b in report[d.name][side])
             print(f"{d.name:24} {side:5} {cells}", flush=True)
     if args.report:
