@@ -1,11 +1,15 @@
-//! Drivers apart from their world: a driver file holds one policy head (`policy.*`) and the
+//! A world's parts apart from it. A driver file holds one policy head (`policy.*`) and the
 //! fingerprint of the world it was learnt in, so that a small file can ship a driver learnt
 //! in the dream of a large one, and so that it is never driven in another world by mistake
-//! (its weights mean nothing there: they read that world's codes and hidden states).
+//! (its weights mean nothing there: they read that world's codes and hidden states). A sampler
+//! file holds a texture net (`transition.texture.*`) learnt for a world's transition, so that a
+//! world can be dreamt through another sampler than its own (the rank probe's judge) without a
+//! second copy of the world.
 
 use crate::heads::{Head, HeadKind};
+use crate::texture::{Texture, TEXTURE};
 use crate::weights::{SafetensorsSource, TensorSource, DISCRIMINATOR_PREFIX};
-use crate::{Error, Model, Result};
+use crate::{Config, Error, Model, Result};
 use alloc::format;
 use alloc::string::{String, ToString};
 use safetensors::SafeTensors;
@@ -40,9 +44,15 @@ fn malformed(e: safetensors::SafeTensorError) -> Error {
 /// # Ok::<(), Box<dyn std::error::Error>>(())
 /// ```
 pub fn world_fingerprint(weight_file: &[u8]) -> Result<String> {
+    fingerprint_without(weight_file, drivers_own)
+}
+
+/// FNV-1a over the tensors of `weight_file` that `left_out` does not name, as
+/// [`world_fingerprint`] defines it.
+fn fingerprint_without(weight_file: &[u8], left_out: fn(&str) -> bool) -> Result<String> {
     let file = SafeTensors::deserialize(weight_file).map_err(malformed)?;
     let mut tensors = file.tensors();
-    tensors.retain(|(name, _)| !drivers_own(name));
+    tensors.retain(|(name, _)| !left_out(name));
     tensors.sort_by(|a, b| a.0.cmp(&b.0));
     let mut hash = Fnv1a::new();
     for (name, view) in &tensors {
@@ -86,22 +96,7 @@ impl Model {
     /// ```
     pub fn from_bytes_with_driver(weight_file: &[u8], driver_file: &[u8]) -> Result<Model> {
         let mut model = Model::from_bytes(weight_file)?;
-        let (config, _, mut src) = SafetensorsSource::parse(driver_file)?;
-        let (_, header) = SafeTensors::read_metadata(driver_file).map_err(malformed)?;
-        let learnt_in = header
-            .metadata()
-            .as_ref()
-            .and_then(|m| m.get(WORLD_KEY))
-            .ok_or_else(|| Error::Metadata {
-                reason: format!("no `{WORLD_KEY}` key: not a driver file"),
-            })?;
-        let world = world_fingerprint(weight_file)?;
-        if *learnt_in != world || config != *model.config() {
-            return Err(Error::OtherWorld {
-                world,
-                learnt_in: learnt_in.to_string(),
-            });
-        }
+        let (config, mut src) = part_of(weight_file, &model, driver_file, "driver")?;
         let policy = Head::load(&config, &mut src, HeadKind::Policy)?.ok_or(Error::MissingTensor {
             name: "policy.hidden.weight".to_string(),
         })?;
@@ -110,6 +105,58 @@ impl Model {
         model.pace = None;
         Ok(model)
     }
+
+    /// The world of `weight_file` dreamt through the texture net of `sampler_file` (format:
+    /// `weights/README.md`) in place of its own: the mean dream, the heads and the policy are
+    /// the file's, the sampled futures the sampler's. [`Error::OtherWorld`] when the sampler was
+    /// learnt for another world; the sampler file is checked as a weight file is (shapes against
+    /// the world's config, one dtype, finite values, nothing but `transition.texture.*`).
+    ///
+    /// ```
+    /// let world = std::fs::read("weights/default.safetensors")?;
+    /// let judge = std::fs::read("weights/judge.safetensors")?;
+    /// let model = drivesim::Model::from_bytes_with_sampler(&world, &judge)?;
+    /// assert_eq!(model.texture_width(), Some(256));
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
+    pub fn from_bytes_with_sampler(weight_file: &[u8], sampler_file: &[u8]) -> Result<Model> {
+        let mut model = Model::from_bytes(weight_file)?;
+        let (config, mut src) = part_of(weight_file, &model, sampler_file, "sampler")?;
+        let texture = Texture::load(&config, &mut src)?.ok_or(Error::MissingTensor {
+            name: format!("{TEXTURE}hidden.weight"),
+        })?;
+        src.finish()?;
+        model.transition.set_texture(texture);
+        Ok(model)
+    }
+}
+
+/// The tensors of a part file (`what`: a driver or a sampler file) learnt in the world of
+/// `weight_file` (loaded as `model`), and its config; [`Error::OtherWorld`] where its
+/// `drivesim.world` is not that world's fingerprint or its config not the world's.
+fn part_of<'a>(
+    weight_file: &[u8],
+    model: &Model,
+    part_file: &'a [u8],
+    what: &str,
+) -> Result<(Config, SafetensorsSource<'a>)> {
+    let (config, _, src) = SafetensorsSource::parse(part_file)?;
+    let (_, header) = SafeTensors::read_metadata(part_file).map_err(malformed)?;
+    let learnt_in = header
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get(WORLD_KEY))
+        .ok_or_else(|| Error::Metadata {
+            reason: format!("no `{WORLD_KEY}` key: not a {what} file"),
+        })?;
+    let world = world_fingerprint(weight_file)?;
+    if *learnt_in != world || config != *model.config() {
+        return Err(Error::OtherWorld {
+            world,
+            learnt_in: learnt_in.to_string(),
+        });
+    }
+    Ok((config, src))
 }
 
 /// The driver file of a weight file whose policy is a driver (what `weights/tool train driver`
@@ -118,15 +165,44 @@ impl Model {
 /// is only ever written from a valid weight file.
 #[cfg(feature = "std")]
 pub fn driver_file(weight_file: &[u8]) -> Result<alloc::vec::Vec<u8>> {
-    use crate::Config;
     let model = Model::from_bytes(weight_file)?;
     if model.policy.is_none() {
         return Err(Error::NoPolicy);
     }
+    part_file(weight_file, HeadKind::Policy.prefix(), world_fingerprint(weight_file)?)
+}
+
+/// The sampler file of `weight_file`'s texture net for the world of `world_file` (what
+/// `weights/tool train latent --freeze-transition` learns): its `transition.texture.*` tensors
+/// as stored, the `drivesim.config` of the file and the fingerprint of `world_file` under
+/// `drivesim.world`. [`Error::OtherWorld`] unless the two files hold the same world but for
+/// their texture nets (and drivers); [`Error::NoSampling`] when `weight_file` has no texture net.
+#[cfg(feature = "std")]
+pub fn sampler_file(weight_file: &[u8], world_file: &[u8]) -> Result<alloc::vec::Vec<u8>> {
+    let model = Model::from_bytes(weight_file)?;
+    if model.texture_width().is_none() {
+        return Err(Error::NoSampling);
+    }
+    Model::from_bytes(world_file)?;
+    let apart_from_sampler = |name: &str| drivers_own(name) || name.starts_with(TEXTURE);
+    if fingerprint_without(weight_file, apart_from_sampler)? != fingerprint_without(world_file, apart_from_sampler)? {
+        // Named by the worlds' own fingerprints, the ones a user can look up.
+        return Err(Error::OtherWorld {
+            world: world_fingerprint(world_file)?,
+            learnt_in: world_fingerprint(weight_file)?,
+        });
+    }
+    part_file(weight_file, TEXTURE, world_fingerprint(world_file)?)
+}
+
+/// The tensors of `weight_file` under `prefix` as stored, with its `drivesim.config` and
+/// `world` under `drivesim.world`: a part file.
+#[cfg(feature = "std")]
+fn part_file(weight_file: &[u8], prefix: &str, world: String) -> Result<alloc::vec::Vec<u8>> {
     let file = SafeTensors::deserialize(weight_file).map_err(malformed)?;
-    let mut policy = file.tensors();
-    policy.retain(|(name, _)| name.starts_with(HeadKind::Policy.prefix()));
-    policy.sort_by(|a, b| a.0.cmp(&b.0));
+    let mut part = file.tensors();
+    part.retain(|(name, _)| name.starts_with(prefix));
+    part.sort_by(|a, b| a.0.cmp(&b.0));
     let (_, header) = SafeTensors::read_metadata(weight_file).map_err(malformed)?;
     let config = header
         .metadata()
@@ -135,8 +211,8 @@ pub fn driver_file(weight_file: &[u8]) -> Result<alloc::vec::Vec<u8>> {
         .cloned();
     let metadata = [
         (Config::METADATA_KEY.to_string(), config.unwrap_or_default()),
-        (WORLD_KEY.to_string(), world_fingerprint(weight_file)?),
+        (WORLD_KEY.to_string(), world),
     ];
-    let bytes = safetensors::serialize(policy, Some(metadata.into_iter().collect())).map_err(malformed)?;
+    let bytes = safetensors::serialize(part, Some(metadata.into_iter().collect())).map_err(malformed)?;
     Ok(crate::weights::sort_metadata(bytes))
 }

@@ -174,12 +174,13 @@ pub enum Error {
     NoSampling,
     /// A trainer asked to apply gradients it has not computed (each set is applied once).
     NoGradients,
-    /// A driver file learnt in another world than the weight file it was given with
-    /// ([`crate::Model::from_bytes_with_driver`]; fingerprints: [`crate::world_fingerprint`]).
+    /// A driver or sampler file learnt in another world than the weight file it was given with
+    /// ([`crate::Model::from_bytes_with_driver`], [`crate::Model::from_bytes_with_sampler`],
+    /// [`crate::sampler_file`]; fingerprints: [`crate::world_fingerprint`]).
     OtherWorld {
         /// The weight file's world.
         world: String,
-        /// The world the driver was learnt in (its file's `drivesim.world`).
+        /// The world the driver or sampler was learnt in (its file's `drivesim.world`).
         learnt_in: String,
     },
     /// A caller-supplied arena is smaller than its plan.
@@ -237,7 +238,7 @@ impl fmt::Display for Error {
             }
             Error::OtherWorld { world, learnt_in } => write!(
                 f,
-                "the driver was learnt in world {learnt_in}, not in this weight file's world {world}"
+                "the driver or sampler was learnt in world {learnt_in}, not in this weight file's world {world}"
             ),
             Error::MissingTensor { name } => write!(f, "weight file has no tensor `{name}`"),
             Error::Shape { name, expected, found } => {

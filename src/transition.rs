@@ -130,6 +130,11 @@ impl Transition {
         self.spread.is_some() || self.texture.is_some()
     }
 
+    /// Samples through `texture` from now on (a sampler file's: [`crate::Model::from_bytes_with_sampler`]).
+    pub(crate) fn set_texture(&mut self, texture: Texture) {
+        self.texture = Some(texture);
+    }
+
     /// The texture net's width, where the model has one.
     pub fn texture_width(&self) -> Option<usize> {
         self.texture.as_ref().map(Texture::width)

@@ -8,7 +8,7 @@
 
 mod common;
 
-use common::{fixture_path, relative_error, values, with_f32_tensors, Io, SMALL};
+use common::{fixture_path, relative_error, values, with_f32_tensors, with_texture, Io, SMALL};
 use drivesim::{Environment, Error, Model, Simulator};
 
 /// The small config's random model as a weight file, and the same with a spread head whose
@@ -31,26 +31,6 @@ fn spread_file(file: &[u8]) -> Vec<u8> {
         ),
     ];
     with_f32_tensors(file, &spread)
-}
-
-/// `file` with a texture net of width `width` (`transition.texture.*`).
-fn texture_file(file: &[u8], width: usize) -> Vec<u8> {
-    let (z, cols) = (SMALL.z_dim, SMALL.z_dim + SMALL.hidden_dim);
-    let net = [
-        (
-            "transition.texture.hidden.weight",
-            vec![width, cols],
-            values(11, width * cols, 0.3),
-        ),
-        ("transition.texture.hidden.bias", vec![width], values(12, width, 0.1)),
-        (
-            "transition.texture.output.weight",
-            vec![z, width],
-            values(13, z * width, 0.4),
-        ),
-        ("transition.texture.output.bias", vec![z], values(14, z, 0.1)),
-    ];
-    with_f32_tensors(file, &net)
 }
 
 /// A lower-triangular noise factor (positive diagonal, rows of unit norm: a correlation's).
@@ -145,7 +125,7 @@ fn same_bits_at_any_thread_count_and_in_any_batch(sampled: &Model) {
 fn a_texture_net_samples_in_the_spreads_place() {
     let (plain, _) = models();
     let file = drivesim::train::random_weight_file(&SMALL, 3).unwrap();
-    let textured = Model::from_bytes(&texture_file(&file, 7)).unwrap();
+    let textured = Model::from_bytes(&with_texture(&file, 7, 11)).unwrap();
     assert!(textured.samples() && !textured.samples_correlated());
     assert_eq!((textured.texture_width(), plain.texture_width()), (Some(7), None));
     let mean = candidates(&mut Simulator::with_batch(&plain, 6).unwrap(), 6, 4);
@@ -161,13 +141,13 @@ fn a_texture_net_samples_in_the_spreads_place() {
         "the temperature scales the noise it reads"
     );
     // With the spread head too, the texture net samples: the same draws.
-    let both = Model::from_bytes(&texture_file(&spread_file(&file), 7)).unwrap();
+    let both = Model::from_bytes(&with_texture(&spread_file(&file), 7, 11)).unwrap();
     let mut sim = Simulator::with_batch(&both, 6).unwrap();
     sim.set_sampling(1.0, 9).unwrap();
     assert_eq!(candidates(&mut sim, 6, 4), drawn);
     same_bits_at_any_thread_count_and_in_any_batch(&textured);
     // Wider than the hidden state, or half a net: typed errors.
-    let wide = texture_file(&file, SMALL.hidden_dim + 1);
+    let wide = with_texture(&file, SMALL.hidden_dim + 1, 11);
     assert!(matches!(Model::from_bytes(&wide), Err(Error::Config { .. })));
     let half = with_f32_tensors(&file, &[("transition.texture.hidden.bias", vec![3], vec![0.0; 3])]);
     assert!(matches!(Model::from_bytes(&half), Err(Error::MissingTensor { .. })));

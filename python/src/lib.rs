@@ -85,6 +85,7 @@ fn _drivesim(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(model::load_episodes, m)?)?;
     m.add_function(wrap_pyfunction!(model::world_fingerprint, m)?)?;
     m.add_function(wrap_pyfunction!(model::driver_file, m)?)?;
+    m.add_function(wrap_pyfunction!(model::sampler_file, m)?)?;
     m.add_function(wrap_pyfunction!(view::box_shrink, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

@@ -15,6 +15,17 @@ static SEED_CLIP: &[u8] = include_bytes!("../../weights/seed_clip.safetensors");
 /// The driver learnt in the default model's dream (`weights/tool train driver`), built in so
 /// that `Model.dreamt()` needs no file either.
 static DREAMT_DRIVER: &[u8] = include_bytes!("../../weights/dreamt.safetensors");
+/// The judge's sampler: a texture net learnt for the default's transition whose futures rank
+/// drivers as the real track does (docs/judging.md), built in for `Model.judge()`.
+static JUDGE_SAMPLER: &[u8] = include_bytes!("../../weights/judge.safetensors");
+
+/// The bytes of the weight file at `path`, or the built-in default's.
+fn world_bytes(path: &Option<PathBuf>) -> drivesim::Result<std::borrow::Cow<'static, [u8]>> {
+    Ok(match path {
+        Some(path) => std::borrow::Cow::Owned(read(path)?),
+        None => std::borrow::Cow::Borrowed(DEFAULT_WEIGHTS),
+    })
+}
 
 fn read(path: &std::path::Path) -> drivesim::Result<Vec<u8>> {
     std::fs::read(path).map_err(|source| drivesim::Error::Io {
@@ -42,19 +53,43 @@ impl PyModel {
     ///
     /// `driver`: a driver file (`python -m drivesim driver` writes one) whose policy replaces the
     /// file's, its pace head left out; ValueError when the driver was learnt in another world.
+    /// `sampler`: a sampler file (`python -m drivesim sampler` writes one) whose texture net
+    /// draws the sampled futures in place of the file's; ValueError when it was learnt for
+    /// another world, or when both are given (a driver learnt in one dream, judged in another).
     #[staticmethod]
-    #[pyo3(signature = (path=None, driver=None))]
-    fn load(py: Python<'_>, path: Option<PathBuf>, driver: Option<PathBuf>) -> PyResult<PyModel> {
+    #[pyo3(signature = (path=None, driver=None, sampler=None))]
+    fn load(
+        py: Python<'_>,
+        path: Option<PathBuf>,
+        driver: Option<PathBuf>,
+        sampler: Option<PathBuf>,
+    ) -> PyResult<PyModel> {
+        if driver.is_some() && sampler.is_some() {
+            return Err(pyo3::exceptions::PyValueError::new_err(
+                "Model.load: a driver file or a sampler file, not both (the driver was learnt in its world's own sampler)",
+            ));
+        }
         let model = py.detach(|| {
-            let world = match &path {
-                Some(path) => std::borrow::Cow::Owned(read(path)?),
-                None => std::borrow::Cow::Borrowed(DEFAULT_WEIGHTS),
-            };
-            match driver {
-                Some(driver) => Model::from_bytes_with_driver(&world, &read(&driver)?),
-                None => Model::from_bytes(&world),
+            let world = world_bytes(&path)?;
+            match (driver, sampler) {
+                (Some(driver), _) => Model::from_bytes_with_driver(&world, &read(&driver)?),
+                (_, Some(sampler)) => Model::from_bytes_with_sampler(&world, &read(&sampler)?),
+                _ => Model::from_bytes(&world),
             }
         });
+        Ok(PyModel {
+            inner: Arc::new(model.map_err(to_py)?),
+        })
+    }
+
+    /// The world of `path` (None: the built-in default) dreamt through the judge's sampler
+    /// (built in): the texture net whose sampled futures rank drivers as the real track does,
+    /// learnt for the default's transition (ValueError for another world). What
+    /// `python -m drivesim.carracing.rank --judge` dreams with.
+    #[staticmethod]
+    #[pyo3(signature = (path=None))]
+    fn judge(py: Python<'_>, path: Option<PathBuf>) -> PyResult<PyModel> {
+        let model = py.detach(|| Model::from_bytes_with_sampler(&world_bytes(&path)?, JUDGE_SAMPLER));
         Ok(PyModel {
             inner: Arc::new(model.map_err(to_py)?),
         })
@@ -248,6 +283,17 @@ pub fn load_episodes<'py>(
 #[pyfunction]
 pub fn world_fingerprint(py: Python<'_>, path: PathBuf) -> PyResult<String> {
     py.detach(|| drivesim::world_fingerprint(&read(&path)?)).map_err(to_py)
+}
+
+/// The bytes of the sampler file of a weight file's texture net for the world of `world` (a
+/// weight file that is the same world but for its texture net): its `transition.texture.*`
+/// tensors and that world's fingerprint (`weights/README.md`).
+#[pyfunction]
+pub fn sampler_file<'py>(py: Python<'py>, path: PathBuf, world: PathBuf) -> PyResult<Bound<'py, pyo3::types::PyBytes>> {
+    let bytes = py
+        .detach(|| drivesim::sampler_file(&read(&path)?, &read(&world)?))
+        .map_err(to_py)?;
+    Ok(pyo3::types::PyBytes::new(py, &bytes))
 }
 
 /// The bytes of the driver file of a weight file whose policy is a driver: its `policy.*`

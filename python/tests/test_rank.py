@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import fixture
 
 import drivesim
 from drivesim.carracing import rank, rank_figures
@@ -270,6 +271,15 @@ def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
     with open(whole / "futures.json") as f:
         sampled = json.load(f)
     assert sampled["futures"] == 3 and all(d["dream_spread"] >= 0 for d in sampled["drivers"])
+    # The judge's futures: the same real drives, another dream.
+    subprocess.run(_probe(whole, "--temperature", "1.2", "--judge", "--report", "judge.json"), check=True,
+                   capture_output=True, timeout=600)
+    subprocess.run(_probe(whole, "--temperature", "1.2", "--report", "own.json"), check=True, capture_output=True,
+                   timeout=600)
+    with open(whole / "judge.json") as f, open(whole / "own.json") as g:
+        judged, own = json.load(f), json.load(g)
+    assert judged["judge"] and not own["judge"] and judged["per_track"]["real"] == own["per_track"]["real"]
+    assert judged["per_track"]["dream"] != own["per_track"]["dream"]
 
     # Killed once the first drives are kept, then run again: the same report.
     killed = tmp_path / "killed"
@@ -302,6 +312,14 @@ def test_several_futures_of_the_mean_dream_are_refused(tmp_path):
     run = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "1", "--out",
                           str(tmp_path / "out"), "--futures", "2"], capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and "--futures above 1 needs --temperature" in run.stderr, run.stderr
+    assert not (tmp_path / "out").exists()
+    judge = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "1", "--out",
+                            str(tmp_path / "out"), "--judge"], capture_output=True, text=True, timeout=120)
+    assert judge.returncode == 2 and "--judge needs --temperature" in judge.stderr, judge.stderr
+    other = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "1", "--out",
+                            str(tmp_path / "out"), "--judge", "--temperature", "1", "--world",
+                            fixture("texture_f32.safetensors")], capture_output=True, text=True, timeout=120)
+    assert other.returncode == 2 and "error: --world: " in other.stderr and "Traceback" not in other.stderr
     assert not (tmp_path / "out").exists()
 
 

@@ -158,3 +158,32 @@ pub fn with_f32_tensors(bytes: &[u8], added: &[(&str, Vec<usize>, Vec<f32>)]) ->
     let views = tensors.iter().map(|(n, t)| (n.clone(), t));
     safetensors::serialize(views, metadata.metadata().clone()).unwrap()
 }
+
+/// `file` with a texture net of width `width` (`transition.texture.*`, values from `seed`), for
+/// the config of `file`'s metadata.
+pub fn with_texture(file: &[u8], width: usize, seed: u64) -> Vec<u8> {
+    let (_, metadata) = SafeTensors::read_metadata(file).unwrap();
+    let config = metadata.metadata().as_ref().unwrap()["drivesim.config"].clone();
+    let config: serde_json::Value = serde_json::from_str(&config).unwrap();
+    let z = config["z_dim"].as_u64().unwrap() as usize;
+    let cols = z + config["hidden_dim"].as_u64().unwrap() as usize;
+    let net = [
+        (
+            "transition.texture.hidden.weight",
+            vec![width, cols],
+            values(seed, width * cols, 0.3),
+        ),
+        (
+            "transition.texture.hidden.bias",
+            vec![width],
+            values(seed + 1, width, 0.1),
+        ),
+        (
+            "transition.texture.output.weight",
+            vec![z, width],
+            values(seed + 2, z * width, 0.4),
+        ),
+        ("transition.texture.output.bias", vec![z], values(seed + 3, z, 0.1)),
+    ];
+    with_f32_tensors(file, &net)
+}

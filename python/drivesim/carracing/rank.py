@@ -28,19 +28,18 @@ the family with the dream's error in ranks (does the dream doubt where it is wro
 ``--world-steering GAIN,LEAD`` steps the world with each steering s as ``GAIN * s + LEAD * (s - the
 decision before's s)``, the drivers' memory with s: a diagnostic of the world's steering answer.
 
-``--through-frames``: the drivers read the dream as they read the road, its frame (the generator's)
-through their encoder, not the transition's code (about 150x slower; docs/judging.md says what it
-changes).
-
+``--through-frames``: the drivers read the dream's frames through their encoder (150x slower).
 ``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
 ``--weights`` and step its transition for their own memory): a world model is judged without
-changing the drivers. ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another
-``--family``'s with its name first; the behaviour drive in ``drive_SEED.npz``): a run that stops
-resumes where it was, and another ``--world`` or ``--horizon`` reuses the real drives; the report
-goes to ``rank.json`` (``--report``: another name). The real drives are the drivers' of
-``--weights``: ``drivers.json`` keeps what those drivers answer to fixed inputs, and another
-``--weights`` (or another built-in default) with the same ``--out`` is an error, not a report
-that mixes two families' drives (a folder from before this check is taken as the next run's).
+changing the drivers. ``--judge`` (with ``--temperature``, 1.2 is its own) draws the world's futures
+through the built-in judge's sampler (`Model.judge`, learnt for the default's world: docs/judging.md).
+``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another ``--family``'s with its name
+first; the behaviour drive in ``drive_SEED.npz``): a run that stops resumes where it was, and another
+``--world`` or ``--horizon`` reuses the real drives; the report goes to ``rank.json`` (``--report``:
+another name). The real drives are the drivers' of ``--weights``: ``drivers.json`` keeps what those
+drivers answer to fixed inputs, and another ``--weights`` (or another built-in default) with the same
+``--out`` is an error, not a report that mixes two families' drives (a folder from before this check
+is taken as the next run's).
 """
 
 from __future__ import annotations
@@ -302,7 +301,7 @@ def report(args, results: list, windowed: list) -> dict:
     family, seeds = args.family, args.seeds
     batch = len(family) * args.starts
     driver = Simulator(Model.load(args.weights), batch=batch, threads=args.threads)
-    world_model = Model.load(args.world or args.weights)
+    world_model = (Model.judge if args.judge else Model.load)(args.world or args.weights)
     world = Simulator(world_model, batch=batch, threads=args.threads)
     real = {(r["driver"], r["seed"]): r for r in results}
     shape = (len(family), len(seeds))
@@ -349,16 +348,16 @@ def report(args, results: list, windowed: list) -> dict:
         out["made_up_roads"] = made_up_roads(steer_dreamt, steer_real)
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
                futures=args.futures, world_steering=list(args.world_steering), value=args.value,
-               through_frames=args.through_frames, frames=args.frames, weights=args.weights, world=args.world,
+               through_frames=args.through_frames, frames=args.frames, weights=args.weights, world=args.world, judge=args.judge,
                dream_decisions_per_second=len(family) * args.starts * args.horizon * len(seeds) * args.futures / seconds,
                per_track={"real": real_score.tolist(), "dream": dream_return.tolist()})
     return out
 
 
-def load_model(parser: argparse.ArgumentParser, flag: str, path: str | None) -> Model:
-    """The model of ``path`` (None: the built-in default), or the parser's error naming ``flag``."""
+def load_model(parser: argparse.ArgumentParser, flag: str, path: str | None, judge: bool = False) -> Model:
+    """The model of ``path`` (None: the built-in default; `Model.judge`'s), or the parser's error naming ``flag``."""
     try:
-        return Model.load(path)
+        return (Model.judge if judge else Model.load)(path)
     except (OSError, ValueError) as e:
         parser.error(f"{flag}: {e}")
 
@@ -378,6 +377,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="folder for the real drives and the report (resumable)")
     p.add_argument("--weights", help="the drivers' weight file: their policy (default: the built-in model)")
     p.add_argument("--world", help="the world model's weight file: the transition and heads that dream (default: --weights)")
+    p.add_argument("--judge", action="store_true", help="the world's futures drawn by the built-in judge (Model.judge)")
     p.add_argument("--world-steering", type=shaping, default=(1.0, 0.0), metavar="GAIN[,LEAD]",
                    help="the world steps with GAIN * s + LEAD * (s - the decision before's s) for each steering s "
                         "(a diagnostic of its steering's answer; the drivers' memory steps with s)")
@@ -405,6 +405,8 @@ def main(argv=None) -> int:
         p.error("--horizon, --starts, --frames, --workers, --threads and --futures must be positive, --temperature >= 0")
     if args.futures > 1 and args.temperature == 0:
         p.error("--futures above 1 needs --temperature above 0: the mean dream has one future")
+    if args.judge and args.temperature == 0:
+        p.error("--judge needs --temperature above 0: the mean dream draws no futures")
     try:
         start_decisions(args.frames // ClonedAgent.frame_skip, args.starts, args.horizon, ClonedAgent.warmup)
     except ValueError as e:
@@ -413,8 +415,8 @@ def main(argv=None) -> int:
     drivers = load_model(p, "--weights", args.weights)
     if drivers.policy_width is None:
         p.error("--weights: the model has no policy to drive with")
-    if args.world:
-        load_model(p, "--world", args.world)
+    if args.world or args.judge:
+        load_model(p, "--world" if args.world else "--judge", args.world or args.weights, args.judge)
     args.family_name, args.family = args.family, FAMILIES[args.family]
     os.makedirs(os.path.join(args.out, "real"), exist_ok=True)
     try:

@@ -1,17 +1,17 @@
 """Where the car is when it is off the road, in the real windows and in the dream's from the same
 starts (``python -m drivesim.carracing.rank``'s): the real car that leaves the road mostly rides
 its edge, with the road in sight; a dream whose roads end leaves its car in a field with none
-(docs/judging.md, "Inside the view's reach, and past it").
+(docs/history/reach.md; docs/judging.md, "Trades, reach, and roads that do not end: the judge").
 
   python -m drivesim.carracing.rank_sight --seeds 14700-14719 --out runs/rank --drivers 0,3 [--temperature 0.9]
 
 ``--out`` is a rank run's folder (its behaviour drives, ``drive_SEED.npz``, are read, and its
 ``drivers.json`` must name the same drivers; ``--report`` names the one file written). For each
 driver of the family (by index), each track and each start, the real window is driven again with
-its frames kept, and the dream's is
-dreamt as ``rank`` dreams it (``--weights`` the drivers, ``--world`` the world, the same noise
-seeds); every frame a driver read is measured (`sight`), and the report gives, over bins of
-``--every`` decisions, the share of decisions off the road (the real car's: no wheel on it; the
+its frames kept, and the dream's is dreamt as ``rank`` dreams it (``--weights`` the drivers,
+``--world`` the world, ``--judge`` its futures drawn by the judge's sampler, the same noise seeds);
+every frame a driver read is measured (`sight`), and the report gives, over bins of ``--every``
+decisions, the share of decisions off the road (the real car's: no wheel on it; the
 dream's: its reward head's chance), of frames with road in sight, of frames with road just ahead
 of the car, and of the off-road decisions' frames with road in sight. The real side adds
 ``head_on_real``: the world's reward head's off-road chance on the real window's own states (its
@@ -108,6 +108,7 @@ def main(argv=None) -> int:
     p.add_argument("--drivers", default="0", help="the family's drivers by index (family.FAMILY), e.g. 0,3,4")
     p.add_argument("--weights", help="the drivers' weight file, as the rank run's (default: the built-in model)")
     p.add_argument("--world", help="the world model's weight file (default: --weights)")
+    p.add_argument("--judge", action="store_true", help="the world's futures drawn by the built-in judge (Model.judge)")
     p.add_argument("--temperature", type=float, default=0.9, help="the dream's (0: the mean dream)")
     p.add_argument("--horizon", type=int, default=40)
     p.add_argument("--starts", type=int, default=7)
@@ -128,7 +129,8 @@ def main(argv=None) -> int:
         p.error(f"{args.out} has no behaviour drive of track {missing[0]}: run `python -m drivesim.carracing.rank` "
                 "with this --out and these --seeds first")
     driver_model = rank.load_model(p, "--weights", args.weights)
-    world_model = rank.load_model(p, "--world", args.world) if args.world else driver_model
+    world_model = rank.load_model(p, "--world" if args.world else "--judge", args.world or args.weights, args.judge) \
+        if args.world or args.judge else driver_model
     try:  # the behaviour drives hold these drivers' memory: another policy's would not do
         rank.check_drivers(args.out, rank.drivers_fingerprint(driver_model))
         for seed in args.seeds:
