@@ -96,3 +96,8 @@ fn mutated_driver_files_never_panic() {
     // Each mutation loads the small world again (and its fingerprint): fewer of them.
     assert!(smoke("drivers", 500, exercise::driver) > 0.03);
 }
+
+#[test]
+fn mutated_sampler_files_never_panic() {
+    assert!(smoke("samplers", 500, exercise::sampler) > 0.03);
+}

@@ -63,3 +63,21 @@ pub fn driver(bytes: &[u8]) -> bool {
     let _ = sim.act(&vec![0.5; c.z_dim], &vec![0.1; c.hidden_dim], &mut action);
     true
 }
+
+/// Loads `bytes` as a sampler file for the small fixture's world and, if that succeeds, samples
+/// once through its texture net. Returns whether it loaded.
+pub fn sampler(bytes: &[u8]) -> bool {
+    static WORLD: &[u8] = include_bytes!("../fixtures/small_f32.safetensors");
+    let Ok(model) = Model::from_bytes_with_sampler(WORLD, bytes) else {
+        return false;
+    };
+    let c = *model.config();
+    let Ok(mut sim) = Simulator::new(&model) else {
+        return false;
+    };
+    let mut z = vec![0.5; c.z_dim];
+    if sim.set_sampling(1.0, 3).is_ok() {
+        let _ = sim.sample(&vec![0.1; c.hidden_dim], 0, &mut z);
+    }
+    true
+}

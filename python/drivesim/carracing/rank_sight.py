@@ -124,6 +124,8 @@ def main(argv=None) -> int:
         p.error(f"--drivers: indices of family.FAMILY from 0 to {len(FAMILY) - 1}, e.g. 0,3, got {args.drivers!r}")
     if args.horizon < 1 or args.starts < 1 or args.every < 1 or not 0 <= args.temperature <= 100:
         p.error("--horizon, --starts and --every must be at least 1, --temperature from 0 to 100")
+    if args.judge and args.temperature == 0:
+        p.error("--judge needs --temperature above 0: the mean dream draws no futures")
     missing = [s for s in args.seeds if not os.path.exists(os.path.join(args.out, f"drive_{s}.npz"))]
     if missing:
         p.error(f"{args.out} has no behaviour drive of track {missing[0]}: run `python -m drivesim.carracing.rank` "
