@@ -79,6 +79,7 @@ pub use actions::ActionSpec;
 pub use config::Config;
 #[cfg(feature = "std")]
 pub use driver::driver_file;
+#[cfg(feature = "std")]
 pub use driver::sampler_file;
 pub use driver::world_fingerprint;
 pub use drivesim_kernels::{Isa, IsaLevel};
