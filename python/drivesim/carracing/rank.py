@@ -31,7 +31,7 @@ decision before's s)``, the drivers' memory with s: a diagnostic of the world's 
 ``--through-frames``: the drivers read the dream's frames through their encoder (150x slower).
 ``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
 ``--weights`` and step its transition for their own memory): a world model is judged without
-changing the drivers. ``--judge`` (with ``--temperature``, 1.2 is its own) draws the world's futures
+changing the drivers. ``--judge`` (with ``--temperature``, 1 is its own) draws the world's futures
 through the built-in judge's sampler (`Model.judge`, learnt for the default's world: docs/judging.md).
 ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another ``--family``'s with its name
 first; the behaviour drive in ``drive_SEED.npz``): a run that stops resumes where it was, and another
