@@ -13,7 +13,8 @@ fn world() -> Vec<u8> {
     with_texture(&std::fs::read(fixture_path("small_f32.safetensors")).unwrap(), 9, 20)
 }
 
-/// Three steps of sampled codes from fixed states at `temperature`, as bits.
+/// Three steps of the transition from fixed states, each next code its mean, or sampled at
+/// `temperature` above 0, as bits.
 fn futures(model: &Model, temperature: f32) -> Vec<u32> {
     let config = *model.config();
     let batch = 5;
@@ -21,14 +22,18 @@ fn futures(model: &Model, temperature: f32) -> Vec<u32> {
     if temperature > 0.0 {
         sim.set_sampling(temperature, 7).unwrap();
     }
-    let h = values(30, batch * config.hidden_dim, 0.8);
+    let mut h = values(30, batch * config.hidden_dim, 0.8);
+    let mut z = values(31, batch * config.z_dim, 1.0);
+    let actions: Vec<f32> = (0..batch).flat_map(|i| [20.0, i as f32 * 0.2 - 0.4]).collect();
     let mut out = Vec::new();
     for step in 0..3 {
-        let mut codes = values(31 + step, batch * config.z_dim, 1.0);
+        let mut next = vec![0.0; batch * config.z_dim];
+        sim.transition(&z, &mut h, &actions, &mut next).unwrap();
         if temperature > 0.0 {
-            sim.sample(&h, step, &mut codes).unwrap();
+            sim.sample(&h, step, &mut next).unwrap();
         }
-        out.extend(codes.iter().map(|v| v.to_bits()));
+        out.extend(next.iter().map(|v| v.to_bits()));
+        z = next;
     }
     out
 }

@@ -19,13 +19,21 @@ JUDGE = os.path.join(REPO, "weights", "judge.safetensors")
 
 
 def futures(model, temperature):
-    """Three steps of sampled codes from fixed states (the means where ``temperature`` is 0)."""
+    """Three steps of the transition from fixed states, each next code its mean (``temperature``
+    0) or sampled."""
     sim = drivesim.Simulator(model, batch=4)
     sim.set_sampling(temperature, 3)
     rng = np.random.default_rng(1)
     h = np.tanh(rng.standard_normal((4, model.hidden_dim))).astype(np.float32)
     z = rng.standard_normal((4, model.z_dim)).astype(np.float32)
-    return np.stack([sim.sample(h, step, z) if temperature > 0 else z for step in range(3)])
+    actions = np.stack([np.full(4, 20.0), np.linspace(-0.4, 0.4, 4)], 1).astype(np.float32)
+    out = []
+    for step in range(3):
+        z, h = sim.transition(z, h, actions)
+        if temperature > 0:
+            z = sim.sample(h, step, z)
+        out.append(z)
+    return np.stack(out)
 
 
 def retextured(path, out):
