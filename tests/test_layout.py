@@ -78,11 +78,25 @@ def broken_links(page):
     return out
 
 
+def repository_pages(root):
+    """The markdown files of the repository under ``root``: not those of build outputs or of
+    hidden folders (``.git``, a virtualenv such as ``weights/.venv`` and the packages in it)."""
+    return [p for p in root.rglob("*.md")
+            if not any(part in {"target", "node_modules"} or part.startswith(".") for part in p.relative_to(root).parts[:-1])]
+
+
 def test_markdown_links_lead_somewhere():
-    pages = [p for p in ROOT.rglob("*.md") if not {"target", ".git", "node_modules"} & set(p.parts)]
+    pages = repository_pages(ROOT)
     assert len(pages) > 10
     broken = [f"{p.relative_to(ROOT)}:{b}" for p in pages for b in broken_links(p)]
     assert broken == [], broken
+
+
+def test_pages_of_a_virtualenv_are_not_the_repository_s(tmp_path):
+    for page in ("README.md", "docs/a.md", "weights/.venv/lib/pkg/Privacy.md", "target/doc/b.md"):
+        (tmp_path / page).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / page).write_text("x\n")
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in repository_pages(tmp_path)) == ["README.md", "docs/a.md"]
 
 
 def test_a_broken_link_is_found(tmp_path):

@@ -13,7 +13,7 @@ import pytest
 from conftest import fixture
 
 import drivesim
-from drivesim.carracing import rank, rank_figures
+from drivesim.carracing import rank, rank_figures, rank_real
 from drivesim.carracing.family import FAMILY, SMALL, Driver
 
 
@@ -199,7 +199,7 @@ def test_spearman_and_regret():
 
 
 def test_a_window_cut_short_keeps_its_last_flag_to_the_horizon():
-    np.testing.assert_array_equal(rank.padded_to_horizon([[0, 1, 1, 0], [0, 1]], 4), [[0, 1, 1, 0], [0, 1, 1, 1]])
+    np.testing.assert_array_equal(rank_real.padded_to_horizon([[0, 1, 1, 0], [0, 1]], 4), [[0, 1, 1, 0], [0, 1, 1, 1]])
 
 
 def test_road_memory_is_the_correlation_step_by_step():
@@ -280,6 +280,13 @@ def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
         judged, own = json.load(f), json.load(g)
     assert judged["judge"] and not own["judge"] and judged["per_track"]["real"] == own["per_track"]["real"]
     assert judged["per_track"]["dream"] != own["per_track"]["dream"]
+    # The judge's world steps with its own steering gain unless told otherwise.
+    assert judged["world_steering"] == list(rank.JUDGE_STEERING) != [1.0, 0.0] and own["world_steering"] == [1.0, 0.0]
+    subprocess.run(_probe(whole, "--temperature", "1.2", "--judge", "--world-steering", "1", "--report", "plain.json"),
+                   check=True, capture_output=True, timeout=600)
+    with open(whole / "plain.json") as f:
+        plain = json.load(f)
+    assert plain["world_steering"] == [1.0, 0.0] and plain["per_track"]["dream"] != judged["per_track"]["dream"]
 
     # Killed once the first drives are kept, then run again: the same report.
     killed = tmp_path / "killed"
@@ -330,20 +337,20 @@ def test_real_drives_of_other_drivers_are_refused(tmp_path):
     from safetensors import safe_open
 
     default = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "weights", "default.safetensors")
-    built_in = rank.drivers_fingerprint(drivesim.Model.load())
-    assert built_in == rank.drivers_fingerprint(drivesim.Model.load(default))
+    built_in = rank_real.drivers_fingerprint(drivesim.Model.load())
+    assert built_in == rank_real.drivers_fingerprint(drivesim.Model.load(default))
     tensors = load_file(default)
     with safe_open(default, "np") as f:
         meta = f.metadata()
     tensors["policy.output.bias"] = tensors["policy.output.bias"] + np.float16(0.25)
     save_file(tensors, tmp_path / "other.safetensors", metadata=meta)
-    other = rank.drivers_fingerprint(drivesim.Model.load(tmp_path / "other.safetensors"))
+    other = rank_real.drivers_fingerprint(drivesim.Model.load(tmp_path / "other.safetensors"))
     assert other != built_in
 
-    rank.check_drivers(str(tmp_path), built_in)
-    rank.check_drivers(str(tmp_path), built_in)  # the same drivers: the folder is theirs
+    rank_real.check_drivers(str(tmp_path), built_in)
+    rank_real.check_drivers(str(tmp_path), built_in)  # the same drivers: the folder is theirs
     with pytest.raises(ValueError, match="other drivers"):
-        rank.check_drivers(str(tmp_path), other)
+        rank_real.check_drivers(str(tmp_path), other)
     run = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "1", "--out", str(tmp_path),
                           "--weights", str(tmp_path / "other.safetensors")], capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and "holds the real drives of other drivers" in run.stderr, run.stderr

@@ -16,11 +16,13 @@ steering noise is seeded as the dream's row for the same driver and start.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 
 import numpy as np
 
+from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from .family import ChangedAgent
 from .record import decision, wheel_on_road
@@ -141,3 +143,37 @@ def window_job(job) -> dict:
     with atomic_write(path) as f:
         f.write(json.dumps(out).encode())
     return out
+
+
+def padded_to_horizon(windows: list, horizon: int) -> np.ndarray:
+    """A real window's off-road flags (or inputs), ``(windows, horizon, ...)``: a window the
+    episode's end cut short keeps its last to the horizon (the car stays where it ended)."""
+    return np.array([w + w[-1:] * (horizon - len(w)) for w in windows], float)
+
+
+def drivers_fingerprint(model: Model) -> str:
+    """A hash of what the drivers of ``model`` answer to fixed inputs (their policy and pace, and
+    their transition's step): the same for the same drivers, whatever the thread count, and for
+    the built-in default, which has no file to hash."""
+    sim, rng = Simulator(model), np.random.default_rng(0)
+    z = rng.standard_normal((1, model.z_dim)).astype(np.float32)
+    h = np.tanh(rng.standard_normal((1, model.hidden_dim))).astype(np.float32)
+    answers = [sim.act(z, h), *sim.transition(z[0], h[0], np.array([30.0, 0.1], np.float32))]
+    if model.pace_width is not None:
+        answers.append(sim.pace(z, h))
+    return hashlib.sha256(b"".join(np.asarray(a, np.float32).tobytes() for a in answers)).hexdigest()
+
+
+def check_drivers(out: str, fingerprint: str) -> None:
+    """Keeps ``fingerprint`` in ``out/drivers.json``, or raises ValueError where the folder
+    holds another drivers' real drives."""
+    path = os.path.join(out, "drivers.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            kept = json.load(f).get("fingerprint")
+        if kept != fingerprint:
+            raise ValueError(f"{out} holds the real drives of other drivers (another --weights, or another "
+                             f"built-in default): give another --out")
+        return
+    with atomic_write(path) as f:
+        f.write(json.dumps({"fingerprint": fingerprint}).encode())

@@ -9,7 +9,8 @@ its edge, with the road in sight; a dream whose roads end leaves its car in a fi
 ``drivers.json`` must name the same drivers; ``--report`` names the one file written). For each
 driver of the family (by index), each track and each start, the real window is driven again with
 its frames kept, and the dream's is dreamt as ``rank`` dreams it (``--weights`` the drivers,
-``--world`` the world, ``--judge`` its futures drawn by the judge's sampler, the same noise seeds);
+``--world`` the world, ``--judge`` its futures drawn by the judge's sampler and its steering
+`rank.JUDGE_STEERING`, the same noise seeds);
 every frame a driver read is measured (`sight`), and the report gives, over bins of ``--every``
 decisions, the share of decisions off the road (the real car's: no wheel on it; the
 dream's: its reward head's chance), of frames with road in sight, of frames with road just ahead
@@ -75,8 +76,10 @@ def real_windows(drive: dict, seed: int, index: int, args, world: Simulator, sta
     for j, (_, flags, inputs, seen) in enumerate(windows):
         frames = np.stack(seen)
         in_sight, ahead = sight(frames)
-        head = head_on_frames(world, frames, np.array(inputs, np.float32), starts["h_world"][j])
-        out.append(rank.padded_to_horizon([[float(f) for f in flags], in_sight.tolist(), ahead.tolist(), head.tolist()],
+        inputs = np.array(inputs, np.float32)  # the world steps with the steering as a dream does
+        before = np.concatenate([starts["previous"][j:j + 1], inputs[:-1, 1]])
+        head = head_on_frames(world, frames, rank.world_steering(inputs, before, args.world_steering), starts["h_world"][j])
+        out.append(rank_real.padded_to_horizon([[float(f) for f in flags], in_sight.tolist(), ahead.tolist(), head.tolist()],
                                           args.horizon))
     return np.stack(out, 1)
 
@@ -108,7 +111,8 @@ def main(argv=None) -> int:
     p.add_argument("--drivers", default="0", help="the family's drivers by index (family.FAMILY), e.g. 0,3,4")
     p.add_argument("--weights", help="the drivers' weight file, as the rank run's (default: the built-in model)")
     p.add_argument("--world", help="the world model's weight file (default: --weights)")
-    p.add_argument("--judge", action="store_true", help="the world's futures drawn by the built-in judge (Model.judge)")
+    p.add_argument("--judge", action="store_true",
+                   help="the world's futures drawn by the built-in judge (Model.judge), stepped as `rank --judge` does")
     p.add_argument("--temperature", type=float, default=0.9, help="the dream's (0: the mean dream)")
     p.add_argument("--horizon", type=int, default=40)
     p.add_argument("--starts", type=int, default=7)
@@ -134,13 +138,14 @@ def main(argv=None) -> int:
     world_model = rank.load_model(p, "--world" if args.world else "--judge", args.world or args.weights, args.judge) \
         if args.world or args.judge else driver_model
     try:  # the behaviour drives hold these drivers' memory: another policy's would not do
-        rank.check_drivers(args.out, rank.drivers_fingerprint(driver_model))
+        rank_real.check_drivers(args.out, rank_real.drivers_fingerprint(driver_model))
         for seed in args.seeds:
             with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
                 rank.window_starts({k: f[k] for k in ("first", "speed")}, args.starts, args.horizon)
     except (OSError, ValueError, KeyError) as e:
         p.error(f"{args.out}: {e}")
     family = [FAMILY[i] for i in drivers]
+    args.world_steering = rank.JUDGE_STEERING if args.judge else (1.0, 0.0)  # as `rank --judge` dreams
     batch = len(family) * args.starts
     driver, world = Simulator(driver_model, batch=batch), Simulator(world_model, batch=batch)
     if args.temperature > 0:
@@ -149,12 +154,13 @@ def main(argv=None) -> int:
     for seed in args.seeds:
         with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
             drive = {k: f[k] for k in f.files}
-        starts = rank.starts_of(drive, world, world_model.hidden_dim, args.starts, args.horizon)
+        starts = rank.starts_of(drive, world, world_model.hidden_dim, args.starts, args.horizon, args.world_steering)
         for i, index in enumerate(drivers):
             real[i].append(real_windows(drive, seed, index, args, world, starts))
         first = world.reward(*(rank.tiled(starts[k], len(family)) for k in ("z", "h_world")))[:, 1]
         shown = []
-        steps = rank.dream(driver, world, family, starts, args.horizon, seed, False, frames=shown)["off_steps"]
+        steps = rank.dream(driver, world, family, starts, args.horizon, seed, False, args.world_steering,
+                           frames=shown)["off_steps"]
         # The off-road chance of the state each frame shows: the start's, then each step's.
         off = np.concatenate([first.reshape(len(family), args.starts, 1), steps[:, :, :-1]], 2)
         seen = np.stack([np.stack(sight(frames)) for frames in shown], 2)  # (2, drivers * starts, horizon)
