@@ -70,7 +70,7 @@ from .view import parse_seeds
 
 # The judge's world steps with each steering 1.2x: the default's transition answers the wheel short
 # of the real car (probe-real: 0.82-1.06x in 5 steps), so the late and unsteady hands stayed on
-# its road; 1.2 chosen on the tuning tracks 15600-15619 (docs/judging.md, "The judge's wheel").
+# its road; 1.2 chosen on the tuning tracks 15600-15619 (docs/history/judge_wheel.md).
 JUDGE_STEERING = (1.2, 0.0)
 
 

@@ -10,7 +10,8 @@ drive's actions replayed up to the start (CarRacing is deterministic: the same a
 same seed give the same car, frame for frame, which the tests check), the driver takes over
 with the behaviour drive's hidden state there, and drives ``horizon`` decisions. Each window
 gives the env's reward summed and the share of its decisions with no wheel on the road; its
-steering noise is seeded as the dream's row for the same driver and start.
+steering noise is seeded as the dream's row for the same driver and start. A folder's real drives
+are one family's: `check_drivers` keeps `drivers_fingerprint` of the drivers that drove them.
 """
 
 from __future__ import annotations
