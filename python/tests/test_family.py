@@ -78,3 +78,19 @@ def test_the_unchanged_driver_drives_as_the_clone():
         np.testing.assert_array_equal(a, unchanged.act(frame, speed))
         steer_gap.append(biased.act(frame, speed)[0] - a[0])
     assert steer_gap[0] == 0 and max(steer_gap) > 0  # the warm-up drives straight, then the bias shows
+
+
+def test_no_driver_of_the_check_family_is_one_of_another_family_s():
+    from drivesim.carracing import failures
+
+    def changes(driver):
+        return {(field, getattr(driver, field)) for field in ("gain", "bias", "speed", "noise", "delay", "holds", "release")
+                if getattr(driver, field) != getattr(family.Driver("clone"), field)}
+
+    others = [d for f in (family.FAMILY, family.HOLDS) for d in f] + [d for make in failures.FAMILIES.values() for d in make()]
+    used = {frozenset(changes(d)) for d in others}
+    check = family.FAMILIES["check"]
+    assert check[0] == family.FAMILY[0] and len(check) >= 16
+    assert len({d.name for d in check}) == len(check)
+    for driver in check[1:]:
+        assert changes(driver) and frozenset(changes(driver)) not in used, driver.name

@@ -64,7 +64,23 @@ SMALL = [FAMILY[0], FAMILY[5], FAMILY[6]]
 #: hands off the wheel from the start, whether it does when the road bends and nobody steers.
 HOLDS = [FAMILY[0]] + [Driver(f"hold {b:+.2f}", gain=0.0, bias=b) for b in (-0.5, -0.25, -0.1, 0.1, 0.25, 0.5)] \
     + [Driver("hands off", gain=0.0)]
-FAMILIES = {"all": FAMILY, "small": SMALL, "holds": HOLDS}
+#: A second family, for checking a world tuned on ``FAMILY``: none of its drivers is one of the
+#: probe's families or of the failure data's (``failures``); a hold and a release of the wheel are
+#: among them, and the same spread of quality.
+CHECK = [
+    FAMILY[0],
+    Driver("gain 0.7", gain=0.7), Driver("gain 2.2", gain=2.2),
+    Driver("bias +0.15", bias=0.15), Driver("bias +0.25", bias=0.25), Driver("bias -0.25", bias=-0.25),
+    Driver("speed 0.85", speed=0.85), Driver("speed 1.1", speed=1.1),
+    Driver("noise 0.15", noise=0.15), Driver("noise 0.6", noise=0.6),
+    Driver("holds 0.4", holds=0.4), Driver("release 7", release=7),
+    Driver("gain 0.7, bias +0.1", gain=0.7, bias=0.1),
+    Driver("noise 0.4, delay 1", noise=0.4, delay=1),
+    Driver("speed 1.2, bias -0.1", speed=1.2, bias=-0.1),
+    Driver("gain 1.8, speed 0.8", gain=1.8, speed=0.8),
+    Driver("delay 2, noise 0.2", delay=2, noise=0.2),
+]
+FAMILIES = {"all": FAMILY, "small": SMALL, "holds": HOLDS, "check": CHECK}
 
 
 class Changes:

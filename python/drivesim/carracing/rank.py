@@ -62,7 +62,7 @@ from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from .agents import ClonedAgent
 from .control import speed_after
-from .family import FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Changes, Driver
+from .family import CHECK, FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Changes, Driver
 from . import rank_real
 from .rank_figures import made_up_roads, print_report, road_memory, summary
 from .view import parse_seeds
@@ -355,7 +355,8 @@ def main(argv=None) -> int:
                         "(the drivers' memory steps with s); default 1, with --judge JUDGE_STEERING's 1.2")
     p.add_argument("--family", choices=list(FAMILIES), default="all",
                    help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests); holds: the clone and "
-                        f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20)")
+                        f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20); "
+                        f"check: {len(CHECK)} other drivers, none of them another family's (a second family for a world tuned on all)")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
     p.add_argument("--starts", type=int, default=7, help="starts per track")
     p.add_argument("--temperature", type=float, default=0.0, help="sampled futures (0: the mean dream)")
