@@ -272,21 +272,23 @@ def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
         sampled = json.load(f)
     assert sampled["futures"] == 3 and all(d["dream_spread"] >= 0 for d in sampled["drivers"])
     # The judge's futures: the same real drives, another dream.
-    subprocess.run(_probe(whole, "--temperature", "1.2", "--judge", "--report", "judge.json"), check=True,
-                   capture_output=True, timeout=600)
+    subprocess.run(_probe(whole, "--judge", "--report", "judge.json"), check=True, capture_output=True, timeout=600)
     subprocess.run(_probe(whole, "--temperature", "1.2", "--report", "own.json"), check=True, capture_output=True,
                    timeout=600)
     with open(whole / "judge.json") as f, open(whole / "own.json") as g:
         judged, own = json.load(f), json.load(g)
     assert judged["judge"] and not own["judge"] and judged["per_track"]["real"] == own["per_track"]["real"]
     assert judged["per_track"]["dream"] != own["per_track"]["dream"]
-    # The judge's world steps with its own steering gain unless told otherwise.
+    # The judge dreams with its own settings unless told otherwise.
     assert judged["world_steering"] == list(rank.JUDGE_STEERING) != [1.0, 0.0] and own["world_steering"] == [1.0, 0.0]
-    subprocess.run(_probe(whole, "--temperature", "1.2", "--judge", "--world-steering", "1", "--report", "plain.json"),
-                   check=True, capture_output=True, timeout=600)
+    assert (judged["temperature"], judged["futures"]) == (rank.JUDGE_TEMPERATURE, rank.JUDGE_FUTURES) != (1.2, 1)
+    assert (own["temperature"], own["futures"]) == (1.2, 1)
+    subprocess.run(_probe(whole, "--temperature", "1.2", "--judge", "--world-steering", "1", "--futures", "1",
+                          "--report", "plain.json"), check=True, capture_output=True, timeout=600)
     with open(whole / "plain.json") as f:
         plain = json.load(f)
-    assert plain["world_steering"] == [1.0, 0.0] and plain["per_track"]["dream"] != judged["per_track"]["dream"]
+    assert (plain["world_steering"], plain["temperature"], plain["futures"]) == ([1.0, 0.0], 1.2, 1)
+    assert plain["per_track"]["dream"] != judged["per_track"]["dream"]
 
     # Killed once the first drives are kept, then run again: the same report.
     killed = tmp_path / "killed"
@@ -321,7 +323,8 @@ def test_several_futures_of_the_mean_dream_are_refused(tmp_path):
     assert run.returncode == 2 and "--futures above 1 needs --temperature" in run.stderr, run.stderr
     assert not (tmp_path / "out").exists()
     judge = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "1", "--out",
-                            str(tmp_path / "out"), "--judge"], capture_output=True, text=True, timeout=120)
+                            str(tmp_path / "out"), "--judge", "--temperature", "0"], capture_output=True, text=True,
+                           timeout=120)
     assert judge.returncode == 2 and "--judge needs --temperature" in judge.stderr, judge.stderr
     other = subprocess.run([sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "1", "--out",
                             str(tmp_path / "out"), "--judge", "--temperature", "1", "--world",

@@ -31,9 +31,10 @@ decision before's s)``, the drivers' memory with s: a diagnostic of the world's 
 ``--through-frames``: the drivers read the dream's frames through their encoder (150x slower).
 ``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
 ``--weights`` and step its transition for their own memory): a world model is judged without
-changing the drivers. ``--judge`` (with ``--temperature``, 1 is its own) draws the world's futures
-through the built-in judge's sampler (`Model.judge`, learnt for the default's world), its world
-stepped with `JUDGE_STEERING` unless ``--world-steering`` says otherwise (docs/judging.md).
+changing the drivers. ``--judge`` draws the world's futures through the built-in judge's sampler
+(`Model.judge`, learnt for the default's world) with its settings, `JUDGE_STEERING`,
+`JUDGE_TEMPERATURE` and `JUDGE_FUTURES`, unless ``--world-steering``, ``--temperature`` or
+``--futures`` say otherwise (docs/judging.md).
 ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another ``--family``'s with its name
 first; the behaviour drive in ``drive_SEED.npz``): a run that stops resumes where it was, and another
 ``--world`` or ``--horizon`` reuses the real drives; the report goes to ``rank.json`` (``--report``:
@@ -68,10 +69,12 @@ from .rank_figures import made_up_roads, print_report, road_memory, summary
 from .view import parse_seeds
 
 
-# The judge's world steps with each steering 1.2x: the default's transition answers the wheel short
-# of the real car (probe-real: 0.82-1.06x in 5 steps), so the late and unsteady hands stayed on
-# its road; 1.2 chosen on the tuning tracks 15600-15619 (docs/history/judge_wheel.md).
-JUDGE_STEERING = (1.2, 0.0)
+# The judge's settings, chosen on the tuning tracks 15600-15619 (docs/history/judge_wheel.md): its
+# world steps with each steering GAIN x (the default's transition answers the wheel short of the
+# real car: probe-real 0.82-1.06x in 5 steps), at a temperature below 1 (hotter futures take a car
+# with a steady pull off the road sooner than the real one leaves), and its figures are the means of
+# four futures (one draw moves a driver's dreamt off-road share by up to 0.1).
+JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.4, 0.0), 0.8, 4
 
 
 def start_decisions(decisions: int, starts: int, horizon: int, warmup: int) -> list:
@@ -352,17 +355,18 @@ def main(argv=None) -> int:
     p.add_argument("--judge", action="store_true", help="the world's futures drawn by the built-in judge (Model.judge)")
     p.add_argument("--world-steering", type=shaping, metavar="GAIN[,LEAD]",
                    help="the world steps with GAIN * s + LEAD * (s - the decision before's s) for each steering s "
-                        "(the drivers' memory steps with s); default 1, with --judge JUDGE_STEERING's 1.2")
+                        "(the drivers' memory steps with s); default 1, with --judge JUDGE_STEERING")
     p.add_argument("--family", choices=list(FAMILIES), default="all",
                    help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests); holds: the clone and "
                         f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20); "
                         f"check: {len(CHECK)} other drivers, none of them another family's (a second family for a world tuned on all)")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
     p.add_argument("--starts", type=int, default=7, help="starts per track")
-    p.add_argument("--temperature", type=float, default=0.0, help="sampled futures (0: the mean dream)")
-    p.add_argument("--futures", type=int, default=1,
+    p.add_argument("--temperature", type=float,
+                   help="sampled futures (0: the mean dream, the default; with --judge JUDGE_TEMPERATURE)")
+    p.add_argument("--futures", type=int,
                    help="sampled futures from each start (with --temperature): the dream's figures their means, "
-                        "and each driver's spread over them reported")
+                        "and each driver's spread over them reported (default 1; with --judge JUDGE_FUTURES)")
     p.add_argument("--value", action="store_true", help="add the value head at the horizon")
     p.add_argument("--through-frames", action="store_true",
                    help="the drivers read the dream's frames through their encoder (as a real drive), not its codes")
@@ -373,15 +377,17 @@ def main(argv=None) -> int:
                    help="also drive every driver in the real env from the dream's starts, --horizon decisions")
     p.add_argument("--report", default="rank.json", help="the report's file name in --out")
     args = p.parse_args(argv)
-    if args.world_steering is None:
-        args.world_steering = JUDGE_STEERING if args.judge else (1.0, 0.0)
+    for name, judge, own in (("world_steering", JUDGE_STEERING, (1.0, 0.0)), ("temperature", JUDGE_TEMPERATURE, 0.0),
+                             ("futures", JUDGE_FUTURES, 1)):
+        if getattr(args, name) is None:
+            setattr(args, name, judge if args.judge else own)
     if min(args.horizon, args.starts, args.frames, args.workers, args.threads, args.futures) < 1 \
             or not args.temperature >= 0:
         p.error("--horizon, --starts, --frames, --workers, --threads and --futures must be positive, --temperature >= 0")
-    if args.futures > 1 and args.temperature == 0:
-        p.error("--futures above 1 needs --temperature above 0: the mean dream has one future")
     if args.judge and args.temperature == 0:
         p.error("--judge needs --temperature above 0: the mean dream draws no futures")
+    if args.futures > 1 and args.temperature == 0:
+        p.error("--futures above 1 needs --temperature above 0: the mean dream has one future")
     try:
         start_decisions(args.frames // ClonedAgent.frame_skip, args.starts, args.horizon, ClonedAgent.warmup)
     except ValueError as e:

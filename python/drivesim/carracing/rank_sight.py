@@ -10,7 +10,7 @@ its edge, with the road in sight; a dream whose roads end leaves its car in a fi
 driver of the family (by index), each track and each start, the real window is driven again with
 its frames kept, and the dream's is dreamt as ``rank`` dreams it (``--weights`` the drivers,
 ``--world`` the world, ``--judge`` its futures drawn by the judge's sampler and its steering
-`rank.JUDGE_STEERING`, the same noise seeds);
+`rank.JUDGE_STEERING` at `rank.JUDGE_TEMPERATURE`, one future, the same noise seeds);
 every frame a driver read is measured (`sight`), and the report gives, over bins of ``--every``
 decisions, the share of decisions off the road (the real car's: no wheel on it; the
 dream's: its reward head's chance), of frames with road in sight, of frames with road just ahead
@@ -113,7 +113,8 @@ def main(argv=None) -> int:
     p.add_argument("--world", help="the world model's weight file (default: --weights)")
     p.add_argument("--judge", action="store_true",
                    help="the world's futures drawn by the built-in judge (Model.judge), stepped as `rank --judge` does")
-    p.add_argument("--temperature", type=float, default=0.9, help="the dream's (0: the mean dream)")
+    p.add_argument("--temperature", type=float,
+                   help="the dream's (0: the mean dream; default 0.9, with --judge rank.JUDGE_TEMPERATURE)")
     p.add_argument("--horizon", type=int, default=40)
     p.add_argument("--starts", type=int, default=7)
     p.add_argument("--every", type=int, default=10, help="decisions a bin of the report")
@@ -126,6 +127,8 @@ def main(argv=None) -> int:
             raise ValueError
     except ValueError:
         p.error(f"--drivers: indices of family.FAMILY from 0 to {len(FAMILY) - 1}, e.g. 0,3, got {args.drivers!r}")
+    if args.temperature is None:
+        args.temperature = rank.JUDGE_TEMPERATURE if args.judge else 0.9
     if args.horizon < 1 or args.starts < 1 or args.every < 1 or not 0 <= args.temperature <= 100:
         p.error("--horizon, --starts and --every must be at least 1, --temperature from 0 to 100")
     if args.judge and args.temperature == 0:
