@@ -84,10 +84,11 @@ def test_no_driver_of_the_check_family_is_one_of_another_family_s():
     from drivesim.carracing import failures
 
     def changes(driver):
-        return {(field, getattr(driver, field)) for field in ("gain", "bias", "speed", "noise", "delay", "holds", "release")
-                if getattr(driver, field) != getattr(family.Driver("clone"), field)}
+        fields = ("gain", "bias", "speed", "noise", "delay", "holds", "release")
+        return {(f, getattr(driver, f)) for f in fields if getattr(driver, f) != getattr(family.Driver("clone"), f)}
 
-    others = [d for f in (family.FAMILY, family.HOLDS) for d in f] + [d for make in failures.FAMILIES.values() for d in make()]
+    others = [d for f in (family.FAMILY, family.HOLDS) for d in f]
+    others += [d for make in failures.FAMILIES.values() for d in make()]
     used = {frozenset(changes(d)) for d in others}
     check = family.FAMILIES["check"]
     assert check[0] == family.FAMILY[0] and len(check) >= 16

@@ -359,7 +359,8 @@ def main(argv=None) -> int:
     p.add_argument("--family", choices=list(FAMILIES), default="all",
                    help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests); holds: the clone and "
                         f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20); "
-                        f"check: {len(CHECK)} other drivers, none of them another family's (a second family for a world tuned on all)")
+                        f"check: {len(CHECK)} other drivers, none of them another family's "
+                        "(a second family, for a world tuned on all)")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
     p.add_argument("--starts", type=int, default=7, help="starts per track")
     p.add_argument("--temperature", type=float,
