@@ -73,8 +73,8 @@ from .view import parse_seeds
 # world steps with each steering GAIN x (the default's transition answers the wheel short of the
 # real car: probe-real 0.82-1.06x in 5 steps), at a temperature below 1 (hotter futures take a car
 # with a steady pull off the road sooner than the real one leaves), and its figures are the means of
-# four futures (one draw moves a driver's dreamt off-road share by up to 0.1).
-JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.4, 0.0), 0.8, 4
+# 16 futures (with 4 a driver's dreamt off-road share still moves by 0.05 from one draw to another).
+JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.4, 0.0), 0.7, 16
 
 
 def start_decisions(decisions: int, starts: int, horizon: int, warmup: int) -> list:
