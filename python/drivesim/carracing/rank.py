@@ -77,6 +77,15 @@ from .view import parse_seeds
 JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.4, 0.0), 0.7, 16
 
 
+def dream_settings(args, own: dict) -> None:
+    """Sets each of the dream's settings ``own`` names (``world_steering``, ``temperature``,
+    ``futures``) that the command line left unset: the judge's with ``--judge``, else ``own``'s."""
+    judge = {"world_steering": JUDGE_STEERING, "temperature": JUDGE_TEMPERATURE, "futures": JUDGE_FUTURES}
+    for name, value in own.items():
+        if getattr(args, name, None) is None:
+            setattr(args, name, judge[name] if args.judge else value)
+
+
 def start_decisions(decisions: int, starts: int, horizon: int, warmup: int) -> list:
     """Evenly spaced decisions of a drive ``decisions`` long, after the warm-up, each at least
     ``horizon`` before the end (a lap finished early ends the drive early)."""
@@ -378,10 +387,7 @@ def main(argv=None) -> int:
                    help="also drive every driver in the real env from the dream's starts, --horizon decisions")
     p.add_argument("--report", default="rank.json", help="the report's file name in --out")
     args = p.parse_args(argv)
-    for name, judge, own in (("world_steering", JUDGE_STEERING, (1.0, 0.0)), ("temperature", JUDGE_TEMPERATURE, 0.0),
-                             ("futures", JUDGE_FUTURES, 1)):
-        if getattr(args, name) is None:
-            setattr(args, name, judge if args.judge else own)
+    dream_settings(args, {"world_steering": (1.0, 0.0), "temperature": 0.0, "futures": 1})
     if min(args.horizon, args.starts, args.frames, args.workers, args.threads, args.futures) < 1 \
             or not args.temperature >= 0:
         p.error("--horizon, --starts, --frames, --workers, --threads and --futures must be positive, --temperature >= 0")

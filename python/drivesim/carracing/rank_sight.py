@@ -127,8 +127,7 @@ def main(argv=None) -> int:
             raise ValueError
     except ValueError:
         p.error(f"--drivers: indices of family.FAMILY from 0 to {len(FAMILY) - 1}, e.g. 0,3, got {args.drivers!r}")
-    if args.temperature is None:
-        args.temperature = rank.JUDGE_TEMPERATURE if args.judge else 0.9
+    rank.dream_settings(args, {"world_steering": (1.0, 0.0), "temperature": 0.9})  # one future, as `rank`'s first
     if args.horizon < 1 or args.starts < 1 or args.every < 1 or not 0 <= args.temperature <= 100:
         p.error("--horizon, --starts and --every must be at least 1, --temperature from 0 to 100")
     if args.judge and args.temperature == 0:
@@ -148,7 +147,6 @@ def main(argv=None) -> int:
     except (OSError, ValueError, KeyError) as e:
         p.error(f"{args.out}: {e}")
     family = [FAMILY[i] for i in drivers]
-    args.world_steering = rank.JUDGE_STEERING if args.judge else (1.0, 0.0)  # as `rank --judge` dreams
     batch = len(family) * args.starts
     driver, world = Simulator(driver_model, batch=batch), Simulator(world_model, batch=batch)
     if args.temperature > 0:
