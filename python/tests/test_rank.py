@@ -198,6 +198,21 @@ def test_spearman_and_regret():
     assert s["off_road_gap"] == pytest.approx(0.25)
 
 
+def test_a_dreamt_pull_is_read_as_the_real_pull_that_leaves_the_road_as_often():
+    family = [Driver("clone"), Driver("+0.2", bias=0.2), Driver("+0.3", bias=0.3), Driver("-0.2", bias=-0.2),
+              Driver("+0.2 fast", bias=0.2, speed=1.2)]
+    real = np.array([0.0, 0.1, 0.7, 0.3, 0.5])
+    dreamt = np.array([0.0, 0.4, 0.9, 0.15, 0.9])
+    pulls = {p["driver"]: p for p in rank_figures.equivalent_pulls(family, real, dreamt)}
+    assert set(pulls) == {"+0.2", "+0.3", "-0.2"}  # the fast pull changes two things: not on the curve
+    assert pulls["+0.2"]["equivalent"] == pytest.approx(0.25)  # 0.4 is halfway from 0.1 at +0.2 to 0.7 at +0.3
+    assert pulls["+0.3"]["equivalent"] is None  # beyond the strongest real pull's share
+    assert pulls["-0.2"]["equivalent"] == pytest.approx(-0.1)  # the clone's 0 at 0, 0.3 at -0.2
+    flat = rank_figures.equivalent_pulls(family[:3], np.array([0.05, 0.05, 0.7]), np.array([0.0, 0.05, 0.7]))
+    assert flat[0]["equivalent"] == pytest.approx(0.2)  # on a flat stretch, the point nearest its own pull
+    assert rank_figures.equivalent_pulls(family[:1], real[:1], dreamt[:1]) == []
+
+
 def test_a_window_cut_short_keeps_its_last_flag_to_the_horizon():
     np.testing.assert_array_equal(rank_real.padded_to_horizon([[0, 1, 1, 0], [0, 1]], 4), [[0, 1, 1, 0], [0, 1, 1, 1]])
 

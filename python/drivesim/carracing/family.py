@@ -80,7 +80,11 @@ CHECK = [
     Driver("gain 1.8, speed 0.8", gain=1.8, speed=0.8),
     Driver("delay 2, noise 0.2", delay=2, noise=0.2),
 ]
-FAMILIES = {"all": FAMILY, "small": SMALL, "holds": HOLDS, "check": CHECK}
+#: Steady pulls either side of where the clone can no longer hold them (the real car's share off
+#: the road rises from about 0.1 to 0.7 between +0.2 and +0.25): the curve that reads a dreamt share
+#: as the pull that leaves the real road as often (``rank_figures.equivalent_pulls``).
+CLIFF = [FAMILY[0]] + [Driver(f"bias {b:+.3g}", bias=b) for b in (-0.25, -0.2, -0.15, 0.15, 0.175, 0.2, 0.225, 0.25)]
+FAMILIES = {"all": FAMILY, "small": SMALL, "holds": HOLDS, "check": CHECK, "cliff": CLIFF}
 
 
 class Changes:

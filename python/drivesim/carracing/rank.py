@@ -63,7 +63,7 @@ from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from .agents import ClonedAgent
 from .control import speed_after
-from .family import CHECK, FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Changes, Driver
+from .family import CHECK, CLIFF, FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Changes, Driver
 from . import rank_real
 from .rank_figures import made_up_roads, print_report, road_memory, summary
 from .view import parse_seeds
@@ -369,7 +369,8 @@ def main(argv=None) -> int:
                    help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests); holds: the clone and "
                         f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20); "
                         f"check: {len(CHECK)} other drivers, none of them another family's "
-                        "(a second family, for a world tuned on all)")
+                        "(a second family, for a world tuned on all); cliff: the clone and "
+                        f"{len(CLIFF) - 1} steady pulls either side of where it lets go")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
     p.add_argument("--starts", type=int, default=7, help="starts per track")
     p.add_argument("--temperature", type=float,

@@ -9,6 +9,8 @@ from dataclasses import asdict
 
 import numpy as np
 
+from .family import Driver
+
 # Decisions the dream knows the real road for (the view's reach: docs/judging.md); the unchanged
 # driver's steering after them is on roads the dream makes up.
 MEMORY = 10
@@ -63,6 +65,37 @@ def made_up_roads(dreamt: np.ndarray, real: np.ndarray, after: int = MEMORY) -> 
                 dream_change=float(np.abs(np.diff(a, axis=1)).mean()), real_change=float(np.abs(np.diff(b, axis=1)).mean()))
 
 
+def equivalent_pulls(family: list, real_off: np.ndarray, dream_off: np.ndarray) -> list:
+    """For each driver of ``family`` whose one change is a steady pull (``bias``): the pull at
+    which the real car is off the road as often as the dream has this driver off (``real_off``,
+    ``dream_off``: each driver's mean share), read off the real curve of the family's pulls on that
+    side, the unchanged driver at 0 (linear between them, made non-decreasing). Near a cliff the
+    real share jumps with a hundredth of steering, and a gap in shares says little; a gap in pulls
+    says how far early or late the dream lets go (docs/judging.md). ``equivalent`` is None where the
+    dreamt share is beyond the real curve's ends. Empty for a family with no pulls."""
+    pulls = {i: d.bias for i, d in enumerate(family) if d == Driver(d.name, bias=d.bias)}
+    out = []
+    for side in (1.0, -1.0):
+        points = sorted((abs(b), real_off[i]) for i, b in pulls.items() if b * side >= 0)
+        x = np.array([p[0] for p in points])
+        curve = np.maximum.accumulate([p[1] for p in points])
+        for i, b in pulls.items():
+            if b * side <= 0 or len(x) < 2:
+                continue
+            found = None
+            for j in range(len(x) - 1):  # every point of the curve at the dreamt share; the nearest
+                lo, hi, d = curve[j], curve[j + 1], dream_off[i]
+                if not lo <= d <= hi:
+                    continue
+                at = np.clip(abs(b), x[j], x[j + 1]) if lo == hi else x[j] + (d - lo) / (hi - lo) * (x[j + 1] - x[j])
+                if found is None or abs(at - abs(b)) < abs(found - abs(b)):
+                    found = float(at)
+            out.append({"driver": family[i].name, "pull": float(b), "real_off_road": float(real_off[i]),
+                        "dream_off_road": float(dream_off[i]),
+                        "equivalent": None if found is None else side * found})
+    return out
+
+
 def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.ndarray, dream_off: np.ndarray,
             spread: np.ndarray | None = None) -> dict:
     """The figures of the report from ``(drivers, tracks)`` arrays of real scores and off-road
@@ -83,6 +116,7 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
         "pearson": pearson(dream_mean, real_mean),
         "off_road_gap": float(np.abs(dream_off.mean(1) - real_off.mean(1)).max()),
         "favourite": family[favourite].name,
+        "pulls": equivalent_pulls(family, real_off.mean(1), dream_off.mean(1)),
         "drivers": [{"driver": asdict(d), "real": float(real_mean[i]), "real_sd": float(real[i].std()),
                      "real_off_road": float(real_off[i].mean()), "dream": float(dream_mean[i]),
                      "dream_off_road": float(dream_off[i].mean())} for i, d in enumerate(family)],
@@ -104,6 +138,17 @@ def doubt(figures: dict) -> str:
     if "doubt_against_error" in figures:
         return f"; the futures' spread against the dream's error in ranks: Pearson {figures['doubt_against_error']:+.2f}"
     return ""
+
+
+def print_pulls(pulls: list) -> None:
+    """The steady pulls' lines: each dreamt share as the pull the real car needs for it."""
+    if pulls:
+        print("\nsteady pulls, the dream's share of decisions off the road read as the pull that takes the real car "
+              "off as often:")
+    for p in pulls:
+        e = p["equivalent"]
+        said = "beyond the real pulls'" if e is None else f"the real car's at {e:+.3f} ({e - p['pull']:+.3f})"
+        print(f"{p['driver']:24} dreamt off the road {p['dream_off_road']:.0%} (real {p['real_off_road']:.0%}): {said}")
 
 
 def print_report(out: dict) -> None:
@@ -130,6 +175,7 @@ def print_report(out: dict) -> None:
         for d, real, dream, given in zip(w["drivers"], by["real"], by["dream"], by["open_loop"]):
             print(f"{d['driver']['name']:24}"
                   + "".join(f"{real[s - 1]:>6.0%} /{dream[s - 1]:>4.0%} /{given[s - 1]:>4.0%}" for s in steps))
+        print_pulls(w["pulls"])
         print(f"windows: Spearman {w['spearman']:+.2f} ({w['spearman_per_track']:+.2f} per track); regret@1 "
               f"{w['regret_at_1']:.2f} ({w['favourite']}); Pearson {w['pearson']:+.2f}; the largest off-road gap "
               f"{w['off_road_gap']:.2f}{doubt(w)}")
