@@ -147,7 +147,8 @@ def print_pulls(pulls: list) -> None:
               "off as often:")
     for p in pulls:
         e = p["equivalent"]
-        said = "beyond the real pulls'" if e is None else f"the real car's at {e:+.3f} ({e - p['pull']:+.3f})"
+        said = ("beyond the real pulls'" if e is None else
+                f"the real car's at {e:+.3f} ({abs(e) - abs(p['pull']):+.3f} in strength)")
         print(f"{p['driver']:24} dreamt off the road {p['dream_off_road']:.0%} (real {p['real_off_road']:.0%}): {said}")
 
 
