@@ -176,7 +176,7 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--tracks", type=parse_seeds, required=True, help="track seeds, e.g. 12000-12031")
     p.add_argument("--family", choices=list(FAMILIES), default="changes",
-                   help="the drivers: changes (one or two things changed), fast (too fast, late hands) "
+                   help="the drivers: changes (one or two things changed), fast (too fast, late hands), "
                         "holds (constant steering now and then, at the clone's pace), release (the "
                         "hands off the wheel now and then), loop (late hands, pulls, too much steering) "
                         "or pulls (steady pulls near where the clone lets go)")
