@@ -211,6 +211,12 @@ def test_a_dreamt_pull_is_read_as_the_real_pull_that_leaves_the_road_as_often():
     flat = rank_figures.equivalent_pulls(family[:3], np.array([0.05, 0.05, 0.7]), np.array([0.0, 0.05, 0.7]))
     assert flat[0]["equivalent"] == pytest.approx(0.2)  # on a flat stretch, the point nearest its own pull
     assert rank_figures.equivalent_pulls(family[:1], real[:1], dreamt[:1]) == []
+    scores = np.tile(np.arange(3.0)[:, None], 2)  # (drivers, tracks)
+    shares = [np.tile(np.array(x)[:, None], 2) for x in ([0.0, 0.1, 0.7], [0.0, 0.25, 0.9])]
+    s = rank_figures.summary(family[:3], scores, shares[0], scores, shares[1])
+    # +0.2 is 0.15 over in share, but its share is the real car's at +0.225: within 0.03 in pull
+    assert s["pulls"][0]["equivalent"] == pytest.approx(0.225)
+    assert (s["within"], s["within_or_pull"]) == (1, 2)
 
 
 def test_a_window_cut_short_keeps_its_last_flag_to_the_horizon():

@@ -11,6 +11,10 @@ import numpy as np
 
 from .family import Driver
 
+# The bound on a driver's off-road share, dream against real, and the bound proposed for a
+# steady pull, in steering: on the cliff a hundredth of steering moves the real share by 0.1 or more.
+SHARE_GAP, PULL_GAP = 0.1, 0.03
+
 # Decisions the dream knows the real road for (the view's reach: docs/judging.md); the unchanged
 # driver's steering after them is on roads the dream makes up.
 MEMORY = 10
@@ -117,10 +121,15 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
         "off_road_gap": float(np.abs(dream_off.mean(1) - real_off.mean(1)).max()),
         "favourite": family[favourite].name,
         "pulls": equivalent_pulls(family, real_off.mean(1), dream_off.mean(1)),
+        "within": int((np.abs(dream_off.mean(1) - real_off.mean(1)) <= SHARE_GAP).sum()),
         "drivers": [{"driver": asdict(d), "real": float(real_mean[i]), "real_sd": float(real[i].std()),
                      "real_off_road": float(real_off[i].mean()), "dream": float(dream_mean[i]),
                      "dream_off_road": float(dream_off[i].mean())} for i, d in enumerate(family)],
     }
+    near = {p["driver"] for p in out["pulls"]
+            if p["equivalent"] is not None and abs(p["equivalent"] - p["pull"]) <= PULL_GAP}
+    out["within_or_pull"] = sum(abs(d["dream_off_road"] - d["real_off_road"]) <= SHARE_GAP
+                                or d["driver"]["name"] in near for d in out["drivers"])
     if spread is not None:
         doubt = spread.mean(2)
         for i, d in enumerate(out["drivers"]):
@@ -179,7 +188,8 @@ def print_report(out: dict) -> None:
         print_pulls(w["pulls"])
         print(f"windows: Spearman {w['spearman']:+.2f} ({w['spearman_per_track']:+.2f} per track); regret@1 "
               f"{w['regret_at_1']:.2f} ({w['favourite']}); Pearson {w['pearson']:+.2f}; the largest off-road gap "
-              f"{w['off_road_gap']:.2f}{doubt(w)}")
+              f"{w['off_road_gap']:.2f}; within {SHARE_GAP} of the real share {w['within']} of {len(w['drivers'])} "
+              f"drivers, or a pull within {PULL_GAP} of steering {w['within_or_pull']}{doubt(w)}")
     if "road_memory" in out:
         steps = [s for s in (1, 3, 5, 8, 10, 20, 40) if s <= len(out["road_memory"])]
         print("road memory (the unchanged driver's steering, dream against real, correlation after N decisions): "
