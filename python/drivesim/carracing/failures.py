@@ -113,7 +113,7 @@ def loop_family():
 def pulls_family():
     """Steady pulls near where the clone can no longer hold them. The real car rides the road's
     edge with a pull of 0.2 either way and leaves it from about 0.225 (0.11 of its decisions off
-    the road at +0.2, 0.39 at +0.225, 0.69 at +0.25); the judge's dream lets go about 0.02 early,
+    the road at +0.2, 0.39 at +0.225, 0.69 at +0.25); the judge's dream lets go 0.01-0.02 early,
     past what the view shows (docs/history/judge_wheel.md). None is one of the probe's."""
     from .family import Driver
 
