@@ -113,23 +113,23 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
     favourite = int(np.argmax(dream_mean))
     span = real_mean.max() - real_mean.min()
     per_track = [spearman(dreamt[:, t], real[:, t]) for t in range(real.shape[1])]
+    gap = np.abs(dream_off.mean(1) - real_off.mean(1))  # each driver's off-road share, dreamt against real
     out = {
         "spearman": spearman(dream_mean, real_mean),
         "spearman_per_track": float(np.nanmean(per_track)),
         "regret_at_1": float((real_mean.max() - real_mean[favourite]) / span) if span > 0 else 0.0,
         "pearson": pearson(dream_mean, real_mean),
-        "off_road_gap": float(np.abs(dream_off.mean(1) - real_off.mean(1)).max()),
+        "off_road_gap": float(gap.max()),
         "favourite": family[favourite].name,
         "pulls": equivalent_pulls(family, real_off.mean(1), dream_off.mean(1)),
-        "within": int((np.abs(dream_off.mean(1) - real_off.mean(1)) <= SHARE_GAP).sum()),
+        "within": int((gap <= SHARE_GAP).sum()),
         "drivers": [{"driver": asdict(d), "real": float(real_mean[i]), "real_sd": float(real[i].std()),
                      "real_off_road": float(real_off[i].mean()), "dream": float(dream_mean[i]),
                      "dream_off_road": float(dream_off[i].mean())} for i, d in enumerate(family)],
     }
     near = {p["driver"] for p in out["pulls"]
             if p["equivalent"] is not None and abs(p["equivalent"] - p["pull"]) <= PULL_GAP}
-    out["within_or_pull"] = sum(abs(d["dream_off_road"] - d["real_off_road"]) <= SHARE_GAP
-                                or d["driver"]["name"] in near for d in out["drivers"])
+    out["within_or_pull"] = sum(bool(g <= SHARE_GAP or d.name in near) for g, d in zip(gap, family))
     if spread is not None:
         doubt = spread.mean(2)
         for i, d in enumerate(out["drivers"]):
