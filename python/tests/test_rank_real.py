@@ -75,6 +75,9 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
         np.testing.assert_allclose(kept, [np.stack([drive["speed"][t:t + 4], drive["steer"][t:t + 4]], 1) for t in at],
                                    atol=1e-3)
     np.testing.assert_allclose(by_decision["real"][0], np.mean(flags, 0))
+    unchanged = windows["leaving"]["drivers"][0]  # ... and whether it leaves the road in them
+    assert unchanged["real"]["leaves"] == pytest.approx(np.mean([np.any(f) for f in flags]))
+    assert "leaving the road and coming back" in run.stdout
     # A behaviour drive kept without its actions (an older run) is driven again.
     with np.load(tmp_path / "drive_3.npz") as f:
         old = {k: f[k] for k in f.files if k not in ("actions", "rewards", "off")}

@@ -65,7 +65,8 @@ from .agents import ClonedAgent
 from .control import speed_after
 from .family import CHECK, CLIFF, FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Changes, Driver
 from . import rank_real
-from .rank_figures import made_up_roads, print_report, road_memory, summary
+from .rank_figures import (bend_sums, leaving, leaving_counts, made_up_roads, print_report, road_memory,
+                           summary)
 from .view import parse_seeds
 
 
@@ -271,6 +272,7 @@ def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dic
         world.set_sampling(args.temperature, 0)  # the open loop draws as a run with one future
     out = {key: np.mean([d[key] for d in drawn], 0) for key in ("return", "rewards", "off_road", "off_steps")}
     out["steer"] = drawn[0]["steer"]
+    out["leaving"] = sum(leaving_counts(d["off_steps"]) for d in drawn)
     out["spread"] = np.stack([np.std([d[key] for d in drawn], 0).mean(1) for key in ("return", "rewards", "off_road")])
     return out
 
@@ -279,7 +281,8 @@ def report(args, results: list, windowed: list) -> dict:
     """The dream's side for every track (from the starts the real drives left), then the figures:
     against the whole real drives, and (``windowed``, ``rank_real.window_job``'s) against the real
     windows from the same starts (``windows``: the dream's rewards without the value; each
-    decision's off-road share real, dreamt, and dreamt open loop on the real windows' inputs).
+    decision's off-road share real, dreamt, and dreamt open loop on the real windows' inputs; and
+    ``leaving``, whether the car comes back once off the road, `rank_figures.leaving`).
     With several ``--futures``, the dream's figures are their means, and each driver's spread
     over them is reported."""
     family, seeds = args.family, args.seeds
@@ -292,6 +295,7 @@ def report(args, results: list, windowed: list) -> dict:
     real_score, real_off, dream_return, dream_off, dream_rewards = (np.zeros(shape) for _ in range(5))
     spread = np.zeros((3, *shape))
     steer_dreamt, steer_real, dream_steps, open_steps = [], [], [], []
+    dream_leaving = np.zeros((len(family), 4))
     got = {(w["driver"], w["seed"]): w for w in windowed}
     start = time.perf_counter()
     for t, seed in enumerate(seeds):
@@ -303,6 +307,7 @@ def report(args, results: list, windowed: list) -> dict:
         dream_return[:, t], dream_off[:, t] = d["return"].mean(1), d["off_road"].mean(1)
         dream_rewards[:, t] = d["rewards"].mean(1)
         dream_steps.append(d["off_steps"])
+        dream_leaving += d["leaving"]
         if windowed:
             inputs = [rank_real.padded_to_horizon(got[i, seed]["actions"], args.horizon) for i in range(len(family))]
             open_steps.append(open_loop(world, starts, np.array(inputs), args.world_steering))
@@ -323,6 +328,9 @@ def report(args, results: list, windowed: list) -> dict:
         out["windows"]["per_track"] = {"real": win_return.tolist(), "dream": dream_rewards.tolist()}
         real_steps = [[rank_real.padded_to_horizon(got[i, seed]["off"], args.horizon) for seed in seeds]
                       for i in range(len(family))]
+        flags, road = np.reshape(real_steps, (len(family), -1, args.horizon)), np.concatenate(steer_real)
+        out["windows"]["leaving"] = leaving(family, leaving_counts(flags), dream_leaving, bend_sums(flags, road),
+                                            road.mean())
         out["windows"]["off_by_decision"] = {"real": np.mean(real_steps, (1, 2)).tolist(),
                                              "dream": np.concatenate(dream_steps, 1).mean(1).tolist(),
                                              "open_loop": np.concatenate(open_steps, 1).mean(1).tolist()}

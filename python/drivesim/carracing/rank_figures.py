@@ -100,6 +100,46 @@ def equivalent_pulls(family: list, real_off: np.ndarray, dream_off: np.ndarray) 
     return out
 
 
+def leaving_counts(off: np.ndarray) -> np.ndarray:
+    """Whether the car comes back once it has left the road, from off-road flags ``(drivers,
+    windows, horizon)`` (the dream's: its off-road chance above one half): each driver's windows,
+    the windows in which the car leaves the road, the decisions from each first leaving on, and
+    how many of those it is off ``(drivers, 4)``; they add over tracks and futures (`leaving`)."""
+    off = np.asarray(off) > 0.5
+    ever = off.any(2)
+    first = np.where(ever, off.argmax(2), off.shape[2])
+    off_after = (off & (np.arange(off.shape[2]) >= first[..., None])).sum(2)
+    return np.stack([np.full(len(off), off.shape[1]), ever.sum(1), (off.shape[2] - first).sum(1),
+                     off_after.sum(1)], 1).astype(float)
+
+
+def bend_sums(off: np.ndarray, road: np.ndarray, before: int = 5) -> np.ndarray:
+    """Which way the road bends where the real car first leaves it: ``off`` ``(drivers, windows,
+    horizon)`` the real windows' flags, ``road`` ``(windows, horizon)`` the behaviour drive's
+    steering over the same decisions (the unchanged driver steers with the road); per driver the
+    sum over the windows that leave of the mean steering over the ``before`` decisions up to the
+    first leaving, and their count ``(drivers, 2)``."""
+    off = np.asarray(off) > 0.5
+    out = np.zeros((len(off), 2))
+    for i, j in zip(*np.nonzero(off.any(2))):
+        t = int(off[i, j].argmax())
+        out[i] += (road[j, max(t - before, 0):t + 1].mean(), 1)
+    return out
+
+
+def leaving(family: list, real: np.ndarray, dreamt: np.ndarray, bends: np.ndarray, road: float) -> dict:
+    """Each driver's share of windows in which the car leaves the road, real and dreamt, and its
+    share of decisions off the road from then on (None where it never leaves), from `leaving_counts`
+    summed over tracks (and the dream's futures); the road's bend where the real car leaves
+    (`bend_sums`), against ``road``, the behaviour drive's mean steering over all the windows."""
+    def shares(c):
+        return {"leaves": float(c[1] / c[0]), "off_after": float(c[3] / c[2]) if c[2] else None}
+    return {"road_steering": float(road), "drivers": [
+        {"driver": d.name, "real": shares(real[i]), "dream": shares(dreamt[i]),
+         "bend_where_real_leaves": float(bends[i, 0] / bends[i, 1]) if bends[i, 1] else None}
+        for i, d in enumerate(family)]}
+
+
 def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.ndarray, dream_off: np.ndarray,
             spread: np.ndarray | None = None) -> dict:
     """The figures of the report from ``(drivers, tracks)`` arrays of real scores and off-road
@@ -161,6 +201,19 @@ def print_pulls(pulls: list) -> None:
         print(f"{p['driver']:24} dreamt off the road {p['dream_off_road']:.0%} (real {p['real_off_road']:.0%}): {said}")
 
 
+def print_leaving(figures: dict) -> None:
+    """The lines of `leaving`: whether the car, once off the road, comes back."""
+    print(f"\nleaving the road and coming back (windows; the behaviour drive steers {figures['road_steering']:+.3f} "
+          "on average):\n" + f"{'driver':24} {'leaves, real / dream':>21} {'off after, real / dream':>24} "
+          f"{'the road where it leaves':>25}")
+    pct = lambda x: "-" if x is None else f"{x:.0%}"
+    for d in figures["drivers"]:
+        bend = d["bend_where_real_leaves"]
+        print(f"{d['driver']:24} {d['real']['leaves']:>13.0%} / {d['dream']['leaves']:>4.0%} "
+              f"{pct(d['real']['off_after']):>16} / {pct(d['dream']['off_after']):>4} "
+              f"{'-' if bend is None else f'{bend:+.3f}':>25}")
+
+
 def print_report(out: dict) -> None:
     spread = f" {'± spread':>8} {'off road':>8}" if "doubt_against_error" in out else ""
     print(f"\n{'driver':24} {'real':>8} {'± sd':>6} {'off road':>8} {'dream':>8} {'off road':>8}{spread}")
@@ -185,6 +238,8 @@ def print_report(out: dict) -> None:
         for d, real, dream, given in zip(w["drivers"], by["real"], by["dream"], by["open_loop"]):
             print(f"{d['driver']['name']:24}"
                   + "".join(f"{real[s - 1]:>6.0%} /{dream[s - 1]:>4.0%} /{given[s - 1]:>4.0%}" for s in steps))
+        if "leaving" in w:
+            print_leaving(w["leaving"])
         print_pulls(w["pulls"])
         print(f"windows: Spearman {w['spearman']:+.2f} ({w['spearman_per_track']:+.2f} per track); regret@1 "
               f"{w['regret_at_1']:.2f} ({w['favourite']}); Pearson {w['pearson']:+.2f}; the largest off-road gap "
