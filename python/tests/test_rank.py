@@ -225,24 +225,28 @@ def test_a_window_cut_short_keeps_its_last_flag_to_the_horizon():
 
 
 def test_leaving_the_road_and_coming_back_and_the_bend_where_the_car_leaves():
-    """Per driver: the windows that leave the road, the decisions off from the first leaving on
-    (the dream's chance read as off above one half), and the behaviour drive's steering over the
+    """Per driver: the windows that leave the road, the decisions off from the first leaving on,
+    and in the ``memory`` decisions after a first leaving within the view's reach or past it (the
+    dream's chance read as off above one half), and the behaviour drive's steering over the
     decisions up to the first leaving; the counts add over tracks and futures."""
-    off = np.array([[[0, 1, 1, 0, 0], [0, 0, 0, 0, 0]],  # leaves at 1, off 2 of the 4 decisions from there
-                    [[0, 0, 0, 0.6, 0.7], [0.9, 0.2, 0.2, 0.2, 0.4]]])  # chances: leaves at 3 (2 of 2), at 0 (1 of 5)
-    counts = rank_figures.leaving_counts(off)
-    np.testing.assert_array_equal(counts, [[2, 1, 4, 2], [2, 2, 7, 3]])
+    off = np.array([[[0, 1, 1, 0, 0], [0, 0, 0, 0, 0]],  # leaves at 1, within the view: off 2 of 4 after, 2 of 2 soon
+                    [[0, 0, 0, 0.6, 0.7], [0.9, 0.2, 0.2, 0.2, 0.4]]])  # leaves at 3, past it (2 of 2); at 0 (1 of 5, 1 of 2)
+    counts = rank_figures.leaving_counts(off, memory=2)
+    np.testing.assert_array_equal(counts, [[2, 1, 4, 2, 2, 2, 0, 0], [2, 2, 7, 3, 2, 1, 2, 2]])
     road = np.array([[0.1, -0.1, 0.3, 0.3, 0.3], [-0.2, 0.0, 0.0, 0.0, 0.0]])
     bends = rank_figures.bend_sums(off, road, before=1)
     np.testing.assert_allclose(bends, [[0.0, 1], [0.3 - 0.2, 2]])  # the first: (0.1 - 0.1) / 2; the second: 0.3, -0.2
     family = [Driver("a"), Driver("b", bias=0.2)]
     figures = rank_figures.leaving(family, counts, counts + counts, bends, road.mean())
     a, b = figures["drivers"]
-    assert a["real"] == a["dream"] == {"leaves": 0.5, "off_after": 0.5} and a["bend_where_real_leaves"] == 0.0
-    assert b["real"] == {"leaves": 1.0, "off_after": pytest.approx(3 / 7)} and b["bend_where_real_leaves"] == pytest.approx(0.05)
+    assert a["real"] == a["dream"] == {"leaves": 0.5, "off_after": 0.5, "off_after_in_view": 1.0,
+                                       "off_after_past_view": None}
+    assert b["real"] == {"leaves": 1.0, "off_after": pytest.approx(3 / 7), "off_after_in_view": 0.5,
+                         "off_after_past_view": 1.0}
+    assert a["bend_where_real_leaves"] == 0.0 and b["bend_where_real_leaves"] == pytest.approx(0.05)
     assert figures["road_steering"] == pytest.approx(0.07)
-    never = rank_figures.leaving(family, np.array([[2, 0, 0, 0.0]] * 2), counts, np.zeros((2, 2)), 0.0)["drivers"][0]
-    assert never["real"] == {"leaves": 0.0, "off_after": None} and never["bend_where_real_leaves"] is None
+    never = rank_figures.leaving(family, np.array([[2, 0, 0, 0, 0, 0, 0, 0.0]] * 2), counts, np.zeros((2, 2)), 0.0)
+    assert never["drivers"][0]["real"]["off_after"] is None and never["drivers"][0]["bend_where_real_leaves"] is None
 
 
 def test_road_memory_is_the_correlation_step_by_step():

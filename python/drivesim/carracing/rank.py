@@ -295,7 +295,7 @@ def report(args, results: list, windowed: list) -> dict:
     real_score, real_off, dream_return, dream_off, dream_rewards = (np.zeros(shape) for _ in range(5))
     spread = np.zeros((3, *shape))
     steer_dreamt, steer_real, dream_steps, open_steps = [], [], [], []
-    dream_leaving = np.zeros((len(family), 4))
+    dream_leaving = 0.0  # `leaving_counts` summed over the tracks
     got = {(w["driver"], w["seed"]): w for w in windowed}
     start = time.perf_counter()
     for t, seed in enumerate(seeds):

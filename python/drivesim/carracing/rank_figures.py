@@ -100,17 +100,25 @@ def equivalent_pulls(family: list, real_off: np.ndarray, dream_off: np.ndarray) 
     return out
 
 
-def leaving_counts(off: np.ndarray) -> np.ndarray:
+def leaving_counts(off: np.ndarray, memory: int = MEMORY) -> np.ndarray:
     """Whether the car comes back once it has left the road, from off-road flags ``(drivers,
-    windows, horizon)`` (the dream's: its off-road chance above one half): each driver's windows,
-    the windows in which the car leaves the road, the decisions from each first leaving on, and
-    how many of those it is off ``(drivers, 4)``; they add over tracks and futures (`leaving`)."""
+    windows, horizon)`` (the dream's: its off-road chance above one half), per driver ``(drivers,
+    8)``: the windows, those in which the car leaves the road, the decisions from each first
+    leaving on and how many of them it is off; then the decisions of the ``memory`` after a first
+    leaving within the view's reach (the first ``memory`` decisions, where the dream knows the
+    road) and how many of them it is off, and the same after a first leaving past it (on roads
+    the dream makes up). They add over tracks and futures (`leaving`)."""
     off = np.asarray(off) > 0.5
+    horizon = off.shape[2]
     ever = off.any(2)
-    first = np.where(ever, off.argmax(2), off.shape[2])
-    off_after = (off & (np.arange(off.shape[2]) >= first[..., None])).sum(2)
-    return np.stack([np.full(len(off), off.shape[1]), ever.sum(1), (off.shape[2] - first).sum(1),
-                     off_after.sum(1)], 1).astype(float)
+    first = np.where(ever, off.argmax(2), horizon)
+    step = np.arange(horizon)
+    after = step >= first[..., None]
+    soon = after & (step < first[..., None] + memory)
+    in_view = (first < memory)[..., None]
+    columns = [np.full(ever.shape, horizon > 0), ever, after, off & after, soon & in_view, off & soon & in_view,
+               soon & ~in_view, off & soon & ~in_view]
+    return np.stack([c.reshape(len(off), -1).sum(1) for c in columns], 1).astype(float)
 
 
 def bend_sums(off: np.ndarray, road: np.ndarray, before: int = 5) -> np.ndarray:
@@ -128,13 +136,16 @@ def bend_sums(off: np.ndarray, road: np.ndarray, before: int = 5) -> np.ndarray:
 
 
 def leaving(family: list, real: np.ndarray, dreamt: np.ndarray, bends: np.ndarray, road: float) -> dict:
-    """Each driver's share of windows in which the car leaves the road, real and dreamt, and its
-    share of decisions off the road from then on (None where it never leaves), from `leaving_counts`
-    summed over tracks (and the dream's futures); the road's bend where the real car leaves
+    """Each driver's share of windows in which the car leaves the road, real and dreamt, its share
+    of decisions off the road from then on, and of the `MEMORY` decisions after a first leaving
+    within the view's reach and past it (None where there is none), from `leaving_counts` summed
+    over tracks (and the dream's futures); and the road's bend where the real car leaves
     (`bend_sums`), against ``road``, the behaviour drive's mean steering over all the windows."""
     def shares(c):
-        return {"leaves": float(c[1] / c[0]), "off_after": float(c[3] / c[2]) if c[2] else None}
-    return {"road_steering": float(road), "drivers": [
+        ratio = lambda n, d: float(n / d) if d else None
+        return {"leaves": float(c[1] / c[0]), "off_after": ratio(c[3], c[2]),
+                "off_after_in_view": ratio(c[5], c[4]), "off_after_past_view": ratio(c[7], c[6])}
+    return {"road_steering": float(road), "memory": MEMORY, "drivers": [
         {"driver": d.name, "real": shares(real[i]), "dream": shares(dreamt[i]),
          "bend_where_real_leaves": float(bends[i, 0] / bends[i, 1]) if bends[i, 1] else None}
         for i, d in enumerate(family)]}
@@ -203,15 +214,18 @@ def print_pulls(pulls: list) -> None:
 
 def print_leaving(figures: dict) -> None:
     """The lines of `leaving`: whether the car, once off the road, comes back."""
-    print(f"\nleaving the road and coming back (windows; the behaviour drive steers {figures['road_steering']:+.3f} "
-          "on average):\n" + f"{'driver':24} {'leaves, real / dream':>21} {'off after, real / dream':>24} "
-          f"{'the road where it leaves':>25}")
-    pct = lambda x: "-" if x is None else f"{x:.0%}"
+    m = figures["memory"]
+    print(f"\nleaving the road and coming back (windows): the share of windows the car leaves the road in; "
+          f"of the decisions from then on, and of the {m} after it leaves within the view's first {m} or past them, "
+          f"those off the road; the road's bend (the behaviour drive's steering, {figures['road_steering']:+.3f} on "
+          f"average) where the real car leaves it. Real / dream:\n"
+          f"{'driver':24} {'leaves':>11} {'off after':>11} {'in view':>11} {'past view':>11} {'bend':>7}")
+    pct = lambda x: "  -" if x is None else f"{x:3.0%}"
     for d in figures["drivers"]:
-        bend = d["bend_where_real_leaves"]
-        print(f"{d['driver']:24} {d['real']['leaves']:>13.0%} / {d['dream']['leaves']:>4.0%} "
-              f"{pct(d['real']['off_after']):>16} / {pct(d['dream']['off_after']):>4} "
-              f"{'-' if bend is None else f'{bend:+.3f}':>25}")
+        r, e, bend = d["real"], d["dream"], d["bend_where_real_leaves"]
+        print(f"{d['driver']:24}" + "".join(f" {pct(r[k]):>4} / {pct(e[k]):>4}" for k in
+                                            ("leaves", "off_after", "off_after_in_view", "off_after_past_view"))
+              + f" {'-' if bend is None else f'{bend:+.3f}':>7}")
 
 
 def print_report(out: dict) -> None:
