@@ -116,7 +116,7 @@ def leaving_counts(off: np.ndarray, memory: int = MEMORY) -> np.ndarray:
     after = step >= first[..., None]
     soon = after & (step < first[..., None] + memory)
     in_view = (first < memory)[..., None]
-    columns = [np.full(ever.shape, horizon > 0), ever, after, off & after, soon & in_view, off & soon & in_view,
+    columns = [np.ones_like(ever), ever, after, off & after, soon & in_view, off & soon & in_view,
                soon & ~in_view, off & soon & ~in_view]
     return np.stack([c.reshape(len(off), -1).sum(1) for c in columns], 1).astype(float)
 
