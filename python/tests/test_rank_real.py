@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import drivesim
-from drivesim.carracing import rank, rank_real
+from drivesim.carracing import rank_dream, rank_real
 from drivesim.carracing.family import FAMILY, SMALL, ChangedAgent, Driver
 
 
@@ -56,7 +56,7 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
     for t, seed in enumerate((3, 4)):
         with np.load(tmp_path / f"drive_{seed}.npz") as f:
             drive = {k: f[k] for k in f.files}
-        decisions, _ = rank.window_starts(drive, 2, 4)
+        decisions, _ = rank_dream.window_starts(drive, 2, 4)
         kept = np.mean([drive["rewards"][d:d + 4].sum() for d in decisions])
         assert windows["per_track"]["real"][0][t] == pytest.approx(kept, abs=1e-3)
     # Each decision's off-road share: the unchanged driver's is its drives' flags there.
@@ -68,7 +68,7 @@ def test_the_probe_with_windows_end_to_end(tmp_path):
     for seed in (3, 4):
         with np.load(tmp_path / f"drive_{seed}.npz") as f:
             drive = {k: f[k] for k in f.files}
-        decisions, at = rank.window_starts(drive, 2, 4)
+        decisions, at = rank_dream.window_starts(drive, 2, 4)
         flags += [drive["off"][d:d + 4] for d in decisions]
         # ... and the inputs its windows keep (for the open loop) are the drive's own.
         kept = json.loads((tmp_path / "windows_4x2" / f"small_0_{seed}.json").read_text())["actions"]

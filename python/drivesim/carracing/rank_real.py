@@ -26,8 +26,27 @@ import numpy as np
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from .family import ChangedAgent
+from .rank_dream import dream_row_seed, window_starts
 from .record import decision, wheel_on_road
 from .view import observe, speed, unseen
+
+
+_model = None  # this process's model, loaded at its first job
+
+
+def process_model(weights):
+    """This process's model of ``weights`` (loaded once: the jobs of a run share one file)."""
+    global _model
+    if _model is None:
+        _model = Model.load(weights)
+    return _model
+
+
+def drive_name(args, index: int, seed: int) -> str:
+    """The file of driver ``index``'s drive of track ``seed`` in ``--out``: the family's name
+    first (families share ``--out`` and the behaviour drive), but for the full family, whose
+    runs kept these names before there were others."""
+    return f"{'' if args.family_name == 'all' else args.family_name + '_'}{index}_{seed}.json"
 
 
 def drive_real(agent, seed: int, frames: int, keep_states: bool) -> tuple[dict, list, dict]:
@@ -93,18 +112,16 @@ def drive_window(env, agent, h: np.ndarray, decisions: int, horizon: int,
 
 def drive_windows(drive: dict, driver, index: int, seed: int, args, frames: bool = False) -> list:
     """``driver`` (family index ``index``) from each of the behaviour drive's starts on track
-    ``seed`` (``rank.window_starts``), with the dream row's noise seed: each window's rewards,
+    ``seed`` (`rank_dream.window_starts`), with the dream row's noise seed: each window's rewards,
     off-road flags and inputs (`drive_window`), and with ``frames`` the frames it read (else None)."""
     import gymnasium
 
-    from . import rank
-
-    starts, at = rank.window_starts(drive, args.starts, args.horizon)
-    agent = ChangedAgent(driver, seed=0, model=rank.process_model(args.weights))
+    starts, at = window_starts(drive, args.starts, args.horizon)
+    agent = ChangedAgent(driver, seed=0, model=process_model(args.weights))
     env = gymnasium.make("CarRacing-v3", max_episode_steps=args.frames)
     out = []
     for j, (start, t) in enumerate(zip(starts, at)):
-        agent.seed = rank.dream_row_seed(seed, index, j, len(starts))
+        agent.seed = dream_row_seed(seed, index, j, len(starts))
         agent.reset()
         env.reset(seed=seed)
         replay(env, drive["actions"][:start], agent.frame_skip)
@@ -120,13 +137,11 @@ def windows_dir(args) -> str:
 
 
 def window_job(job) -> dict:
-    """One driver's windows on one track (``rank.window_starts``): their returns, off-road shares,
+    """One driver's windows on one track (`rank_dream.window_starts`): their returns, off-road shares,
     each decision's off-road flag and the transition's input, read from ``--out`` when an earlier
     run drove them (one from before the flags and inputs were kept is driven again)."""
-    from . import rank
-
     args, index, seed = job
-    path = os.path.join(windows_dir(args), rank.drive_name(args, index, seed))
+    path = os.path.join(windows_dir(args), drive_name(args, index, seed))
     if os.path.exists(path):
         with open(path) as f:
             kept = json.load(f)

@@ -33,7 +33,7 @@ import numpy as np
 from .. import road
 from .._drivesim import Simulator
 from .._files import atomic_write
-from . import rank, rank_real
+from . import rank, rank_dream, rank_real
 from .family import FAMILY
 from .view import parse_seeds
 
@@ -55,7 +55,7 @@ def head_on_frames(world: Simulator, frames: np.ndarray, inputs: np.ndarray, h: 
     """The world's off-road chance of each state a real window showed: ``frames`` ``(N, 80, 160,
     3)`` through the world's encoder, its hidden state from ``h`` (the start's) stepped on each
     code with the window's ``inputs`` ``(N, 2)`` (the speed and the steering applied), the reward
-    head on each code with the hidden state it was seen in (as `rank.dream` scores its steps)."""
+    head on each code with the hidden state it was seen in (as `rank_dream.dream` scores its steps)."""
     batch = world.batch
     codes = np.concatenate([world.encode(np.ascontiguousarray(frames[a:a + batch])) for a in range(0, len(frames), batch)])
     states = [np.asarray(h, np.float32)[None]]
@@ -78,7 +78,7 @@ def real_windows(drive: dict, seed: int, index: int, args, world: Simulator, sta
         in_sight, ahead = sight(frames)
         inputs = np.array(inputs, np.float32)  # the world steps with the steering as a dream does
         before = np.concatenate([starts["previous"][j:j + 1], inputs[:-1, 1]])
-        head = head_on_frames(world, frames, rank.world_steering(inputs, before, args.world_steering), starts["h_world"][j])
+        head = head_on_frames(world, frames, rank_dream.world_steering(inputs, before, args.world_steering), starts["h_world"][j])
         out.append(rank_real.padded_to_horizon([[float(f) for f in flags], in_sight.tolist(), ahead.tolist(), head.tolist()],
                                           args.horizon))
     return np.stack(out, 1)
@@ -143,7 +143,7 @@ def main(argv=None) -> int:
         rank_real.check_drivers(args.out, rank_real.drivers_fingerprint(driver_model))
         for seed in args.seeds:
             with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
-                rank.window_starts({k: f[k] for k in ("first", "speed")}, args.starts, args.horizon)
+                rank_dream.window_starts({k: f[k] for k in ("first", "speed")}, args.starts, args.horizon)
     except (OSError, ValueError, KeyError) as e:
         p.error(f"{args.out}: {e}")
     family = [FAMILY[i] for i in drivers]
@@ -155,12 +155,12 @@ def main(argv=None) -> int:
     for seed in args.seeds:
         with np.load(os.path.join(args.out, f"drive_{seed}.npz")) as f:
             drive = {k: f[k] for k in f.files}
-        starts = rank.starts_of(drive, world, world_model.hidden_dim, args.starts, args.horizon, args.world_steering)
+        starts = rank_dream.starts_of(drive, world, world_model.hidden_dim, args.starts, args.horizon, args.world_steering)
         for i, index in enumerate(drivers):
             real[i].append(real_windows(drive, seed, index, args, world, starts))
-        first = world.reward(*(rank.tiled(starts[k], len(family)) for k in ("z", "h_world")))[:, 1]
+        first = world.reward(*(rank_dream.tiled(starts[k], len(family)) for k in ("z", "h_world")))[:, 1]
         shown = []
-        steps = rank.dream(driver, world, family, starts, args.horizon, seed, False, args.world_steering,
+        steps = rank_dream.dream(driver, world, family, starts, args.horizon, seed, False, args.world_steering,
                            frames=shown)["off_steps"]
         # The off-road chance of the state each frame shows: the start's, then each step's.
         off = np.concatenate([first.reshape(len(family), args.starts, 1), steps[:, :, :-1]], 2)
