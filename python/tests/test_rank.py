@@ -88,7 +88,8 @@ def test_leaving_the_road_and_coming_back_and_the_bend_where_the_car_leaves():
     bends = rank_figures.bend_sums(off, road, before=1)
     np.testing.assert_allclose(bends, [[0.0, 1], [0.3 - 0.2, 2]])  # the first: (0.1 - 0.1) / 2; the second: 0.3, -0.2
     family = [Driver("a"), Driver("b", bias=0.2)]
-    figures = rank_figures.leaving(family, counts, counts + counts, bends, road.mean())
+    figures = rank_figures.leaving(family, counts, counts + counts, bends, road.mean(), memory=2)
+    assert figures["memory"] == 2  # the counts' own, as printed
     a, b = figures["drivers"]
     assert a["real"] == a["dream"] == {"leaves": 0.5, "off_after": 0.5, "off_after_in_view": 1.0,
                                        "off_after_past_view": None}

@@ -142,7 +142,7 @@ def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dic
     (the first future is the one a run with one draws): the means of its figures over the futures,
     the first future's ``steer``, and ``spread`` ``(3, drivers)``, the standard deviation over the
     futures of a start's return, its rewards (without the value) and its off-road chance,
-    averaged over the starts."""
+    averaged over the starts, and ``leaving``, each future's `rank_figures.leaving_counts` summed."""
     drawn = []
     for future in range(args.futures):
         if args.temperature > 0:

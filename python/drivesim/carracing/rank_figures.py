@@ -135,17 +135,19 @@ def bend_sums(off: np.ndarray, road: np.ndarray, before: int = 5) -> np.ndarray:
     return out
 
 
-def leaving(family: list, real: np.ndarray, dreamt: np.ndarray, bends: np.ndarray, road: float) -> dict:
+def leaving(family: list, real: np.ndarray, dreamt: np.ndarray, bends: np.ndarray, road: float,
+            memory: int = MEMORY) -> dict:
     """Each driver's share of windows in which the car leaves the road, real and dreamt, its share
-    of decisions off the road from then on, and of the `MEMORY` decisions after a first leaving
-    within the view's reach and past it (None where there is none), from `leaving_counts` summed
+    of decisions off the road from then on, and of the ``memory`` decisions after a first leaving
+    within the view's reach and past it (None where there is none), from `leaving_counts` (of the
+    same ``memory``) summed
     over tracks (and the dream's futures); and the road's bend where the real car leaves
     (`bend_sums`), against ``road``, the behaviour drive's mean steering over all the windows."""
     def shares(c):
         ratio = lambda n, d: float(n / d) if d else None
         return {"leaves": float(c[1] / c[0]), "off_after": ratio(c[3], c[2]),
                 "off_after_in_view": ratio(c[5], c[4]), "off_after_past_view": ratio(c[7], c[6])}
-    return {"road_steering": float(road), "memory": MEMORY, "drivers": [
+    return {"road_steering": float(road), "memory": memory, "drivers": [
         {"driver": d.name, "real": shares(real[i]), "dream": shares(dreamt[i]),
          "bend_where_real_leaves": float(bends[i, 0] / bends[i, 1]) if bends[i, 1] else None}
         for i, d in enumerate(family)]}
