@@ -130,6 +130,22 @@ def test_each_familys_drives_are_kept_under_their_own_names():
     assert names["all"] == "1_7.json" and len(set(names.values())) == len(names)
 
 
+def test_the_learnt_family_is_the_failure_data_s_own_and_the_command_line_takes_it(tmp_path, capsys):
+    """``--family learnt`` drives the failure data's own drivers (those the judge learnt from), not
+    one of the probe's families, and the parser takes it where it refuses a family it does not know
+    (each run stopped at a bad --horizon, before any drive)."""
+    from drivesim.carracing import failures
+
+    assert rank.FAMILIES["learnt"] == failures.training_family()
+    assert all(rank.FAMILIES[f] == rank.PROBE_FAMILIES[f] for f in rank.PROBE_FAMILIES)
+    assert {d.name for d in rank.FAMILIES["learnt"][1:]}.isdisjoint(d.name for d in rank.FAMILY)
+    for family in ("learnt", "nobody"):
+        with pytest.raises(SystemExit):
+            rank.main(["--seeds", "1", "--out", str(tmp_path), "--family", family, "--horizon", "0"])
+        said = capsys.readouterr().err
+        assert ("invalid choice" in said) == (family == "nobody"), said
+
+
 def _probe(out, *extra):
     pytest.importorskip("Box2D")
     command = [sys.executable, "-m", "drivesim.carracing.rank", "--seeds", "3,4", "--out", str(out), "--family",

@@ -62,12 +62,17 @@ import numpy as np
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from .agents import ClonedAgent
-from .family import CHECK, CLIFF, FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Driver
-from . import rank_real
+from .family import CHECK, CLIFF, FAMILIES as PROBE_FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Driver
+from . import failures, rank_real
 from .rank_dream import dream_futures, open_loop, start_decisions, starts_of
 from .rank_figures import bend_sums, leaving, leaving_counts, made_up_roads, print_report, road_memory, summary
 from .view import parse_seeds
 
+
+#: The probe's families, and ``learnt``: the failure data's own drivers (`failures.training_family`),
+#: whose drives on other tracks the judge's sampler learnt from: a world checked on new tracks with
+#: drivers it saw (docs/history/coming_back.md).
+FAMILIES = {**PROBE_FAMILIES, "learnt": failures.training_family()}
 
 # The judge's settings, chosen on the tuning tracks 15600-15619 (docs/history/judge_wheel.md): its
 # world steps with each steering GAIN x (the default's transition answers the wheel short of the
@@ -214,7 +219,8 @@ def main(argv=None) -> int:
                         f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20); "
                         f"check: {len(CHECK)} other drivers, none of them another family's "
                         "(a second family, for a world tuned on all); cliff: the clone and "
-                        f"{len(CLIFF) - 1} steady pulls either side of where it lets go")
+                        f"{len(CLIFF) - 1} steady pulls either side of where it lets go; learnt: the failure "
+                        f"data's {len(FAMILIES['learnt'])} drivers, whose drives the judge learnt from")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
     p.add_argument("--starts", type=int, default=7, help="starts per track")
     p.add_argument("--temperature", type=float,
