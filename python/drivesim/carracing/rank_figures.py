@@ -140,9 +140,9 @@ def leaving(family: list, real: np.ndarray, dreamt: np.ndarray, bends: np.ndarra
     """Each driver's share of windows in which the car leaves the road, real and dreamt, its share
     of decisions off the road from then on, and of the ``memory`` decisions after a first leaving
     within the view's reach and past it (None where there is none), from `leaving_counts` (of the
-    same ``memory``) summed
-    over tracks (and the dream's futures); and the road's bend where the real car leaves
-    (`bend_sums`), against ``road``, the behaviour drive's mean steering over all the windows."""
+    same ``memory``) summed over tracks (and the dream's futures); and the road's bend where the
+    real car leaves (`bend_sums`), against ``road``, the behaviour drive's mean steering over all
+    the windows."""
     def shares(c):
         ratio = lambda n, d: float(n / d) if d else None
         return {"leaves": float(c[1] / c[0]), "off_after": ratio(c[3], c[2]),

@@ -78,7 +78,8 @@ def real_windows(drive: dict, seed: int, index: int, args, world: Simulator, sta
         in_sight, ahead = sight(frames)
         inputs = np.array(inputs, np.float32)  # the world steps with the steering as a dream does
         before = np.concatenate([starts["previous"][j:j + 1], inputs[:-1, 1]])
-        head = head_on_frames(world, frames, rank_dream.world_steering(inputs, before, args.world_steering), starts["h_world"][j])
+        shaped = rank_dream.world_steering(inputs, before, args.world_steering)
+        head = head_on_frames(world, frames, shaped, starts["h_world"][j])
         out.append(rank_real.padded_to_horizon([[float(f) for f in flags], in_sight.tolist(), ahead.tolist(), head.tolist()],
                                           args.horizon))
     return np.stack(out, 1)
@@ -161,7 +162,7 @@ def main(argv=None) -> int:
         first = world.reward(*(rank_dream.tiled(starts[k], len(family)) for k in ("z", "h_world")))[:, 1]
         shown = []
         steps = rank_dream.dream(driver, world, family, starts, args.horizon, seed, False, args.world_steering,
-                           frames=shown)["off_steps"]
+                                 frames=shown)["off_steps"]
         # The off-road chance of the state each frame shows: the start's, then each step's.
         off = np.concatenate([first.reshape(len(family), args.starts, 1), steps[:, :, :-1]], 2)
         seen = np.stack([np.stack(sight(frames)) for frames in shown], 2)  # (2, drivers * starts, horizon)
