@@ -118,6 +118,12 @@ def test_made_up_roads_compare_the_steering_past_the_road_memory():
     m = rank.made_up_roads(dreamt, real)
     assert m["after"] == 10 and m["dream"] == pytest.approx(2 * m["real"]) and m["real"] > 0
     assert m["dream_change"] == pytest.approx(2 * m["real_change"])
+    # both bend either way a third of the time: twice as curvy is not bent more often
+    assert m["real_left"] == pytest.approx(1 / 3, abs=0.04) and m["real_right"] == pytest.approx(1 / 3, abs=0.04)
+    assert m["dream_left"] == m["real_left"] and m["dream_right"] == m["real_right"]
+    dreamt[:, 10:] = -0.06  # a made-up road that only bends left
+    m = rank.made_up_roads(dreamt, real)
+    assert m["dream_left"] == 1.0 and m["dream_right"] == 0.0
     assert rank.made_up_roads(dreamt[:, :11], real[:, :11]) is None  # no decision past the memory to compare
 
 

@@ -19,8 +19,9 @@ range between the best and the worst driver) and the Pearson correlation of the 
 dream's road memory: how well the unchanged driver's steering in the dream follows its real
 steering from the same starts, decision by decision (the policy steers by the road it sees, so
 the correlation falls where the dream's road stops being the real one), and how it steers on the
-roads the dream makes up past that (its mean |steering| and change a decision from decision 11 on,
-dream and real: the two agree where the made-up roads are as curvy and steady as the real ones).
+roads the dream makes up past that (its mean |steering|, change a decision and shares of bends left
+and right from decision 11 on, dream and real: the two agree where the made-up roads are as curvy,
+as steady and as often bent each way as the real ones).
 
 ``--futures N`` (with ``--temperature``) draws N futures from each start: the dream's figures are
 their means, and each driver's spread over them is reported beside them, with its correlation over

@@ -55,18 +55,26 @@ def road_memory(dreamt: np.ndarray, real: np.ndarray) -> list:
     return out
 
 
+# Steering past this either way is the unchanged driver following a bend (docs/history/coming_back.md).
+BEND = 0.05
+
+
 def made_up_roads(dreamt: np.ndarray, real: np.ndarray, after: int = MEMORY) -> dict | None:
     """How the unchanged driver steers on the roads the dream makes up once its road memory is
     spent (from decision ``after`` on; ``(starts, horizon)`` steerings each, as `road_memory`):
-    its mean absolute steering and mean change of steering a decision, in the dream and on the
-    real road from the same starts. The policy steers by the road it sees, so the two agree where
-    the made-up roads are as curvy and as steady as the real ones (docs/judging.md). None for a
-    horizon too short to have a decision past ``after``."""
+    its mean absolute steering, mean change of steering a decision, and the shares of decisions
+    in a bend to the left and to the right (steering past ``BEND``), in the dream and on the real
+    road from the same starts. The policy steers by the road it sees, so the two agree where the
+    made-up roads are as curvy, as steady and as often bent each way as the real ones (CarRacing's
+    laps bend left about twice as often; a pull leaves in bends of its own side: docs/judging.md).
+    None for a horizon too short to have a decision past ``after``."""
     if dreamt.shape[1] < after + 2:
         return None
     a, b = dreamt[:, after:], real[:, after:]
     return dict(after=after, dream=float(np.abs(a).mean()), real=float(np.abs(b).mean()),
-                dream_change=float(np.abs(np.diff(a, axis=1)).mean()), real_change=float(np.abs(np.diff(b, axis=1)).mean()))
+                dream_change=float(np.abs(np.diff(a, axis=1)).mean()), real_change=float(np.abs(np.diff(b, axis=1)).mean()),
+                dream_left=float((a < -BEND).mean()), real_left=float((b < -BEND).mean()),
+                dream_right=float((a > BEND).mean()), real_right=float((b > BEND).mean()))
 
 
 def equivalent_pulls(family: list, real_off: np.ndarray, dream_off: np.ndarray) -> list:
@@ -268,4 +276,5 @@ def print_report(out: dict) -> None:
     if out.get("made_up_roads"):
         m = out["made_up_roads"]
         print(f"made-up roads (the unchanged driver from decision {m['after'] + 1} on, dream / real): mean |steering| "
-              f"{m['dream']:.3f} / {m['real']:.3f}, its change a decision {m['dream_change']:.3f} / {m['real_change']:.3f}")
+              f"{m['dream']:.3f} / {m['real']:.3f}, its change a decision {m['dream_change']:.3f} / {m['real_change']:.3f}; "
+              f"in a bend left {m['dream_left']:.0%} / {m['real_left']:.0%}, right {m['dream_right']:.0%} / {m['real_right']:.0%}")
