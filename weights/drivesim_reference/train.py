@@ -8,6 +8,7 @@
   weights/tool train texture --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors [--device cuda]
   weights/tool train latent --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors [--device cuda]
   weights/tool train steering --weights W.safetensors --episodes E.safetensors.gz --branches B.safetensors.gz --out O.safetensors
+  weights/tool train road --weights W.safetensors --sampler S.safetensors --windows RANK_DIR --out O.safetensors
   weights/tool train driver --weights W.safetensors --episodes E.safetensors.gz --out O.safetensors
   weights/tool train driver --weights W.safetensors --average A.safetensors,B.safetensors --out O.safetensors
 
@@ -41,6 +42,10 @@ yet in view): the world that ranks drivers as the real track does (docs/judging.
 steering (train_steering.py): the transition fine-tuned on paired steering branches (`python -m
 drivesim branches`), so that it answers the steering as the real car does, apart from the road.
 
+road (train_road.py): a texture net fine-tuned so that the roads it makes up past the view bend
+as the real ones do (the unchanged clone steers there as on the real laps), several seeds, the
+one whose dream fits the training family's real off-road shares best kept.
+
 driver (train_driver.py): a driver learnt inside such a world by the gradient of the dream's own
 return (its reward, off-road and value heads), from real starts, never an expert's label: the
 file's policy replaced by it (docs/learning.md); --average writes several such drivers' mean as
@@ -67,7 +72,7 @@ import torch.distributed as dist
 
 from drivesim import _files, episodes
 from drivesim_reference import train_heads
-from drivesim_reference import train_driver, train_latent, train_steering, train_texture
+from drivesim_reference import train_driver, train_latent, train_road, train_steering, train_texture
 from drivesim_reference.checkpoints import Checkpoints
 from drivesim_reference.distributed import globalise_batch_norms, start_distributed, world
 from drivesim_reference.model import Config, DriveSim, save_drivesim
@@ -236,11 +241,14 @@ def main(argv=None):
                                               "cannot know (train_latent.py)"))
     train_steering.add_arguments(sub.add_parser("steering", help="fine-tune the transition's answer to the steering "
                                                 "on paired branches (train_steering.py)"))
+    train_road.add_arguments(sub.add_parser("road", help="fine-tune the texture net so that its made-up roads bend "
+                                            "as the real ones do (train_road.py)"))
     train_driver.add_arguments(sub.add_parser("driver", help="learn a driver inside the dream by the gradient of "
                                               "the dream's own return (train_driver.py)"))
     args = p.parse_args(argv)
     modes = {"fit": fit, "eval": evaluate, "step": step, "heads": train_heads.heads, "texture": train_texture.texture,
-             "latent": train_latent.latent, "steering": train_steering.steering, "driver": train_driver.driver}
+             "latent": train_latent.latent, "steering": train_steering.steering, "road": train_road.road,
+             "driver": train_driver.driver}
     try:
         modes[args.mode](args)
     except (episodes.EpisodesError, ValueError, OSError) as err:
