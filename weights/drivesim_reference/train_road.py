@@ -19,12 +19,15 @@ codes. The rest of the rank's `learnt` family (the failure data's drivers, none 
 drives the same starts in the same batch, for two things: --anchor times the squared difference of
 the draws from the starting texture net's on every row keeps what the road term does not ask for
 as it was; and their off-road chances (the reward head's) against their real shares in the windows
-are the run's **fit**, the mean absolute gap over the family, which does not train.
+are the run's **fit**, the mean absolute gap over the family (each chance the mean of FIT_DRAWS
+dreams), which does not train.
 
 What one seed makes is a draw: of four seeds of the same recipe one had 16 of 17 drivers within
 0.1 of the real share on the tuning tracks and the others 9 to 11, and their fits ranked them as
 the tuning tracks did (docs/history/road_seeds.md). So --seeds trains each seed in turn and writes
-the one with the smallest fit. The dream is the rank's at its settings (--temperature, the world's
+the one with the smallest fit (each seed's run starts at `torch.manual_seed(seed)` before the world
+is read, so it is the same alone or among others). The file written is the whole world; `python -m
+drivesim sampler OUT --world W --out FILE` writes its sampler file. The dream is the rank's at its settings (--temperature, the world's
 steering times --world-steering, the drivers' own memory stepped on the codes they see), in torch.
 Adam (--lr), the gradient's norm clipped to 1, every start in each step unless --batch says fewer.
 With --checkpoint FILE the run writes its state every --checkpoint-every steps (atomically) and a
@@ -54,6 +57,8 @@ CHECKPOINT_FORMAT = "drivesim train.py road checkpoint 1"
 HORIZON, STARTS = 40, 7  # `rank --windows`' windows: HORIZON decisions from STARTS starts a track
 BIN = 10  # decisions a bin of the road term compares
 STEERING_UNIT, SHARE_UNIT = 0.05, 0.1  # the road term's units of steering and of shares
+# The fit's dreams of every start: one moves it by about 0.01, as much as some seeds differ.
+FIT_DRAWS = 4
 FAMILY = "learnt"  # the rank's family whose windows the run reads (`failures.training_family`)
 
 
@@ -191,11 +196,12 @@ class RoadRun:
         return dict(road=float(term.detach()), anchor=float(anchor.detach()))
 
     @torch.no_grad()
-    def fit(self) -> tuple[float, list]:
-        """The fit (module docstring) over every start, and each driver's (dream, real) share."""
-        chances, _, _ = self.dream(torch.arange(len(self.data["z"])))
-        shares = [(float(chances[i].clamp(0, 1).mean()), float(self.data["off"][i].nanmean()))
-                  for i in range(self.drivers)]
+    def fit(self, draws: int = FIT_DRAWS) -> tuple[float, list]:
+        """The fit (module docstring) over every start, the dream drawn ``draws`` times, and each
+        driver's (dream, real) share."""
+        every = torch.arange(len(self.data["z"]))
+        chances = torch.stack([self.dream(every)[0].clamp(0, 1) for _ in range(draws)]).mean(0)
+        shares = [(float(chances[i].mean()), float(self.data["off"][i].nanmean())) for i in range(self.drivers)]
         return float(np.mean([abs(d - r) for d, r in shares])), shares
 
 
@@ -231,26 +237,34 @@ def with_sampler(model, cfg, weights: str, sampler: str):
     prefix = "transition.texture."
     with safe_open(sampler, "pt") as f:
         tensors = {k[len(prefix):]: f.get_tensor(k).float() for k in f.keys()}
-    model.transition.texture = Texture(cfg, tensors["hidden.weight"].shape[0])
+    own = getattr(model.transition, "texture", None)
+    if own is None or own.hidden.out_features != tensors["hidden.weight"].shape[0]:
+        model.transition.texture = Texture(cfg, tensors["hidden.weight"].shape[0])
     model.transition.texture.load_state_dict(tensors)
     return model
 
 
-def road(args):
-    check(args)
+def world(args):
+    """The world to fine-tune (with --sampler's texture net), its parameters frozen, and its config."""
     model, cfg = load_drivesim(args.weights)
     if args.sampler:
         model = with_sampler(model, cfg, args.weights, args.sampler)
     heads = model.heads()
     if getattr(model.transition, "texture", None) is None or "policy" not in heads or "reward" not in heads:
         raise ValueError(f"{args.weights}: the run needs a texture net (or --sampler), the policy and the reward head")
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model, cfg
+
+
+def road(args):
+    check(args)
+    model, cfg = world(args)
     with safe_open(args.weights, "pt") as f:
         ranges = action_ranges(f.metadata() or {})
     if ranges is None:
         raise ValueError(f"{args.weights}: no `drivesim.actions` metadata (the policy's speed range)")
     source = Source(args.weights, args.out)
-    for p in model.parameters():
-        p.requires_grad_(False)
     data = load_windows(model, cfg, args.windows, args.world_steering)
     starts = len(data["z"])
     batch = min(args.batch or starts, starts)
@@ -260,21 +274,22 @@ def road(args):
                  if k not in {"out", "checkpoint", "checkpoint_every", "mode", "log_every"}}
     state = (restore_state(args.checkpoint, arguments) if args.checkpoint else None) or \
         dict(format=CHECKPOINT_FORMAT, arguments=arguments, best=None, done=[], current=None)
-    begun = copy.deepcopy(model.transition.texture.state_dict())
     for seed in args.seeds:
         if seed in state["done"]:
             continue
-        model.transition.texture.load_state_dict(begun)
-        torch.manual_seed(seed)
+        torch.manual_seed(seed)  # before the world is read: a seed's run is the same alone or among others
+        model, cfg = world(args)
         run = RoadRun(model, cfg, data, args, ranges)
-        first, current = 0, state["current"]
+        current = state["current"]
+        first = 0
         if current and current["seed"] == seed:  # resumed where the checkpoint was written
             for k, m in run.modules().items():
                 m.load_state_dict(current["modules"][k])
             torch.set_rng_state(current["random"])
             first = current["step"]
         else:
-            print(f"seed {seed}: the starting texture net's fit {run.fit()[0]:.4f}", flush=True)
+            # One draw only: a glance at where the seed starts (the seeds' runs draw on from here).
+            print(f"seed {seed}: the starting texture net's fit {run.fit(draws=1)[0]:.6f} (one draw)", flush=True)
         sums, clock = {}, time.time()
         for step in range(first, args.steps):
             rows = torch.randperm(starts)[:batch]
