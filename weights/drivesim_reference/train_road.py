@@ -41,6 +41,7 @@ import json
 import math
 import os
 import time
+import zipfile
 
 import numpy as np
 import torch
@@ -66,48 +67,56 @@ def load_windows(model, cfg, folder: str, gain: float) -> dict:
     """The starts of every track of ``folder`` (a `rank --family learnt --windows --out`): codes,
     the clone's memory, the world's hidden state (its transition stepped along the drive with the
     steering times ``gain``), speeds, the clone's real steering over the HORIZON decisions from each
-    (NaN past a drive's end) and every driver's real off-road flags (drivers, starts, HORIZON)."""
+    (NaN past a drive's end) and every driver's real off-road flags (drivers, starts, HORIZON). A
+    track without every driver's windows is left out; a file that cannot be read is a ValueError."""
     n = len(failures.training_family())
-    seeds = sorted(int(f[6:-4]) for f in os.listdir(folder) if f.startswith("drive_") and f.endswith(".npz")) \
-        if os.path.isdir(folder) else []
-    z, memory, hidden, speed, steer, off = [], [], [], [], [], []
+    seeds = sorted(int(f[6:-4]) for f in os.listdir(folder) if f.startswith("drive_") and f.endswith(".npz")
+                   and f[6:-4].isdigit()) if os.path.isdir(folder) else []
+    parts = []
     for seed in seeds:
         files = [os.path.join(folder, f"windows_{HORIZON}x{STARTS}", f"{FAMILY}_{i}_{seed}.json") for i in range(n)]
-        if not all(os.path.exists(f) for f in files):
-            continue
-        with np.load(os.path.join(folder, f"drive_{seed}.npz")) as f:
-            drive = {k: f[k] for k in ("z", "h", "speed", "steer", "first")}
-        if drive["z"].shape[1:] != (cfg.z_dim,) or drive["h"].shape[1:] != (cfg.hidden_dim,):
-            raise ValueError(f"{folder}: drive_{seed}.npz holds codes and memories of another model's shape")
-        _, at = window_starts(drive, STARTS, HORIZON)
-        h = torch.zeros(1, cfg.hidden_dim)
-        along = []
-        with torch.no_grad():
-            for t in range(max(at) + 1):
-                along.append(h[0])
-                c = torch.tensor([[drive["speed"][t], gain * drive["steer"][t]]], dtype=torch.float32)
-                _, h = model.transition(torch.from_numpy(drive["z"][t:t + 1]).float(), h, c)
-        z.append(torch.from_numpy(drive["z"][at]).float())
-        memory.append(torch.from_numpy(drive["h"][at]).float())
-        hidden.append(torch.stack([along[t] for t in at]))
-        speed.append(torch.from_numpy(drive["speed"][at]).float())
-        real = np.full((len(at), HORIZON), np.nan, np.float32)
-        for j, t in enumerate(at):
-            real[j, :len(drive["steer"][t:t + HORIZON])] = drive["steer"][t:t + HORIZON]
-        steer.append(torch.from_numpy(real))
-        flags = []
-        for path in files:
-            with open(path) as f:
-                rows = json.load(f)["off"]
-            if len(rows) != len(at) or any(len(r) > HORIZON for r in rows):
-                raise ValueError(f"{path}: {len(rows)} windows, not the {len(at)} of its drive's starts")
-            flags.append([r + [math.nan] * (HORIZON - len(r)) for r in rows])
-        off.append(torch.tensor(flags, dtype=torch.float32))
-    if not z:
+        if all(os.path.exists(f) for f in files):
+            try:
+                parts.append(track(model, cfg, os.path.join(folder, f"drive_{seed}.npz"), files, gain))
+            except (OSError, KeyError, TypeError, ValueError, zipfile.BadZipFile) as e:
+                raise ValueError(f"--windows {folder}: track {seed}: {e}") from e
+    if not parts:
         raise ValueError(f"--windows {folder}: no track with the windows of every driver of the `{FAMILY}` family "
                          f"(run `python -m drivesim.carracing.rank --family {FAMILY} --windows --out {folder}`)")
+    z, memory, hidden, speed, steer, off = zip(*parts)
     return dict(z=torch.cat(z), memory=torch.cat(memory), hidden=torch.cat(hidden), speed=torch.cat(speed),
-                steer=torch.cat(steer), off=torch.cat(off, 1), tracks=len(z))
+                steer=torch.cat(steer), off=torch.cat(off, 1), tracks=len(parts))
+
+
+def track(model, cfg, drive_file: str, files: list, gain: float) -> tuple:
+    """One track's part of `load_windows`: its behaviour drive ``drive_file`` and the drivers' windows ``files``."""
+    with np.load(drive_file) as f:
+        drive = {k: f[k] for k in ("z", "h", "speed", "steer", "first")}
+    if drive["z"].shape[1:] != (cfg.z_dim,) or drive["h"].shape[1:] != (cfg.hidden_dim,):
+        raise ValueError("its codes and memories are another model's shape")
+    if not all(np.isfinite(drive[k]).all() for k in ("z", "h", "speed", "steer")):
+        raise ValueError("its drive holds numbers that are not finite")
+    _, at = window_starts(drive, STARTS, HORIZON)
+    h = torch.zeros(1, cfg.hidden_dim)
+    along = []
+    with torch.no_grad():
+        for t in range(max(at) + 1):
+            along.append(h[0])
+            c = torch.tensor([[drive["speed"][t], gain * drive["steer"][t]]], dtype=torch.float32)
+            _, h = model.transition(torch.from_numpy(drive["z"][t:t + 1]).float(), h, c)
+    real = np.full((len(at), HORIZON), np.nan, np.float32)
+    for j, t in enumerate(at):
+        real[j, :len(drive["steer"][t:t + HORIZON])] = drive["steer"][t:t + HORIZON]
+    flags = []
+    for path in files:
+        with open(path) as f:
+            rows = json.load(f)["off"]
+        if len(rows) != len(at) or any(len(r) > HORIZON or not set(r) <= {0, 1} for r in rows):
+            raise ValueError(f"{path}: not {len(at)} windows (its drive's starts) of at most {HORIZON} flags 0 or 1")
+        flags.append([r + [math.nan] * (HORIZON - len(r)) for r in rows])
+    return (torch.from_numpy(drive["z"][at]).float(), torch.from_numpy(drive["h"][at]).float(),
+            torch.stack([along[t] for t in at]), torch.from_numpy(drive["speed"][at]).float(),
+            torch.from_numpy(real), torch.tensor(flags, dtype=torch.float32))
 
 
 class RoadRun:

@@ -140,6 +140,27 @@ def test_a_world_without_a_texture_net_or_a_reward_head_is_refused(tmp_path, fil
         assert not (tmp_path / "x.safetensors").exists()
 
 
+@pytest.mark.parametrize("damage", ["drive not an archive", "drive with NaN", "flags not 0 or 1", "flags not JSON"])
+def test_a_damaged_file_in_the_windows_is_refused_naming_it(tmp_path, files, capsys, damage):
+    weights, windows = files
+    kept = windows / f"windows_{train_road.HORIZON}x{train_road.STARTS}" / "learnt_2_6.json"
+    if damage == "drive not an archive":
+        (windows / "drive_6.npz").write_bytes(b"not an archive")
+    elif damage == "drive with NaN":
+        with np.load(windows / "drive_6.npz") as f:
+            drive = dict(f)
+        drive["steer"][3] = np.nan
+        np.savez(windows / "drive_6.npz", **drive)
+    elif damage == "flags not 0 or 1":
+        kept.write_text(json.dumps({"off": [[2] * 40] * train_road.STARTS}))
+    else:
+        kept.write_text("{")
+    with pytest.raises(SystemExit):
+        run(weights, windows, tmp_path / "x.safetensors")
+    assert "track 6" in capsys.readouterr().err
+    assert not (tmp_path / "x.safetensors").exists()
+
+
 def test_windows_of_a_track_without_every_driver_are_left_out(tmp_path, files):
     weights, windows = files
     (windows / f"windows_{train_road.HORIZON}x{train_road.STARTS}" / "learnt_3_6.json").unlink()
