@@ -49,6 +49,7 @@ from safetensors import safe_open
 
 from drivesim import _files
 from drivesim.carracing import failures
+from drivesim.carracing.control import SPEED_MAX
 from drivesim.carracing.rank_dream import window_starts
 from drivesim_reference.model import load_drivesim
 from drivesim_reference.train_driver import speed_after
@@ -155,7 +156,7 @@ class RoadRun:
             out = policy(seen, h_d)
             road.append(policy(z[:k], h_d[:k])[:, 1].clamp(-1.0, 1.0))
             steer = (g * out[:, 1].clamp(-1.0, 1.0) + b + nz * torch.randn(len(z))).clamp(-1.0, 1.0)
-            target = (sp * out[:, 0].clamp(float(low[0]), float(high[0]))).clamp(0.0, 1000.0)
+            target = (sp * out[:, 0].clamp(float(low[0]), float(high[0]))).clamp(0.0, SPEED_MAX)
             decided = torch.stack([target, steer], 1).detach()
             if queue is None:  # a window starts with its first decision already in the past
                 queue = [decided] * (int(dl.max()) + 1)
