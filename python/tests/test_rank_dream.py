@@ -135,7 +135,8 @@ def test_several_futures_are_the_mean_of_their_dreams_and_their_spread():
 def test_the_worlds_steering_shaped_is_its_steering_column_scaled(tmp_path):
     """``--world-steering 2``: the world stepping with twice each steering is the world whose
     transition's steering column is doubled (both exact in floating point), bit for bit, while
-    the drivers' memory steps as before; a lead adds the change from the decision before."""
+    the drivers' memory steps as before, for drivers that never steer past half lock; a lead adds
+    the change from the decision before; past full lock the world steps with full lock."""
     from safetensors.numpy import load_file, save_file
     from safetensors import safe_open
 
@@ -147,15 +148,19 @@ def test_the_worlds_steering_shaped_is_its_steering_column_scaled(tmp_path):
     save_file(tensors, tmp_path / "k2.safetensors", metadata=meta)
     sim, starts = three_starts(6)
     doubled = drivesim.Simulator(drivesim.Model.load(tmp_path / "k2.safetensors"), batch=6)
-    family = [FAMILY[0], Driver("b", bias=0.3)]
+    family = [Driver("half", gain=0.5), Driver("b", gain=0.2, bias=0.3)]   # |steering| <= 0.5
     shaped = rank_dream.dream(sim, sim, family, starts, 6, 0, False, (2.0, 0.0))
     scaled = rank_dream.dream(sim, doubled, family, starts, 6, 0, False)
     np.testing.assert_array_equal(shaped["off_steps"], scaled["off_steps"])
     np.testing.assert_array_equal(shaped["return"], scaled["return"])
     assert not np.array_equal(shaped["return"], rank_dream.dream(sim, sim, family, starts, 6, 0, False)["return"])
     action = np.float32([[30, 0.5], [20, -0.2]])
-    np.testing.assert_allclose(rank_dream.world_steering(action, np.float32([0.1, -0.2]), (1.5, 1.0)),
-                               [[30, 1.15], [20, -0.3]], rtol=1e-6)
+    np.testing.assert_allclose(rank_dream.world_steering(action, np.float32([0.1, -0.2]), (1.5, 0.5)),
+                               [[30, 0.95], [20, -0.3]], rtol=1e-6)
+    # Held at full lock: the world is never stepped harder than the real car can steer.
+    np.testing.assert_allclose(rank_dream.world_steering(action, np.float32([0.1, -0.9]), (1.5, 1.0)),
+                               [[30, 1.0], [20, 0.4]], rtol=1e-6)
+    np.testing.assert_array_equal(rank_dream.world_steering(np.float32([[50, -0.9]]), -0.5, (1.4, 0.0)), [[50, -1.0]])
     assert rank_dream.world_steering(action, 0.0, (1.0, 0.0)) is action
     assert rank.shaping("2") == (2.0, 0.0) and rank.shaping("1.5,0.5") == (1.5, 0.5)
     with pytest.raises(ValueError):

@@ -64,6 +64,12 @@ FIT_DRAWS = 4
 FAMILY = "learnt"  # the rank's family whose windows the run reads (`failures.training_family`)
 
 
+def world_steering(steer, gain: float):
+    """The steering the world steps with: ``gain`` times the driver's, held at full lock (±1) as
+    `rank`'s is (`rank_dream.world_steering`): the real car turns no harder past it."""
+    return (gain * steer).clip(-1.0, 1.0)  # a NumPy number or a tensor alike
+
+
 def load_windows(model, cfg, folder: str, gain: float) -> dict:
     """The starts of every track of ``folder`` (a `rank --family learnt --windows --out`): codes,
     the clone's memory, the world's hidden state (its transition stepped along the drive with the
@@ -103,7 +109,7 @@ def track(model, cfg, drive_file: str, files: list, gain: float) -> tuple:
     with torch.no_grad():
         for t in range(max(at) + 1):
             along.append(h[0])
-            c = torch.tensor([[drive["speed"][t], gain * drive["steer"][t]]], dtype=torch.float32)
+            c = torch.tensor([[drive["speed"][t], world_steering(drive["steer"][t], gain)]], dtype=torch.float32)
             _, h = model.transition(torch.from_numpy(drive["z"][t:t + 1]).float(), h, c)
     real = np.full((len(at), HORIZON), np.nan, np.float32)
     for j, t in enumerate(at):
@@ -148,7 +154,6 @@ class RoadRun:
         row = torch.arange(n).repeat_interleave(k)
         g, b, sp, nz, dl = (self.params[key][row] for key in ("gain", "bias", "speed", "noise", "delay"))
         dl = dl.long()
-        shaping = torch.tensor([1.0, a.world_steering])
         queue, chances, anchor, road = None, [], [], []
         low, high = self.ranges
         for _ in range(HORIZON):
@@ -165,7 +170,7 @@ class RoadRun:
             action = torch.stack([v, applied[:, 1]], 1)
             with torch.no_grad():
                 _, h_d = tr(seen, h_d, action)
-            mean, h_w = tr(z, h_w, action * shaping)
+            mean, h_w = tr(z, h_w, torch.stack([v, world_steering(applied[:, 1], a.world_steering)], 1))
             eps = a.temperature * torch.randn_like(mean)
             drawn = tex(eps, h_w)
             with torch.no_grad():

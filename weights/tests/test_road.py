@@ -190,3 +190,15 @@ def test_the_road_term_compares_the_mean_the_size_and_the_shares_past_the_view()
     dreamt = real.clone()
     dreamt[0, 30:] = 1.0
     assert float(term(self, dreamt, masked)) == 0.0
+
+
+def test_the_worlds_steering_is_the_ranks_held_at_full_lock():
+    """The dream trained in steps the world as `rank` does: the gain times the steering, never past ±1."""
+    from drivesim.carracing import rank_dream
+
+    steer = np.float32([0.3, 0.9, -0.8, -0.5])
+    dreamt = train_road.world_steering(torch.from_numpy(steer), 1.4)
+    ranked = rank_dream.world_steering(np.stack([np.full(4, 50, np.float32), steer], 1), steer, (1.4, 0.0))[:, 1]
+    np.testing.assert_array_equal(dreamt.numpy(), ranked)
+    np.testing.assert_allclose(dreamt.numpy(), [0.42, 1.0, -1.0, -0.7], rtol=1e-6)
+    assert float(train_road.world_steering(np.float32(0.9), 1.4)) == 1.0  # the drive's steering, a NumPy number

@@ -27,7 +27,8 @@ as steady and as often bent each way as the real ones).
 their means, and each driver's spread over them is reported beside them, with its correlation over
 the family with the dream's error in ranks (does the dream doubt where it is wrong?).
 ``--world-steering GAIN,LEAD`` steps the world with each steering s as ``GAIN * s + LEAD * (s - the
-decision before's s)``, the drivers' memory with s: a diagnostic of the world's steering answer.
+decision before's s)``, held at full lock (±1), the drivers' memory with s: a diagnostic of the
+world's steering answer.
 
 ``--through-frames``: the drivers read the dream's frames through their encoder (150x slower).
 ``--world FILE`` dreams with another model's transition and heads (the drivers keep the policy of
@@ -76,10 +77,11 @@ from .view import parse_seeds
 FAMILIES = {**PROBE_FAMILIES, "learnt": failures.training_family()}
 
 # The judge's settings, chosen on the tuning tracks 15600-15619 (docs/history/judge_wheel.md): its
-# world steps with each steering GAIN x (the default's transition answers the wheel short of the
-# real car: probe-real 0.82-1.06x in 5 steps), at a temperature below 1 (hotter futures take a car
-# with a steady pull off the road sooner than the real one leaves), and its figures are the means of
-# 16 futures (with 4 a driver's dreamt off-road share still moves by 0.05 from one draw to another).
+# world steps with each steering GAIN x, held at full lock (the default's transition answers the
+# wheel short of the real car: probe-real 0.82-1.06x in 5 steps; `world_steering`), at a temperature
+# below 1 (hotter futures take a car with a steady pull off the road sooner than the real one
+# leaves), and its figures are the means of 16 futures (with 4 a driver's dreamt off-road share
+# still moves by 0.05 from one draw to another).
 JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.4, 0.0), 0.7, 16
 
 
@@ -214,7 +216,7 @@ def main(argv=None) -> int:
     p.add_argument("--judge", action="store_true", help="the world's futures drawn by the built-in judge (Model.judge)")
     p.add_argument("--world-steering", type=shaping, metavar="GAIN[,LEAD]",
                    help="the world steps with GAIN * s + LEAD * (s - the decision before's s) for each steering s "
-                        "(the drivers' memory steps with s); default 1, with --judge JUDGE_STEERING")
+                        "held at full lock, ±1 (the drivers' memory steps with s); default 1, with --judge JUDGE_STEERING")
     p.add_argument("--family", choices=list(FAMILIES), default="all",
                    help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests); holds: the clone and "
                         f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20); "
