@@ -27,8 +27,9 @@ What one seed makes is a draw: of four seeds of the same recipe one had 16 of 17
 the tuning tracks did (docs/history/road_seeds.md). So --seeds trains each seed in turn and writes
 the one with the smallest fit (each seed's run starts at `torch.manual_seed(seed)` before the world
 is read, so it is the same alone or among others). The file written is the whole world; `python -m
-drivesim sampler OUT --world W --out FILE` writes its sampler file. The dream is the rank's at its settings (--temperature, the world's
-steering times --world-steering, the drivers' own memory stepped on the codes they see), in torch.
+drivesim sampler OUT --world W --out FILE` writes its sampler file. The dream is the rank's at its
+settings (--temperature, the world's steering shaped by --world-steering and held at full lock, the
+drivers' own memory stepped on the codes they see), in torch.
 Adam (--lr), the gradient's norm clipped to 1, every start in each step unless --batch says fewer.
 With --checkpoint FILE the run writes its state every --checkpoint-every steps (atomically) and a
 run started again with the same arguments goes on from there to the same bytes.
@@ -50,6 +51,7 @@ from safetensors import safe_open
 from drivesim import _files
 from drivesim.carracing import failures
 from drivesim.carracing.control import SPEED_MAX
+from drivesim.carracing.rank import JUDGE_STEERING, shaping
 from drivesim.carracing.rank_dream import window_starts
 from drivesim_reference.model import load_drivesim
 from drivesim_reference.train_driver import speed_after
@@ -64,18 +66,20 @@ FIT_DRAWS = 4
 FAMILY = "learnt"  # the rank's family whose windows the run reads (`failures.training_family`)
 
 
-def world_steering(steer, gain: float):
-    """The steering the world steps with: ``gain`` times the driver's, held at full lock (±1) as
-    `rank`'s is (`rank_dream.world_steering`): the real car turns no harder past it."""
-    return (gain * steer).clip(-1.0, 1.0)  # a NumPy number or a tensor alike
+def world_steering(steer, previous, shaping: tuple):
+    """The steering the world steps with, `rank`'s (`rank_dream.world_steering`): ``GAIN * steer +
+    LEAD * (steer - previous)`` for ``shaping`` (GAIN, LEAD), held at full lock (±1)."""
+    gain, lead = shaping
+    return (gain * steer + lead * (steer - previous)).clip(-1.0, 1.0)  # NumPy numbers or tensors alike
 
 
-def load_windows(model, cfg, folder: str, gain: float) -> dict:
+def load_windows(model, cfg, folder: str, shaping: tuple) -> dict:
     """The starts of every track of ``folder`` (a `rank --family learnt --windows --out`): codes,
     the clone's memory, the world's hidden state (its transition stepped along the drive with the
-    steering times ``gain``), speeds, the clone's real steering over the HORIZON decisions from each
-    (NaN past a drive's end) and every driver's real off-road flags (drivers, starts, HORIZON). A
-    track without every driver's windows is left out; a file that cannot be read is a ValueError."""
+    steering shaped by ``shaping``, `world_steering`), speeds, the steering before each start, the
+    clone's real steering over the HORIZON decisions from each (NaN past a drive's end) and every
+    driver's real off-road flags (drivers, starts, HORIZON). A track without every driver's
+    windows is left out; a file that cannot be read is a ValueError."""
     n = len(failures.training_family())
     seeds = sorted(int(f[6:-4]) for f in os.listdir(folder) if f.startswith("drive_") and f.endswith(".npz")
                    and f[6:-4].isdigit()) if os.path.isdir(folder) else []
@@ -84,18 +88,18 @@ def load_windows(model, cfg, folder: str, gain: float) -> dict:
         files = [os.path.join(folder, f"windows_{HORIZON}x{STARTS}", f"{FAMILY}_{i}_{seed}.json") for i in range(n)]
         if all(os.path.exists(f) for f in files):
             try:
-                parts.append(track(model, cfg, os.path.join(folder, f"drive_{seed}.npz"), files, gain))
+                parts.append(track(model, cfg, os.path.join(folder, f"drive_{seed}.npz"), files, shaping))
             except (OSError, KeyError, TypeError, ValueError, zipfile.BadZipFile) as e:
                 raise ValueError(f"--windows {folder}: track {seed}: {e}") from e
     if not parts:
         raise ValueError(f"--windows {folder}: no track with the windows of every driver of the `{FAMILY}` family "
                          f"(run `python -m drivesim.carracing.rank --family {FAMILY} --windows --out {folder}`)")
-    z, memory, hidden, speed, steer, off = zip(*parts)
+    z, memory, hidden, speed, previous, steer, off = zip(*parts)
     return dict(z=torch.cat(z), memory=torch.cat(memory), hidden=torch.cat(hidden), speed=torch.cat(speed),
-                steer=torch.cat(steer), off=torch.cat(off, 1), tracks=len(parts))
+                previous=torch.cat(previous), steer=torch.cat(steer), off=torch.cat(off, 1), tracks=len(parts))
 
 
-def track(model, cfg, drive_file: str, files: list, gain: float) -> tuple:
+def track(model, cfg, drive_file: str, files: list, shaping: tuple) -> tuple:
     """One track's part of `load_windows`: its behaviour drive ``drive_file`` and the drivers' windows ``files``."""
     with np.load(drive_file) as f:
         drive = {k: f[k] for k in ("z", "h", "speed", "steer", "first")}
@@ -109,7 +113,8 @@ def track(model, cfg, drive_file: str, files: list, gain: float) -> tuple:
     with torch.no_grad():
         for t in range(max(at) + 1):
             along.append(h[0])
-            c = torch.tensor([[drive["speed"][t], world_steering(drive["steer"][t], gain)]], dtype=torch.float32)
+            steer = world_steering(drive["steer"][t], drive["steer"][max(t - 1, 0)], shaping)
+            c = torch.tensor([[drive["speed"][t], steer]], dtype=torch.float32)
             _, h = model.transition(torch.from_numpy(drive["z"][t:t + 1]).float(), h, c)
     real = np.full((len(at), HORIZON), np.nan, np.float32)
     for j, t in enumerate(at):
@@ -123,6 +128,7 @@ def track(model, cfg, drive_file: str, files: list, gain: float) -> tuple:
         flags.append([r + [math.nan] * (HORIZON - len(r)) for r in rows])
     return (torch.from_numpy(drive["z"][at]).float(), torch.from_numpy(drive["h"][at]).float(),
             torch.stack([along[t] for t in at]), torch.from_numpy(drive["speed"][at]).float(),
+            torch.tensor([drive["steer"][max(t - 1, 0)] for t in at], dtype=torch.float32),
             torch.from_numpy(real), torch.tensor(flags, dtype=torch.float32))
 
 
@@ -150,7 +156,7 @@ class RoadRun:
         tr, tex, policy, reward = self.model.transition, self.model.transition.texture, self.model.policy, \
             self.model.reward
         z, h_d, h_w = (d[key][rows].repeat(n, 1) for key in ("z", "memory", "hidden"))
-        v = d["speed"][rows].repeat(n)
+        v, previous = d["speed"][rows].repeat(n), d["previous"][rows].repeat(n)
         row = torch.arange(n).repeat_interleave(k)
         g, b, sp, nz, dl = (self.params[key][row] for key in ("gain", "bias", "speed", "noise", "delay"))
         dl = dl.long()
@@ -170,7 +176,8 @@ class RoadRun:
             action = torch.stack([v, applied[:, 1]], 1)
             with torch.no_grad():
                 _, h_d = tr(seen, h_d, action)
-            mean, h_w = tr(z, h_w, torch.stack([v, world_steering(applied[:, 1], a.world_steering)], 1))
+            mean, h_w = tr(z, h_w, torch.stack([v, world_steering(applied[:, 1], previous, a.world_steering)], 1))
+            previous = applied[:, 1]
             eps = a.temperature * torch.randn_like(mean)
             drawn = tex(eps, h_w)
             with torch.no_grad():
@@ -360,11 +367,11 @@ def edges(text: str) -> list:
 def check(args):
     args.seeds, args.edges = seed_list(args.seeds), edges(args.edges)
     numbers = dict(lr=args.lr, anchor=args.anchor, shares=args.shares, softness=args.softness,
-                   temperature=args.temperature, world_steering=args.world_steering)
+                   temperature=args.temperature)  # --world-steering is checked as it is read (`rank.shaping`)
     if not all(math.isfinite(v) for v in numbers.values()) or args.lr <= 0 or args.softness <= 0 \
-            or min(args.anchor, args.shares, args.temperature, args.world_steering) < 0:
-        raise ValueError(f"--lr and --softness must be above 0, --anchor, --shares, --temperature and "
-                         f"--world-steering at least 0, all finite: {numbers}")
+            or min(args.anchor, args.shares, args.temperature) < 0:
+        raise ValueError(f"--lr and --softness must be above 0, --anchor, --shares and --temperature at "
+                         f"least 0, all finite: {numbers}")
     if args.steps < 0 or args.batch < 0 or not 0 <= args.road_from < HORIZON or args.log_every < 1 \
             or args.checkpoint_every < 1:
         raise ValueError(f"--steps and --batch must be at least 0, --road-from from 0 to {HORIZON - 1}, "
@@ -392,7 +399,8 @@ def add_arguments(t):
     t.add_argument("--shares", type=float, default=1.0, help="weight of the shares' terms")
     t.add_argument("--softness", type=float, default=0.02, help="the shares' sigmoids' softness")
     t.add_argument("--temperature", type=float, default=0.7, help="the draws' temperature (the judge's)")
-    t.add_argument("--world-steering", type=float, default=1.4, help="the world's steering times this (the judge's)")
+    t.add_argument("--world-steering", type=shaping, default=JUDGE_STEERING, metavar="GAIN[,LEAD]",
+                   help="the world's steering shaped as `rank --world-steering` shapes it (default the judge's)")
     t.add_argument("--log-every", type=int, default=50)
     t.add_argument("--checkpoint", help="checkpoint file, written every --checkpoint-every steps and read back")
     t.add_argument("--checkpoint-every", type=int, default=50)

@@ -120,7 +120,8 @@ def test_sampler_starts_from_a_sampler_file_of_this_world_and_refuses_another_wo
 
 
 @pytest.mark.parametrize("bad", [["--seeds", "x"], ["--seeds", "1,1"], ["--edges", "0"], ["--lr", "0"],
-                                 ["--anchor", "nan"], ["--road-from", "40"], ["--windows", "nowhere"]])
+                                 ["--anchor", "nan"], ["--road-from", "40"], ["--windows", "nowhere"],
+                                 ["--world-steering", "1.5,nan"], ["--world-steering", "1,2,3"]])
 def test_what_it_cannot_use_exits_with_a_message(tmp_path, files, bad):
     weights, windows = files
     with pytest.raises(SystemExit):
@@ -167,7 +168,7 @@ def test_windows_of_a_track_without_every_driver_are_left_out(tmp_path, files):
     from drivesim_reference.model import load_drivesim
 
     model, cfg = load_drivesim(weights)
-    data = train_road.load_windows(model, cfg, str(windows), 1.4)
+    data = train_road.load_windows(model, cfg, str(windows), (1.4, 0.0))
     assert data["tracks"] == 1 and data["off"].shape == (DRIVERS, train_road.STARTS, train_road.HORIZON)
 
 
@@ -193,12 +194,17 @@ def test_the_road_term_compares_the_mean_the_size_and_the_shares_past_the_view()
 
 
 def test_the_worlds_steering_is_the_ranks_held_at_full_lock():
-    """The dream trained in steps the world as `rank` does: the gain times the steering, never past ±1."""
-    from drivesim.carracing import rank_dream
+    """The dream trained in steps the world as `rank` does: the gain times the steering and a lead
+    on its change, never past ±1; by default with the judge's settings."""
+    from drivesim.carracing import rank, rank_dream
 
-    steer = np.float32([0.3, 0.9, -0.8, -0.5])
-    dreamt = train_road.world_steering(torch.from_numpy(steer), 1.4)
-    ranked = rank_dream.world_steering(np.stack([np.full(4, 50, np.float32), steer], 1), steer, (1.4, 0.0))[:, 1]
-    np.testing.assert_array_equal(dreamt.numpy(), ranked)
-    np.testing.assert_allclose(dreamt.numpy(), [0.42, 1.0, -1.0, -0.7], rtol=1e-6)
-    assert float(train_road.world_steering(np.float32(0.9), 1.4)) == 1.0  # the drive's steering, a NumPy number
+    steer, previous = np.float32([0.3, 0.9, -0.8, -0.5]), np.float32([0.1, 0.9, -0.8, 0.5])
+    for shaping in [(1.4, 0.0), (1.5, 0.2)]:
+        dreamt = train_road.world_steering(torch.from_numpy(steer), torch.from_numpy(previous), shaping)
+        ranked = rank_dream.world_steering(np.stack([np.full(4, 50, np.float32), steer], 1), previous, shaping)
+        np.testing.assert_allclose(dreamt.numpy(), ranked[:, 1], rtol=1e-6)
+    np.testing.assert_allclose(dreamt.numpy(), [0.49, 1.0, -1.0, -0.95], rtol=1e-6)
+    assert float(train_road.world_steering(np.float32(0.9), np.float32(0.0), (1.4, 0.0))) == 1.0  # a drive's
+    parser = __import__("argparse").ArgumentParser()
+    train_road.add_arguments(parser)
+    assert parser.parse_args(["--weights", "w", "--windows", "d", "--out", "o"]).world_steering == rank.JUDGE_STEERING

@@ -77,12 +77,13 @@ from .view import parse_seeds
 FAMILIES = {**PROBE_FAMILIES, "learnt": failures.training_family()}
 
 # The judge's settings, chosen on the tuning tracks 15600-15619 (docs/history/judge_wheel.md): its
-# world steps with each steering GAIN x, held at full lock (the default's transition answers the
-# wheel short of the real car: probe-real 0.82-1.06x in 5 steps; `world_steering`), at a temperature
-# below 1 (hotter futures take a car with a steady pull off the road sooner than the real one
-# leaves), and its figures are the means of 16 futures (with 4 a driver's dreamt off-road share
-# still moves by 0.05 from one draw to another).
-JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.4, 0.0), 0.7, 16
+# world steps with each steering GAIN x and a LEAD on its change, held at full lock (the default's
+# transition answers the wheel short of the real car: probe-real 0.82-1.06x in 5 steps; the lead
+# brings a pulled car back past the view; `world_steering`, chosen with the training family's
+# tracks too: docs/history/full_lock.md), at a temperature below 1 (hotter futures take a car with
+# a steady pull off the road sooner than the real one leaves), and its figures are the means of 16
+# futures (with 4 a driver's dreamt off-road share still moves by 0.05 from one draw to another).
+JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.5, 0.2), 0.7, 16
 
 
 def dream_settings(args, own: dict) -> None:
@@ -215,8 +216,9 @@ def main(argv=None) -> int:
     p.add_argument("--world", help="the world model's weight file: the transition and heads that dream (default: --weights)")
     p.add_argument("--judge", action="store_true", help="the world's futures drawn by the built-in judge (Model.judge)")
     p.add_argument("--world-steering", type=shaping, metavar="GAIN[,LEAD]",
-                   help="the world steps with GAIN * s + LEAD * (s - the decision before's s) for each steering s "
-                        "held at full lock, ±1 (the drivers' memory steps with s); default 1, with --judge JUDGE_STEERING")
+                   help="the world steps with GAIN * s + LEAD * (s - the decision before's s) for each steering s, "
+                        "held at full lock, ±1 (the drivers' memory steps with s); default 1, with --judge "
+                        "JUDGE_STEERING")
     p.add_argument("--family", choices=list(FAMILIES), default="all",
                    help=f"all: the {len(FAMILY)} drivers; small: {len(SMALL)} (tests); holds: the clone and "
                         f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20); "
