@@ -52,7 +52,7 @@ from drivesim import _files
 from drivesim.carracing import failures
 from drivesim.carracing.control import SPEED_MAX
 from drivesim.carracing.rank import JUDGE_STEERING, shaping
-from drivesim.carracing.rank_dream import window_starts
+from drivesim.carracing.rank_dream import steering_shaped, window_starts
 from drivesim_reference.model import load_drivesim
 from drivesim_reference.train_driver import speed_after
 from drivesim_reference.train_heads import Source, action_ranges
@@ -66,20 +66,13 @@ FIT_DRAWS = 4
 FAMILY = "learnt"  # the rank's family whose windows the run reads (`failures.training_family`)
 
 
-def world_steering(steer, previous, shaping: tuple):
-    """The steering the world steps with, `rank`'s (`rank_dream.world_steering`): ``GAIN * steer +
-    LEAD * (steer - previous)`` for ``shaping`` (GAIN, LEAD), held at full lock (±1)."""
-    gain, lead = shaping
-    return (gain * steer + lead * (steer - previous)).clip(-1.0, 1.0)  # NumPy numbers or tensors alike
-
-
 def load_windows(model, cfg, folder: str, shaping: tuple) -> dict:
     """The starts of every track of ``folder`` (a `rank --family learnt --windows --out`): codes,
     the clone's memory, the world's hidden state (its transition stepped along the drive with the
-    steering shaped by ``shaping``, `world_steering`), speeds, the steering before each start, the
-    clone's real steering over the HORIZON decisions from each (NaN past a drive's end) and every
-    driver's real off-road flags (drivers, starts, HORIZON). A track without every driver's
-    windows is left out; a file that cannot be read is a ValueError."""
+    steering shaped by ``shaping``, `rank_dream.steering_shaped`), speeds, the steering before each
+    start, the clone's real steering over the HORIZON decisions from each (NaN past a drive's end)
+    and every driver's real off-road flags (drivers, starts, HORIZON). A track without every
+    driver's windows is left out; a file that cannot be read is a ValueError."""
     n = len(failures.training_family())
     seeds = sorted(int(f[6:-4]) for f in os.listdir(folder) if f.startswith("drive_") and f.endswith(".npz")
                    and f[6:-4].isdigit()) if os.path.isdir(folder) else []
@@ -113,7 +106,7 @@ def track(model, cfg, drive_file: str, files: list, shaping: tuple) -> tuple:
     with torch.no_grad():
         for t in range(max(at) + 1):
             along.append(h[0])
-            steer = world_steering(drive["steer"][t], drive["steer"][max(t - 1, 0)], shaping)
+            steer = steering_shaped(drive["steer"][t], drive["steer"][max(t - 1, 0)], shaping)
             c = torch.tensor([[drive["speed"][t], steer]], dtype=torch.float32)
             _, h = model.transition(torch.from_numpy(drive["z"][t:t + 1]).float(), h, c)
     real = np.full((len(at), HORIZON), np.nan, np.float32)
@@ -176,7 +169,7 @@ class RoadRun:
             action = torch.stack([v, applied[:, 1]], 1)
             with torch.no_grad():
                 _, h_d = tr(seen, h_d, action)
-            mean, h_w = tr(z, h_w, torch.stack([v, world_steering(applied[:, 1], previous, a.world_steering)], 1))
+            mean, h_w = tr(z, h_w, torch.stack([v, steering_shaped(applied[:, 1], previous, a.world_steering)], 1))
             previous = applied[:, 1]
             eps = a.temperature * torch.randn_like(mean)
             drawn = tex(eps, h_w)

@@ -200,11 +200,11 @@ def test_the_worlds_steering_is_the_ranks_held_at_full_lock():
 
     steer, previous = np.float32([0.3, 0.9, -0.8, -0.5]), np.float32([0.1, 0.9, -0.8, 0.5])
     for shaping in [(1.4, 0.0), (1.5, 0.2)]:
-        dreamt = train_road.world_steering(torch.from_numpy(steer), torch.from_numpy(previous), shaping)
+        dreamt = train_road.steering_shaped(torch.from_numpy(steer), torch.from_numpy(previous), shaping)
         ranked = rank_dream.world_steering(np.stack([np.full(4, 50, np.float32), steer], 1), previous, shaping)
         np.testing.assert_allclose(dreamt.numpy(), ranked[:, 1], rtol=1e-6)
     np.testing.assert_allclose(dreamt.numpy(), [0.49, 1.0, -1.0, -0.95], rtol=1e-6)
-    assert float(train_road.world_steering(np.float32(0.9), np.float32(0.0), (1.4, 0.0))) == 1.0  # a drive's
+    assert float(train_road.steering_shaped(np.float32(0.9), np.float32(0.0), (1.4, 0.0))) == 1.0  # a drive's
     parser = __import__("argparse").ArgumentParser()
     train_road.add_arguments(parser)
     assert parser.parse_args(["--weights", "w", "--windows", "d", "--out", "o"]).world_steering == rank.JUDGE_STEERING

@@ -28,6 +28,14 @@ def dream_row_seed(seed: int, index: int, start: int, starts: int) -> int:
     return seed * 1000 + index * starts + start
 
 
+def steering_shaped(steer, previous, shaping: tuple):
+    """``GAIN * steer + LEAD * (steer - previous)`` for ``shaping`` (GAIN, LEAD), held at full lock
+    (±1): what `world_steering` steps the world with, for NumPy arrays or numbers and torch tensors
+    alike (`train road`'s dream steps its world with it too)."""
+    gain, lead = shaping
+    return (gain * steer + lead * (steer - previous)).clip(-1.0, 1.0)
+
+
 def world_steering(action: np.ndarray, previous, shaping: tuple) -> np.ndarray:
     """The inputs ``(N, 2)`` the world steps with (``--world-steering GAIN,LEAD``, a diagnostic of
     its steering's answer): each steering ``GAIN * s + LEAD * (s - previous)``, ``previous`` the
@@ -36,11 +44,10 @@ def world_steering(action: np.ndarray, previous, shaping: tuple) -> np.ndarray:
     Full lock because the real car turns no harder past it (the env takes steering in [-1, 1]) and
     no world saw more in its data: at 1.4x an over-steering driver's 0.8 stepped the world with
     1.12, and its dream left the road twice as often as the real car (docs/judging.md)."""
-    gain, lead = shaping
-    if (gain, lead) == (1.0, 0.0):
+    if tuple(shaping) == (1.0, 0.0):
         return action
     shaped = action.copy()
-    shaped[:, 1] = np.clip(gain * action[:, 1] + lead * (action[:, 1] - previous), -1.0, 1.0)
+    shaped[:, 1] = steering_shaped(action[:, 1], previous, shaping)
     return shaped
 
 
