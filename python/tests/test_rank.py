@@ -71,6 +71,22 @@ def test_a_dreamt_pull_is_read_as_the_real_pull_that_leaves_the_road_as_often():
     assert (s["within"], s["within_or_pull"]) == (1, 2)
 
 
+def test_an_off_road_gap_is_outside_the_bound_only_beyond_two_standard_errors_paired_by_track():
+    family = [Driver("steady"), Driver("scattered")]
+    real_off = np.full((2, 4), 0.3)
+    dream_off = real_off + np.array([[0.2, 0.2, 0.2, 0.2], [0.5, -0.1, 0.3, -0.2]])
+    se = rank_figures.off_road_gap_error(real_off, dream_off)
+    np.testing.assert_allclose(se, [0.0, np.std([0.5, -0.1, 0.3, -0.2], ddof=1) / 2], atol=1e-12)
+    scores = np.zeros((2, 4))
+    s = rank_figures.summary(family, scores + [[1.0], [0.0]], real_off, scores, dream_off)
+    # Both are outside 0.1; only the steady one's 0.2 is beyond what the tracks' spread explains.
+    assert (s["within"], s["shown_outside"]) == (0, 1)
+    assert [d["off_road_gap_se"] for d in s["drivers"]] == pytest.approx(se)
+    np.testing.assert_allclose(s["off_road_per_track"]["dream"], dream_off)
+    assert "±" in rank_figures.gap(s["drivers"][1]) and "+12.5%" in rank_figures.gap(s["drivers"][1])
+    assert np.isnan(rank_figures.off_road_gap_error(real_off[:, :1], dream_off[:, :1])).all()  # one track
+
+
 def test_a_window_cut_short_keeps_its_last_flag_to_the_horizon():
     np.testing.assert_array_equal(rank_real.padded_to_horizon([[0, 1, 1, 0], [0, 1]], 4), [[0, 1, 1, 0], [0, 1, 1, 1]])
 

@@ -161,6 +161,17 @@ def leaving(family: list, real: np.ndarray, dreamt: np.ndarray, bends: np.ndarra
         for i, d in enumerate(family)]}
 
 
+def off_road_gap_error(real_off: np.ndarray, dream_off: np.ndarray) -> np.ndarray:
+    """The standard error of each driver's off-road gap, dreamt against real, paired by track
+    (``(drivers, tracks)`` shares each): the tracks' spread of the gap over the square root of their
+    number (a track's windows share its bends, so the track, not the window, is the unit). NaN with
+    one track."""
+    diff = np.asarray(dream_off, float) - np.asarray(real_off, float)
+    if diff.shape[1] < 2:
+        return np.full(len(diff), np.nan)
+    return diff.std(1, ddof=1) / np.sqrt(diff.shape[1])
+
+
 def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.ndarray, dream_off: np.ndarray,
             spread: np.ndarray | None = None) -> dict:
     """The figures of the report from ``(drivers, tracks)`` arrays of real scores and off-road
@@ -169,12 +180,15 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
     deviation over the futures of a start's return and of its off-road chance, averaged over the
     starts; each driver gets their means, and ``doubt_against_error`` is the Pearson correlation
     over the family of the return's spread with the dream's error in ranks, |its rank in the
-    dream - its real rank|."""
+    dream - its real rank|. Each driver's off-road gap comes with its standard error, paired by
+    track (`off_road_gap_error`), and ``shown_outside`` counts the drivers whose gap is beyond
+    ``SHARE_GAP`` by more than two of them."""
     real_mean, dream_mean = real.mean(1), dreamt.mean(1)
     favourite = int(np.argmax(dream_mean))
     span = real_mean.max() - real_mean.min()
     per_track = [spearman(dreamt[:, t], real[:, t]) for t in range(real.shape[1])]
     gap = np.abs(dream_off.mean(1) - real_off.mean(1))  # each driver's off-road share, dreamt against real
+    gap_se = off_road_gap_error(real_off, dream_off)
     out = {
         "spearman": spearman(dream_mean, real_mean),
         "spearman_per_track": float(np.nanmean(per_track)),
@@ -184,9 +198,13 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
         "favourite": family[favourite].name,
         "pulls": equivalent_pulls(family, real_off.mean(1), dream_off.mean(1)),
         "within": int((gap <= SHARE_GAP).sum()),
+        # Outside the bound by more than two standard errors: a gap the tracks' own spread cannot explain.
+        "shown_outside": int((gap - 2 * gap_se > SHARE_GAP).sum()),
         "drivers": [{"driver": asdict(d), "real": float(real_mean[i]), "real_sd": float(real[i].std()),
                      "real_off_road": float(real_off[i].mean()), "dream": float(dream_mean[i]),
-                     "dream_off_road": float(dream_off[i].mean())} for i, d in enumerate(family)],
+                     "dream_off_road": float(dream_off[i].mean()), "off_road_gap_se": float(gap_se[i])}
+                    for i, d in enumerate(family)],
+        "off_road_per_track": {"real": real_off.tolist(), "dream": dream_off.tolist()},
     }
     near = {p["driver"] for p in out["pulls"]
             if p["equivalent"] is not None and abs(p["equivalent"] - p["pull"]) <= PULL_GAP}
@@ -208,6 +226,11 @@ def doubt(figures: dict) -> str:
     if "doubt_against_error" in figures:
         return f"; the futures' spread against the dream's error in ranks: Pearson {figures['doubt_against_error']:+.2f}"
     return ""
+
+
+def gap(figures: dict) -> str:
+    """A driver's off-road gap, dreamt less real, and its standard error, for the printed tables."""
+    return f" {figures['dream_off_road'] - figures['real_off_road']:+7.1%} ±{figures['off_road_gap_se']:5.1%}"
 
 
 def print_pulls(pulls: list) -> None:
@@ -240,10 +263,11 @@ def print_leaving(figures: dict) -> None:
 
 def print_report(out: dict) -> None:
     spread = f" {'± spread':>8} {'off road':>8}" if "doubt_against_error" in out else ""
-    print(f"\n{'driver':24} {'real':>8} {'± sd':>6} {'off road':>8} {'dream':>8} {'off road':>8}{spread}")
+    gaps = f" {'gap':>7} {'± se':>6}"
+    print(f"\n{'driver':24} {'real':>8} {'± sd':>6} {'off road':>8} {'dream':>8} {'off road':>8}{gaps}{spread}")
     for d in out["drivers"]:
         print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_sd']:6.1f} {d['real_off_road']:8.1%} "
-              f"{d['dream']:8.1f} {d['dream_off_road']:8.1%}{doubt(d)}")
+              f"{d['dream']:8.1f} {d['dream_off_road']:8.1%}{gap(d)}{doubt(d)}")
     print(f"Spearman {out['spearman']:+.2f} over the family ({out['spearman_per_track']:+.2f} per track, averaged); "
           f"regret@1 {out['regret_at_1']:.2f} (the dream's favourite: {out['favourite']}); Pearson {out['pearson']:+.2f}; "
           f"the largest off-road gap {out['off_road_gap']:.2f}; {len(out['seeds'])} tracks, {out['starts']} starts, "
@@ -251,10 +275,10 @@ def print_report(out: dict) -> None:
     if "windows" in out:
         w = out["windows"]
         print(f"\nthe same starts in the real env, {out['horizon']} decisions each (the dream without the value):")
-        print(f"{'driver':24} {'real':>8} {'off road':>8} {'dream':>8} {'off road':>8}{spread}")
+        print(f"{'driver':24} {'real':>8} {'off road':>8} {'dream':>8} {'off road':>8}{gaps}{spread}")
         for d in w["drivers"]:
             print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_off_road']:8.1%} {d['dream']:8.1f} "
-                  f"{d['dream_off_road']:8.1%}{doubt(d)}")
+                  f"{d['dream_off_road']:8.1%}{gap(d)}{doubt(d)}")
         steps = [s for s in (5, 10, 20) if s < out["horizon"]] + [out["horizon"]]  # the last always shown
         print("\noff the road at decision N of the windows, real / dream / the dream given the real window's "
               "actions (open loop):\n" + f"{'driver':24}" + "".join(f"{s:>18}" for s in steps))
@@ -268,7 +292,8 @@ def print_report(out: dict) -> None:
         print(f"windows: Spearman {w['spearman']:+.2f} ({w['spearman_per_track']:+.2f} per track); regret@1 "
               f"{w['regret_at_1']:.2f} ({w['favourite']}); Pearson {w['pearson']:+.2f}; the largest off-road gap "
               f"{w['off_road_gap']:.2f}; within {SHARE_GAP} of the real share {w['within']} of {len(w['drivers'])} "
-              f"drivers, or a pull within {PULL_GAP} of steering {w['within_or_pull']}{doubt(w)}")
+              f"drivers, or a pull within {PULL_GAP} of steering {w['within_or_pull']}; outside it by more than two "
+              f"standard errors (paired by track) {w['shown_outside']}{doubt(w)}")
     if "road_memory" in out:
         steps = [s for s in (1, 3, 5, 8, 10, 20, 40) if s <= len(out["road_memory"])]
         print("road memory (the unchanged driver's steering, dream against real, correlation after N decisions): "
