@@ -15,8 +15,9 @@ head's rewards are summed (its off-road chance averaged). ``--value`` adds the v
 horizon. The report: each driver's real score and off-road share beside its dream return and
 off-road chance; the Spearman rank correlation between the two over the family (and per track,
 averaged), regret@1 (the real score lost by picking the dream's favourite, as a share of the
-range between the best and the worst driver) and the Pearson correlation of the means; and the
-dream's road memory: how well the unchanged driver's steering in the dream follows its real
+range between the best and the worst driver) and the Pearson correlation of the means; each
+driver's off-road gap, dreamt less real, with its standard error paired by track, and how many
+drivers it puts outside 0.1 by more than two of them; and the dream's road memory: how well the unchanged driver's steering in the dream follows its real
 steering from the same starts, decision by decision (the policy steers by the road it sees, so
 the correlation falls where the dream's road stops being the real one), and how it steers on the
 roads the dream makes up past that (its mean |steering|, change a decision and shares of bends left
