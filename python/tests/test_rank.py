@@ -83,7 +83,7 @@ def test_an_off_road_gap_is_outside_the_bound_only_beyond_two_standard_errors_pa
     assert (s["within"], s["shown_outside"]) == (0, 1)
     assert [d["off_road_gap_se"] for d in s["drivers"]] == pytest.approx(se)
     np.testing.assert_allclose(s["off_road_per_track"]["dream"], dream_off)
-    assert "±" in rank_figures.gap(s["drivers"][1]) and "+12.5%" in rank_figures.gap(s["drivers"][1])
+    assert "±" in rank_figures.gap_text(s["drivers"][1]) and "+12.5%" in rank_figures.gap_text(s["drivers"][1])
     assert np.isnan(rank_figures.off_road_gap_error(real_off[:, :1], dream_off[:, :1])).all()  # one track
 
 

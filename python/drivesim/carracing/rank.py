@@ -17,12 +17,13 @@ off-road chance; the Spearman rank correlation between the two over the family (
 averaged), regret@1 (the real score lost by picking the dream's favourite, as a share of the
 range between the best and the worst driver) and the Pearson correlation of the means; each
 driver's off-road gap, dreamt less real, with its standard error paired by track, and how many
-drivers it puts outside 0.1 by more than two of them; and the dream's road memory: how well the unchanged driver's steering in the dream follows its real
-steering from the same starts, decision by decision (the policy steers by the road it sees, so
-the correlation falls where the dream's road stops being the real one), and how it steers on the
-roads the dream makes up past that (its mean |steering|, change a decision and shares of bends left
-and right from decision 11 on, dream and real: the two agree where the made-up roads are as curvy,
-as steady and as often bent each way as the real ones).
+drivers it puts outside 0.1 by more than two of them; and the dream's road memory: how well the
+unchanged driver's steering in the dream follows its real steering from the same starts,
+decision by decision (the policy steers by the road it sees, so the correlation falls where the
+dream's road stops being the real one), and how it steers on the roads the dream makes up past
+that (its mean |steering|, change a decision and shares of bends left and right from decision 11
+on, dream and real: the two agree where the made-up roads are as curvy, as steady and as often
+bent each way as the real ones).
 
 ``--futures N`` (with ``--temperature``) draws N futures from each start: the dream's figures are
 their means, and each driver's spread over them is reported beside them, with its correlation over

@@ -228,7 +228,7 @@ def doubt(figures: dict) -> str:
     return ""
 
 
-def gap(figures: dict) -> str:
+def gap_text(figures: dict) -> str:
     """A driver's off-road gap, dreamt less real, and its standard error, for the printed tables."""
     return f" {figures['dream_off_road'] - figures['real_off_road']:+7.1%} ±{figures['off_road_gap_se']:5.1%}"
 
@@ -267,7 +267,7 @@ def print_report(out: dict) -> None:
     print(f"\n{'driver':24} {'real':>8} {'± sd':>6} {'off road':>8} {'dream':>8} {'off road':>8}{gaps}{spread}")
     for d in out["drivers"]:
         print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_sd']:6.1f} {d['real_off_road']:8.1%} "
-              f"{d['dream']:8.1f} {d['dream_off_road']:8.1%}{gap(d)}{doubt(d)}")
+              f"{d['dream']:8.1f} {d['dream_off_road']:8.1%}{gap_text(d)}{doubt(d)}")
     print(f"Spearman {out['spearman']:+.2f} over the family ({out['spearman_per_track']:+.2f} per track, averaged); "
           f"regret@1 {out['regret_at_1']:.2f} (the dream's favourite: {out['favourite']}); Pearson {out['pearson']:+.2f}; "
           f"the largest off-road gap {out['off_road_gap']:.2f}; {len(out['seeds'])} tracks, {out['starts']} starts, "
@@ -278,7 +278,7 @@ def print_report(out: dict) -> None:
         print(f"{'driver':24} {'real':>8} {'off road':>8} {'dream':>8} {'off road':>8}{gaps}{spread}")
         for d in w["drivers"]:
             print(f"{d['driver']['name']:24} {d['real']:8.1f} {d['real_off_road']:8.1%} {d['dream']:8.1f} "
-                  f"{d['dream_off_road']:8.1%}{gap(d)}{doubt(d)}")
+                  f"{d['dream_off_road']:8.1%}{gap_text(d)}{doubt(d)}")
         steps = [s for s in (5, 10, 20) if s < out["horizon"]] + [out["horizon"]]  # the last always shown
         print("\noff the road at decision N of the windows, real / dream / the dream given the real window's "
               "actions (open loop):\n" + f"{'driver':24}" + "".join(f"{s:>18}" for s in steps))
