@@ -59,10 +59,13 @@ def test_reports_that_cannot_be_pooled_are_refused_with_their_names(tmp_path, ca
     report["windows"]["off_road_per_track"]["real"][0][0] = float("nan")
     nan = tmp_path / "nan.json"
     nan.write_text(json.dumps(report))
+    report["seeds"], report["windows"]["off_road_per_track"] = [], {"real": [[], []], "dream": [[], []]}
+    none = tmp_path / "none.json"
+    none.write_text(json.dumps(report))
     (tmp_path / "broken.json").write_text("{")
     (tmp_path / "list.json").write_text("[]")
     cases = {str(tmp_path / "missing.json"): "not a readable", str(tmp_path / "broken.json"): "not a readable",
-             str(tmp_path / "list.json"): "no windows", str(old): "made before", str(nan): "not one finite",
+             str(tmp_path / "list.json"): "no windows", str(old): "made before", str(nan): "not one finite", str(none): "no tracks",
              other: "another family", again: r"tracks \[2\]"}
     for path, said in cases.items():
         with pytest.raises(ValueError, match=said):

@@ -44,6 +44,8 @@ def read_report(path: str, whole: bool) -> tuple[list, list, np.ndarray, np.ndar
         tracks = [int(s) for s in report["seeds"]]
     except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: not a rank report ({e!r} is missing or malformed)") from None
+    if not tracks:
+        raise ValueError(f"{path}: it names no tracks")
     if any(s.shape != (len(names), len(tracks)) or not np.isfinite(s).all() for s in shares):
         raise ValueError(f"{path}: its shares are not one finite number for each driver and track")
     return names, tracks, shares[0], shares[1]
