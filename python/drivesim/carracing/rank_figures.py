@@ -172,6 +172,16 @@ def off_road_gap_error(real_off: np.ndarray, dream_off: np.ndarray) -> np.ndarra
     return diff.std(1, ddof=1) / np.sqrt(diff.shape[1])
 
 
+def off_road_gaps(real_off: np.ndarray, dream_off: np.ndarray) -> tuple:
+    """From ``(drivers, tracks)`` shares: each driver's off-road gap (its dreamt share less its
+    real one, over the tracks) and the gap's standard error (`off_road_gap_error`), and how many
+    gaps are within ``SHARE_GAP`` and how many beyond it by more than two standard errors (a gap
+    the tracks' own spread cannot explain)."""
+    gap = np.asarray(dream_off, float).mean(1) - np.asarray(real_off, float).mean(1)
+    se = off_road_gap_error(real_off, dream_off)
+    return gap, se, int((np.abs(gap) <= SHARE_GAP).sum()), int((np.abs(gap) - 2 * se > SHARE_GAP).sum())
+
+
 def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.ndarray, dream_off: np.ndarray,
             spread: np.ndarray | None = None) -> dict:
     """The figures of the report from ``(drivers, tracks)`` arrays of real scores and off-road
@@ -187,8 +197,8 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
     favourite = int(np.argmax(dream_mean))
     span = real_mean.max() - real_mean.min()
     per_track = [spearman(dreamt[:, t], real[:, t]) for t in range(real.shape[1])]
-    gap = np.abs(dream_off.mean(1) - real_off.mean(1))  # each driver's off-road share, dreamt against real
-    gap_se = off_road_gap_error(real_off, dream_off)
+    gap, gap_se, within, shown_outside = off_road_gaps(real_off, dream_off)
+    gap = np.abs(gap)
     out = {
         "spearman": spearman(dream_mean, real_mean),
         "spearman_per_track": float(np.nanmean(per_track)),
@@ -197,9 +207,8 @@ def summary(family: list, real: np.ndarray, real_off: np.ndarray, dreamt: np.nda
         "off_road_gap": float(gap.max()),
         "favourite": family[favourite].name,
         "pulls": equivalent_pulls(family, real_off.mean(1), dream_off.mean(1)),
-        "within": int((gap <= SHARE_GAP).sum()),
-        # Outside the bound by more than two standard errors: a gap the tracks' own spread cannot explain.
-        "shown_outside": int((gap - 2 * gap_se > SHARE_GAP).sum()),
+        "within": within,
+        "shown_outside": shown_outside,
         "drivers": [{"driver": asdict(d), "real": float(real_mean[i]), "real_sd": float(real[i].std()),
                      "real_off_road": float(real_off[i].mean()), "dream": float(dream_mean[i]),
                      "dream_off_road": float(dream_off[i].mean()), "off_road_gap_se": float(gap_se[i])}

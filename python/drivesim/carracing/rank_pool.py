@@ -7,8 +7,8 @@ gap just past the issue's 0.1 from one at it (docs/history/gap_error.md).
 
 The windows' figures are pooled (``--whole``: the whole drives'): each report's per-track shares
 (``off_road_per_track``) are put side by side, the gap's standard error paired by track as `rank`
-reports it (`rank_figures.off_road_gap_error`). The reports must name the same drivers in the
-same order; a track in two reports is counted twice (it is an error).
+reports it (`rank_figures.off_road_gaps`). The reports must name the same drivers in the same
+order, and no track may be in two of them (it would count twice).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import sys
 import numpy as np
 
 from .._files import atomic_write
-from .rank_figures import SHARE_GAP, off_road_gap_error
+from .rank_figures import SHARE_GAP, off_road_gaps
 
 
 def read_report(path: str, whole: bool) -> tuple[list, list, np.ndarray, np.ndarray]:
@@ -63,10 +63,9 @@ def pooled(paths: list, whole: bool = False) -> dict:
         if set(more) & set(tracks):
             raise ValueError(f"{path}: tracks {sorted(set(more) & set(tracks))} are in another report too")
         tracks, real, dream = tracks + more, np.concatenate([real, r], 1), np.concatenate([dream, d], 1)
-    gap, se = dream.mean(1) - real.mean(1), off_road_gap_error(real, dream)
-    return {"reports": list(paths), "tracks": len(tracks), "whole": whole,
-            "within": int((np.abs(gap) <= SHARE_GAP).sum()),
-            "shown_outside": int((np.abs(gap) - 2 * se > SHARE_GAP).sum()),
+    gap, se, within, shown_outside = off_road_gaps(real, dream)
+    return {"reports": list(paths), "tracks": len(tracks), "whole": whole, "within": within,
+            "shown_outside": shown_outside,
             "drivers": [{"driver": n, "real_off_road": float(real[i].mean()), "dream_off_road": float(dream[i].mean()),
                          "gap": float(gap[i]), "gap_se": float(se[i])} for i, n in enumerate(names)]}
 
