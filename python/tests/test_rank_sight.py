@@ -45,6 +45,24 @@ def test_figures_bin_the_decisions():
         "in_sight_where_off"] is None
 
 
+def test_since_leaving_counts_from_the_first_decision_off():
+    off = np.array([[0, 1, 1, 0, 1], [1, 1, 1, 1, 0]], bool)
+    assert rank_sight.since_leaving(off).tolist() == [[-1, 0, 1, -1, 0], [0, 1, 2, 3, -1]]
+
+
+def test_sight_since_leaving_bins_past_the_first_decisions():
+    """Only decisions from ``first`` on count, each in the bin of how long ago its car left; a car
+    that left before ``first`` is counted from when it left."""
+    off = np.array([[0, 1, 1, 1, 1, 1, 1, 0], [0, 0, 0, 0, 0, 1, 1, 1]], float)
+    seen = np.array([[1, 1, 1, 1, 1, 0, 0, 1], [1, 1, 1, 1, 1, 1, 1, 0]], float)
+    bins = rank_sight.sight_since_leaving(np.stack([off, seen, seen]), first=4)
+    assert [b["since"] for b in bins] == [list(b) for b in rank_sight.SINCE_BINS]
+    # row 0 at decisions 4-6: 3, 4, 5 since leaving; row 1 at 5-7: 0, 1, 2
+    assert [b["frames"] for b in bins] == [1, 2, 3, 0, 0]
+    assert bins[0]["in_sight"] == 1.0 and bins[1]["in_sight"] == 0.5
+    assert bins[2]["in_sight"] == pytest.approx(1 / 3) and bins[3]["in_sight"] is None
+
+
 def test_the_head_on_real_states_steps_the_world_on_the_frames(model, clip):
     """The world's chance of each state a real window showed: the first frame's code with the
     start's hidden state, each next with the hidden state the codes before and their inputs made;

@@ -14,7 +14,9 @@ its frames kept, and the dream's is dreamt as ``rank`` dreams it (``--weights`` 
 every frame a driver read is measured (`sight`), and the report gives, over bins of ``--every``
 decisions, the share of decisions off the road (the real car's: no wheel on it; the
 dream's: its reward head's chance), of frames with road in sight, of frames with road just ahead
-of the car, and of the off-road decisions' frames with road in sight. The real side adds
+of the car, and of the off-road decisions' frames with road in sight; and, from the first decision
+past the view's reach on, that share by how long ago the car left the road (`sight_since_leaving`:
+the real car that leaves keeps the road in sight; a dream that loses it keeps its car off). The real side adds
 ``head_on_real``: the world's reward head's off-road chance on the real window's own states (its
 frames through the world's encoder, the world's hidden state stepped on them with the real inputs
 from the start's): where it matches the real share and the dream's does not, the dream's gap is
@@ -35,11 +37,14 @@ from .._drivesim import Simulator
 from .._files import atomic_write
 from . import rank, rank_dream, rank_real
 from .family import FAMILY
+from .rank_figures import MEMORY
 from .view import parse_seeds
 
 # The car's box in the 80x160 view (its sprite has road-grey pixels) and the band just ahead of it.
 CAR_BOX = (slice(58, 76), slice(70, 90))
 AHEAD = (slice(48, 58), slice(60, 100))
+# Bins of decisions since the car left the road (`sight_since_leaving`); None: to the horizon.
+SINCE_BINS = ((0, 0), (1, 2), (3, 5), (6, 10), (11, None))
 
 
 def sight(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -101,6 +106,33 @@ def figures(measured: np.ndarray, every: int) -> list:
                     "in_sight_where_off": float(s[gone].mean()) if gone.any() else None})
         if len(measured) > 3:
             out[-1]["head_on_real"] = float(measured[3][:, a:a + every].mean())
+    return out
+
+
+def since_leaving(off: np.ndarray) -> np.ndarray:
+    """For off-road flags ``off`` ``(windows, horizon)``: at each decision off the road, how many
+    decisions ago the car left it (0 at the first decision off), and -1 on the road."""
+    since = np.full(off.shape, -1)
+    for t in range(off.shape[1]):
+        before = since[:, t - 1] if t else np.full(len(off), -1)
+        since[:, t] = np.where(off[:, t], before + 1, -1)
+    return since
+
+
+def sight_since_leaving(measured: np.ndarray, first: int = MEMORY) -> list:
+    """The share of off-road frames with road in sight from decision ``first`` on (past the view's
+    reach: on made-up roads), by how long ago the car left the road (`SINCE_BINS`; ``measured`` as
+    `figures` takes it): the real car that leaves rides the road's edge and steers back to it; a
+    dream that loses the road once its car is off keeps the car off (docs/history/road_in_sight.md).
+    Each bin: the decisions since leaving, the frames counted, and the share (None where none)."""
+    since = since_leaving(measured[0] > 0.5)
+    since[:, :first] = -1
+    seen = measured[1] > 0.5
+    out = []
+    for lo, hi in SINCE_BINS:
+        cell = (since >= lo) & (since <= (hi if hi is not None else since.max()))
+        out.append({"since": [lo, hi], "frames": int(cell.sum()),
+                    "in_sight": float(seen[cell].mean()) if cell.any() else None})
     return out
 
 
@@ -171,9 +203,9 @@ def main(argv=None) -> int:
             dreamt[i].append(np.concatenate([off[i][None], seen[:, i]]))
     report = {}
     for i, d in enumerate(family):
-        report[d.name] = {
-            "real": figures(np.concatenate(real[i], 1), args.every),
-            "dream": figures(np.concatenate(dreamt[i], 1), args.every)}
+        measured = {"real": np.concatenate(real[i], 1), "dream": np.concatenate(dreamt[i], 1)}
+        report[d.name] = {side: figures(m, args.every) for side, m in measured.items()}
+        report[d.name]["since_leaving"] = {side: sight_since_leaving(m) for side, m in measured.items()}
         for side in ("real", "dream"):
             cells = "  ".join(f"{b['decisions'][0]}-{b['decisions'][1]}: off {b['off_road']:.2f} sight "
                               f"{b['in_sight']:.2f} ahead {b['ahead']:.2f} sight where off "
@@ -181,6 +213,12 @@ def main(argv=None) -> int:
                               + (f" head {b['head_on_real']:.2f}" if "head_on_real" in b else "")
                               for b in report[d.name][side])
             print(f"{d.name:24} {side:5} {cells}", flush=True)
+        for side in ("real", "dream"):
+            cells = "  ".join(f"{b['since'][0]}{'' if b['since'][1] == b['since'][0] else '-' + str(b['since'][1] or '')}: "
+                              + ("-" if b["in_sight"] is None else f"{b['in_sight']:.2f}") + f" ({b['frames']})"
+                              for b in report[d.name]["since_leaving"][side])
+            print(f"{d.name:24} {side:5} road in sight, decisions since leaving (from decision {MEMORY + 1}): {cells}",
+                  flush=True)
     if args.report:
         with atomic_write(args.report) as f:
             f.write(json.dumps({"seeds": args.seeds, "temperature": args.temperature, "drivers": report}).encode())
