@@ -57,6 +57,7 @@ def test_sight_since_leaving_bins_past_the_first_decisions():
     seen = np.array([[1, 1, 1, 1, 1, 0, 0, 1], [1, 1, 1, 1, 1, 1, 1, 0]], float)
     bins = rank_sight.sight_since_leaving(np.stack([off, seen, seen]), first=4)
     assert [b["since"] for b in bins] == [list(b) for b in rank_sight.SINCE_BINS]
+    assert [rank_sight.since_label(*b) for b in rank_sight.SINCE_BINS] == ["0", "1-2", "3-5", "6-10", "11-"]
     # row 0 at decisions 4-6: 3, 4, 5 since leaving; row 1 at 5-7: 0, 1, 2
     assert [b["frames"] for b in bins] == [1, 2, 3, 0, 0]
     assert bins[0]["in_sight"] == 1.0 and bins[1]["in_sight"] == 0.5
@@ -106,6 +107,8 @@ def test_the_real_windows_are_the_rank_runs_again(tmp_path):
         for b in figures["clone"][side]:
             assert 0 <= b["off_road"] <= 1 and 0 <= b["in_sight"] <= 1 and 0 <= b["ahead"] <= 1
             assert (0 <= b["head_on_real"] <= 1) if side == "real" else "head_on_real" not in b
+        # a horizon of 4 has no decision past the view's reach to count since leaving
+        assert [b["frames"] for b in figures["bias +0.4"]["since_leaving"][side]] == [0] * len(rank_sight.SINCE_BINS)
 
 
 def test_a_folder_without_the_rank_runs_drives_is_refused(tmp_path):

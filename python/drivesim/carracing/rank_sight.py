@@ -136,6 +136,11 @@ def sight_since_leaving(measured: np.ndarray, first: int = MEMORY) -> list:
     return out
 
 
+def since_label(lo: int, hi: int | None) -> str:
+    """A `SINCE_BINS` bin as printed: ``0``, ``1-2``, ``11-``."""
+    return str(lo) if hi == lo else f"{lo}-{'' if hi is None else hi}"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m drivesim.carracing.rank_sight", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -214,9 +219,8 @@ def main(argv=None) -> int:
                               for b in report[d.name][side])
             print(f"{d.name:24} {side:5} {cells}", flush=True)
         for side in ("real", "dream"):
-            cells = "  ".join(f"{b['since'][0]}{'' if b['since'][1] == b['since'][0] else '-' + str(b['since'][1] or '')}: "
-                              + ("-" if b["in_sight"] is None else f"{b['in_sight']:.2f}") + f" ({b['frames']})"
-                              for b in report[d.name]["since_leaving"][side])
+            cells = "  ".join(f"{since_label(*b['since'])}: " + ("-" if b["in_sight"] is None else f"{b['in_sight']:.2f}")
+                              + f" ({b['frames']})" for b in report[d.name]["since_leaving"][side])
             print(f"{d.name:24} {side:5} road in sight, decisions since leaving (from decision {MEMORY + 1}): {cells}",
                   flush=True)
     if args.report:
