@@ -33,6 +33,76 @@ def test_sight_leaves_the_car_out_and_reads_the_road_ahead():
     assert in_sight.tolist() == [False, False, True, True] and ahead.tolist() == [False, False, False, True]
 
 
+def test_across_reads_where_the_road_is_beside_the_car():
+    """The road's centre in the car's rows, in half-roads (+: the car left of it); the car's own
+    sprite and road outside those rows do not count; too little road there is no road (NaN)."""
+    half = rank_sight.HALF_ROAD_PX
+    rows = rank_sight.CAR_ROWS
+    def band(centre, width=30):
+        lo = int(round(80 + centre - width / 2))
+        return (rows, slice(lo, lo + width))
+    frames = np.stack([
+        frame(band(0)),                                  # the car on the road's centre
+        frame(band(2 * half)),                           # the road two half-roads to the car's right
+        frame(band(-2 * half)),                          # two to its left: the car right of the road
+        frame((slice(60, 74), slice(74, 86))),           # grey in the car's box only
+        frame((slice(0, 40), slice(0, 160))),            # road far ahead only
+        frame(),
+    ])
+    place = rank_sight.across(frames)
+    assert place[:3] == pytest.approx([0.0, 2.0, -2.0], abs=0.05)
+    assert np.isnan(place[3:]).all()
+
+
+def test_across_follows_the_car_on_a_real_track():
+    """On a real track, the place read off the frame rises and falls with the car's distance from
+    the env's centre line (+ left), and the road is never gone from beside a car on it."""
+    pytest.importorskip("Box2D")
+    import gymnasium
+
+    from drivesim.carracing import expert
+    from drivesim.carracing.record import HALF_ROAD
+    from drivesim.carracing.view import observe
+
+    read, true = [], []
+    for seed in (5, 7):
+        env = gymnasium.make("CarRacing-v3")
+        env.reset(seed=seed)
+        line = expert.CentreLine(env.unwrapped.track)
+        for t in range(200):  # straight on past the env's zoom, then weaving
+            steer = 0.0 if t < 80 else (-0.1 if (t // 30) % 2 else 0.1)
+            env.step(np.array([steer, 0.2 if t < 120 else 0.0, 0.0], np.float32))
+            if t >= 70:
+                pos = np.array(env.unwrapped.car.hull.position)
+                i, _ = line.nearest(pos)
+                true.append(float((pos - line.centre[i]) @ line.left[i]) / HALF_ROAD)
+                read.append(float(rank_sight.across(observe(env)[None])[0]))
+        env.close()
+    read, true = np.array(read), np.array(true)
+    near = np.abs(true) < 1.5
+    assert not np.isnan(read[near]).any() and true[near].min() < -1.0
+    assert np.corrcoef(read[near], true[near])[0, 1] > 0.75
+
+
+def test_road_beside_counts_where_the_road_is_lost():
+    """From ``first`` on: each decision in the bin of its place, its off-road figure, and whether
+    the road is gone the next decision; and the share of decisions with the road gone."""
+    nan = np.nan
+    place = np.array([[0.0, 0.0, -1.4, nan, nan], [0.0, 1.1, 1.1, 1.1, 0.2]])
+    off = np.array([[0, 0, 1, 1, 1], [0, 0, 0, 1, 0]], float)
+    measured = np.stack([off, np.ones_like(off), np.ones_like(off), place])
+    b = rank_sight.road_beside(measured, first=1)
+    cells = {tuple(c["place"]): c for c in b["places"]}
+    assert sum(c["decisions"] for c in b["places"]) == 5  # decisions 1-3 with a place and a next
+    assert cells[(-1.5, -1.25)] == {"place": [-1.5, -1.25], "decisions": 1, "off_road": 1.0, "lost": 1.0}
+    assert cells[(1.0, 1.25)]["decisions"] == 3 and cells[(1.0, 1.25)]["lost"] == 0.0
+    assert cells[(1.0, 1.25)]["off_road"] == pytest.approx(1 / 3)
+    assert cells[(-0.5, 0.5)]["decisions"] == 1 and cells[(-0.5, 0.5)]["lost"] == 0.0
+    assert cells[(None, -1.5)] == {"place": [None, -1.5], "decisions": 0, "off_road": None, "lost": None}
+    assert b["gone"] == 0.25 and b["off_road_where_gone"] == 1.0
+    assert [rank_sight.place_label(*c["place"]) for c in b["places"]][:2] == ["<-1.5", "-1.5..-1.25"]
+
+
 def test_figures_bin_the_decisions():
     off = np.array([[0, 0, 1, 1], [0, 1, 1, 0]], float)
     seen = np.array([[1, 1, 1, 0], [1, 1, 0, 1]], float)
@@ -107,8 +177,9 @@ def test_the_real_windows_are_the_rank_runs_again(tmp_path):
         for b in figures["clone"][side]:
             assert 0 <= b["off_road"] <= 1 and 0 <= b["in_sight"] <= 1 and 0 <= b["ahead"] <= 1
             assert (0 <= b["head_on_real"] <= 1) if side == "real" else "head_on_real" not in b
-        # a horizon of 4 has no decision past the view's reach to count since leaving
+        # a horizon of 4 has no decision past the view's reach to count since leaving, nor a place
         assert [b["frames"] for b in figures["bias +0.4"]["since_leaving"][side]] == [0] * len(rank_sight.SINCE_BINS)
+        assert [c["decisions"] for c in figures["bias +0.4"]["beside"][side]["places"]] == [0] * (len(rank_sight.PLACES) + 1)
 
 
 def test_a_folder_without_the_rank_runs_drives_is_refused(tmp_path):

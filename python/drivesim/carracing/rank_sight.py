@@ -16,7 +16,10 @@ decisions, the share of decisions off the road (the real car's: no wheel on it; 
 dream's: its reward head's chance), of frames with road in sight, of frames with road just ahead
 of the car, and of the off-road decisions' frames with road in sight; and, from the first decision
 past the view's reach on, that share by how long ago the car left the road (`sight_since_leaving`:
-the real car that leaves keeps the road in sight; a dream that loses it keeps its car off). The real side adds
+the real car that leaves keeps the road in sight; a dream that loses it keeps its car off), and by
+where across the road the car is, read off the frame (`across`), how often the road is gone from
+beside the car the next decision (`road_beside`: the real road stays until the car is far off it;
+the judge's is lost at the edge, docs/history/road_at_the_edge.md). The real side adds
 ``head_on_real``: the world's reward head's off-road chance on the real window's own states (its
 frames through the world's encoder, the world's hidden state stepped on them with the real inputs
 from the start's): where it matches the real share and the dream's does not, the dream's gap is
@@ -45,6 +48,14 @@ CAR_BOX = (slice(58, 76), slice(70, 90))
 AHEAD = (slice(48, 58), slice(60, 100))
 # Bins of decisions since the car left the road (`sight_since_leaving`); None: to the horizon.
 SINCE_BINS = ((0, 0), (1, 2), (3, 5), (6, 10), (11, None))
+# `across`: the rows of the car and the band just ahead, where the road's centre is read; the pixels
+# a half-road spans there (real frames' road centre against the env's centre line, 0.89 correlated;
+# docs/history/road_at_the_edge.md); fewer road pixels than ROAD_PIXELS there and the road is gone
+# from beside the car (in real frames only once the car is 2 to 3 half-roads off it).
+CAR_ROWS, HALF_ROAD_PX, ROAD_PIXELS = slice(52, 70), 19.8, 20
+# Bins of where across the road the car is (`road_beside`), in half-roads from its centre, + left:
+# from about 1.25 out its wheels are off the road.
+PLACES = (-1.5, -1.25, -1.0, -0.5, 0.5, 1.0, 1.25, 1.5)
 
 
 def sight(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -54,6 +65,17 @@ def sight(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     mask[(slice(None), *CAR_BOX)] = False
     ahead = mask[(slice(None), *AHEAD)]
     return mask.reshape(len(frames), -1).any(1), ahead.reshape(len(frames), -1).any(1)
+
+
+def across(frames: np.ndarray) -> np.ndarray:
+    """Where across the road the car is in each uint8 frame ``(N, 80, 160, 3)``, in half-roads
+    from the road's centre (+: the car left of it): the mean column of the road pixels in the
+    car's rows, its sprite left out; NaN where the road is gone from beside the car."""
+    mask = road.road_mask(frames)[:, CAR_ROWS]
+    mask[:, CAR_BOX[0].start - CAR_ROWS.start:, CAR_BOX[1]] = False
+    count = mask.sum((1, 2))
+    centre = (mask * np.arange(mask.shape[2])).sum((1, 2)) / np.maximum(count, 1)
+    return np.where(count >= ROAD_PIXELS, (centre - mask.shape[2] / 2) / HALF_ROAD_PX, np.nan)
 
 
 def head_on_frames(world: Simulator, frames: np.ndarray, inputs: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -73,9 +95,10 @@ def head_on_frames(world: Simulator, frames: np.ndarray, inputs: np.ndarray, h: 
 
 def real_windows(drive: dict, seed: int, index: int, args, world: Simulator, starts: dict) -> np.ndarray:
     """Driver ``index``'s real windows on track ``seed`` (`rank_real.drive_windows`, as a rank run
-    drives them), its frames measured: ``(4, starts, horizon)``, the off-road flags, road in sight,
-    road ahead and the world's off-road chance of each state (`head_on_frames` from ``starts``'s
-    hidden states; a window the episode's end cut short keeps its last to the horizon)."""
+    drives them), its frames measured: ``(5, starts, horizon)``, the off-road flags, road in sight,
+    road ahead, the car's place (`across`) and the world's off-road chance of each state
+    (`head_on_frames` from ``starts``'s hidden states; a window the episode's end cut short keeps
+    its last to the horizon)."""
     out = []
     windows = rank_real.drive_windows(drive, FAMILY[index], index, seed, args, frames=True)
     for j, (_, flags, inputs, seen) in enumerate(windows):
@@ -85,16 +108,16 @@ def real_windows(drive: dict, seed: int, index: int, args, world: Simulator, sta
         before = np.concatenate([starts["previous"][j:j + 1], inputs[:-1, 1]])
         shaped = rank_dream.world_steering(inputs, before, args.world_steering)
         head = head_on_frames(world, frames, shaped, starts["h_world"][j])
-        out.append(rank_real.padded_to_horizon([[float(f) for f in flags], in_sight.tolist(), ahead.tolist(), head.tolist()],
-                                          args.horizon))
+        rows = [[float(f) for f in flags], in_sight.tolist(), ahead.tolist(), across(frames).tolist(), head.tolist()]
+        out.append(rank_real.padded_to_horizon(rows, args.horizon))
     return np.stack(out, 1)
 
 
 def figures(measured: np.ndarray, every: int) -> list:
     """Per bin of ``every`` decisions: off the road, road in sight, road ahead, and road in sight
-    where off (``measured`` ``(3, windows, horizon)``: off-road flags or chances, and `sight`'s two
-    figures, and for the real windows a fourth row, the world's chance on their states, as
-    ``head_on_real``); None where no decision of a bin is off the road."""
+    where off (``measured`` ``(rows, windows, horizon)``: off-road flags or chances, `sight`'s two
+    figures, `across`'s place, and for the real windows a fifth row, the world's chance on their
+    states, as ``head_on_real``); None where no decision of a bin is off the road."""
     off, seen, ahead = measured[0], measured[1] > 0.5, measured[2] > 0.5
     horizon = off.shape[1]
     out = []
@@ -104,8 +127,8 @@ def figures(measured: np.ndarray, every: int) -> list:
         out.append({"decisions": [a + 1, min(a + every, horizon)], "off_road": float(o.mean()),
                     "in_sight": float(s.mean()), "ahead": float(h.mean()),
                     "in_sight_where_off": float(s[gone].mean()) if gone.any() else None})
-        if len(measured) > 3:
-            out[-1]["head_on_real"] = float(measured[3][:, a:a + every].mean())
+        if len(measured) > 4:
+            out[-1]["head_on_real"] = float(measured[4][:, a:a + every].mean())
     return out
 
 
@@ -136,9 +159,41 @@ def sight_since_leaving(measured: np.ndarray, first: int = MEMORY) -> list:
     return out
 
 
+def road_beside(measured: np.ndarray, first: int = MEMORY) -> dict:
+    """From decision ``first`` on (``measured`` as `figures` takes it): by where across the road
+    the car is (`PLACES`' bins of `across`), the decisions, their off-road share, and the share
+    after which the road is gone from beside the car the next decision (``lost``: the real road
+    stays until the car is far off it; a dream that loses it at the edge keeps its car off,
+    docs/history/road_at_the_edge.md); and the share of decisions with the road gone, and theirs off
+    the road. None where a bin has no decision."""
+    off, place = measured[0][:, first:], measured[3][:, first:]
+    now, bins = place[:, :-1], np.digitize(place[:, :-1], PLACES)
+    gone_next = np.isnan(place[:, 1:])
+    edges = (None, *PLACES, None)
+    out = []
+    for i in range(len(PLACES) + 1):
+        cell = (bins == i) & ~np.isnan(now)
+        out.append({"place": [edges[i], edges[i + 1]], "decisions": int(cell.sum()),
+                    "off_road": float(off[:, :-1][cell].mean()) if cell.any() else None,
+                    "lost": float(gone_next[cell].mean()) if cell.any() else None})
+    gone = np.isnan(place)
+    return {"places": out, "gone": float(gone.mean()) if gone.size else None,
+            "off_road_where_gone": float(off[gone].mean()) if gone.any() else None}
+
+
 def since_label(lo: int, hi: int | None) -> str:
     """A `SINCE_BINS` bin as printed: ``0``, ``1-2``, ``11-``."""
     return str(lo) if hi == lo else f"{lo}-{'' if hi is None else hi}"
+
+
+def place_label(lo: float | None, hi: float | None) -> str:
+    """A `PLACES` bin as printed: ``<-1.5``, ``-1.0..-0.5``, ``>1.5``."""
+    return f"<{hi}" if lo is None else f">{lo}" if hi is None else f"{lo}..{hi}"
+
+
+def share(x: float | None) -> str:
+    """A share as printed, ``-`` for None."""
+    return "-" if x is None else f"{x:.2f}"
 
 
 def main(argv=None) -> int:
@@ -202,8 +257,8 @@ def main(argv=None) -> int:
                                  frames=shown)["off_steps"]
         # The off-road chance of the state each frame shows: the start's, then each step's.
         off = np.concatenate([first.reshape(len(family), args.starts, 1), steps[:, :, :-1]], 2)
-        seen = np.stack([np.stack(sight(frames)) for frames in shown], 2)  # (2, drivers * starts, horizon)
-        seen = seen.reshape(2, len(family), args.starts, args.horizon)
+        seen = np.stack([np.stack([*sight(frames), across(frames)]) for frames in shown], 2)  # (3, rows, horizon)
+        seen = seen.reshape(3, len(family), args.starts, args.horizon)
         for i in range(len(family)):
             dreamt[i].append(np.concatenate([off[i][None], seen[:, i]]))
     report = {}
@@ -223,6 +278,13 @@ def main(argv=None) -> int:
                               + f" ({b['frames']})" for b in report[d.name]["since_leaving"][side])
             print(f"{d.name:24} {side:5} road in sight, decisions since leaving (from decision {MEMORY + 1}): {cells}",
                   flush=True)
+        report[d.name]["beside"] = {side: road_beside(m) for side, m in measured.items()}
+        for side in ("real", "dream"):
+            b = report[d.name]["beside"][side]
+            cells = "  ".join(f"{place_label(*c['place'])}: {c['decisions']} off {share(c['off_road'])} lost {share(c['lost'])}"
+                              for c in b["places"] if c["decisions"])
+            print(f"{d.name:24} {side:5} road beside the car (from decision {MEMORY + 1}): gone {share(b['gone'])}, "
+                  f"off there {share(b['off_road_where_gone'])}; by place: {cells}", flush=True)
     if args.report:
         with atomic_write(args.report) as f:
             f.write(json.dumps({"seeds": args.seeds, "temperature": args.temperature, "drivers": report}).encode())
