@@ -274,8 +274,8 @@ def main(argv=None) -> int:
                               for b in report[d.name][side])
             print(f"{d.name:24} {side:5} {cells}", flush=True)
         for side in ("real", "dream"):
-            cells = "  ".join(f"{since_label(*b['since'])}: " + ("-" if b["in_sight"] is None else f"{b['in_sight']:.2f}")
-                              + f" ({b['frames']})" for b in report[d.name]["since_leaving"][side])
+            cells = "  ".join(f"{since_label(*b['since'])}: {share(b['in_sight'])} ({b['frames']})"
+                              for b in report[d.name]["since_leaving"][side])
             print(f"{d.name:24} {side:5} road in sight, decisions since leaving (from decision {MEMORY + 1}): {cells}",
                   flush=True)
         report[d.name]["beside"] = {side: road_beside(m) for side, m in measured.items()}
