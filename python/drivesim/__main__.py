@@ -16,6 +16,7 @@ COMMANDS = {
     "compare": ("drivesim.carracing.compare", "two drivers' scores compared track by track, from what the scoring commands printed"),
     "rank": ("drivesim.carracing.rank", "the rank probe: a family of drivers scored in the real env and in the dream"),
     "rank-sight": ("drivesim.carracing.rank_sight", "where the car is when off the road, real and dreamt, from a rank run's starts"),
+    "reach-across": ("drivesim.carracing.reach_across", "how far across the road the dream carries the car under a recording's own actions"),
     "rank-pool": ("drivesim.carracing.rank_pool", "each driver's off-road gap pooled over several rank reports' tracks, with its error"),
     "guard": ("drivesim.carracing.guard", "how often mpc's guard lets the planner's candidates in, with a weight file"),
     "dream-train": ("drivesim.carracing.dream_train", "learn a driver inside the dream: CMA-ES on the world model's reward alone"),

@@ -181,6 +181,15 @@ def test_the_real_windows_are_the_rank_runs_again(tmp_path):
         # a horizon of 4 has no decision past the view's reach to count since leaving, nor a place
         assert [b["frames"] for b in figures["bias +0.4"]["since_leaving"][side]] == [0] * len(rank_sight.SINCE_BINS)
         assert [c["decisions"] for c in figures["bias +0.4"]["beside"][side]["places"]] == [0] * (len(rank_sight.PLACES) + 1)
+    # The world's steering shaped (`--world-steering`) moves the world alone, and the report says how.
+    shaped = tmp_path / "shaped.json"
+    subprocess.run([sys.executable, "-m", "drivesim.carracing.rank_sight", *common, "--drivers", "0,5", "--every", "2",
+                    "--world-steering", "3,0.5", "--report", str(shaped)], check=True, capture_output=True, timeout=600)
+    both = json.loads(report.read_text()), json.loads(shaped.read_text())
+    assert [b["world_steering"] for b in both] == [[1.0, 0.0], [3.0, 0.5]]
+    real = [[{k: v for k, v in b.items() if k != "head_on_real"} for b in r["drivers"]["clone"]["real"]] for r in both]
+    assert real[0] == real[1]  # the world's head on the real states steps its memory with the shaped steering too
+    assert both[0]["drivers"]["clone"]["dream"] != both[1]["drivers"]["clone"]["dream"]
 
 
 def test_a_folder_without_the_rank_runs_drives_is_refused(tmp_path):

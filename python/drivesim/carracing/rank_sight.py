@@ -10,7 +10,8 @@ its edge, with the road in sight; a dream whose roads end leaves its car in a fi
 driver of the family (by index), each track and each start, the real window is driven again with
 its frames kept, and the dream's is dreamt as ``rank`` dreams it (``--weights`` the drivers,
 ``--world`` the world, ``--judge`` its futures drawn by the judge's sampler and its steering
-`rank.JUDGE_STEERING` at `rank.JUDGE_TEMPERATURE`, one future, the same noise seeds);
+`rank.JUDGE_STEERING` at `rank.JUDGE_TEMPERATURE`, ``--world-steering`` the world's steering
+shaped as ``rank``'s, one future, the same noise seeds);
 every frame a driver read is measured (`sight`), and the report gives, over bins of ``--every``
 decisions, the share of decisions off the road (the real car's: no wheel on it; the
 dream's: its reward head's chance), of frames with road in sight, of frames with road just ahead
@@ -208,6 +209,9 @@ def main(argv=None) -> int:
                    help="the world's futures drawn by the built-in judge (Model.judge), stepped as `rank --judge` does")
     p.add_argument("--temperature", type=float,
                    help="the dream's (0: the mean dream; default 0.9, with --judge rank.JUDGE_TEMPERATURE)")
+    p.add_argument("--world-steering", type=rank.shaping, metavar="GAIN[,LEAD]",
+                   help="the world steps with GAIN x each steering and LEAD x its change, held at full lock "
+                        "(default 1, with --judge rank.JUDGE_STEERING)")
     p.add_argument("--horizon", type=int, default=40)
     p.add_argument("--starts", type=int, default=7)
     p.add_argument("--every", type=int, default=10, help="decisions a bin of the report")
@@ -287,7 +291,8 @@ def main(argv=None) -> int:
                   f"off there {share(b['off_road_where_gone'])}; by place: {cells}", flush=True)
     if args.report:
         with atomic_write(args.report) as f:
-            f.write(json.dumps({"seeds": args.seeds, "temperature": args.temperature, "drivers": report}).encode())
+            f.write(json.dumps({"seeds": args.seeds, "temperature": args.temperature,
+                                "world_steering": list(args.world_steering), "drivers": report}).encode())
     return 0
 
 
