@@ -33,19 +33,34 @@ def recording(lengths, steering=0.3):
     return episodes.Episodes(frames, actions, np.cumsum([0, *lengths[:-1]]))
 
 
+def index_of(frames):
+    return np.frombuffer(np.ascontiguousarray(frames[:, 0, :4, 0]).tobytes(), np.int32).astype(np.float32)
+
+
 class PerfectWorld:
     """Dreams the recording itself: each predicted code is the index of the real frame it stands
-    for (found from the seeds), and a code's frame is that frame. Keeps the actions it was given."""
+    for (found from the seeds), and a code's frame is that frame. Keeps the actions it was given.
+    As a driver, it encodes a frame as its index too and steers by where the road is in it."""
     batch = 7
 
     def __init__(self, data):
         self.data, self.given = data, []
 
+    def encode(self, frames):
+        return index_of(frames)[:, None]
+
+    def act(self, z, h):
+        place = rank_sight.across(self.data.frames[z[:, 0].astype(int)])
+        return np.stack([np.zeros(len(z)), np.nan_to_num(place) * 0.3 - 0.1], 1)
+
+    def transition(self, z, h, action):
+        return z, h + 1
+
     def set_sampling(self, temperature, seed):
         self.sampling = (temperature, seed)
 
     def rollout(self, seeds, actions):
-        first = int(np.frombuffer(seeds[0, 0, :4, 0].tobytes(), np.int32)[0])
+        first = int(index_of(seeds)[0])
         self.given.append((first, actions.copy()))
         steps = len(actions) - (len(seeds) - 1)
         return np.arange(first + len(seeds), first + len(seeds) + steps, dtype=np.float32)[:, None]
@@ -57,6 +72,13 @@ class PerfectWorld:
 def test_bands_count_gone_edge_and_far():
     bands = reach_across.bands(np.array([0.0, 0.9, -1.0, 1.4, -1.5, 3.0, np.nan, np.nan]))
     assert bands == pytest.approx({"gone": 2 / 8, "edge": 2 / 8, "far": 2 / 8})
+
+
+def test_the_clone_gain_is_a_line_through_the_places_near_the_road():
+    places = np.array([-1.0, 0.0, 0.5, 1.2, 2.0, np.nan])
+    line = reach_across.clone_gain(0.2 * places + 0.05, places)
+    assert line["gain"] == pytest.approx(0.2) and line["offset"] == pytest.approx(0.05) and line["points"] == 4
+    assert reach_across.clone_gain(np.zeros(3), np.array([0.5, 3.0, np.nan]))["gain"] is None
 
 
 def test_windows_fit_the_seeds_and_the_last_step():
@@ -78,6 +100,11 @@ def test_a_world_that_dreams_the_recording_reads_as_the_real_frames():
     assert report["real"][str(k)] == reach_across.bands(rank_sight.across(np.stack(
         [data.frames[s + reach_across.SEEDS - 1 + k] for s in reach_across.window_starts(data.bounds(), 4)])))
     assert len({tuple(b.values()) for b in report["real"].values()}) > 1
+    # The clone steers 0.3 a half-road from -0.1, on the real codes as on the dreamt ones.
+    report = reach_across.reach(world, data, every=4, driver=PerfectWorld(data), memory_dim=3)
+    assert report["clone"]["real"] == report["clone"]["dream"]
+    assert report["clone"]["real"]["gain"] == pytest.approx(0.3) and report["clone"]["real"]["offset"] == pytest.approx(-0.1)
+    assert report["clone"]["real"]["points"] == 2 * report["windows"]  # the steps at the centre and at the edge
 
 
 def test_the_dream_is_steered_as_rank_steers_it_from_the_first_predicted_step():
@@ -106,6 +133,9 @@ def test_the_command_reports_the_built_in_worlds(tmp_path):
             for step in map(str, reach_across.STEPS):
                 assert set(figures[side][step]) == {"gone", "edge", "far"}
                 assert 0 <= sum(figures[side][step].values()) <= 1
+        # the drawn frames' places near the road are two (centre, edge); what the dream draws of them may not be
+        assert np.isfinite(figures["clone"]["real"]["gain"]) and figures["clone"]["real"]["points"] > 0
+        assert figures["clone"]["dream"]["gain"] is None or np.isfinite(figures["clone"]["dream"]["gain"])
 
 
 def test_bad_input_is_refused_with_a_message(tmp_path, capsys):

@@ -11,7 +11,11 @@ near the edge and whose road fades there instead drives its failing drivers off 
 losing it (docs/history/lateral_reach.md). For each fed-back step of `STEPS` the report gives,
 real and dreamt, the shares of windows with the road gone from beside the car (``gone``), with the
 car `EDGE` to `FAR` half-roads out (``edge``) and `FAR` or more out (``far``). A driver-free measure that needs
-no env: seconds on a recording, where `rank-sight` drives the real windows again.
+no env: half a minute on a recording, where `rank-sight` drives the real windows again. And (``clone``)
+what the clone (``--weights``) would steer at each of those steps, on the real frames' codes and on
+the dream's, against the place it was seen at: a line whose slope is the clone's gain, the
+steering a half-road off the centre brings. Where the dream's is short of the real one, the
+clone takes back less in the dream at the same place: a pull stays, a weave does not grow.
 
 ``--world`` the world's weight file (default: the built-in model), ``--judge`` its futures drawn
 by the judge's sampler with the judge's steering and temperature (`rank.JUDGE_STEERING`,
@@ -58,30 +62,73 @@ def bands(places: np.ndarray) -> dict:
 
 
 def reach(world: Simulator, data: episodes.Episodes, every: int = 10, temperature: float = 0.0,
-          shaping: tuple = (1.0, 0.0), seed: int = 0) -> dict:
+          shaping: tuple = (1.0, 0.0), seed: int = 0, driver: Simulator | None = None, memory_dim: int = 0) -> dict:
     """The real and the dreamt places at each step of `STEPS`, ``{"windows", "real", "dream"}``,
     each side ``{step: bands}`` (module docstring). The dream's inputs are the recorded ones, its
     steering shaped as ``rank`` shapes a dream's (`rank_dream.world_steering`) from the first
-    predicted step on; the seeds' actions stay as recorded, as the real frames were driven."""
+    predicted step on; the seeds' actions stay as recorded, as the real frames were driven. With
+    ``driver`` (the clone's simulator, its hidden state ``memory_dim`` wide) also ``"clone"``:
+    its steering against the place on the real frames' codes and on the dream's (`clone_gain`)."""
     starts = window_starts(data.bounds(), every)
     if not len(starts):
         raise ValueError(f"no episode holds a window of {SEEDS + STEPS[-1]} frames: record longer drives")
-    read = np.array(STEPS) - 1  # fed-back step k is the k-th predicted code
+    frame_of_step = SEEDS - 1 + np.array(STEPS)  # fed-back step k shows the window's frame SEEDS - 1 + k
     codes = []
     for i, s in enumerate(starts):
         recorded = data.actions[s:s + SEEDS - 1 + STEPS[-1]]
         actions = recorded.copy()
         actions[SEEDS - 1:] = rank_dream.world_steering(recorded[SEEDS - 1:], recorded[SEEDS - 2:-1, 1], shaping)
         world.set_sampling(temperature, seed + i)
-        codes.append(world.rollout(np.ascontiguousarray(data.frames[s:s + SEEDS]), np.ascontiguousarray(actions))[read])
-    flat = np.concatenate(codes)
-    frames = np.concatenate([world.generate(np.ascontiguousarray(flat[a:a + world.batch]))
-                             for a in range(0, len(flat), world.batch)])
-    dreamt = across(frames).reshape(len(starts), len(STEPS))
-    real = across(data.frames[(starts[:, None] + SEEDS - 1 + np.array(STEPS)).ravel()]).reshape(len(starts), len(STEPS))
-    return {"windows": len(starts),
-            "real": {str(k): bands(real[:, j]) for j, k in enumerate(STEPS)},
-            "dream": {str(k): bands(dreamt[:, j]) for j, k in enumerate(STEPS)}}
+        seeds = np.ascontiguousarray(data.frames[s:s + SEEDS])
+        codes.append(np.concatenate([world.encode(seeds), world.rollout(seeds, np.ascontiguousarray(actions))]))
+    codes = np.stack(codes)  # (windows, frames, z): the seeds' codes, then the dreamt ones
+    dreamt = across(batched(world.generate, codes[:, frame_of_step].reshape(-1, codes.shape[2]), world.batch))
+    dreamt = dreamt.reshape(len(starts), len(STEPS))
+    frames = starts[:, None] + np.arange(codes.shape[1])
+    real = across(data.frames[frames[:, frame_of_step].ravel()]).reshape(len(starts), len(STEPS))
+    report = {"windows": len(starts),
+              "real": {str(k): bands(real[:, j]) for j, k in enumerate(STEPS)},
+              "dream": {str(k): bands(dreamt[:, j]) for j, k in enumerate(STEPS)}}
+    if driver is not None:
+        seen = batched(driver.encode, data.frames, driver.batch)[frames]
+        recorded = data.actions[frames[:, :-1]]
+        report["clone"] = {
+            "real": clone_gain(clone_steering(driver, seen, recorded, memory_dim)[:, frame_of_step], real),
+            "dream": clone_gain(clone_steering(driver, codes, recorded, memory_dim)[:, frame_of_step], dreamt)}
+    return report
+
+
+def batched(step, rows: np.ndarray, batch: int) -> np.ndarray:
+    """``step`` (a simulator's `encode` or `generate`) on ``rows`` ``batch`` at a time."""
+    return np.concatenate([step(np.ascontiguousarray(rows[a:a + batch])) for a in range(0, len(rows), batch)])
+
+
+def clone_steering(driver: Simulator, codes: np.ndarray, actions: np.ndarray, memory_dim: int) -> np.ndarray:
+    """The clone's steering ``(windows, frames)`` on each code of ``codes`` ``(windows, frames, z)``,
+    its memory stepped on them with ``actions`` ``(windows, frames - 1, 2)`` from an empty one, as
+    a drive steps it (it acts on what it sees, then its memory takes it in: `rank_dream.dream`)."""
+    out = np.empty(codes.shape[:2], np.float32)
+    for a in range(0, len(codes), driver.batch):
+        z = codes[a:a + driver.batch]
+        h = np.zeros((len(z), memory_dim), np.float32)
+        for t in range(z.shape[1]):
+            seen = np.ascontiguousarray(z[:, t])
+            out[a:a + len(z), t] = driver.act(seen, h)[:, 1]
+            if t < actions.shape[1]:
+                h = driver.transition(seen, h, np.ascontiguousarray(actions[a:a + len(z), t], np.float32))[1]
+    return out
+
+
+def clone_gain(steering: np.ndarray, places: np.ndarray) -> dict:
+    """A line through the clone's ``steering`` against the ``places`` it was seen at, where the
+    road is beside a car within `FAR` half-roads of its centre: ``{"gain", "offset", "points"}``
+    (the gain in steering a half-road; None with fewer than two places)."""
+    steering, places = np.ravel(steering), np.ravel(places)
+    ok = ~np.isnan(places) & (np.abs(np.nan_to_num(places)) < FAR)
+    if len(np.unique(places[ok])) < 2:
+        return {"gain": None, "offset": None, "points": int(ok.sum())}
+    gain, offset = np.polyfit(places[ok], steering[ok], 1)
+    return {"gain": float(gain), "offset": float(offset), "points": int(ok.sum())}
 
 
 def print_report(report: dict, out=sys.stdout) -> None:
@@ -90,12 +137,18 @@ def print_report(report: dict, out=sys.stdout) -> None:
         r, d = report["real"][str(k)], report["dream"][str(k)]
         print(f"  step {k:2d}: {r['gone']:.2f} / {r['edge']:.2f} / {r['far']:.2f};  "
               f"{d['gone']:.2f} / {d['edge']:.2f} / {d['far']:.2f}", file=out)
+    if "clone" in report:
+        line = ["-" if c["gain"] is None else f"{c['offset']:+.3f} {c['gain']:+.3f} x place ({c['points']})"
+                for c in (report["clone"]["real"], report["clone"]["dream"])]
+        print(f"the clone's steering against the place (the road beside the car, within {FAR} half-roads): "
+              f"real {line[0]}; dream {line[1]}", file=out)
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m drivesim.carracing.reach_across", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--episodes", required=True, help="recorded drives (`record`, `failures`): frames and actions")
+    p.add_argument("--weights", help="the clone's weight file, as `rank`'s drivers (default: the built-in model)")
     p.add_argument("--world", help="the world model's weight file (default: the built-in model)")
     p.add_argument("--judge", action="store_true", help="the world's futures drawn by the built-in judge (Model.judge)")
     p.add_argument("--temperature", type=float, help="the dream's (0: the mean dream, the default; with --judge "
@@ -113,10 +166,12 @@ def main(argv=None) -> int:
     if args.judge and args.temperature == 0:
         p.error("--judge needs --temperature above 0: the mean dream draws no futures")
     model = rank.load_model(p, "--world" if args.world else "--judge", args.world, args.judge)
+    clone = rank.load_model(p, "--weights", args.weights)
     try:
         data = episodes.read(args.episodes)
-        report = reach(Simulator(model, batch=64), data, args.every, args.temperature, args.world_steering, args.seed)
-        report.update(episodes=args.episodes, world=args.world, judge=args.judge, temperature=args.temperature,
+        report = reach(Simulator(model, batch=64), data, args.every, args.temperature, args.world_steering, args.seed,
+                       Simulator(clone, batch=64), clone.hidden_dim)
+        report.update(episodes=args.episodes, weights=args.weights, world=args.world, judge=args.judge, temperature=args.temperature,
                       world_steering=list(args.world_steering), every=args.every, seed=args.seed)
         print_report(report)
         if args.report:
