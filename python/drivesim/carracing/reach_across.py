@@ -10,12 +10,13 @@ loses it from its rows mostly once it is 2 or more half-roads out; a world whose
 near the edge and whose road fades there instead drives its failing drivers off the road by
 losing it (docs/history/lateral_reach.md). For each fed-back step of `STEPS` the report gives,
 real and dreamt, the shares of windows with the road gone from beside the car (``gone``), with the
-car `EDGE` to `FAR` half-roads out (``edge``) and `FAR` or more out (``far``). A driver-free measure that needs
-no env: half a minute on a recording, where `rank-sight` drives the real windows again. And (``clone``)
-what the clone (``--weights``) would steer at each of those steps, on the real frames' codes and on
-the dream's, against the place it was seen at: a line whose slope is the clone's gain, the
-steering a half-road off the centre brings. Where the dream's is short of the real one, the
-clone takes back less in the dream at the same place: a pull stays, a weave does not grow.
+car `EDGE` to `FAR` half-roads out (``edge``) and `FAR` or more out (``far``). No driver is in
+the loop and no env is needed: half a minute on a recording, where `rank-sight` drives the real
+windows again. And (``clone``) what the clone (``--weights``) would steer at each of those steps,
+on the real frames' codes and on the dream's, against the place it was seen at: a line whose
+slope is the clone's gain, the steering a half-road off the centre brings. Where the dream's is
+short of the real one, the clone takes back less in the dream at the same place: a pull rides
+further out, a weave does not grow.
 
 ``--world`` the world's weight file (default: the built-in model), ``--judge`` its futures drawn
 by the judge's sampler with the judge's steering and temperature (`rank.JUDGE_STEERING`,
@@ -171,8 +172,9 @@ def main(argv=None) -> int:
         data = episodes.read(args.episodes)
         report = reach(Simulator(model, batch=64), data, args.every, args.temperature, args.world_steering, args.seed,
                        Simulator(clone, batch=64), clone.hidden_dim)
-        report.update(episodes=args.episodes, weights=args.weights, world=args.world, judge=args.judge, temperature=args.temperature,
-                      world_steering=list(args.world_steering), every=args.every, seed=args.seed)
+        report.update(episodes=args.episodes, weights=args.weights, world=args.world, judge=args.judge,
+                      temperature=args.temperature, world_steering=list(args.world_steering), every=args.every,
+                      seed=args.seed)
         print_report(report)
         if args.report:
             with atomic_write(args.report) as f:
