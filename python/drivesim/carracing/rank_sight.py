@@ -84,14 +84,18 @@ def head_on_frames(world: Simulator, frames: np.ndarray, inputs: np.ndarray, h: 
     3)`` through the world's encoder, its hidden state from ``h`` (the start's) stepped on each
     code with the window's ``inputs`` ``(N, 2)`` (the speed and the steering applied), the reward
     head on each code with the hidden state it was seen in (as `rank_dream.dream` scores its steps)."""
-    batch = world.batch
-    codes = np.concatenate([world.encode(np.ascontiguousarray(frames[a:a + batch])) for a in range(0, len(frames), batch)])
+    codes = batched(world.encode, frames, world.batch)
     states = [np.asarray(h, np.float32)[None]]
     for t in range(len(frames) - 1):
         states.append(world.transition(codes[t:t + 1], states[-1], np.ascontiguousarray(inputs[t:t + 1], np.float32))[1])
-    states = np.concatenate(states)
-    return np.concatenate([world.reward(codes[a:a + batch], states[a:a + batch])[:, 1]
-                           for a in range(0, len(frames), batch)])
+    return batched(lambda z, h: world.reward(z, h)[:, 1], codes, world.batch, np.concatenate(states))
+
+
+def batched(step, rows: np.ndarray, batch: int, *more: np.ndarray) -> np.ndarray:
+    """``step`` (a simulator's `encode`, `generate`, `reward`, ...) on ``rows`` and the ``more``
+    arrays beside them, ``batch`` rows at a time: a simulator takes no more than it was planned for."""
+    return np.concatenate([step(*(np.ascontiguousarray(x[a:a + batch]) for x in (rows, *more)))
+                           for a in range(0, len(rows), batch)])
 
 
 def real_windows(drive: dict, seed: int, index: int, args, world: Simulator, starts: dict) -> np.ndarray:

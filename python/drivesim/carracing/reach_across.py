@@ -36,7 +36,7 @@ from .. import episodes
 from .._drivesim import Simulator
 from .._files import atomic_write
 from . import rank, rank_dream
-from .rank_sight import across
+from .rank_sight import across, batched
 
 # Real frames seed each dream, as the transition's training windows (sequences.TEACHER).
 SEEDS = 5
@@ -92,16 +92,11 @@ def reach(world: Simulator, data: episodes.Episodes, every: int = 10, temperatur
               "dream": {str(k): bands(dreamt[:, j]) for j, k in enumerate(STEPS)}}
     if driver is not None:
         seen = batched(driver.encode, data.frames, driver.batch)[frames]
-        recorded = data.actions[frames[:, :-1]]
+        window_actions = data.actions[frames[:, :-1]]
         report["clone"] = {
-            "real": clone_gain(clone_steering(driver, seen, recorded, memory_dim)[:, frame_of_step], real),
-            "dream": clone_gain(clone_steering(driver, codes, recorded, memory_dim)[:, frame_of_step], dreamt)}
+            "real": clone_gain(clone_steering(driver, seen, window_actions, memory_dim)[:, frame_of_step], real),
+            "dream": clone_gain(clone_steering(driver, codes, window_actions, memory_dim)[:, frame_of_step], dreamt)}
     return report
-
-
-def batched(step, rows: np.ndarray, batch: int) -> np.ndarray:
-    """``step`` (a simulator's `encode` or `generate`) on ``rows`` ``batch`` at a time."""
-    return np.concatenate([step(np.ascontiguousarray(rows[a:a + batch])) for a in range(0, len(rows), batch)])
 
 
 def clone_steering(driver: Simulator, codes: np.ndarray, actions: np.ndarray, memory_dim: int) -> np.ndarray:
