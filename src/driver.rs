@@ -2,16 +2,19 @@
 //! fingerprint of the world it was learnt in, so that a small file can ship a driver learnt
 //! in the dream of a large one, and so that it is never driven in another world by mistake
 //! (its weights mean nothing there: they read that world's codes and hidden states). A sampler
-//! file holds a texture net (`transition.texture.*`) learnt for a world's transition, so that a
-//! world can be dreamt through another sampler than its own (the rank probe's judge) without a
-//! second copy of the world.
+//! file holds a texture net (`transition.texture.*`) learnt for a world's transition, and may
+//! hold a read-out of its own (`transition.A`, `transition.a`), so that a world can be dreamt
+//! through another sampler than its own (the rank probe's judge) without a second copy of the
+//! world.
 
 use crate::heads::{Head, HeadKind};
 use crate::texture::{Texture, TEXTURE};
-use crate::weights::{SafetensorsSource, TensorSource, DISCRIMINATOR_PREFIX};
+use crate::transition::Transition;
+use crate::weights::{Init, SafetensorsSource, TensorSource, DISCRIMINATOR_PREFIX};
 use crate::{Config, Error, Model, Result};
 use alloc::format;
 use alloc::string::{String, ToString};
+use drivesim_kernels::Tensor;
 use safetensors::SafeTensors;
 
 /// The metadata key of a driver file that names its world (16 hexadecimal digits).
@@ -107,10 +110,12 @@ impl Model {
     }
 
     /// The world of `weight_file` dreamt through the texture net of `sampler_file` (format:
-    /// `weights/README.md`) in place of its own: the mean dream, the heads and the policy are
-    /// the file's, the sampled futures the sampler's. [`Error::OtherWorld`] when the sampler was
-    /// learnt for another world; the sampler file is checked as a weight file is (shapes against
-    /// the world's config, one dtype, finite values, nothing but `transition.texture.*`).
+    /// `weights/README.md`) in place of its own: the heads and the policy are the file's, the
+    /// sampled futures the sampler's, and the mean dream the file's unless the sampler carries a
+    /// read-out of its own (`transition.A` and `transition.a`, both), which then replaces the
+    /// world's. [`Error::OtherWorld`] when the sampler was learnt for another world; the sampler
+    /// file is checked as a weight file is (shapes against the world's config, one dtype, finite
+    /// values, nothing but `transition.texture.*` and the read-out).
     ///
     /// ```
     /// let world = std::fs::read("weights/default.safetensors")?;
@@ -125,9 +130,47 @@ impl Model {
         let texture = Texture::load(&config, &mut src)?.ok_or(Error::MissingTensor {
             name: format!("{TEXTURE}hidden.weight"),
         })?;
+        if READ_OUT.iter().any(|name| src.shape(name).is_some()) {
+            // The transition built again from the world's tensors but the read-out, so that
+            // whatever the world derives from it (an f32 world's folded feedback) follows.
+            let (_, _, world) = SafetensorsSource::parse(weight_file)?;
+            model.transition = Transition::load(
+                &config,
+                &mut ReadOutFrom {
+                    world,
+                    sampler: &mut src,
+                },
+            )?;
+        }
         src.finish()?;
         model.transition.set_texture(texture);
         Ok(model)
+    }
+}
+
+/// The transition's read-out, `z' = A h' + a`: a sampler file may carry its own (both tensors).
+const READ_OUT: [&str; 2] = ["transition.A", "transition.a"];
+
+/// A world's tensors with a sampler file's read-out in place of the world's own.
+struct ReadOutFrom<'a, 'b, 'c> {
+    world: SafetensorsSource<'a>,
+    sampler: &'c mut SafetensorsSource<'b>,
+}
+
+impl TensorSource for ReadOutFrom<'_, '_, '_> {
+    fn tensor(&mut self, name: &str, shape: &[usize], init: Init) -> Result<Tensor> {
+        match READ_OUT.contains(&name) {
+            true => self.sampler.tensor(name, shape, init),
+            false => self.world.tensor(name, shape, init),
+        }
+    }
+
+    fn contains(&self, prefix: &str) -> bool {
+        self.world.contains(prefix)
+    }
+
+    fn shape(&self, name: &str) -> Option<alloc::vec::Vec<usize>> {
+        self.world.shape(name)
     }
 }
 
@@ -169,14 +212,19 @@ pub fn driver_file(weight_file: &[u8]) -> Result<alloc::vec::Vec<u8>> {
     if model.policy.is_none() {
         return Err(Error::NoPolicy);
     }
-    part_file(weight_file, HeadKind::Policy.prefix(), world_fingerprint(weight_file)?)
+    part_file(
+        weight_file,
+        |name| name.starts_with(HeadKind::Policy.prefix()),
+        world_fingerprint(weight_file)?,
+    )
 }
 
 /// The sampler file of `weight_file`'s texture net for the world of `world_file` (what
 /// `weights/tool train latent --freeze-transition` learns): its `transition.texture.*` tensors
-/// as stored, the `drivesim.config` of the file and the fingerprint of `world_file` under
-/// `drivesim.world`. [`Error::OtherWorld`] unless the two files hold the same world but for
-/// their texture nets (and drivers); [`Error::NoSampling`] when `weight_file` has no texture net.
+/// as stored, its read-out (`transition.A`, `transition.a`) where that is not the world's, the
+/// `drivesim.config` of the file and the fingerprint of `world_file` under `drivesim.world`.
+/// [`Error::OtherWorld`] unless the two files hold the same world but for their texture nets,
+/// read-outs (and drivers); [`Error::NoSampling`] when `weight_file` has no texture net.
 #[cfg(feature = "std")]
 pub fn sampler_file(weight_file: &[u8], world_file: &[u8]) -> Result<alloc::vec::Vec<u8>> {
     let model = Model::from_bytes(weight_file)?;
@@ -184,7 +232,7 @@ pub fn sampler_file(weight_file: &[u8], world_file: &[u8]) -> Result<alloc::vec:
         return Err(Error::NoSampling);
     }
     Model::from_bytes(world_file)?;
-    let apart_from_sampler = |name: &str| drivers_own(name) || name.starts_with(TEXTURE);
+    let apart_from_sampler = |name: &str| drivers_own(name) || name.starts_with(TEXTURE) || READ_OUT.contains(&name);
     if fingerprint_without(weight_file, apart_from_sampler)? != fingerprint_without(world_file, apart_from_sampler)? {
         // Named by the worlds' own fingerprints, the ones a user can look up.
         return Err(Error::OtherWorld {
@@ -192,16 +240,21 @@ pub fn sampler_file(weight_file: &[u8], world_file: &[u8]) -> Result<alloc::vec:
             learnt_in: world_fingerprint(weight_file)?,
         });
     }
-    part_file(weight_file, TEXTURE, world_fingerprint(world_file)?)
+    // The read-out goes in only where it is not the world's: a plain sampler stays four tensors.
+    let own_read_out = |name: &str| !READ_OUT.contains(&name);
+    let read_out_differs =
+        fingerprint_without(weight_file, own_read_out)? != fingerprint_without(world_file, own_read_out)?;
+    let in_part = |name: &str| name.starts_with(TEXTURE) || (read_out_differs && READ_OUT.contains(&name));
+    part_file(weight_file, in_part, world_fingerprint(world_file)?)
 }
 
-/// The tensors of `weight_file` under `prefix` as stored, with its `drivesim.config` and
+/// The tensors of `weight_file` that `in_part` names, as stored, with its `drivesim.config` and
 /// `world` under `drivesim.world`: a part file.
 #[cfg(feature = "std")]
-fn part_file(weight_file: &[u8], prefix: &str, world: String) -> Result<alloc::vec::Vec<u8>> {
+fn part_file(weight_file: &[u8], in_part: impl Fn(&str) -> bool, world: String) -> Result<alloc::vec::Vec<u8>> {
     let file = SafeTensors::deserialize(weight_file).map_err(malformed)?;
     let mut part = file.tensors();
-    part.retain(|(name, _)| name.starts_with(prefix));
+    part.retain(|(name, _)| in_part(name));
     part.sort_by(|a, b| a.0.cmp(&b.0));
     let (_, header) = SafeTensors::read_metadata(weight_file).map_err(malformed)?;
     let config = header

@@ -1,7 +1,8 @@
-//! Sampler files: a texture net apart from the world whose transition it was learnt for. Written
-//! from a weight file that is that world but for its texture net, it draws that file's futures
-//! in the world; another world, a file with something else, or one that is not a sampler file is
-//! refused with a typed error; the shipped judge belongs to the shipped world.
+//! Sampler files: a texture net apart from the world whose transition it was learnt for, and
+//! the read-out where the sampler has one of its own. Written from a weight file that is that
+//! world but for its texture net (and read-out), it draws that file's futures in the world;
+//! another world, a file with something else, or one that is not a sampler file is refused with
+//! a typed error; the shipped judge belongs to the shipped world.
 
 mod common;
 
@@ -74,18 +75,76 @@ fn a_sampler_file_draws_the_futures_of_the_net_it_was_written_from() {
     assert_eq!(futures(&dreamt, 0.0), futures(&own, 0.0));
 }
 
+/// `world` with its read-out (`transition.A`, `transition.a`) widened by `by` about `centre`,
+/// as `python -m drivesim widen` widens one.
+fn widened(world: &[u8], by: f32, centre: f32) -> Vec<u8> {
+    let config = *Model::from_bytes(world).unwrap().config();
+    let (z, hd) = (config.z_dim, config.hidden_dim);
+    let file = SafeTensors::deserialize(world).unwrap();
+    let floats = |name: &str| -> Vec<f32> {
+        let data = file.tensor(name).unwrap().data().to_vec();
+        data.chunks(4)
+            .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+            .collect()
+    };
+    let big_a = floats("transition.A").iter().map(|v| by * v).collect();
+    let small_a = floats("transition.a")
+        .iter()
+        .map(|v| by * v + (1.0 - by) * centre)
+        .collect();
+    with_f32_tensors(
+        world,
+        &[("transition.A", vec![z, hd], big_a), ("transition.a", vec![z], small_a)],
+    )
+}
+
+#[test]
+fn a_sampler_with_a_read_out_of_its_own_dreams_the_mean_of_the_file_it_came_from() {
+    let world = world();
+    // The small world is f32, so the read-out is folded into its feedback: that follows too.
+    let other = widened(&with_texture(&world, 6, 60), 1.05, 0.3);
+    let sampler = sampler_file(&other, &world).unwrap();
+    let read = SafeTensors::deserialize(&sampler).unwrap();
+    let mut names = read.names();
+    names.sort();
+    assert_eq!(names.len(), 6);
+    assert_eq!(names[..2], ["transition.A", "transition.a"]);
+    let dreamt = Model::from_bytes_with_sampler(&world, &sampler).unwrap();
+    let (own, original) = (Model::from_bytes(&world).unwrap(), Model::from_bytes(&other).unwrap());
+    assert_eq!(futures(&dreamt, 0.0), futures(&original, 0.0));
+    assert_ne!(futures(&dreamt, 0.0), futures(&own, 0.0));
+    assert_eq!(futures(&dreamt, 1.3), futures(&original, 1.3));
+    // The world's own read-out is left out of a plain sampler, which stays four tensors.
+    let plain = sampler_file(&with_texture(&world, 6, 60), &world).unwrap();
+    assert_eq!(SafeTensors::deserialize(&plain).unwrap().names().len(), 4);
+    // Half a read-out, or one of another shape, is refused.
+    let config = *own.config();
+    let (z, hd) = (config.z_dim, config.hidden_dim);
+    let half = with_f32_tensors(&plain, &[("transition.a", vec![z], values(71, z, 0.5))]);
+    assert!(matches!(
+        Model::from_bytes_with_sampler(&world, &half),
+        Err(Error::MissingTensor { name }) if name == "transition.A"
+    ));
+    let wrong = with_f32_tensors(&sampler, &[("transition.A", vec![hd, z], values(72, z * hd, 0.5))]);
+    assert!(matches!(
+        Model::from_bytes_with_sampler(&world, &wrong),
+        Err(Error::Shape { name, .. }) if name == "transition.A"
+    ));
+}
+
 #[test]
 fn a_sampler_of_another_world_and_bad_files_are_refused() {
     let world = world();
     let sampler = sampler_file(&with_texture(&world, 6, 60), &world).unwrap();
     let config = *Model::from_bytes(&world).unwrap().config();
-    let z = config.z_dim;
-    let nudged = with_f32_tensors(&world, &[("transition.a", vec![z], values(70, z, 0.5))]);
+    let hd = config.hidden_dim;
+    let nudged = with_f32_tensors(&world, &[("transition.b", vec![hd], values(70, hd, 0.5))]);
     assert!(matches!(
         Model::from_bytes_with_sampler(&nudged, &sampler),
         Err(Error::OtherWorld { .. })
     ));
-    // Written for a world whose transition is not the file's.
+    // Written for a world whose transition is not the file's (but for a read-out, which a
+    // sampler may carry).
     assert!(matches!(
         sampler_file(&with_texture(&nudged, 6, 60), &world),
         Err(Error::OtherWorld { .. })
@@ -113,10 +172,10 @@ fn a_sampler_of_another_world_and_bad_files_are_refused() {
         Model::from_bytes_with_sampler(&world, &driver),
         Err(Error::MissingTensor { name }) if name == "transition.texture.hidden.weight"
     ));
-    let extra = with_f32_tensors(&sampler, &[("transition.a", vec![1], vec![0.0])]);
+    let extra = with_f32_tensors(&sampler, &[("transition.b", vec![1], vec![0.0])]);
     assert!(matches!(
         Model::from_bytes_with_sampler(&world, &extra),
-        Err(Error::UnexpectedTensor { name }) if name == "transition.a"
+        Err(Error::UnexpectedTensor { name }) if name == "transition.b"
     ));
     assert!(matches!(
         Model::from_bytes_with_sampler(&world, &sampler[..sampler.len() - 3]),
@@ -133,5 +192,6 @@ fn the_shipped_judge_was_learnt_for_the_shipped_world() {
     let own = Model::from_bytes(&world).unwrap();
     assert_eq!(model.texture_width(), Some(256));
     assert_ne!(futures(&model, 1.2), futures(&own, 1.2));
-    assert_eq!(futures(&model, 0.0), futures(&own, 0.0));
+    // Its read-out is the default's widened (`python -m drivesim widen`): so is its mean dream.
+    assert_ne!(futures(&model, 0.0), futures(&own, 0.0));
 }

@@ -22,6 +22,7 @@ COMMANDS = {
     "dream-train": ("drivesim.carracing.dream_train", "learn a driver inside the dream: CMA-ES on the world model's reward alone"),
     "driver": ("drivesim.driver", "a learnt driver's file apart from its world: its policy and the world's fingerprint"),
     "sampler": ("drivesim.sampler", "a texture net's file apart from its world: the sampled futures and the world's fingerprint"),
+    "widen": ("drivesim.widen", "a sampler whose read-out spreads the world's mean codes wider about their mean (the judge's)"),
     "dream-curve": ("drivesim.carracing.dream_curve", "the dream's return against the real score of a dream-train run's controllers"),
     "sb3": ("drivesim.carracing.sb3", "PPO (stable-baselines3) trained in the dream unchanged, and scored on the real track"),
     "record": ("drivesim.carracing.record", "record CarRacing driving by a scripted driver as an episodes file"),

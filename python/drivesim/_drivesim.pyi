@@ -23,15 +23,17 @@ class Model:
     ) -> Model:
         """A weight file (safetensors), or the built-in default model when ``path`` is None;
         ``driver``, a driver file (``drivesim.driver``), replaces its policy (its pace head left
-        out); ``sampler``, a sampler file, its texture net (not both). Raises OSError for a file
-        that cannot be read, ValueError for a bad weight file or a part of another world."""
+        out); ``sampler``, a sampler file, its texture net (and read-out, where it has one; not
+        both). Raises OSError for a file that cannot be read, ValueError for a bad weight file
+        or a part of another world."""
     @staticmethod
     def dreamt() -> Model:
         """The built-in default model driven by the built-in driver learnt in its dream."""
     @staticmethod
     def judge(path: Optional[Union[str, os.PathLike[str]]] = None) -> Model:
         """The world of ``path`` (None: the built-in default) dreamt through the built-in judge's
-        sampler, whose futures rank drivers as the real track does (ValueError for another world)."""
+        sampler and its widened read-out, whose futures rank drivers as the real track does
+        (ValueError for another world)."""
     @staticmethod
     def from_bytes(data: bytes) -> Model:
         """A model from a weight file's bytes (TypeError for what is not bytes, ValueError for
@@ -210,8 +212,8 @@ def driver_file(path: Union[str, os.PathLike[str]]) -> bytes:
     """The driver file's bytes of a weight file whose policy is a learnt driver."""
 
 def sampler_file(path: Union[str, os.PathLike[str]], world: Union[str, os.PathLike[str]]) -> bytes:
-    """The sampler file's bytes of a weight file's texture net, for the world of ``world`` (the
-    same world but for its texture net; ValueError otherwise)."""
+    """The sampler file's bytes of a weight file's texture net (and read-out, where it is not the
+    world's), for the world of ``world`` (the same world but for those; ValueError otherwise)."""
 
 def load_episodes(
     path: Optional[Union[str, os.PathLike[str]]] = None,

@@ -5,8 +5,10 @@
 with a new texture net: the same mean dream, other sampled futures. Its sampler file is that net
 alone (260 kB) and the fingerprint of the world it was learnt for, so that
 ``Model.load(world, sampler=FILE)`` dreams that world's futures through it, and another world
-refuses it (ValueError). The package builds one in, the judge's: ``Model.judge()``, whose futures
-rank drivers as the real track does (``python -m drivesim.carracing.rank --judge``).
+refuses it (ValueError). Where the weight file's read-out (``transition.A``, ``transition.a``) is
+not the world's, the sampler file carries it too, and the mean dream is the file's
+(``drivesim.widen`` writes such a one). The package builds one in, the judge's: ``Model.judge()``,
+whose futures rank drivers as the real track does (``python -m drivesim.carracing.rank --judge``).
 
 >>> import drivesim
 >>> judge, own = drivesim.Model.judge(), drivesim.Model.load()
@@ -26,9 +28,9 @@ __all__ = ["sampler_file", "write_sampler"]
 
 
 def write_sampler(weights: str | os.PathLike, world: str | os.PathLike, out: str | os.PathLike) -> str:
-    """Writes the sampler file of ``weights``'s texture net for ``world`` (a weight file that is
-    the same world but for its texture net; ValueError otherwise) to ``out``, atomically, and
-    returns that world's fingerprint."""
+    """Writes the sampler file of ``weights``'s texture net (and read-out, where it is not the
+    world's) for ``world`` (a weight file that is the same world but for those; ValueError
+    otherwise) to ``out``, atomically, and returns that world's fingerprint."""
     data = sampler_file(weights, world)
     with atomic_write(out) as f:
         f.write(data)

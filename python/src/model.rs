@@ -15,8 +15,9 @@ static SEED_CLIP: &[u8] = include_bytes!("../../weights/seed_clip.safetensors");
 /// The driver learnt in the default model's dream (`weights/tool train driver`), built in so
 /// that `Model.dreamt()` needs no file either.
 static DREAMT_DRIVER: &[u8] = include_bytes!("../../weights/dreamt.safetensors");
-/// The judge's sampler: a texture net learnt for the default's transition whose futures rank
-/// drivers as the real track does (docs/judging.md), built in for `Model.judge()`.
+/// The judge's sampler: a texture net learnt for the default's transition and the default's
+/// read-out widened, whose futures rank drivers as the real track does (docs/judging.md), built
+/// in for `Model.judge()`.
 static JUDGE_SAMPLER: &[u8] = include_bytes!("../../weights/judge.safetensors");
 
 /// The bytes of the weight file at `path`, or the built-in default's.
@@ -54,7 +55,8 @@ impl PyModel {
     /// `driver`: a driver file (`python -m drivesim driver` writes one) whose policy replaces the
     /// file's, its pace head left out; ValueError when the driver was learnt in another world.
     /// `sampler`: a sampler file (`python -m drivesim sampler` writes one) whose texture net
-    /// draws the sampled futures in place of the file's; ValueError when it was learnt for
+    /// draws the sampled futures in place of the file's (and whose read-out, where it has one,
+    /// gives the mean dream); ValueError when it was learnt for
     /// another world, or when both are given (a driver learnt in one dream, judged in another).
     #[staticmethod]
     #[pyo3(signature = (path=None, driver=None, sampler=None))]
@@ -84,7 +86,8 @@ impl PyModel {
 
     /// The world of `path` (None: the built-in default) dreamt through the judge's sampler
     /// (built in): the texture net whose sampled futures rank drivers as the real track does,
-    /// learnt for the default's transition (ValueError for another world). What
+    /// learnt for the default's transition, and the default's read-out widened
+    /// (`python -m drivesim widen`; ValueError for another world). What
     /// `python -m drivesim.carracing.rank --judge` dreams with.
     #[staticmethod]
     #[pyo3(signature = (path=None))]
@@ -286,8 +289,9 @@ pub fn world_fingerprint(py: Python<'_>, path: PathBuf) -> PyResult<String> {
 }
 
 /// The bytes of the sampler file of a weight file's texture net for the world of `world` (a
-/// weight file that is the same world but for its texture net): its `transition.texture.*`
-/// tensors and that world's fingerprint (`weights/README.md`).
+/// weight file that is the same world but for its texture net and read-out): its
+/// `transition.texture.*` tensors, its read-out where that is not the world's, and that world's
+/// fingerprint (`weights/README.md`).
 #[pyfunction]
 pub fn sampler_file<'py>(py: Python<'py>, path: PathBuf, world: PathBuf) -> PyResult<Bound<'py, pyo3::types::PyBytes>> {
     let bytes = py

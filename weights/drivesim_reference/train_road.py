@@ -241,7 +241,8 @@ def restore_state(path, arguments: dict) -> dict | None:
 
 def with_sampler(model, cfg, weights: str, sampler: str):
     """The model with the texture net of the sampler file ``sampler`` (`python -m drivesim
-    sampler`), which the crate checks was learnt for this world."""
+    sampler`), which the crate checks was learnt for this world, and its read-out where it
+    carries one (`python -m drivesim widen`)."""
     import drivesim
     from drivesim_reference.model import Texture
 
@@ -251,7 +252,11 @@ def with_sampler(model, cfg, weights: str, sampler: str):
         raise ValueError(f"--sampler {sampler}: {e}") from e
     prefix = "transition.texture."
     with safe_open(sampler, "pt") as f:
-        tensors = {k[len(prefix):]: f.get_tensor(k).float() for k in f.keys()}
+        tensors = {k[len(prefix):]: f.get_tensor(k).float() for k in f.keys() if k.startswith(prefix)}
+        with torch.no_grad():
+            for name in ("A", "a"):  # the crate took both or neither
+                if f"transition.{name}" in f.keys():
+                    getattr(model.transition, name).copy_(f.get_tensor(f"transition.{name}").float())
     own = getattr(model.transition, "texture", None)
     if own is None or own.hidden.out_features != tensors["hidden.weight"].shape[0]:
         model.transition.texture = Texture(cfg, tensors["hidden.weight"].shape[0])

@@ -100,6 +100,7 @@ def test_a_killed_run_goes_on_from_its_checkpoint_to_the_same_bytes(tmp_path, fi
 
 def test_sampler_starts_from_a_sampler_file_of_this_world_and_refuses_another_worlds(tmp_path, files):
     from drivesim.sampler import write_sampler
+    from drivesim.widen import widened_sampler
 
     weights, windows = files
     other = world(tmp_path / "other.safetensors", seed=2)  # another transition, another texture net
@@ -113,6 +114,14 @@ def test_sampler_starts_from_a_sampler_file_of_this_world_and_refuses_another_wo
         "--steps", "0")
     written = load_file(str(tmp_path / "from.safetensors"))
     assert all(torch.equal(written[k], same[k]) for k in TEXTURE)
+    # A sampler with a read-out of its own (`python -m drivesim widen`) brings it along.
+    centre = np.full(same["transition.a"].shape[0], 0.3)
+    (tmp_path / "widened.safetensors").write_bytes(widened_sampler(tmp_path / "s.safetensors", weights, centre, 1.1))
+    run(weights, windows, tmp_path / "wide.safetensors", "--sampler", str(tmp_path / "widened.safetensors"),
+        "--steps", "0")
+    written, wide = load_file(str(tmp_path / "wide.safetensors")), load_file(str(tmp_path / "widened.safetensors"))
+    assert all(torch.equal(written[k], wide[k]) for k in (*TEXTURE, "transition.A", "transition.a"))
+    assert not torch.equal(written["transition.a"], same["transition.a"])
     write_sampler(other, other, tmp_path / "o.safetensors")
     with pytest.raises(SystemExit):
         run(weights, windows, tmp_path / "x.safetensors", "--sampler", str(tmp_path / "o.safetensors"))

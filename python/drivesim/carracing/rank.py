@@ -82,10 +82,11 @@ FAMILIES = {**PROBE_FAMILIES, "learnt": failures.training_family()}
 # world steps with each steering GAIN x and a LEAD on its change, held at full lock (the default's
 # transition answers the wheel short of the real car: probe-real 0.82-1.06x in 5 steps; the lead
 # brings a pulled car back past the view; `world_steering`, chosen with the training family's
-# tracks too: docs/history/full_lock.md), at a temperature below 1 (hotter futures take a car with
-# a steady pull off the road sooner than the real one leaves), and its figures are the means of 16
-# futures (with 4 a driver's dreamt off-road share still moves by 0.05 from one draw to another).
-JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.5, 0.2), 0.7, 16
+# tracks too, with the judge's widened read-out: docs/history/widened.md), at a temperature below 1
+# (hotter futures take a car with a steady pull off the road sooner than the real one leaves), and
+# its figures are the means of 16 futures (with 4 a driver's dreamt off-road share still moves by
+# 0.05 from one draw to another).
+JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.8, 0.5), 0.7, 16
 
 
 def dream_settings(args, own: dict) -> None:
