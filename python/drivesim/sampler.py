@@ -24,14 +24,19 @@ import os
 from ._drivesim import sampler_file, world_fingerprint
 from ._files import atomic_write
 
-__all__ = ["sampler_file", "write_sampler"]
+__all__ = ["sampler_file", "write_sampler", "write_sampler_bytes"]
 
 
 def write_sampler(weights: str | os.PathLike, world: str | os.PathLike, out: str | os.PathLike) -> str:
     """Writes the sampler file of ``weights``'s texture net (and read-out, where it is not the
     world's) for ``world`` (a weight file that is the same world but for those; ValueError
     otherwise) to ``out``, atomically, and returns that world's fingerprint."""
-    data = sampler_file(weights, world)
+    return write_sampler_bytes(sampler_file(weights, world), world, out)
+
+
+def write_sampler_bytes(data: bytes, world: str | os.PathLike, out: str | os.PathLike) -> str:
+    """Writes a sampler file's bytes ``data`` to ``out``, atomically, and returns the fingerprint
+    of ``world``, the world they were written for."""
     with atomic_write(out) as f:
         f.write(data)
     return world_fingerprint(world)

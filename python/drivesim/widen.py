@@ -33,8 +33,8 @@ import tempfile
 import numpy as np
 
 from . import episodes as episodes_io
-from ._drivesim import Model, Simulator, sampler_file, world_fingerprint
-from ._files import atomic_write
+from ._drivesim import Model, Simulator, sampler_file
+from .sampler import write_sampler_bytes
 
 __all__ = ["mean_code", "widened_sampler", "write_widened"]
 
@@ -59,27 +59,29 @@ def mean_code(world: str | os.PathLike, about: str | os.PathLike) -> np.ndarray:
 
 def widened_sampler(sampler: str | os.PathLike, world: str | os.PathLike, centre: np.ndarray, by: float) -> bytes:
     """The bytes of a sampler file with ``sampler``'s texture net and the read-out of ``world``
-    widened by ``by`` about ``centre`` (ValueError for a sampler of another world, a ``by`` that is
-    not a positive finite number, or a centre of another size)."""
-    from safetensors.numpy import load_file, save_file
+    widened by ``by`` about ``centre``, in the world's dtype (ValueError for a sampler of another
+    world, a ``by`` that is not a positive finite number, a centre of another size, or a bf16
+    world, which numpy cannot hold)."""
     from safetensors import safe_open
+    from safetensors.numpy import load_file, save_file
 
     if not (isinstance(by, (int, float)) and math.isfinite(by) and by > 0):
         raise ValueError(f"by: expected a positive finite number, got {by!r}")
     Model.load(world, sampler=sampler)  # the crate's checks: a sampler, and learnt for this world
-    tensors = load_file(os.fspath(world))
-    read_out = {name: tensors[name].astype(np.float64) for name in ("transition.A", "transition.a")}
-    if np.shape(centre) != read_out["transition.a"].shape or not np.all(np.isfinite(centre)):
-        raise ValueError(f"centre: expected {read_out['transition.a'].shape[0]} finite values")
-    own = load_file(os.fspath(sampler))
-    dtype = next(iter(own.values())).dtype  # a sampler file has one dtype; the read-out takes it
-    tensors.update(own)
-    tensors["transition.A"] = (by * read_out["transition.A"]).astype(dtype)
-    tensors["transition.a"] = (by * read_out["transition.a"] + (1.0 - by) * np.asarray(centre)).astype(dtype)
-    tensors = {name: t.astype(dtype) for name, t in tensors.items()}  # one dtype in the file
+    try:
+        tensors, own = load_file(os.fspath(world)), load_file(os.fspath(sampler))
+    except TypeError as e:  # safetensors' numpy side has no bfloat16
+        raise ValueError(f"{world} or {sampler}: {e}") from e
+    big_a, small_a = (tensors[name].astype(np.float64) for name in ("transition.A", "transition.a"))
+    if np.shape(centre) != small_a.shape or not np.all(np.isfinite(centre)):
+        raise ValueError(f"centre: expected {small_a.shape[0]} finite values")
+    dtype = tensors["transition.a"].dtype  # a weight file has one dtype; the sampler file takes it
+    tensors.update({name: t.astype(dtype) for name, t in own.items()})
+    tensors["transition.A"] = (by * big_a).astype(dtype)
+    tensors["transition.a"] = (by * small_a + (1.0 - by) * np.asarray(centre, np.float64)).astype(dtype)
     with safe_open(os.fspath(world), "np") as f:
         metadata = f.metadata()
-    with tempfile.TemporaryDirectory() as folder:
+    with tempfile.TemporaryDirectory() as folder:  # the crate writes the sampler file from a whole world
         whole = os.path.join(folder, "widened.safetensors")
         save_file(tensors, whole, metadata=metadata)
         return sampler_file(whole, world)
@@ -88,10 +90,7 @@ def widened_sampler(sampler: str | os.PathLike, world: str | os.PathLike, centre
 def write_widened(sampler, world, about, by: float, out) -> str:
     """Writes ``widened_sampler`` about ``about``'s mean code to ``out``, atomically, and returns
     the world's fingerprint."""
-    data = widened_sampler(sampler, world, mean_code(world, about), by)
-    with atomic_write(out) as f:
-        f.write(data)
-    return world_fingerprint(world)
+    return write_sampler_bytes(widened_sampler(sampler, world, mean_code(world, about), by), world, out)
 
 
 def main(argv=None) -> int:
