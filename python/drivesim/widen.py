@@ -16,7 +16,7 @@ it; ``BY`` 1 gives the sampler's own read-out back. The built-in judge is the sh
 ``judge.safetensors`` widened so (``Model.judge()``)::
 
     python -m drivesim widen weights/judge.safetensors --world weights/default.safetensors \\
-        --about fh.safetensors.gz --by 1.05 --out judge.safetensors
+        --about fh.safetensors.gz --by 1.03 --out judge.safetensors
 
 >>> import drivesim
 >>> drivesim.Model.judge().texture_width

@@ -86,7 +86,7 @@ FAMILIES = {**PROBE_FAMILIES, "learnt": failures.training_family()}
 # (hotter futures take a car with a steady pull off the road sooner than the real one leaves), and
 # its figures are the means of 16 futures (with 4 a driver's dreamt off-road share still moves by
 # 0.05 from one draw to another).
-JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.8, 0.5), 0.7, 16
+JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.8, 0.3), 0.7, 16
 
 
 def dream_settings(args, own: dict) -> None:
