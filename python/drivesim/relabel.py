@@ -24,6 +24,7 @@ import sys
 import numpy as np
 
 from . import _checks, episodes
+from ._batches import batched
 from ._drivesim import Model, Simulator
 
 
@@ -39,7 +40,7 @@ def labels(teacher: Model, data: episodes.Episodes, threads: int = 1, batch: int
         raise ValueError("the teacher has no pace head (pace.* tensors) to label with")
     threads, batch = _checks.integer("threads", threads, 1), _checks.integer("batch", batch, 1)
     encoder = Simulator(teacher, batch=batch, threads=threads)
-    z = np.concatenate([encoder.encode(data.frames[i:i + batch]) for i in range(0, len(data.frames), batch)])
+    z = batched(encoder.encode, data.frames, batch)
     out = np.zeros((len(z), 2), np.float32)
     step = Simulator(teacher, batch=1)
     for start, end in data.bounds():

@@ -16,6 +16,7 @@ import os
 import numpy as np
 
 from . import _checks
+from ._batches import batched
 
 # Rows of each band in an 80-row frame (near to far) and the car's column.
 BANDS = ((50, 60), (36, 46), (22, 32))
@@ -156,8 +157,7 @@ def samples(sim, episodes, dream_steps: int = 8, every: int = 4, seeds: int = 5,
     rng = rng or np.random.default_rng(0)
     codes, figures = [], []
     for frames, actions in episodes:
-        for i in range(0, len(frames), sim.batch):
-            codes.append(sim.encode(frames[i : i + sim.batch]))
+        codes.append(batched(sim.encode, frames, sim.batch))
         figures.append(measure(frames))
         for t in range(seeds, len(frames) - dream_steps - seeds, every):
             plan = actions[t - seeds : t - 1 + dream_steps].copy()

@@ -101,7 +101,7 @@ def main(argv=None) -> int:
     p.add_argument("sampler", help="a sampler file learnt for the world (e.g. weights/judge.safetensors)")
     p.add_argument("--world", required=True, help="the world's weight file (e.g. weights/default.safetensors)")
     p.add_argument("--about", required=True, help="an episodes file: its mean code is the centre")
-    p.add_argument("--by", type=float, required=True, help="how much wider, e.g. 1.05")
+    p.add_argument("--by", type=float, required=True, help="how much wider: 1.03 for the judge, 1 the world's own")
     p.add_argument("--out", required=True, help="the sampler file to write (.safetensors)")
     args = p.parse_args(argv)
     if not (math.isfinite(args.by) and args.by > 0):

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import episodes
+from .._batches import batched
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from ..cmaes import CMAES
@@ -53,8 +54,7 @@ def real_states(world: Model, path, threads: int, batch: int = 64) -> dict:
     with the recorded actions (from zeros at the episode's start), and the recorded speed."""
     data = episodes.read(path)
     sim = Simulator(world, batch=batch, threads=threads)
-    codes = np.concatenate([sim.encode(data.frames[i:i + batch]).reshape(-1, world.z_dim)
-                            for i in range(0, len(data.frames), batch)])
+    codes = batched(sim.encode, data.frames, batch).reshape(-1, world.z_dim)
     step = Simulator(world, batch=1, threads=1)
     on_road = data.rewards["on_road"] if data.rewards is not None else np.ones(len(data.frames), np.uint8)
     z, h, speed = [], [], []

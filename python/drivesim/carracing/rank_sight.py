@@ -37,6 +37,7 @@ import sys
 import numpy as np
 
 from .. import road
+from .._batches import batched
 from .._drivesim import Simulator
 from .._files import atomic_write
 from . import rank, rank_dream, rank_real
@@ -89,13 +90,6 @@ def head_on_frames(world: Simulator, frames: np.ndarray, inputs: np.ndarray, h: 
     for t in range(len(frames) - 1):
         states.append(world.transition(codes[t:t + 1], states[-1], np.ascontiguousarray(inputs[t:t + 1], np.float32))[1])
     return batched(lambda z, h: world.reward(z, h)[:, 1], codes, world.batch, np.concatenate(states))
-
-
-def batched(step, rows: np.ndarray, batch: int, *more: np.ndarray) -> np.ndarray:
-    """``step`` (a simulator's `encode`, `generate`, `reward`, ...) on ``rows`` and the ``more``
-    arrays beside them, ``batch`` rows at a time: a simulator takes no more than it was planned for."""
-    return np.concatenate([step(*(np.ascontiguousarray(x[a:a + batch]) for x in (rows, *more)))
-                           for a in range(0, len(rows), batch)])
 
 
 def real_windows(drive: dict, seed: int, index: int, args, world: Simulator, starts: dict) -> np.ndarray:

@@ -33,10 +33,11 @@ import sys
 import numpy as np
 
 from .. import episodes
+from .._batches import batched
 from .._drivesim import Simulator
 from .._files import atomic_write
 from . import rank, rank_dream
-from .rank_sight import across, batched
+from .rank_sight import across
 
 # Real frames seed each dream, as the transition's training windows (sequences.TEACHER).
 SEEDS = 5
