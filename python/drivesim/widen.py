@@ -1,8 +1,8 @@
 """A sampler whose read-out is widened: the world's mean code spread further about a centre.
 
 A transition trained on squared error predicts the mean of the next code, and a mean is
-narrower than the codes it averages: dreamt from a drive's own states, the default's codes
-spread 0.6 times as far as the real ones about their mean. A driver reads less of a car's place
+narrower than the codes it averages: dreamt from a drive's own states through the judge's
+sampler as it was, the default's codes spread 0.6 times as far as the real ones about their mean. A driver reads less of a car's place
 across the road off a narrow code, so it corrects a steady pull less in the dream than on the
 road, and the pull rests further out (docs/history/widened.md). ``widen`` writes a sampler
 file (``drivesim.sampler``) that keeps a sampler's texture net and carries a read-out of its own,
