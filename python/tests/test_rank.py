@@ -210,13 +210,16 @@ def test_a_small_family_end_to_end_and_resumed_after_a_kill(tmp_path):
     assert judged["per_track"]["dream"] != own["per_track"]["dream"]
     # The judge dreams with its own settings unless told otherwise.
     assert judged["world_steering"] == list(rank.JUDGE_STEERING) != [1.0, 0.0] and own["world_steering"] == [1.0, 0.0]
-    assert (judged["temperature"], judged["futures"]) == (rank.JUDGE_TEMPERATURE, rank.JUDGE_FUTURES) != (1.2, 1)
-    assert (own["temperature"], own["futures"]) == (1.2, 1)
+    assert (judged["temperature"], judged["futures"], judged["off_road_read"]) \
+        == (rank.JUDGE_TEMPERATURE, rank.JUDGE_FUTURES, rank.JUDGE_OFF_ROAD_READ) != (1.2, 1, "mean")
+    assert (own["temperature"], own["futures"], own["off_road_read"]) == (1.2, 1, "mean")
     subprocess.run(_probe(whole, "--temperature", "1.2", "--judge", "--world-steering", "1", "--futures", "1",
-                          "--report", "plain.json"), check=True, capture_output=True, timeout=600)
+                          "--off-road-read", "mean", "--report", "plain.json"), check=True, capture_output=True,
+                   timeout=600)
     with open(whole / "plain.json") as f:
         plain = json.load(f)
-    assert (plain["world_steering"], plain["temperature"], plain["futures"]) == ([1.0, 0.0], 1.2, 1)
+    assert (plain["world_steering"], plain["temperature"], plain["futures"], plain["off_road_read"]) \
+        == ([1.0, 0.0], 1.2, 1, "mean")
     assert plain["per_track"]["dream"] != judged["per_track"]["dream"]
 
     # Killed once the first drives are kept, then run again: the same report.

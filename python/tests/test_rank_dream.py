@@ -117,7 +117,7 @@ def test_several_futures_are_the_mean_of_their_dreams_and_their_spread():
         sim.set_sampling(1.0, future)
         each.append(rank_dream.dream(sim, sim, family, starts, 6, 5, False))
     args = SimpleNamespace(futures=3, temperature=1.0, horizon=6, value=False, world_steering=(1.0, 0.0),
-                           through_frames=False)
+                           through_frames=False, off_road_read="mean")
     got = rank_dream.dream_futures(sim, sim, family, starts, args, 5)
     assert sim.sampling == (1.0, 0)
     for key in ("return", "rewards", "off_road", "off_steps"):
@@ -130,6 +130,34 @@ def test_several_futures_are_the_mean_of_their_dreams_and_their_spread():
     one = rank_dream.dream_futures(sim, sim, family, starts, args, 5)
     np.testing.assert_array_equal(one["return"], each[0]["return"])
     assert not one["spread"].any()
+
+
+def test_the_off_road_share_read_as_the_middle_half_of_the_futures():
+    """``--off-road-read midmean``: each start's off-road share is the mean of its futures' middle
+    half, each start apart (a split of four futures reads as its two middle ones); the other
+    figures stay the futures' means."""
+    import doctest
+    from types import SimpleNamespace
+
+    assert doctest.testmod(rank_dream).failed == 0
+    draws = np.array([[0.0, 0.9], [1.0, 0.1], [0.2, 0.5], [0.8, 0.3]])  # 4 futures of 2 starts
+    np.testing.assert_allclose(rank_dream.midmean(draws), [0.5, 0.4])
+    np.testing.assert_allclose(rank_dream.midmean(draws[:3]), draws[:3].mean(0))  # under 4: the mean
+    sim, starts = three_starts(4)
+    family = [FAMILY[0], Driver("b", bias=0.5)]
+    args = SimpleNamespace(futures=4, temperature=1.0, horizon=8, value=False, world_steering=(1.0, 0.0),
+                           through_frames=False, off_road_read="mean")
+    mean = rank_dream.dream_futures(sim, sim, family, starts, args, 5)
+    args.off_road_read = "midmean"
+    middle = rank_dream.dream_futures(sim, sim, family, starts, args, 5)
+    each = []
+    for future in range(4):
+        sim.set_sampling(1.0, future)
+        each.append(rank_dream.dream(sim, sim, family, starts, 8, 5, False)["off_road"])
+    np.testing.assert_allclose(middle["off_road"], np.sort(each, 0)[1:3].mean(0), rtol=1e-6)
+    assert not np.allclose(middle["off_road"], mean["off_road"])
+    for key in ("return", "rewards", "off_steps"):
+        np.testing.assert_array_equal(middle[key], mean[key])
 
 
 def test_the_worlds_steering_shaped_is_its_steering_column_scaled(tmp_path):

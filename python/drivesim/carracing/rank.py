@@ -28,6 +28,8 @@ bent each way as the real ones).
 ``--futures N`` (with ``--temperature``) draws N futures from each start: the dream's figures are
 their means, and each driver's spread over them is reported beside them, with its correlation over
 the family with the dream's error in ranks (does the dream doubt where it is wrong?).
+``--off-road-read midmean`` reads a start's off-road share as the mean of the middle half of its
+futures' shares, not of them all.
 ``--world-steering GAIN,LEAD`` steps the world with each steering s as ``GAIN * s + LEAD * (s - the
 decision before's s)``, held at full lock (±1), the drivers' memory with s: a diagnostic of the
 world's steering answer.
@@ -37,8 +39,8 @@ world's steering answer.
 ``--weights`` and step its transition for their own memory): a world model is judged without
 changing the drivers. ``--judge`` draws the world's futures through the built-in judge's sampler
 (`Model.judge`, learnt for the default's world) with its settings, `JUDGE_STEERING`,
-`JUDGE_TEMPERATURE` and `JUDGE_FUTURES`, unless ``--world-steering``, ``--temperature`` or
-``--futures`` say otherwise (docs/judging.md).
+`JUDGE_TEMPERATURE`, `JUDGE_FUTURES` and `JUDGE_OFF_ROAD_READ`, unless ``--world-steering``,
+``--temperature``, ``--futures`` or ``--off-road-read`` say otherwise (docs/judging.md).
 ``--out`` keeps every real drive (``real/DRIVER_SEED.json``, another ``--family``'s with its name
 first; the behaviour drive in ``drive_SEED.npz``): a run that stops resumes where it was, and another
 ``--world`` or ``--horizon`` reuses the real drives; the report goes to ``rank.json`` (``--report``:
@@ -68,7 +70,7 @@ from .._files import atomic_write
 from .agents import ClonedAgent
 from .family import CHECK, CLIFF, FAMILIES as PROBE_FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Driver
 from . import failures, rank_real
-from .rank_dream import dream_futures, open_loop, start_decisions, starts_of
+from .rank_dream import OFF_ROAD_READS, dream_futures, open_loop, start_decisions, starts_of
 from .rank_figures import bend_sums, leaving, leaving_counts, made_up_roads, print_report, road_memory, summary
 from .view import parse_seeds
 
@@ -85,14 +87,18 @@ FAMILIES = {**PROBE_FAMILIES, "learnt": failures.training_family()}
 # tracks too, with the judge's widened read-out: docs/history/widened.md), at a temperature below 1
 # (hotter futures take a car with a steady pull off the road sooner than the real one leaves), and
 # its figures are the means of 16 futures (with 4 a driver's dreamt off-road share still moves by
-# 0.05 from one draw to another).
-JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES = (1.8, 0.3), 0.7, 16
+# 0.05 from one draw to another), but for a start's off-road share, the mean of their middle half
+# (`rank_dream.OFF_ROAD_READS`: the mean of futures that split flattens the dream's cliff for
+# steady pulls; docs/history/midmean.md).
+JUDGE_STEERING, JUDGE_TEMPERATURE, JUDGE_FUTURES, JUDGE_OFF_ROAD_READ = (1.8, 0.3), 0.7, 16, "midmean"
 
 
 def dream_settings(args, own: dict) -> None:
     """Sets each of the dream's settings ``own`` names (``world_steering``, ``temperature``,
-    ``futures``) that the command line left unset: the judge's with ``--judge``, else ``own``'s."""
-    judge = {"world_steering": JUDGE_STEERING, "temperature": JUDGE_TEMPERATURE, "futures": JUDGE_FUTURES}
+    ``futures``, ``off_road_read``) that the command line left unset: the judge's with ``--judge``,
+    else ``own``'s."""
+    judge = {"world_steering": JUDGE_STEERING, "temperature": JUDGE_TEMPERATURE, "futures": JUDGE_FUTURES,
+             "off_road_read": JUDGE_OFF_ROAD_READ}
     for name, value in own.items():
         if getattr(args, name, None) is None:
             setattr(args, name, judge[name] if args.judge else value)
@@ -187,7 +193,7 @@ def report(args, results: list, windowed: list) -> dict:
         out["road_memory"] = road_memory(steer_dreamt, steer_real)
         out["made_up_roads"] = made_up_roads(steer_dreamt, steer_real)
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
-               futures=args.futures, world_steering=list(args.world_steering), value=args.value,
+               futures=args.futures, off_road_read=args.off_road_read, world_steering=list(args.world_steering), value=args.value,
                through_frames=args.through_frames, frames=args.frames, weights=args.weights, world=args.world, judge=args.judge,
                dream_decisions_per_second=len(family) * args.starts * args.horizon * len(seeds) * args.futures / seconds,
                per_track={"real": real_score.tolist(), "dream": dream_return.tolist()})
@@ -236,6 +242,9 @@ def main(argv=None) -> int:
     p.add_argument("--futures", type=int,
                    help="sampled futures from each start (with --temperature): the dream's figures their means, "
                         "and each driver's spread over them reported (default 1; with --judge JUDGE_FUTURES)")
+    p.add_argument("--off-road-read", choices=list(OFF_ROAD_READS),
+                   help="a start's off-road share from its futures: their mean, or the mean of their middle half "
+                        "(default mean; with --judge JUDGE_OFF_ROAD_READ)")
     p.add_argument("--value", action="store_true", help="add the value head at the horizon")
     p.add_argument("--through-frames", action="store_true",
                    help="the drivers read the dream's frames through their encoder (as a real drive), not its codes")
@@ -246,7 +255,7 @@ def main(argv=None) -> int:
                    help="also drive every driver in the real env from the dream's starts, --horizon decisions")
     p.add_argument("--report", default="rank.json", help="the report's file name in --out")
     args = p.parse_args(argv)
-    dream_settings(args, {"world_steering": (1.0, 0.0), "temperature": 0.0, "futures": 1})
+    dream_settings(args, {"world_steering": (1.0, 0.0), "temperature": 0.0, "futures": 1, "off_road_read": "mean"})
     if min(args.horizon, args.starts, args.frames, args.workers, args.threads, args.futures) < 1 \
             or not args.temperature >= 0:
         p.error("--horizon, --starts, --frames, --workers, --threads and --futures must be positive, --temperature >= 0")

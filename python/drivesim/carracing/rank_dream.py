@@ -148,10 +148,30 @@ def open_loop(world: Simulator, starts: dict, actions: np.ndarray, shaping: tupl
     return off.reshape(n, k, horizon)
 
 
+def midmean(draws: np.ndarray) -> np.ndarray:
+    """The interquartile mean over the first axis: the mean of the middle half of the draws, a
+    quarter of them (rounded down) left off each end; with fewer than 4, their mean.
+
+    >>> float(midmean(np.array([0.0, 0.1, 0.2, 0.3, 0.7, 0.8, 0.9, 1.0])))
+    0.5
+    >>> float(midmean(np.array([0.0, 0.0, 0.0, 1.0])))
+    0.0
+    """
+    cut = len(draws) // 4
+    return np.sort(draws, 0)[cut:len(draws) - cut].mean(0)
+
+
+#: How a start's off-road share is read from its futures (``--off-road-read``): their mean, or the
+#: mean of their middle half. Near the cliff where a steady pull lets go, a start's futures split
+#: into cars that stay on and cars that leave, and their mean flattens the cliff: the dream is
+#: over for pulls just short of it and under for those past it (docs/history/midmean.md).
+OFF_ROAD_READS = {"mean": lambda draws: draws.mean(0), "midmean": midmean}
+
+
 def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dict, args, seed: int) -> dict:
     """`dream` ``args.futures`` times from the same starts, the world sampling with seeds 0, 1, ...
-    (the first future is the one a run with one draws): the means of its figures over the futures,
-    the first future's ``steer``, and ``spread`` ``(3, drivers)``, the standard deviation over the
+    (the first future is the one a run with one draws): the means of its figures over the futures
+    (``off_road`` read by ``args.off_road_read``, `OFF_ROAD_READS`), the first future's ``steer``, and ``spread`` ``(3, drivers)``, the standard deviation over the
     futures of a start's return, its rewards (without the value) and its off-road chance,
     averaged over the starts, and ``leaving``, each future's `rank_figures.leaving_counts` summed."""
     drawn = []
@@ -162,7 +182,8 @@ def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dic
                            args.through_frames))
     if args.temperature > 0:
         world.set_sampling(args.temperature, 0)  # the open loop draws as a run with one future
-    out = {key: np.mean([d[key] for d in drawn], 0) for key in ("return", "rewards", "off_road", "off_steps")}
+    out = {key: np.mean([d[key] for d in drawn], 0) for key in ("return", "rewards", "off_steps")}
+    out["off_road"] = OFF_ROAD_READS[args.off_road_read](np.array([d["off_road"] for d in drawn]))
     out["steer"] = drawn[0]["steer"]
     out["leaving"] = sum(leaving_counts(d["off_steps"]) for d in drawn)
     out["spread"] = np.stack([np.std([d[key] for d in drawn], 0).mean(1) for key in ("return", "rewards", "off_road")])
