@@ -193,7 +193,8 @@ def report(args, results: list, windowed: list) -> dict:
         out["road_memory"] = road_memory(steer_dreamt, steer_real)
         out["made_up_roads"] = made_up_roads(steer_dreamt, steer_real)
     out.update(seeds=seeds, horizon=args.horizon, starts=args.starts, temperature=args.temperature,
-               futures=args.futures, off_road_read=args.off_road_read, world_steering=list(args.world_steering), value=args.value,
+               futures=args.futures, off_road_read=args.off_road_read, world_steering=list(args.world_steering),
+               value=args.value,
                through_frames=args.through_frames, frames=args.frames, weights=args.weights, world=args.world, judge=args.judge,
                dream_decisions_per_second=len(family) * args.starts * args.horizon * len(seeds) * args.futures / seconds,
                per_track={"real": real_score.tolist(), "dream": dream_return.tolist()})
