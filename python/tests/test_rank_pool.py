@@ -13,11 +13,12 @@ from drivesim.carracing.family import Driver
 FAMILY = [Driver("clone"), Driver("bias +0.2", bias=0.2)]
 
 
-def write_report(path, seeds, real_off, dream_off, family=FAMILY):
-    """A rank report as `rank` writes it, from ``(drivers, tracks)`` shares (windows and whole drives alike)."""
+def write_report(path, seeds, real_off, dream_off, family=FAMILY, **settings):
+    """A rank report as `rank` writes it, from ``(drivers, tracks)`` shares (windows and whole drives
+    alike), with the dream's ``settings``."""
     scores = np.tile(np.arange(len(family), 0, -1.0)[:, None], len(seeds))
     figures = rank_figures.summary(family, scores, np.asarray(real_off), scores, np.asarray(dream_off))
-    path.write_text(json.dumps({**figures, "seeds": list(seeds), "windows": figures}))
+    path.write_text(json.dumps({**figures, "seeds": list(seeds), "windows": figures, **settings}))
     return str(path)
 
 
@@ -75,6 +76,23 @@ def test_reports_that_cannot_be_pooled_are_refused_with_their_names(tmp_path, ca
         assert e.value.code == 2 and path in capsys.readouterr().err
     with pytest.raises(ValueError, match="no whole drives"):
         rank_pool.pooled([str(tmp_path / "list.json")], whole=True)
+
+
+def test_reports_dreamt_otherwise_are_not_pooled(tmp_path):
+    """The same real drives read with another dream's settings (here: the futures' middle half, or
+    another temperature) are refused; a report made before `rank` wrote the read is the mean's."""
+    real = np.zeros((2, 2))
+    judged = dict(judge=True, temperature=0.7, futures=16)
+    mean = write_report(tmp_path / "mean.json", [1, 2], real, real, **judged, off_road_read="mean")
+    before = write_report(tmp_path / "before.json", [3, 4], real, real, **judged)
+    middle = write_report(tmp_path / "middle.json", [5, 6], real, real, **judged, off_road_read="midmean")
+    colder = write_report(tmp_path / "colder.json", [7, 8], real, real, **{**judged, "temperature": 0.5})
+    assert rank_pool.pooled([mean, before])["tracks"] == 4
+    with pytest.raises(ValueError, match=r"middle.json: dreamt otherwise than .*mean.json "
+                                         r"\(off_road_read 'midmean', not 'mean'\)"):
+        rank_pool.pooled([mean, middle])
+    with pytest.raises(ValueError, match=r"temperature 0.5, not 0.7"):
+        rank_pool.pooled([before, colder])
 
 
 def test_the_command_prints_and_writes_the_pooled_figures(tmp_path, capsys):

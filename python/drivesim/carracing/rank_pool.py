@@ -8,7 +8,8 @@ gap just past the issue's 0.1 from one at it (docs/history/gap_error.md).
 The windows' figures are pooled (``--whole``: the whole drives'): each report's per-track shares
 (``off_road_per_track``) are put side by side, the gap's standard error paired by track as `rank`
 reports it (`rank_figures.off_road_gaps`). The reports must name the same drivers in the same
-order, and no track may be in two of them (it would count twice).
+order, be dreamt alike (`DREAMT_ALIKE`: the same drivers' weights, world, judge, futures and how
+their off-road shares are read), and no track may be in two of them (it would count twice).
 """
 
 from __future__ import annotations
@@ -23,10 +24,22 @@ from .._files import atomic_write
 from .rank_figures import SHARE_GAP, off_road_gaps
 
 
-def read_report(path: str, whole: bool) -> tuple[list, list, np.ndarray, np.ndarray]:
-    """The drivers' names, the tracks, and the real and dreamt off-road shares ``(drivers, tracks)``
-    of the rank report ``path`` (its windows' figures, or with ``whole`` its whole drives');
-    ValueError naming what is wrong."""
+#: The settings of a rank report that change its shares: reports pooled must agree on each (a
+#: report made before `rank` wrote ``off_road_read`` read its futures' mean).
+DREAMT_ALIKE = {"weights": None, "world": None, "judge": None, "horizon": None, "starts": None, "frames": None,
+                "temperature": None, "futures": None, "off_road_read": "mean", "world_steering": None,
+                "through_frames": None}
+
+
+def dream_settings(report: dict) -> dict:
+    """The `DREAMT_ALIKE` settings of a rank report, those it lacks at their defaults."""
+    return {key: report.get(key, default) for key, default in DREAMT_ALIKE.items()}
+
+
+def read_report(path: str, whole: bool) -> tuple[list, list, np.ndarray, np.ndarray, dict]:
+    """The drivers' names, the tracks, the real and dreamt off-road shares ``(drivers, tracks)``
+    of the rank report ``path`` (its windows' figures, or with ``whole`` its whole drives') and its
+    `dream_settings`; ValueError naming what is wrong."""
     try:
         with open(path, encoding="utf-8") as f:
             report = json.load(f)
@@ -48,18 +61,20 @@ def read_report(path: str, whole: bool) -> tuple[list, list, np.ndarray, np.ndar
         raise ValueError(f"{path}: it names no tracks")
     if any(s.shape != (len(names), len(tracks)) or not np.isfinite(s).all() for s in shares):
         raise ValueError(f"{path}: its shares are not one finite number for each driver and track")
-    return names, tracks, shares[0], shares[1]
+    return names, tracks, shares[0], shares[1], dream_settings(report)
 
 
 def pooled(paths: list, whole: bool = False) -> dict:
     """The pooled figures of the reports ``paths``: each driver's real and dreamt share, its gap
     and the gap's standard error over all their tracks, ``within`` (gaps within ``SHARE_GAP``) and
     ``shown_outside`` (beyond it by more than two standard errors)."""
-    names, tracks, real, dream = read_report(paths[0], whole)
+    names, tracks, real, dream, settings = read_report(paths[0], whole)
     for path in paths[1:]:
-        other, more, r, d = read_report(path, whole)
+        other, more, r, d, its = read_report(path, whole)
         if other != names:
             raise ValueError(f"{path}: another family's drivers than {paths[0]}'s")
+        for key in (key for key in DREAMT_ALIKE if its[key] != settings[key]):
+            raise ValueError(f"{path}: dreamt otherwise than {paths[0]} ({key} {its[key]!r}, not {settings[key]!r})")
         if set(more) & set(tracks):
             raise ValueError(f"{path}: tracks {sorted(set(more) & set(tracks))} are in another report too")
         tracks, real, dream = tracks + more, np.concatenate([real, r], 1), np.concatenate([dream, d], 1)
