@@ -31,7 +31,7 @@ DREAMT_ALIKE = {"weights": None, "world": None, "judge": None, "horizon": None, 
                 "through_frames": None}
 
 
-def dream_settings(report: dict) -> dict:
+def settings_of(report: dict) -> dict:
     """The `DREAMT_ALIKE` settings of a rank report, those it lacks at their defaults."""
     return {key: report.get(key, default) for key, default in DREAMT_ALIKE.items()}
 
@@ -39,7 +39,7 @@ def dream_settings(report: dict) -> dict:
 def read_report(path: str, whole: bool) -> tuple[list, list, np.ndarray, np.ndarray, dict]:
     """The drivers' names, the tracks, the real and dreamt off-road shares ``(drivers, tracks)``
     of the rank report ``path`` (its windows' figures, or with ``whole`` its whole drives') and its
-    `dream_settings`; ValueError naming what is wrong."""
+    `settings_of`; ValueError naming what is wrong."""
     try:
         with open(path, encoding="utf-8") as f:
             report = json.load(f)
@@ -61,7 +61,7 @@ def read_report(path: str, whole: bool) -> tuple[list, list, np.ndarray, np.ndar
         raise ValueError(f"{path}: it names no tracks")
     if any(s.shape != (len(names), len(tracks)) or not np.isfinite(s).all() for s in shares):
         raise ValueError(f"{path}: its shares are not one finite number for each driver and track")
-    return names, tracks, shares[0], shares[1], dream_settings(report)
+    return names, tracks, shares[0], shares[1], settings_of(report)
 
 
 def pooled(paths: list, whole: bool = False) -> dict:
@@ -73,7 +73,9 @@ def pooled(paths: list, whole: bool = False) -> dict:
         other, more, r, d, its = read_report(path, whole)
         if other != names:
             raise ValueError(f"{path}: another family's drivers than {paths[0]}'s")
-        for key in (key for key in DREAMT_ALIKE if its[key] != settings[key]):
+        differ = [key for key in DREAMT_ALIKE if its[key] != settings[key]]
+        if differ:
+            key = differ[0]
             raise ValueError(f"{path}: dreamt otherwise than {paths[0]} ({key} {its[key]!r}, not {settings[key]!r})")
         if set(more) & set(tracks):
             raise ValueError(f"{path}: tracks {sorted(set(more) & set(tracks))} are in another report too")
