@@ -20,6 +20,16 @@ def test_rows_and_the_arrays_beside_them_go_a_batch_at_a_time_in_order():
     assert np.array_equal(out, rows[:, 1:] + beside[:, None])
 
 
+def test_no_rows_are_handed_to_the_step_for_its_own_error():
+    import pytest
+
+    def step(a):
+        raise ValueError(f"frames: empty (shape {a.shape})")
+
+    with pytest.raises(ValueError, match=r"frames: empty \(shape \(0, 3\)\)"):
+        batched(step, np.zeros((0, 3)), 4)
+
+
 def test_the_module_docstring_runs():
     import doctest
 
