@@ -134,8 +134,8 @@ def test_several_futures_are_the_mean_of_their_dreams_and_their_spread():
 
 def test_the_off_road_share_read_as_the_middle_half_of_the_futures():
     """``--off-road-read midmean``: each start's off-road share is the mean of its futures' middle
-    half, each start apart (a split of four futures reads as its two middle ones); the other
-    figures stay the futures' means."""
+    half, each start apart (a split of four futures reads as its two middle ones), and so is each
+    decision's chance (the report's table by decision); the returns stay the futures' means."""
     import doctest
     from types import SimpleNamespace
 
@@ -153,10 +153,13 @@ def test_the_off_road_share_read_as_the_middle_half_of_the_futures():
     each = []
     for future in range(4):
         sim.set_sampling(1.0, future)
-        each.append(rank_dream.dream(sim, sim, family, starts, 8, 5, False)["off_road"])
-    np.testing.assert_allclose(middle["off_road"], np.sort(each, 0)[1:3].mean(0), rtol=1e-6)
-    assert not np.allclose(middle["off_road"], mean["off_road"])
-    for key in ("return", "rewards", "off_steps"):
+        each.append(rank_dream.dream(sim, sim, family, starts, 8, 5, False))
+    for key in ("off_road", "off_steps"):  # the share and each decision's chance, read alike
+        draws = np.array([d[key] for d in each])
+        np.testing.assert_allclose(middle[key], np.sort(draws, 0)[1:3].mean(0), rtol=1e-6)
+        np.testing.assert_allclose(mean[key], draws.mean(0), rtol=1e-6)
+        assert not np.allclose(middle[key], mean[key])
+    for key in ("return", "rewards"):
         np.testing.assert_array_equal(middle[key], mean[key])
 
 

@@ -29,7 +29,7 @@ bent each way as the real ones).
 their means, and each driver's spread over them is reported beside them, with its correlation over
 the family with the dream's error in ranks (does the dream doubt where it is wrong?).
 ``--off-road-read midmean`` reads a start's off-road share as the mean of the middle half of its
-futures' shares, not of them all.
+futures' shares, not of them all (and each decision's chance in the table by decision alike).
 ``--world-steering GAIN,LEAD`` steps the world with each steering s as ``GAIN * s + LEAD * (s - the
 decision before's s)``, held at full lock (±1), the drivers' memory with s: a diagnostic of the
 world's steering answer.

@@ -171,7 +171,7 @@ OFF_ROAD_READS = {"mean": lambda draws: draws.mean(0), "midmean": midmean}
 def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dict, args, seed: int) -> dict:
     """`dream` ``args.futures`` times from the same starts, the world sampling with seeds 0, 1, ...
     (the first future is the one a run with one draws): the means of its figures over the futures
-    (``off_road`` read by ``args.off_road_read``, `OFF_ROAD_READS`), the first future's ``steer``,
+    (``off_road`` and ``off_steps`` read by ``args.off_road_read``, `OFF_ROAD_READS`), the first future's ``steer``,
     and ``spread`` ``(3, drivers)``, the standard deviation over the futures of a start's return,
     its rewards (without the value) and its off-road chance, averaged over the starts, and
     ``leaving``, each future's `rank_figures.leaving_counts` summed."""
@@ -183,8 +183,9 @@ def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dic
                            args.through_frames))
     if args.temperature > 0:
         world.set_sampling(args.temperature, 0)  # the open loop draws as a run with one future
-    out = {key: np.mean([d[key] for d in drawn], 0) for key in ("return", "rewards", "off_steps")}
-    out["off_road"] = OFF_ROAD_READS[args.off_road_read](np.array([d["off_road"] for d in drawn]))
+    out = {key: np.mean([d[key] for d in drawn], 0) for key in ("return", "rewards")}
+    for key in ("off_road", "off_steps"):  # each decision's chance too, so the table agrees with the share
+        out[key] = OFF_ROAD_READS[args.off_road_read](np.array([d[key] for d in drawn]))
     out["steer"] = drawn[0]["steer"]
     out["leaving"] = sum(leaving_counts(d["off_steps"]) for d in drawn)
     out["spread"] = np.stack([np.std([d[key] for d in drawn], 0).mean(1) for key in ("return", "rewards", "off_road")])
