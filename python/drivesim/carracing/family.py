@@ -84,7 +84,10 @@ CHECK = [
 #: the road rises from about 0.1 to 0.7 between +0.2 and +0.25): the curve that reads a dreamt share
 #: as the pull that leaves the real road as often (``rank_figures.equivalent_pulls``).
 CLIFF = [FAMILY[0]] + [Driver(f"bias {b:+.3g}", bias=b) for b in (-0.25, -0.2, -0.15, 0.15, 0.175, 0.2, 0.225, 0.25)]
-FAMILIES = {"all": FAMILY, "small": SMALL, "holds": HOLDS, "check": CHECK, "cliff": CLIFF}
+#: The clone at target speeds from slower to far faster than it drives (``FAMILY`` goes to 1.3):
+#: does the dream take the car off the road where speed alone does (issue 58: "at every speed")?
+SPEEDS = [FAMILY[0]] + [Driver(f"speed {s:g}", speed=s) for s in (0.8, 1.15, 1.3, 1.45, 1.6, 1.8)]
+FAMILIES = {"all": FAMILY, "small": SMALL, "holds": HOLDS, "check": CHECK, "cliff": CLIFF, "speeds": SPEEDS}
 
 
 class Changes:

@@ -68,7 +68,7 @@ import numpy as np
 from .._drivesim import Model, Simulator
 from .._files import atomic_write
 from .agents import ClonedAgent
-from .family import CHECK, CLIFF, FAMILIES as PROBE_FAMILIES, FAMILY, HOLDS, SMALL, ChangedAgent, Driver
+from .family import CHECK, CLIFF, FAMILIES as PROBE_FAMILIES, FAMILY, HOLDS, SMALL, SPEEDS, ChangedAgent, Driver
 from . import failures, rank_real
 from .rank_dream import OFF_ROAD_READS, dream_futures, open_loop, start_decisions, starts_of
 from .rank_figures import bend_sums, leaving, leaving_counts, made_up_roads, print_report, road_memory, summary
@@ -234,7 +234,8 @@ def main(argv=None) -> int:
                         f"{len(HOLDS) - 1} constant steerings, hands off among them (with --windows --horizon 20); "
                         f"check: {len(CHECK)} other drivers, none of them another family's "
                         "(a second family, for a world tuned on all); cliff: the clone and "
-                        f"{len(CLIFF) - 1} steady pulls either side of where it lets go; learnt: the failure "
+                        f"{len(CLIFF) - 1} steady pulls either side of where it lets go; speeds: the clone and "
+                        f"{len(SPEEDS) - 1} target speeds up to {SPEEDS[-1].speed:g}x; learnt: the failure "
                         f"data's {len(FAMILIES['learnt'])} drivers, whose drives the judge learnt from")
     p.add_argument("--horizon", type=int, default=40, help="dream decisions from each start")
     p.add_argument("--starts", type=int, default=7, help="starts per track")
