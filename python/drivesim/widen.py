@@ -1,13 +1,13 @@
 """A sampler whose read-out is widened: the world's mean code spread further about a centre.
 
-A transition trained on squared error predicts the mean of the next code, and a mean is
-narrower than the codes it averages: dreamt from a drive's own states through the judge's
-sampler as it was, the default's codes spread 0.6 times as far as the real ones about their
-mean. A driver reads less of a car's place across the road off a narrow code, so it corrects a
-steady pull less in the dream than on the road, and the pull rests further out (docs/history/widened.md). ``widen`` writes a sampler
-file (``drivesim.sampler``) that keeps a sampler's texture net and carries a read-out of its own,
-the world's ``z' = A h' + a`` widened by ``BY`` about ``mu``, the mean code of recorded drives
-(their frames and mirror images, encoded by the world)::
+A transition trained on squared error predicts the mean of the next code, and a mean is narrower
+than the codes it averages: dreamt from a drive's own states through the judge's sampler as it
+was, the default's codes spread 0.6 times as far as the real ones about their mean. A driver
+reads less of a car's place across the road off a narrow code, so it corrects a steady pull less
+in the dream than on the road, and the pull rests further out (docs/history/widened.md).
+``widen`` writes a sampler file (``drivesim.sampler``) that keeps a sampler's texture net and
+carries a read-out of its own, the world's ``z' = A h' + a`` widened by ``BY`` about ``mu``, the
+mean code of recorded drives (their frames and mirror images, encoded by the world)::
 
     z' = mu + BY * (A h' + a - mu),  so  A' = BY * A,  a' = BY * a + (1 - BY) * mu
 

@@ -169,12 +169,12 @@ OFF_ROAD_READS = {"mean": lambda draws: draws.mean(0), "midmean": midmean}
 
 
 def dream_futures(driver: Simulator, world: Simulator, family: list, starts: dict, args, seed: int) -> dict:
-    """`dream` ``args.futures`` times from the same starts, the world sampling with seeds 0, 1, ...
-    (the first future is the one a run with one draws): the means of its figures over the futures
-    (``off_road`` and ``off_steps`` read by ``args.off_road_read``, `OFF_ROAD_READS`), the first future's ``steer``,
-    and ``spread`` ``(3, drivers)``, the standard deviation over the futures of a start's return,
-    its rewards (without the value) and its off-road chance, averaged over the starts, and
-    ``leaving``, each future's `rank_figures.leaving_counts` summed."""
+    """`dream` ``args.futures`` times from the same starts, the world sampling with seeds 0, 1, ... (the
+    first future is the one a run with one draws): the means of its figures over the futures
+    (``off_road`` and ``off_steps`` read by ``args.off_road_read``, `OFF_ROAD_READS`), the first
+    future's ``steer``, and ``spread`` ``(3, drivers)``, the standard deviation over the futures of
+    a start's return, its rewards (without the value) and its off-road chance, averaged over the
+    starts, and ``leaving``, each future's `rank_figures.leaving_counts` summed."""
     drawn = []
     for future in range(args.futures):
         if args.temperature > 0:
